@@ -1,0 +1,8 @@
+//! Subcommand implementations of the `rgbid` binary (one file each).
+
+pub mod bench;
+pub mod demo;
+pub mod eval;
+pub mod graph;
+pub mod odometry;
+pub mod synth;

@@ -1,0 +1,13 @@
+//! Shared GPU plumbing: the headless `wgpu` context, backend selection, shader assembly,
+//! buffer helpers and read-back.
+//!
+//! Kernels live in `shaders/*.wgsl` and are embedded at compile time. Each algorithm keeps its
+//! own host code next to it (`odometry/gpu.rs`); this module only holds what they share.
+//! Buffers are f32; reductions produce per-workgroup partial sums that the CPU finishes in f64.
+
+mod backend;
+mod context;
+pub mod shaders;
+
+pub use backend::{any_gpu, describe_adapters, select_backend, BackendChoice, ComputeBackend};
+pub use context::{GpuContext, GpuError};

@@ -1,0 +1,24 @@
+//! # rgbid
+//!
+//! GPU-portable implementations of the localisation and mapping systems of the thesis
+//! *Real-time Metric Localisation with Wearable Vision Systems* (Gutiérrez-Gómez, 2016):
+//! dense RGB-D odometry with inverse depth, and, as they land, RGB-ID SLAM, pose-graph and
+//! curve-graph optimisation, place recognition, superjut segmentation, monocular EKF SLAM
+//! and metric scale from walking.
+//!
+//! Conventions (see `ARCHITECTURE.md`): transforms are named `a_from_b` (`p_a = a_from_b * p_b`);
+//! metres, radians, seconds; inverse depth in 1/m with 0 = no measurement; intensity in
+//! `[0, 255]`; camera frame x right, y down, z forward; integer pixel coordinates are pixel
+//! centres. Pixel work runs as WGSL compute kernels through `wgpu`, each with a rayon CPU
+//! mirror that is both the test oracle and the `--backend cpu` implementation.
+#![warn(missing_docs)]
+
+pub mod camera;
+pub mod eval;
+pub mod geometry;
+pub mod gpu;
+pub mod graph;
+pub mod image;
+pub mod io;
+pub mod odometry;
+pub mod synth;

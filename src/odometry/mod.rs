@@ -1,0 +1,1 @@
+//! Dense RGB-D odometry (filled next).
