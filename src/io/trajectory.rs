@@ -1,0 +1,100 @@
+//! TUM trajectory files: one pose per line, `timestamp tx ty tz qx qy qz qw`, the pose being
+//! `world_from_camera` (metres, unit quaternion); `#` starts a comment.
+
+use std::io::Write;
+use std::path::Path;
+
+use glam::{DQuat, DVec3};
+
+use super::IoError;
+use crate::geometry::Se3;
+
+/// A pose with its time stamp (seconds).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimedPose {
+    /// Time stamp in seconds.
+    pub timestamp: f64,
+    /// The camera's pose, `world_from_camera`.
+    pub world_from_camera: Se3,
+}
+
+/// Parses one TUM trajectory line (no comment, not blank); the message says what is wrong.
+pub fn parse_tum_line(line: &str) -> Result<TimedPose, String> {
+    let v: Vec<&str> = line.split(|c: char| c.is_whitespace() || c == ',').filter(|s| !s.is_empty()).collect();
+    if v.len() < 8 {
+        return Err(format!("expected 8 numbers (timestamp tx ty tz qx qy qz qw), found {}", v.len()));
+    }
+    let mut x = [0.0f64; 8];
+    for (k, s) in v.iter().take(8).enumerate() {
+        x[k] = s.parse::<f64>().map_err(|_| format!("field {} '{}' is not a number", k + 1, s))?;
+        if !x[k].is_finite() {
+            return Err(format!("field {} is not finite ({})", k + 1, s));
+        }
+    }
+    let q = DQuat::from_xyzw(x[4], x[5], x[6], x[7]);
+    let n = q.length();
+    if !(n > 1e-6) {
+        return Err("quaternion has zero length".into());
+    }
+    Ok(TimedPose { timestamp: x[0], world_from_camera: Se3::new(q / n, DVec3::new(x[1], x[2], x[3])) })
+}
+
+/// Reads a TUM trajectory, sorted by time stamp. Errors name the file and line.
+pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let s = line.trim();
+        if s.is_empty() || s.starts_with('#') {
+            continue;
+        }
+        out.push(parse_tum_line(s).map_err(|m| IoError::parse(path, i + 1, m))?);
+    }
+    if out.is_empty() {
+        return Err(IoError::Empty { path: path.into(), message: "no poses in trajectory file".into() });
+    }
+    out.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
+    Ok(out)
+}
+
+/// Formats one pose as a TUM line (without newline).
+pub fn format_tum_line(p: &TimedPose) -> String {
+    let t = p.world_from_camera.translation;
+    let q = p.world_from_camera.rotation;
+    format!("{:.6} {:.7} {:.7} {:.7} {:.7} {:.7} {:.7} {:.7}", p.timestamp, t.x, t.y, t.z, q.x, q.y, q.z, q.w)
+}
+
+/// Writes a TUM trajectory (overwrites `path`).
+pub fn write_tum(path: &Path, poses: &[TimedPose]) -> Result<(), IoError> {
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| IoError::file(path, e))?);
+    for p in poses {
+        writeln!(f, "{}", format_tum_line(p)).map_err(|e| IoError::file(path, e))?;
+    }
+    f.flush().map_err(|e| IoError::file(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_and_errors() {
+        let dir = std::env::temp_dir().join(format!("rgbid-traj-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("t.txt");
+        let poses = vec![TimedPose {
+            timestamp: 1.5,
+            world_from_camera: Se3::exp(&[0.1, 0.2, 0.3, 0.01, -0.02, 0.03]),
+        }];
+        write_tum(&p, &poses).unwrap();
+        let back = read_tum(&p).unwrap();
+        assert!((back[0].world_from_camera.translation - poses[0].world_from_camera.translation).length() < 1e-6);
+        std::fs::write(&p, "# c\n1 2 3\n").unwrap();
+        let e = read_tum(&p).unwrap_err().to_string();
+        assert!(e.contains(":2:") && e.contains("expected 8"), "{e}");
+        std::fs::write(&p, "1 0 0 nan 0 0 0 1\n").unwrap();
+        assert!(read_tum(&p).unwrap_err().to_string().contains("not finite"));
+        std::fs::write(&p, "").unwrap();
+        assert!(matches!(read_tum(&p), Err(IoError::Empty { .. })));
+    }
+}
