@@ -1,0 +1,247 @@
+//! include: common.wgsl
+// Dense RGB-ID odometry kernels (thesis 6.3): reverse warping of reference pixels into the
+// current frame, photometric and inverse-depth residuals with their Jacobians, IRLS normal
+// equations reduced per workgroup, residual samples for scale estimation, covisibility.
+// CPU mirror: src/odometry/kernel.rs (same formulas, same order).
+
+struct WarpParams {
+    dims: vec4<u32>,   // width, height, level offset, sample count
+    intr: vec4<f32>,   // fx, fy, cx, cy
+    rot0: vec4<f32>,   // rows of R (cur_from_ref), .w = t
+    rot1: vec4<f32>,
+    rot2: vec4<f32>,
+    robust: vec4<f32>, // sigma_I, sigma_W, nu_I, nu_W
+    flags: vec4<u32>,  // estimator, term mask, geometric param (0 inv depth, 1 depth), -
+}
+
+@group(0) @binding(0) var<uniform> P: WarpParams;
+@group(0) @binding(1) var<storage, read> ref_photo: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> ref_geo: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> cur_photo: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> cur_geo: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read_write> out: array<f32>;
+
+const WG: u32 = 128u;
+const NPART: u32 = 30u;
+var<workgroup> sh: array<f32, 3840>; // NPART * WG
+
+struct Terms {
+    photo_ok: bool,
+    r_photo: f32,
+    j_photo_t: vec3<f32>,
+    j_photo_r: vec3<f32>,
+    geo_ok: bool,
+    r_geo: f32,
+    j_geo_t: vec3<f32>,
+    j_geo_r: vec3<f32>,
+}
+
+fn robust_weight(est: u32, z: f32, nu: f32) -> f32 {
+    if (est == 1u) {
+        let a = abs(z);
+        if (a <= HUBER_K) { return 1.0; }
+        return HUBER_K / a;
+    }
+    if (est == 2u) {
+        let t = z / TUKEY_C;
+        if (abs(t) < 1.0) { let s = 1.0 - t * t; return s * s; }
+        return 0.0;
+    }
+    if (est == 3u) { return (nu + 1.0) / (nu + z * z); }
+    return 1.0;
+}
+
+fn pixel_terms(i: u32, want_j: bool) -> Terms {
+    var t: Terms;
+    t.photo_ok = false;
+    t.geo_ok = false;
+    let w = P.dims.x;
+    let h = P.dims.y;
+    let o = P.dims.z;
+    let rho = ref_geo[o + i].x;
+    if (rho <= 0.0) { return t; }
+    let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
+    let x = f32(i % w);
+    let y = f32(i / w);
+    let z = 1.0 / rho;
+    let pr = vec3<f32>((x - cx) / fx * z, (y - cy) / fy * z, z);
+    let q = vec3<f32>(
+        P.rot0.x * pr.x + P.rot0.y * pr.y + P.rot0.z * pr.z + P.rot0.w,
+        P.rot1.x * pr.x + P.rot1.y * pr.y + P.rot1.z * pr.z + P.rot1.w,
+        P.rot2.x * pr.x + P.rot2.y * pr.y + P.rot2.z * pr.z + P.rot2.w);
+    if (q.z < MIN_DEPTH) { return t; }
+    let iz = 1.0 / q.z;
+    let u = fx * q.x * iz + cx;
+    let v = fy * q.y * iz + cy;
+    if (!(u >= 0.0 && v >= 0.0 && u < f32(w - 1u) && v < f32(h - 1u))) { return t; }
+    let x0 = floor(u);
+    let y0 = floor(v);
+    let ax = u - x0;
+    let ay = v - y0;
+    let k = o + u32(y0) * w + u32(x0);
+    let p00 = cur_photo[k]; let p10 = cur_photo[k + 1u];
+    let p01 = cur_photo[k + w]; let p11 = cur_photo[k + w + 1u];
+    let b00 = (1.0 - ax) * (1.0 - ay);
+    let b10 = ax * (1.0 - ay);
+    let b01 = (1.0 - ax) * ay;
+    let b11 = ax * ay;
+    let c = b00 * p00.xyz + b10 * p10.xyz + b01 * p01.xyz + b11 * p11.xyz;
+    let terms = P.flags.y;
+    if ((terms & 1u) != 0u) {
+        t.photo_ok = true;
+        t.r_photo = c.x - ref_photo[o + i].x;
+        if (want_j) {
+            let a = c.y * fx * iz;
+            let b = c.z * fy * iz;
+            let jt = vec3<f32>(a, b, -(a * q.x + b * q.y) * iz);
+            t.j_photo_t = jt;
+            t.j_photo_r = cross(q, jt);
+        }
+    }
+    if ((terms & 2u) != 0u) {
+        let xn = u32(floor(u + 0.5));
+        let yn = u32(floor(v + 0.5));
+        let g = cur_geo[o + yn * w + xn];
+        if (g.x > 0.0 && g.y != INVALID_GRAD) {
+            var res: f32; var gu: f32; var gv: f32; var dz: f32;
+            if (P.flags.z == 1u) {
+                let ig2 = 1.0 / (g.x * g.x);
+                res = 1.0 / g.x - q.z; gu = -g.y * ig2; gv = -g.z * ig2; dz = -1.0;
+            } else {
+                res = g.x - iz; gu = g.y; gv = g.z; dz = iz * iz;
+            }
+            t.geo_ok = true;
+            t.r_geo = res;
+            if (want_j) {
+                let a = gu * fx * iz;
+                let b = gv * fy * iz;
+                let jt = vec3<f32>(a, b, -(a * q.x + b * q.y) * iz + dz);
+                t.j_geo_t = jt;
+                t.j_geo_r = cross(q, jt);
+            }
+        }
+    }
+    return t;
+}
+
+// Adds wt * J J^T (upper triangle, row-major) and wt * J r to acc.
+fn accumulate(acc: ptr<function, array<f32, 30>>, jt: vec3<f32>, jr: vec3<f32>, r: f32, wt: f32) {
+    let j = array<f32, 6>(jt.x, jt.y, jt.z, jr.x, jr.y, jr.z);
+    var k = 0u;
+    for (var a = 0u; a < 6u; a++) {
+        let wa = wt * j[a];
+        for (var b = a; b < 6u; b++) {
+            (*acc)[k] += wa * j[b];
+            k++;
+        }
+    }
+    for (var a = 0u; a < 6u; a++) {
+        (*acc)[21u + a] += wt * j[a] * r;
+    }
+}
+
+@compute @workgroup_size(128)
+fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
+                    @builtin(workgroup_id) wid: vec3<u32>,
+                    @builtin(num_workgroups) nwg: vec3<u32>) {
+    var acc: array<f32, 30>;
+    let n = P.dims.x * P.dims.y;
+    let stride = nwg.x * WG;
+    let est = P.flags.x;
+    for (var i = wid.x * WG + lid.x; i < n; i += stride) {
+        let t = pixel_terms(i, true);
+        if (t.photo_ok) {
+            let s = P.robust.x;
+            let wt = robust_weight(est, t.r_photo / s, P.robust.z) / (s * s);
+            accumulate(&acc, t.j_photo_t, t.j_photo_r, t.r_photo, wt);
+            acc[27] += wt * t.r_photo * t.r_photo;
+            acc[28] += 1.0;
+        }
+        if (t.geo_ok) {
+            let s = P.robust.y;
+            let wt = robust_weight(est, t.r_geo / s, P.robust.w) / (s * s);
+            accumulate(&acc, t.j_geo_t, t.j_geo_r, t.r_geo, wt);
+            acc[27] += wt * t.r_geo * t.r_geo;
+            acc[29] += 1.0;
+        }
+    }
+    for (var k = 0u; k < NPART; k++) { sh[k * WG + lid.x] = acc[k]; }
+    workgroupBarrier();
+    for (var s = WG / 2u; s > 0u; s = s / 2u) {
+        if (lid.x < s) {
+            for (var k = 0u; k < NPART; k++) { sh[k * WG + lid.x] += sh[k * WG + lid.x + s]; }
+        }
+        workgroupBarrier();
+    }
+    if (lid.x == 0u) {
+        for (var k = 0u; k < NPART; k++) { out[wid.x * NPART + k] = sh[k * WG]; }
+    }
+}
+
+@compute @workgroup_size(128)
+fn sample_residuals(@builtin(global_invocation_id) id: vec3<u32>) {
+    let count = P.dims.w;
+    if (id.x >= count) { return; }
+    let n = P.dims.x * P.dims.y;
+    // i = floor(k * n / count) without 32-bit overflow: k * n can exceed 2^32.
+    let q = n / count;
+    let r = n % count;
+    let i = id.x * q + (id.x * r) / count;
+    let t = pixel_terms(i, false);
+    out[2u * id.x] = select(INVALID_RESIDUAL, t.r_photo, t.photo_ok);
+    out[2u * id.x + 1u] = select(INVALID_RESIDUAL, t.r_geo, t.geo_ok);
+}
+
+fn covisible(i: u32) -> u32 {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    let o = P.dims.z;
+    let rho = ref_geo[o + i].x;
+    if (rho <= 0.0) { return 0u; }
+    let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
+    let x = f32(i % w);
+    let y = f32(i / w);
+    let z = 1.0 / rho;
+    let pr = vec3<f32>((x - cx) / fx * z, (y - cy) / fy * z, z);
+    let q = vec3<f32>(
+        P.rot0.x * pr.x + P.rot0.y * pr.y + P.rot0.z * pr.z + P.rot0.w,
+        P.rot1.x * pr.x + P.rot1.y * pr.y + P.rot1.z * pr.z + P.rot1.w,
+        P.rot2.x * pr.x + P.rot2.y * pr.y + P.rot2.z * pr.z + P.rot2.w);
+    if (q.z < MIN_DEPTH) { return 1u; }
+    let u = fx * q.x / q.z + cx;
+    let v = fy * q.y / q.z + cy;
+    let xn = floor(u + 0.5);
+    let yn = floor(v + 0.5);
+    if (!(xn >= 0.0 && yn >= 0.0 && xn < f32(w) && yn < f32(h))) { return 1u; }
+    if (cur_geo[o + u32(yn) * w + u32(xn)].x > 0.0) { return 2u; }
+    return 1u;
+}
+
+@compute @workgroup_size(128)
+fn covisibility(@builtin(local_invocation_id) lid: vec3<u32>,
+                @builtin(workgroup_id) wid: vec3<u32>,
+                @builtin(num_workgroups) nwg: vec3<u32>) {
+    var with_depth = 0.0;
+    var seen = 0.0;
+    let n = P.dims.x * P.dims.y;
+    let stride = nwg.x * WG;
+    for (var i = wid.x * WG + lid.x; i < n; i += stride) {
+        let c = covisible(i);
+        if (c >= 1u) { with_depth += 1.0; }
+        if (c == 2u) { seen += 1.0; }
+    }
+    sh[lid.x] = with_depth;
+    sh[WG + lid.x] = seen;
+    workgroupBarrier();
+    for (var s = WG / 2u; s > 0u; s = s / 2u) {
+        if (lid.x < s) {
+            sh[lid.x] += sh[lid.x + s];
+            sh[WG + lid.x] += sh[WG + lid.x + s];
+        }
+        workgroupBarrier();
+    }
+    if (lid.x == 0u) {
+        out[2u * wid.x] = sh[0];
+        out[2u * wid.x + 1u] = sh[WG];
+    }
+}

@@ -1,0 +1,82 @@
+//! include: common.wgsl
+// Image pyramids and gradients (mirror: src/odometry/kernel.rs + cpu.rs).
+// photo = (I, dI/du, dI/dv, 0), geo = (rho, drho/du, drho/dv, 0); all levels concatenated.
+
+struct PyrParams {
+    dims: vec4<u32>, // dst width, dst height, dst offset, src offset
+    src: vec4<u32>,  // src width, src height, -, -
+}
+
+@group(0) @binding(0) var<uniform> P: PyrParams;
+@group(0) @binding(1) var<storage, read> input: array<f32>; // level 0: I[0..n], rho[n..2n]
+@group(0) @binding(2) var<storage, read_write> photo: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read_write> geo: array<vec4<f32>>;
+
+@compute @workgroup_size(16, 16)
+fn pack_level0(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let i = id.y * w + id.x;
+    let n = w * h;
+    let rho = input[n + i];
+    var r = 0.0;
+    // Rejects NaN (comparisons are false), infinities and non-positive values.
+    if (rho > 0.0 && rho < 1e30) { r = rho; }
+    photo[i] = vec4<f32>(input[i], 0.0, 0.0, 0.0);
+    geo[i] = vec4<f32>(r, 0.0, 0.0, 0.0);
+}
+
+@compute @workgroup_size(16, 16)
+fn downsample(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let sw = P.src.x;
+    let k = P.dims.w + 2u * id.y * sw + 2u * id.x;
+    let i = 0.25 * (photo[k].x + photo[k + 1u].x + photo[k + sw].x + photo[k + sw + 1u].x);
+    var s = 0.0;
+    var n = 0.0;
+    let r4 = vec4<f32>(geo[k].x, geo[k + 1u].x, geo[k + sw].x, geo[k + sw + 1u].x);
+    for (var j = 0u; j < 4u; j++) {
+        if (r4[j] > 0.0) { s += r4[j]; n += 1.0; }
+    }
+    var r = 0.0;
+    if (n > 0.0) { r = s / n; }
+    let d = P.dims.z + id.y * w + id.x;
+    photo[d] = vec4<f32>(i, 0.0, 0.0, 0.0);
+    geo[d] = vec4<f32>(r, 0.0, 0.0, 0.0);
+}
+
+fn one_axis(l: f32, c: f32, r: f32, has_l: bool, has_r: bool) -> f32 {
+    let lv = has_l && l > 0.0;
+    let rv = has_r && r > 0.0;
+    if (lv && rv) { return 0.5 * (r - l); }
+    if (rv) { return r - c; }
+    if (lv) { return c - l; }
+    return INVALID_GRAD;
+}
+
+@compute @workgroup_size(16, 16)
+fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let o = P.dims.z;
+    let x = id.x;
+    let y = id.y;
+    let xl = select(x - 1u, 0u, x == 0u);
+    let xr = min(x + 1u, w - 1u);
+    let yu = select(y - 1u, 0u, y == 0u);
+    let yd = min(y + 1u, h - 1u);
+    let c = o + y * w + x;
+    let gx = 0.5 * (photo[o + y * w + xr].x - photo[o + y * w + xl].x);
+    let gy = 0.5 * (photo[o + yd * w + x].x - photo[o + yu * w + x].x);
+    let rc = geo[c].x;
+    let gdx = one_axis(geo[o + y * w + xl].x, rc, geo[o + y * w + xr].x, x > 0u, x + 1u < w);
+    let gdy = one_axis(geo[o + yu * w + x].x, rc, geo[o + yd * w + x].x, y > 0u, y + 1u < h);
+    var gg = vec2<f32>(INVALID_GRAD, INVALID_GRAD);
+    if (rc > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD) { gg = vec2<f32>(gdx, gdy); }
+    photo[c] = vec4<f32>(photo[c].x, gx, gy, 0.0);
+    geo[c] = vec4<f32>(rc, gg.x, gg.y, 0.0);
+}

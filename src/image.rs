@@ -17,12 +17,20 @@ pub struct ImageF32 {
 impl ImageF32 {
     /// An image filled with `value`.
     pub fn filled(width: usize, height: usize, value: f32) -> Self {
-        Self { width, height, data: vec![value; width * height] }
+        Self {
+            width,
+            height,
+            data: vec![value; width * height],
+        }
     }
 
     /// Wraps a buffer; `None` if its length is not `width * height`.
     pub fn from_vec(width: usize, height: usize, data: Vec<f32>) -> Option<Self> {
-        (data.len() == width * height).then_some(Self { width, height, data })
+        (data.len() == width * height).then_some(Self {
+            width,
+            height,
+            data,
+        })
     }
 
     /// Pixel at integer coordinates (no bounds check beyond the slice's).

@@ -9,12 +9,20 @@ fn all_shaders_parse_and_validate() {
         match naga::front::wgsl::parse_str(&src) {
             Err(e) => failures.push(format!("{name}: {}", e.emit_to_string(&src))),
             Ok(module) => {
-                let caps = naga::valid::Capabilities::default() | naga::valid::Capabilities::SUBGROUP;
-                if let Err(e) = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module) {
+                let caps =
+                    naga::valid::Capabilities::default() | naga::valid::Capabilities::SUBGROUP;
+                if let Err(e) =
+                    naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps)
+                        .validate(&module)
+                {
                     failures.push(format!("{name}: {}", e.emit_to_string(&src)));
                 }
             }
         }
     }
-    assert!(failures.is_empty(), "shader errors:\n{}", failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "shader errors:\n{}",
+        failures.join("\n")
+    );
 }

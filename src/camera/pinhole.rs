@@ -89,19 +89,35 @@ pub struct PinholeCamera {
 impl PinholeCamera {
     /// An undistorted pinhole camera.
     pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> Self {
-        Self { fx, fy, cx, cy, width, height, distortion: BrownConrady::default() }
+        Self {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+            distortion: BrownConrady::default(),
+        }
     }
 
     /// Checks that the parameters are finite and positive where needed.
     pub fn validate(&self) -> Result<(), CameraError> {
         for (name, value) in [("fx", self.fx), ("fy", self.fy)] {
             if !(value.is_finite() && value > 0.0) {
-                return Err(CameraError::InvalidParameter { name, value, why: "must be finite and > 0" });
+                return Err(CameraError::InvalidParameter {
+                    name,
+                    value,
+                    why: "must be finite and > 0",
+                });
             }
         }
         for (name, value) in [("cx", self.cx), ("cy", self.cy)] {
             if !value.is_finite() {
-                return Err(CameraError::InvalidParameter { name, value, why: "must be finite" });
+                return Err(CameraError::InvalidParameter {
+                    name,
+                    value,
+                    why: "must be finite",
+                });
             }
         }
         if self.width == 0 || self.height == 0 {
@@ -119,12 +135,19 @@ impl PinholeCamera {
         if p.z <= 1e-9 {
             return None;
         }
-        Some(DVec2::new(self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+        Some(DVec2::new(
+            self.fx * p.x / p.z + self.cx,
+            self.fy * p.y / p.z + self.cy,
+        ))
     }
 
     /// Back-projects pixel `(u, v)` at depth `z` (metres) to a point in the camera frame.
     pub fn unproject(&self, uv: DVec2, z: f64) -> DVec3 {
-        DVec3::new((uv.x - self.cx) / self.fx * z, (uv.y - self.cy) / self.fy * z, z)
+        DVec3::new(
+            (uv.x - self.cx) / self.fx * z,
+            (uv.y - self.cy) / self.fy * z,
+            z,
+        )
     }
 
     /// The intrinsics of pyramid level `level` (each level halves the resolution; pixel
@@ -181,7 +204,13 @@ mod tests {
 
     #[test]
     fn undistort_inverts_distort() {
-        let d = BrownConrady { k1: 0.2624, k2: -0.9531, p1: -0.0054, p2: 0.0026, k3: 1.1633 };
+        let d = BrownConrady {
+            k1: 0.2624,
+            k2: -0.9531,
+            p1: -0.0054,
+            p2: 0.0026,
+            k3: 1.1633,
+        };
         let n = DVec2::new(0.4, -0.3);
         assert!((d.undistort(d.distort(n)) - n).length() < 1e-10);
     }

@@ -9,4 +9,4 @@ mod se3;
 mod so3;
 
 pub use se3::Se3;
-pub use so3::{so3_exp, so3_log, skew};
+pub use so3::{skew, so3_exp, so3_log};

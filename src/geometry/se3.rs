@@ -23,17 +23,26 @@ impl Default for Se3 {
 
 impl Se3 {
     /// The identity transform.
-    pub const IDENTITY: Se3 = Se3 { rotation: DQuat::IDENTITY, translation: DVec3::ZERO };
+    pub const IDENTITY: Se3 = Se3 {
+        rotation: DQuat::IDENTITY,
+        translation: DVec3::ZERO,
+    };
 
     /// Builds a transform from a rotation and a translation (metres).
     pub fn new(rotation: DQuat, translation: DVec3) -> Self {
-        Self { rotation: rotation.normalize(), translation }
+        Self {
+            rotation: rotation.normalize(),
+            translation,
+        }
     }
 
     /// The inverse transform `b_from_a`.
     pub fn inverse(&self) -> Se3 {
         let r = self.rotation.conjugate();
-        Se3 { rotation: r, translation: -(r * self.translation) }
+        Se3 {
+            rotation: r,
+            translation: -(r * self.translation),
+        }
     }
 
     /// Applies the transform to a point: `p_a = a_from_b * p_b`.
@@ -68,7 +77,10 @@ impl Se3 {
         let v = DVec3::new(twist[0], twist[1], twist[2]);
         let w = DVec3::new(twist[3], twist[4], twist[5]);
         let rotation = so3_exp(w);
-        Se3 { rotation, translation: left_jacobian(w) * v }
+        Se3 {
+            rotation,
+            translation: left_jacobian(w) * v,
+        }
     }
 
     /// Logarithm map: the twist `[v; w]` with `Se3::exp(&t.log()) == t`.

@@ -3,7 +3,17 @@ use std::sync::Arc;
 use super::context::{GpuContext, GpuError};
 
 /// What the user asked for on the command line (`--backend`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    clap::ValueEnum,
+    serde::Serialize,
+    serde::Deserialize,
+)]
 pub enum BackendChoice {
     /// A hardware GPU if there is one, else the CPU backend (software GPU adapters such as
     /// lavapipe are slower than the rayon CPU backend, so `auto` does not pick them).
@@ -59,7 +69,10 @@ pub fn describe_adapters() -> Vec<String> {
 /// hardware adapter is preferred; if only software adapters exist (or none), the CPU backend
 /// is used and one log line says so. With `Gpu`, any adapter is accepted and none is an error
 /// ([`GpuError::NoGpuAdapter`]) that explains how to install one.
-pub fn select_backend(choice: BackendChoice, adapter_filter: Option<&str>) -> Result<ComputeBackend, GpuError> {
+pub fn select_backend(
+    choice: BackendChoice,
+    adapter_filter: Option<&str>,
+) -> Result<ComputeBackend, GpuError> {
     if choice == BackendChoice::Cpu {
         return Ok(ComputeBackend::Cpu);
     }
@@ -70,7 +83,11 @@ pub fn select_backend(choice: BackendChoice, adapter_filter: Option<&str>) -> Re
             let i = a.get_info();
             i.device_type != wgpu::DeviceType::Other || i.backend != wgpu::Backend::Noop
         })
-        .filter(|a| filter.as_ref().is_none_or(|f| a.get_info().name.to_lowercase().contains(f)))
+        .filter(|a| {
+            filter
+                .as_ref()
+                .is_none_or(|f| a.get_info().name.to_lowercase().contains(f))
+        })
         .collect();
     // Hardware first: discrete, integrated, virtual, then software.
     found.sort_by_key(|a| match a.get_info().device_type {
@@ -81,13 +98,15 @@ pub fn select_backend(choice: BackendChoice, adapter_filter: Option<&str>) -> Re
         wgpu::DeviceType::Cpu => 4,
     });
     let pick = match choice {
-        BackendChoice::Auto if filter.is_none() => {
-            found.into_iter().find(|a| a.get_info().device_type != wgpu::DeviceType::Cpu)
-        }
+        BackendChoice::Auto if filter.is_none() => found
+            .into_iter()
+            .find(|a| a.get_info().device_type != wgpu::DeviceType::Cpu),
         _ => found.into_iter().next(),
     };
     match (pick, choice) {
-        (Some(adapter), _) => Ok(ComputeBackend::Gpu(Arc::new(GpuContext::from_adapter(adapter)?))),
+        (Some(adapter), _) => Ok(ComputeBackend::Gpu(Arc::new(GpuContext::from_adapter(
+            adapter,
+        )?))),
         (None, BackendChoice::Auto) => {
             log::info!(
                 "no hardware GPU adapter found; using the CPU backend (rayon). \
@@ -96,7 +115,9 @@ pub fn select_backend(choice: BackendChoice, adapter_filter: Option<&str>) -> Re
             Ok(ComputeBackend::Cpu)
         }
         (None, _) => Err(GpuError::NoGpuAdapter {
-            filter: adapter_filter.map(|f| format!(" matching '{f}'")).unwrap_or_default(),
+            filter: adapter_filter
+                .map(|f| format!(" matching '{f}'"))
+                .unwrap_or_default(),
         }),
     }
 }

@@ -92,8 +92,13 @@ impl GpuContext {
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
         };
-        let (device, queue) = pollster::block_on(adapter.request_device(&desc))
-            .map_err(|source| GpuError::RequestDevice { adapter: info.name.clone(), source })?;
+        let (device, queue) =
+            pollster::block_on(adapter.request_device(&desc)).map_err(|source| {
+                GpuError::RequestDevice {
+                    adapter: info.name.clone(),
+                    source,
+                }
+            })?;
         let lost = Arc::new(AtomicBool::new(false));
         let lost_message = Arc::new(Mutex::new(String::new()));
         {
@@ -123,7 +128,11 @@ impl GpuContext {
             info.name,
             info.backend,
             info.device_type,
-            if required_features.contains(wgpu::Features::SUBGROUP) { ", subgroups" } else { "" }
+            if required_features.contains(wgpu::Features::SUBGROUP) {
+                ", subgroups"
+            } else {
+                ""
+            }
         );
         Ok(Self {
             device,
@@ -141,7 +150,11 @@ impl GpuContext {
     /// Returns an error if the device was lost or an uncaptured validation error occurred.
     pub fn check(&self) -> Result<(), GpuError> {
         if self.lost.load(Ordering::SeqCst) {
-            let m = self.lost_message.lock().map(|g| g.clone()).unwrap_or_default();
+            let m = self
+                .lost_message
+                .lock()
+                .map(|g| g.clone())
+                .unwrap_or_default();
             return Err(GpuError::DeviceLost(m));
         }
         if let Ok(mut g) = self.error.lock() {
@@ -154,7 +167,10 @@ impl GpuContext {
 
     /// Waits for all submitted work, with a timeout, and reports loss or validation errors.
     pub fn wait(&self) -> Result<(), GpuError> {
-        let r = self.device.poll(wgpu::PollType::Wait { submission_index: None, timeout: Some(GPU_WAIT_TIMEOUT) });
+        let r = self.device.poll(wgpu::PollType::Wait {
+            submission_index: None,
+            timeout: Some(GPU_WAIT_TIMEOUT),
+        });
         self.check()?;
         match r {
             Ok(_) => Ok(()),
@@ -171,39 +187,120 @@ impl GpuContext {
         source: &str,
         entries: &[&str],
     ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
+        self.compute_pipelines_with_layout(name, source, entries, None)
+    }
+
+    /// Like [`Self::compute_pipelines`], with an explicit bind-group layout (group 0) shared by
+    /// all entry points, so one bind group serves every kernel of the module.
+    pub fn compute_pipelines_with_layout(
+        &self,
+        name: &str,
+        source: &str,
+        entries: &[&str],
+        group0: Option<&wgpu::BindGroupLayout>,
+    ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(name),
-            source: wgpu::ShaderSource::Wgsl(source.into()),
+        let layout = group0.map(|bgl| {
+            self.device
+                .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                    label: Some(name),
+                    bind_group_layouts: &[Some(bgl)],
+                    immediate_size: 0,
+                })
         });
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
         let pipelines = entries
             .iter()
             .map(|entry| {
-                self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: None,
-                    module: &module,
-                    entry_point: Some(entry),
-                    compilation_options: wgpu::PipelineCompilationOptions::default(),
-                    cache: None,
-                })
+                self.device
+                    .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                        label: Some(entry),
+                        layout: layout.as_ref(),
+                        module: &module,
+                        entry_point: Some(entry),
+                        compilation_options: wgpu::PipelineCompilationOptions::default(),
+                        cache: None,
+                    })
             })
             .collect();
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Shader { name: name.to_string(), message: e.to_string() });
+            return Err(GpuError::Shader {
+                name: name.to_string(),
+                message: e.to_string(),
+            });
         }
         Ok(pipelines)
     }
 
+    /// A bind-group layout of compute-stage buffers: binding 0 a uniform, then one storage
+    /// buffer per entry of `storage_read_only` (true = read-only).
+    pub fn buffer_layout(&self, label: &str, storage_read_only: &[bool]) -> wgpu::BindGroupLayout {
+        let mut entries = vec![wgpu::BindGroupLayoutEntry {
+            binding: 0,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        }];
+        for (k, &read_only) in storage_read_only.iter().enumerate() {
+            entries.push(wgpu::BindGroupLayoutEntry {
+                binding: k as u32 + 1,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            });
+        }
+        self.device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(label),
+                entries: &entries,
+            })
+    }
+
+    /// A bind group binding `buffers` whole, in order, to bindings 0, 1, ...
+    pub fn bind_buffers(
+        &self,
+        label: &str,
+        layout: &wgpu::BindGroupLayout,
+        buffers: &[&wgpu::Buffer],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(k, b)| wgpu::BindGroupEntry {
+                binding: k as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(label),
+            layout,
+            entries: &entries,
+        })
+    }
+
     /// A storage buffer initialised with `data`, usable as copy source and destination.
     pub fn storage_init<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
-        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: bytemuck::cast_slice(data),
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::COPY_SRC
-                | wgpu::BufferUsages::COPY_DST,
-        })
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::cast_slice(data),
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            })
     }
 
     /// An uninitialised (zeroed) storage buffer of `bytes` bytes.
@@ -240,7 +337,11 @@ impl GpuContext {
 
     /// Maps `staging` (already filled by a submitted copy), waits, and returns the first
     /// `count` values.
-    pub fn read_staging<T: bytemuck::Pod>(&self, staging: &wgpu::Buffer, count: usize) -> Result<Vec<T>, GpuError> {
+    pub fn read_staging<T: bytemuck::Pod>(
+        &self,
+        staging: &wgpu::Buffer,
+        count: usize,
+    ) -> Result<Vec<T>, GpuError> {
         let bytes = (count * std::mem::size_of::<T>()) as u64;
         let slice = staging.slice(0..bytes.max(4));
         let (tx, rx) = std::sync::mpsc::channel();
@@ -254,7 +355,9 @@ impl GpuContext {
             Err(_) => return Err(GpuError::Readback("map callback never ran".into())),
         }
         let out = {
-            let view = slice.get_mapped_range().map_err(|e| GpuError::Readback(e.to_string()))?;
+            let view = slice
+                .get_mapped_range()
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
             bytemuck::cast_slice::<u8, T>(&view[..bytes as usize]).to_vec()
         };
         staging.unmap();
@@ -263,10 +366,18 @@ impl GpuContext {
 
     /// Copies `count` values of `src` to a new staging buffer and reads them back (slow path
     /// for tests and one-off reads; hot loops keep their own staging buffers).
-    pub fn read_buffer<T: bytemuck::Pod>(&self, src: &wgpu::Buffer, count: usize) -> Result<Vec<T>, GpuError> {
+    pub fn read_buffer<T: bytemuck::Pod>(
+        &self,
+        src: &wgpu::Buffer,
+        count: usize,
+    ) -> Result<Vec<T>, GpuError> {
         let bytes = (count * std::mem::size_of::<T>()) as u64;
         let staging = self.staging("readback", bytes);
-        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("readback"),
+            });
         enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
         self.queue.submit([enc.finish()]);
         self.read_staging(&staging, count)

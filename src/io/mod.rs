@@ -42,10 +42,17 @@ pub enum IoError {
 impl IoError {
     /// Wraps an OS error with the path it concerns.
     pub fn file(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        IoError::File { path: path.into(), source }
+        IoError::File {
+            path: path.into(),
+            source,
+        }
     }
     /// A parse error at `path:line`.
     pub fn parse(path: impl Into<PathBuf>, line: usize, message: impl Into<String>) -> Self {
-        IoError::Parse { path: path.into(), line, message: message.into() }
+        IoError::Parse {
+            path: path.into(),
+            line,
+            message: message.into(),
+        }
     }
 }

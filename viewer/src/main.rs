@@ -3,7 +3,10 @@
 //! which is already useful to check a machine's set-up.
 
 fn main() {
-    println!("rgbid-viewer {} (the egui viewer is not built yet)", env!("CARGO_PKG_VERSION"));
+    println!(
+        "rgbid-viewer {} (the egui viewer is not built yet)",
+        env!("CARGO_PKG_VERSION")
+    );
     for line in rgbid::gpu::describe_adapters() {
         println!("  adapter: {line}");
     }

@@ -1,0 +1,149 @@
+//! Odometry configuration: every option of thesis sections 4.4 and 6.3.5, with defaults that
+//! are used unchanged on every sequence.
+
+use super::robust::{Estimator, ScaleMethod};
+use super::OdometryError;
+
+/// Which residuals are minimised (thesis tables 4.1, 4.2).
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Terms {
+    /// Photometric and geometric (the default).
+    Both,
+    /// Photometric only.
+    Photometric,
+    /// Geometric only.
+    Geometric,
+}
+
+impl Terms {
+    /// Bit mask used by the kernels (1 photometric, 2 geometric).
+    pub fn mask(self) -> u32 {
+        match self {
+            Terms::Both => 3,
+            Terms::Photometric => 1,
+            Terms::Geometric => 2,
+        }
+    }
+}
+
+/// Parametrisation of the geometric error.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum GeometricParam {
+    /// Inverse depth, 1/m (the thesis' choice: noise roughly constant over depth).
+    InverseDepth,
+    /// Depth, m (for comparison).
+    Depth,
+}
+
+/// Odometry options.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct OdometryConfig {
+    /// Pyramid levels (level 0 = full resolution).
+    pub levels: usize,
+    /// Maximum Gauss-Newton iterations per level, index 0 = finest level. Missing entries
+    /// repeat the last one.
+    pub iterations: Vec<usize>,
+    /// Finest level used (`stopLevel` of 4.4.6; 0 = full resolution).
+    pub stop_level: usize,
+    /// Robust estimator.
+    pub estimator: Estimator,
+    /// How residual scales are estimated.
+    pub scale: ScaleMethod,
+    /// Fixed photometric scale (intensity levels) for `ScaleMethod::Fixed` (`sigmaFix`).
+    pub fixed_sigma_photo: f64,
+    /// Fixed geometric scale (1/m for inverse depth, m for depth) for `ScaleMethod::Fixed`.
+    pub fixed_sigma_geo: f64,
+    /// Fixed Student-t degrees of freedom used with `ScaleMethod::Fixed`.
+    pub fixed_nu: f64,
+    /// Maximum number of pixels in the systematic sample for scale estimation.
+    pub max_samples: usize,
+    /// Residual terms.
+    pub terms: Terms,
+    /// Geometric error parametrisation.
+    pub geometric: GeometricParam,
+    /// Convergence threshold on the norm of the update twist (m and rad).
+    pub convergence: f64,
+    /// Initial guess from the previous inter-frame motion (constant velocity).
+    pub constant_velocity: bool,
+    /// Switch the reference frame when covisibility drops below this ratio; `None` aligns
+    /// every frame to the previous one (frame-to-frame).
+    pub reference_switch: Option<f64>,
+    /// Pyramid level on which covisibility is computed.
+    pub covisibility_level: usize,
+}
+
+impl Default for OdometryConfig {
+    fn default() -> Self {
+        Self {
+            levels: 3,
+            iterations: vec![4, 6, 10],
+            stop_level: 0,
+            estimator: Estimator::Student,
+            scale: ScaleMethod::Ml,
+            fixed_sigma_photo: 5.0,
+            fixed_sigma_geo: 0.0025,
+            fixed_nu: 5.0,
+            max_samples: 19200,
+            terms: Terms::Both,
+            geometric: GeometricParam::InverseDepth,
+            convergence: 1e-6,
+            constant_velocity: true,
+            reference_switch: Some(0.9),
+            covisibility_level: 2,
+        }
+    }
+}
+
+impl OdometryConfig {
+    /// Maximum iterations at `level`.
+    pub fn iterations_at(&self, level: usize) -> usize {
+        self.iterations
+            .get(level)
+            .or(self.iterations.last())
+            .copied()
+            .unwrap_or(10)
+    }
+
+    /// Checks the options.
+    pub fn validate(&self) -> Result<(), OdometryError> {
+        let bad = |m: &str| Err(OdometryError::InvalidConfig(m.to_string()));
+        if self.levels == 0 || self.levels > 8 {
+            return bad("levels must be in 1..=8");
+        }
+        if self.stop_level >= self.levels {
+            return bad("stop_level must be below levels");
+        }
+        if self.iterations.is_empty() {
+            return bad("iterations must list at least one count");
+        }
+        if self.max_samples < 64 {
+            return bad("max_samples must be at least 64");
+        }
+        if !(self.fixed_sigma_photo > 0.0 && self.fixed_sigma_geo > 0.0) {
+            return bad("fixed sigmas must be > 0");
+        }
+        if let Some(t) = self.reference_switch {
+            if !(0.0..=1.0).contains(&t) {
+                return bad("reference_switch must be in [0, 1]");
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads a JSON configuration file (missing keys take their defaults).
+    pub fn from_json_file(path: &std::path::Path) -> Result<Self, OdometryError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| OdometryError::InvalidConfig(format!("{}: {e}", path.display())))?;
+        let c: OdometryConfig = serde_json::from_str(&text)
+            .map_err(|e| OdometryError::InvalidConfig(format!("{}: {e}", path.display())))?;
+        c.validate()?;
+        Ok(c)
+    }
+}

@@ -1,0 +1,77 @@
+//! Finishing the GPU/CPU partial sums in f64 and solving the 6x6 normal equations.
+
+use nalgebra::{Matrix6, SymmetricEigen, Vector6};
+
+use super::kernel::PARTIAL_LEN;
+
+/// The IRLS normal equations of one iteration, summed in f64.
+#[derive(Clone, Debug)]
+pub struct NormalEquations {
+    /// Gauss-Newton Hessian approximation `sum w J^T J / sigma^2`.
+    pub h: Matrix6<f64>,
+    /// Gradient `sum w J^T r / sigma^2`.
+    pub g: Vector6<f64>,
+    /// Weighted cost `sum w (r / sigma)^2`.
+    pub cost: f64,
+    /// Valid photometric residuals.
+    pub n_photo: u64,
+    /// Valid geometric residuals.
+    pub n_geo: u64,
+}
+
+impl NormalEquations {
+    /// Sums partials (f32 each) in f64.
+    pub fn from_partials(partials: &[[f32; PARTIAL_LEN]]) -> Self {
+        let mut s = [0.0f64; PARTIAL_LEN];
+        for p in partials {
+            for k in 0..PARTIAL_LEN {
+                s[k] += f64::from(p[k]);
+            }
+        }
+        let mut h = Matrix6::zeros();
+        let mut k = 0;
+        for a in 0..6 {
+            for b in a..6 {
+                h[(a, b)] = s[k];
+                h[(b, a)] = s[k];
+                k += 1;
+            }
+        }
+        let g = Vector6::from_iterator(s[21..27].iter().copied());
+        Self {
+            h,
+            g,
+            cost: s[27],
+            n_photo: s[28].round() as u64,
+            n_geo: s[29].round() as u64,
+        }
+    }
+
+    /// Solves `H delta = -g`; `None` if H is not positive definite.
+    pub fn solve(&self) -> Option<[f64; 6]> {
+        let chol = self.h.cholesky()?;
+        let d = chol.solve(&(-self.g));
+        d.iter()
+            .all(|x| x.is_finite())
+            .then(|| [d[0], d[1], d[2], d[3], d[4], d[5]])
+    }
+
+    /// Inverse of H (the estimate's covariance, twist order `[v; w]`) and the condition
+    /// number of H.
+    pub fn covariance(&self) -> Option<([[f64; 6]; 6], f64)> {
+        let eig = SymmetricEigen::new(self.h);
+        let max = eig.eigenvalues.max();
+        let min = eig.eigenvalues.min();
+        if !(min > 0.0) {
+            return None;
+        }
+        let inv = self.h.cholesky()?.inverse();
+        let mut c = [[0.0; 6]; 6];
+        for (a, row) in c.iter_mut().enumerate() {
+            for (b, v) in row.iter_mut().enumerate() {
+                *v = inv[(a, b)];
+            }
+        }
+        Some((c, max / min))
+    }
+}
