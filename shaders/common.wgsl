@@ -5,3 +5,4 @@ const TUKEY_C: f32 = 4.685;
 const INVALID_GRAD: f32 = 1e30;
 const INVALID_RESIDUAL: f32 = 3e38;
 const MIN_DEPTH: f32 = 0.05;
+const MAX_REL_GRAD: f32 = 0.05;

@@ -76,7 +76,10 @@ fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
     let gdx = one_axis(geo[o + y * w + xl].x, rc, geo[o + y * w + xr].x, x > 0u, x + 1u < w);
     let gdy = one_axis(geo[o + yu * w + x].x, rc, geo[o + yd * w + x].x, y > 0u, y + 1u < h);
     var gg = vec2<f32>(INVALID_GRAD, INVALID_GRAD);
-    if (rc > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD) { gg = vec2<f32>(gdx, gdy); }
+    let lim = MAX_REL_GRAD * rc;
+    if (rc > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD && abs(gdx) <= lim && abs(gdy) <= lim) {
+        gg = vec2<f32>(gdx, gdy);
+    }
     photo[c] = vec4<f32>(photo[c].x, gx, gy, 0.0);
     geo[c] = vec4<f32>(rc, gg.x, gg.y, 0.0);
 }

@@ -83,7 +83,7 @@ impl Default for OdometryConfig {
     fn default() -> Self {
         Self {
             levels: 3,
-            iterations: vec![4, 6, 10],
+            iterations: vec![5, 10, 25],
             stop_level: 0,
             estimator: Estimator::Student,
             scale: ScaleMethod::Ml,
@@ -93,7 +93,7 @@ impl Default for OdometryConfig {
             max_samples: 19200,
             terms: Terms::Both,
             geometric: GeometricParam::InverseDepth,
-            convergence: 1e-6,
+            convergence: 1e-5,
             constant_velocity: true,
             reference_switch: Some(0.9),
             covisibility_level: 2,

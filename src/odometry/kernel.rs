@@ -15,6 +15,10 @@ use super::robust::weight;
 pub const INVALID_GRAD: f32 = 1.0e30;
 /// Sentinel for an invalid sampled residual.
 pub const INVALID_RESIDUAL: f32 = 3.0e38;
+/// Inverse-depth gradients larger than this fraction of the inverse depth per pixel mark a
+/// depth discontinuity: the geometric residual is not used there (its linearisation is
+/// meaningless across an occluding edge).
+pub const MAX_REL_GRAD: f32 = 0.05;
 /// Closest point depth (m) accepted after warping.
 pub const MIN_DEPTH: f32 = 0.05;
 /// Number of f32 values per reduction partial: 21 (upper-triangular H) + 6 (g) + cost +
@@ -111,7 +115,9 @@ pub fn gradients(
     let c = geo[y * w + x][0];
     let gdx = one_axis(geo[y * w + xl][0], c, geo[y * w + xr][0], x > 0, x + 1 < w);
     let gdy = one_axis(geo[yu * w + x][0], c, geo[yd * w + x][0], y > 0, y + 1 < h);
-    if c > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD {
+    let lim = MAX_REL_GRAD * c;
+    if c > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD && gdx.abs() <= lim && gdy.abs() <= lim
+    {
         ([gx, gy], [gdx, gdy])
     } else {
         ([gx, gy], [INVALID_GRAD, INVALID_GRAD])
@@ -445,6 +451,7 @@ mod tests {
             ("INVALID_GRAD", INVALID_GRAD),
             ("INVALID_RESIDUAL", INVALID_RESIDUAL),
             ("MIN_DEPTH", MIN_DEPTH),
+            ("MAX_REL_GRAD", MAX_REL_GRAD),
         ] {
             let line = src
                 .lines()

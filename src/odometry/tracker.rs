@@ -544,9 +544,19 @@ impl Odometry {
                 cur_from_ref = Se3::exp(&delta) * cur_from_ref;
                 any_update = true;
                 st.iterations += 1;
-                level_ne = Some(ne);
                 times.solve_ms += tsol.elapsed().as_secs_f64() * 1e3;
                 let norm = delta.iter().map(|x| x * x).sum::<f64>().sqrt();
+                log::trace!(
+                    "level {level} it {}: |delta| {norm:.3e} cost/n {:.4} sigma {:.3}/{:.5} nu {:.2} n {}/{}",
+                    st.iterations,
+                    ne.cost / (ne.n_photo + ne.n_geo).max(1) as f64,
+                    sigma_photo,
+                    sigma_geo,
+                    nu_photo,
+                    ne.n_photo,
+                    ne.n_geo
+                );
+                level_ne = Some(ne);
                 if norm < cfg.convergence {
                     break;
                 }
