@@ -12,6 +12,10 @@
 //! centres. Pixel work runs as WGSL compute kernels through `wgpu`, each with a rayon CPU
 //! mirror that is both the test oracle and the `--backend cpu` implementation.
 #![warn(missing_docs)]
+// `!(x > 0.0)` is used on purpose: it also rejects NaN, which input can contain.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+// Kernel mirrors index arrays the way the WGSL does, so the two read alike.
+#![allow(clippy::needless_range_loop)]
 
 pub mod camera;
 pub mod eval;

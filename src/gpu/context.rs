@@ -79,11 +79,14 @@ impl GpuContext {
         let wanted = wgpu::Features::SUBGROUP;
         let required_features = adapter.features() & wanted;
         let alimits = adapter.limits();
-        let mut required_limits = wgpu::Limits::default();
-        required_limits.max_storage_buffer_binding_size = alimits.max_storage_buffer_binding_size;
-        required_limits.max_buffer_size = alimits.max_buffer_size;
-        required_limits.max_storage_buffers_per_shader_stage =
-            alimits.max_storage_buffers_per_shader_stage.min(16);
+        let required_limits = wgpu::Limits {
+            max_storage_buffer_binding_size: alimits.max_storage_buffer_binding_size,
+            max_buffer_size: alimits.max_buffer_size,
+            max_storage_buffers_per_shader_stage: alimits
+                .max_storage_buffers_per_shader_stage
+                .min(16),
+            ..Default::default()
+        };
         let desc = wgpu::DeviceDescriptor {
             label: Some("rgbid"),
             required_features,

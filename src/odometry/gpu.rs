@@ -11,6 +11,9 @@ use crate::image::RgbdFrame;
 
 const WG: usize = 128;
 
+/// A pyramid read back to the CPU: `(photo, geo)` as in [`super::cpu::CpuPyramid`].
+pub type PyramidData = (Vec<[f32; 4]>, Vec<[f32; 4]>);
+
 /// A frame's pyramid in GPU buffers.
 pub struct GpuPyramid {
     /// Level layouts.
@@ -359,7 +362,7 @@ impl GpuOdometry {
     }
 
     /// Reads a pyramid back (for parity tests and the viewer).
-    pub fn read_pyramid(&self, p: &GpuPyramid) -> Result<(Vec<[f32; 4]>, Vec<[f32; 4]>), GpuError> {
+    pub fn read_pyramid(&self, p: &GpuPyramid) -> Result<PyramidData, GpuError> {
         let total = p
             .levels
             .last()
