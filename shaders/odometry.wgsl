@@ -23,7 +23,7 @@ struct WarpParams {
 
 const WG: u32 = 128u;
 const NPART: u32 = 30u;
-var<workgroup> sh: array<f32, 3840>; // NPART * WG
+var<workgroup> sh: array<f32, 256>; // 2 * WG, covisibility counts
 
 struct Terms {
     photo_ok: bool,
@@ -124,27 +124,33 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
     return t;
 }
 
-// Adds wt * J J^T (upper triangle, row-major) and wt * J r to acc.
-fn accumulate(acc: ptr<function, array<f32, 30>>, jt: vec3<f32>, jr: vec3<f32>, r: f32, wt: f32) {
-    let j = array<f32, 6>(jt.x, jt.y, jt.z, jr.x, jr.y, jr.z);
-    var k = 0u;
-    for (var a = 0u; a < 6u; a++) {
-        let wa = wt * j[a];
-        for (var b = a; b < 6u; b++) {
-            (*acc)[k] += wa * j[b];
-            k++;
-        }
-    }
-    for (var a = 0u; a < 6u; a++) {
-        (*acc)[21u + a] += wt * j[a] * r;
-    }
+// The 30 partial sums live in 8 vec4 accumulators with constant indices (dynamic indexing of
+// a private array becomes gathers/scatters on SIMD CPUs such as llvmpipe). Layout, as the
+// CPU mirror's `PARTIAL_LEN` array: H upper triangle row-major (21), g (6), cost, n_I, n_W, 0.
+struct Acc {
+    a0: vec4<f32>, a1: vec4<f32>, a2: vec4<f32>, a3: vec4<f32>,
+    a4: vec4<f32>, a5: vec4<f32>, a6: vec4<f32>, a7: vec4<f32>,
 }
+
+fn accumulate(acc: ptr<function, Acc>, jt: vec3<f32>, jr: vec3<f32>, r: f32, wt: f32) {
+    let j0 = jt.x; let j1 = jt.y; let j2 = jt.z; let j3 = jr.x; let j4 = jr.y; let j5 = jr.z;
+    let w0 = wt * j0; let w1 = wt * j1; let w2 = wt * j2; let w3 = wt * j3; let w4 = wt * j4; let w5 = wt * j5;
+    (*acc).a0 += w0 * vec4<f32>(j0, j1, j2, j3);
+    (*acc).a1 += vec4<f32>(w0 * j4, w0 * j5, w1 * j1, w1 * j2);
+    (*acc).a2 += vec4<f32>(w1 * j3, w1 * j4, w1 * j5, w2 * j2);
+    (*acc).a3 += vec4<f32>(w2 * j3, w2 * j4, w2 * j5, w3 * j3);
+    (*acc).a4 += vec4<f32>(w3 * j4, w3 * j5, w4 * j4, w4 * j5);
+    (*acc).a5 += vec4<f32>(w5 * j5, w0 * r, w1 * r, w2 * r);
+    (*acc).a6 += vec4<f32>(w3 * r, w4 * r, w5 * r, wt * r * r);
+}
+
+var<workgroup> shv: array<vec4<f32>, 1024>; // 8 * WG
 
 @compute @workgroup_size(128)
 fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
                     @builtin(workgroup_id) wid: vec3<u32>,
                     @builtin(num_workgroups) nwg: vec3<u32>) {
-    var acc: array<f32, 30>;
+    var acc: Acc;
     let n = P.dims.x * P.dims.y;
     let stride = nwg.x * WG;
     let est = P.flags.x;
@@ -154,27 +160,35 @@ fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
             let s = P.robust.x;
             let wt = robust_weight(est, t.r_photo / s, P.robust.z) / (s * s);
             accumulate(&acc, t.j_photo_t, t.j_photo_r, t.r_photo, wt);
-            acc[27] += wt * t.r_photo * t.r_photo;
-            acc[28] += 1.0;
+            acc.a7.x += 1.0;
         }
         if (t.geo_ok) {
             let s = P.robust.y;
             let wt = robust_weight(est, t.r_geo / s, P.robust.w) / (s * s);
             accumulate(&acc, t.j_geo_t, t.j_geo_r, t.r_geo, wt);
-            acc[27] += wt * t.r_geo * t.r_geo;
-            acc[29] += 1.0;
+            acc.a7.y += 1.0;
         }
     }
-    for (var k = 0u; k < NPART; k++) { sh[k * WG + lid.x] = acc[k]; }
+    let l = lid.x;
+    shv[l] = acc.a0; shv[WG + l] = acc.a1; shv[2u * WG + l] = acc.a2; shv[3u * WG + l] = acc.a3;
+    shv[4u * WG + l] = acc.a4; shv[5u * WG + l] = acc.a5; shv[6u * WG + l] = acc.a6; shv[7u * WG + l] = acc.a7;
     workgroupBarrier();
     for (var s = WG / 2u; s > 0u; s = s / 2u) {
-        if (lid.x < s) {
-            for (var k = 0u; k < NPART; k++) { sh[k * WG + lid.x] += sh[k * WG + lid.x + s]; }
+        if (l < s) {
+            for (var k = 0u; k < 8u; k++) { shv[k * WG + l] += shv[k * WG + l + s]; }
         }
         workgroupBarrier();
     }
-    if (lid.x == 0u) {
-        for (var k = 0u; k < NPART; k++) { out[wid.x * NPART + k] = sh[k * WG]; }
+    if (l < 8u) {
+        let v = shv[l * WG];
+        let base = wid.x * NPART + 4u * l;
+        // The last vec4 holds (n_I, n_W, 0, 0): only its first two lanes fit in NPART = 30.
+        out[base] = v.x;
+        out[base + 1u] = v.y;
+        if (l < 7u) {
+            out[base + 2u] = v.z;
+            out[base + 3u] = v.w;
+        }
     }
 }
 

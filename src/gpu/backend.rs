@@ -45,7 +45,13 @@ impl ComputeBackend {
 }
 
 fn instance() -> wgpu::Instance {
-    wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env())
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+    if std::env::var_os("WGPU_BACKEND").is_none() {
+        // Vulkan, Metal, DX12 (and WebGPU): the compute backends. OpenGL is left out: it has
+        // no compute path worth using here and its probing prints EGL errors on headless hosts.
+        desc.backends = wgpu::Backends::PRIMARY;
+    }
+    wgpu::Instance::new(desc)
 }
 
 fn adapters() -> Vec<wgpu::Adapter> {
