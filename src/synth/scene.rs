@@ -656,7 +656,8 @@ impl<'a> Generator<'a> {
             if clash {
                 continue;
             }
-            let mat = self.material(pattern::POSTER, self.rng.random_range(0.08..0.2), 0.1);
+            let scale = self.rng.random_range(0.08..0.2);
+            let mat = self.material(pattern::POSTER, scale, 0.1);
             let c = wall.point(u, 0.006, z);
             let p = Self::boxp(c, DVec3::new(w * 0.5, 0.005, h * 0.5), wall.frame(), mat);
             self.push_object(ObjectKind::Poster, false, vec![p]);
