@@ -28,13 +28,19 @@ fn gpu_ray_caster_matches_cpu() {
         CameraModel::Pinhole(PinholeCamera::new(262.5, 262.5, 159.5, 119.5, 320, 240)),
         CameraModel::Unified(UnifiedCamera::catadioptric(240, 240)),
     ];
-    for (name, yaw) in [("office", 0.4), ("kitchen", 2.0), ("corridor", 0.1), ("lab", 4.0)] {
+    for (name, yaw) in [
+        ("office", 0.4),
+        ("kitchen", 2.0),
+        ("corridor", 0.1),
+        ("lab", 4.0),
+    ] {
         let scene = Arc::new(Scene::preset(name, 9).unwrap().session(1));
         let c = scene.free_area().center();
         let pose = camera_pose(DVec3::new(c.x, c.y, 1.45), yaw, -0.2, 0.05);
         for cam in cams {
             let mut cpu = Renderer::new(scene.clone(), cam, &RenderBackend::Cpu).unwrap();
-            let mut gpu = Renderer::new(scene.clone(), cam, &RenderBackend::Gpu(ctx.clone())).unwrap();
+            let mut gpu =
+                Renderer::new(scene.clone(), cam, &RenderBackend::Gpu(ctx.clone())).unwrap();
             let a = cpu.cast(&pose).unwrap();
             let b = gpu.cast(&pose).unwrap();
             assert_eq!(a.len(), b.len());
@@ -55,7 +61,9 @@ fn gpu_ray_caster_matches_cpu() {
                 if (x.z - y.z).abs() > 1e-4 * x.z.max(1.0) {
                     depth_bad += 1;
                 }
-                let dc = (0..3).map(|k| (x.rgb[k] - y.rgb[k]).abs()).fold(0.0f32, f32::max);
+                let dc = (0..3)
+                    .map(|k| (x.rgb[k] - y.rgb[k]).abs())
+                    .fold(0.0f32, f32::max);
                 if dc > 2.0 / 255.0 {
                     color_bad += 1;
                 }
@@ -63,16 +71,34 @@ fn gpu_ray_caster_matches_cpu() {
             }
             let n = a.len() as f64;
             // Objects differ only where a ray grazes an edge (f32 rounding in different order).
-            assert!(same_object as f64 > 0.998 * n, "{name} {cam:?}: object ids agree on {same_object}/{n}");
-            assert!(depth_bad as f64 <= 0.001 * n, "{name}: {depth_bad} depth mismatches");
+            assert!(
+                same_object as f64 > 0.998 * n,
+                "{name} {cam:?}: object ids agree on {same_object}/{n}"
+            );
+            assert!(
+                depth_bad as f64 <= 0.001 * n,
+                "{name}: {depth_bad} depth mismatches"
+            );
             // Colour may differ at texture discontinuities (checker edges, poster shapes).
-            assert!(color_bad as f64 <= 0.003 * n, "{name}: {color_bad} colour mismatches (max {max_color})");
+            assert!(
+                color_bad as f64 <= 0.003 * n,
+                "{name}: {color_bad} colour mismatches (max {max_color})"
+            );
             // After the (shared) sensor model the frames agree just as well.
             let sensor = SensorModel::kinect();
             let fa = cpu.render(&pose, &sensor, 3).unwrap();
             let fb = gpu.render(&pose, &sensor, 3).unwrap();
-            let dv = fa.inverse_depth.data.iter().zip(&fb.inverse_depth.data).filter(|(p, q)| (**p - **q).abs() > 1e-3).count();
-            assert!(dv as f64 <= 0.004 * n, "{name}: {dv} inverse-depth mismatches after the sensor model");
+            let dv = fa
+                .inverse_depth
+                .data
+                .iter()
+                .zip(&fb.inverse_depth.data)
+                .filter(|(p, q)| (**p - **q).abs() > 1e-3)
+                .count();
+            assert!(
+                dv as f64 <= 0.004 * n,
+                "{name}: {dv} inverse-depth mismatches after the sensor model"
+            );
         }
     }
 }

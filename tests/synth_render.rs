@@ -8,7 +8,14 @@ use rgbid::synth::{render_pinhole, Scene, SensorModel, PRESETS};
 
 fn camera(w: u32, h: u32) -> PinholeCamera {
     let s = f64::from(w) / 640.0;
-    PinholeCamera::new(525.0 * s, 525.0 * s, f64::from(w) * 0.5 - 0.5, f64::from(h) * 0.5 - 0.5, w, h)
+    PinholeCamera::new(
+        525.0 * s,
+        525.0 * s,
+        f64::from(w) * 0.5 - 0.5,
+        f64::from(h) * 0.5 - 0.5,
+        w,
+        h,
+    )
 }
 
 /// A camera at `eye` looking at `target`, world z up (camera y down).
@@ -32,10 +39,19 @@ fn presets_render_with_depth_and_texture_everywhere() {
         let scene = Scene::preset(name, 3).unwrap();
         for k in 0..4 {
             let yaw = k as f64 * std::f64::consts::FRAC_PI_2 + 0.3;
-            let f = render_pinhole(&scene, &cam, &center_view(&scene, yaw), &SensorModel::noiseless(), 1);
+            let f = render_pinhole(
+                &scene,
+                &cam,
+                &center_view(&scene, yaw),
+                &SensorModel::noiseless(),
+                1,
+            );
             let n = f.inverse_depth.data.len() as f64;
             let valid = f.inverse_depth.data.iter().filter(|d| **d > 0.0).count() as f64 / n;
-            assert!(valid > 0.97, "{name} view {k}: only {valid:.3} of pixels have depth");
+            assert!(
+                valid > 0.97,
+                "{name} view {k}: only {valid:.3} of pixels have depth"
+            );
             // Gradients: fraction of interior pixels with a noticeable intensity gradient.
             let (w, h) = (f.width(), f.height());
             let mut textured = 0usize;
@@ -51,10 +67,28 @@ fn presets_render_with_depth_and_texture_everywhere() {
                 }
             }
             let frac = textured as f64 / total as f64;
-            assert!(frac > 0.5, "{name} view {k}: only {frac:.3} of pixels have gradient");
-            let kinect = render_pinhole(&scene, &cam, &center_view(&scene, yaw), &SensorModel::kinect(), 1);
-            let kvalid = kinect.inverse_depth.data.iter().filter(|d| **d > 0.0).count() as f64 / n;
-            assert!(kvalid > 0.4 && kvalid < valid, "{name} view {k}: kinect valid fraction {kvalid:.3}");
+            assert!(
+                frac > 0.5,
+                "{name} view {k}: only {frac:.3} of pixels have gradient"
+            );
+            let kinect = render_pinhole(
+                &scene,
+                &cam,
+                &center_view(&scene, yaw),
+                &SensorModel::kinect(),
+                1,
+            );
+            let kvalid = kinect
+                .inverse_depth
+                .data
+                .iter()
+                .filter(|d| **d > 0.0)
+                .count() as f64
+                / n;
+            assert!(
+                kvalid > 0.4 && kvalid < valid,
+                "{name} view {k}: kinect valid fraction {kvalid:.3}"
+            );
         }
     }
 }
@@ -75,7 +109,10 @@ fn rendering_is_deterministic_and_seeded() {
     assert_ne!(a.inverse_depth, c.inverse_depth);
     assert_ne!(a.rgb, c.rgb);
     // Same thing through a different rayon pool size: counter-based noise does not care.
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
     let d = pool.install(|| render_pinhole(&scene, &cam, &pose, &SensorModel::kinect(), 5));
     assert_eq!(a, d);
 }
@@ -114,7 +151,10 @@ fn pixels_move_with_the_ground_truth_motion() {
             let p_a = cam.unproject(DVec2::new(x as f64, y as f64), 1.0 / f64::from(inv));
             let p_b = b_from_a.transform_point(p_a);
             let Some(uv) = cam.project(p_b) else { continue };
-            let (Some(zb), Some(ib)) = (bilinear(&b.true_depth, uv), bilinear(&b.intensity, uv)) else { continue };
+            let (Some(zb), Some(ib)) = (bilinear(&b.true_depth, uv), bilinear(&b.intensity, uv))
+            else {
+                continue;
+            };
             // Skip occlusions and depth edges: the surface seen in b must be the same one.
             let (ux, vy) = (uv.x.round() as usize, uv.y.round() as usize);
             let zn = b.true_depth.at(ux, vy);
@@ -125,7 +165,11 @@ fn pixels_move_with_the_ground_truth_motion() {
             photo.push(f64::from((ib - a.intensity.at(x, y)).abs()));
         }
     }
-    assert!(photo.len() > 4000, "too few correspondences: {}", photo.len());
+    assert!(
+        photo.len() > 4000,
+        "too few correspondences: {}",
+        photo.len()
+    );
     let median = |v: &mut Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
@@ -133,7 +177,11 @@ fn pixels_move_with_the_ground_truth_motion() {
     let p90 = |v: &Vec<f64>| v[v.len() * 9 / 10];
     let mp = median(&mut photo);
     let mg = median(&mut geo);
-    assert!(mp < 2.5 && p90(&photo) < 12.0, "photometric error median {mp}, p90 {}", p90(&photo));
+    assert!(
+        mp < 2.5 && p90(&photo) < 12.0,
+        "photometric error median {mp}, p90 {}",
+        p90(&photo)
+    );
     assert!(mg < 2e-3, "geometric error median {mg}");
     // And a wrong motion is clearly worse (the test can fail).
     let wrong = pose_a * Se3::exp(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
@@ -154,7 +202,10 @@ fn pixels_move_with_the_ground_truth_motion() {
         }
     }
     let mb = median(&mut bad);
-    assert!(mb > 3.0 * mp.max(0.5), "wrong motion median {mb} vs right {mp}");
+    assert!(
+        mb > 3.0 * mp.max(0.5),
+        "wrong motion median {mb} vs right {mp}"
+    );
 }
 
 #[test]
@@ -172,7 +223,13 @@ fn inverse_depth_noise_does_not_grow_with_depth() {
     let mut near = Vec::new();
     let mut far = Vec::new();
     for k in 0..8 {
-        let f = render_pinhole(&scene, &cam, &center_view(&scene, k as f64 * 0.8), &sensor, 100 + k);
+        let f = render_pinhole(
+            &scene,
+            &cam,
+            &center_view(&scene, k as f64 * 0.8),
+            &sensor,
+            100 + k,
+        );
         for (i, &inv) in f.inverse_depth.data.iter().enumerate() {
             let z = f64::from(f.true_depth.data[i]);
             if inv <= 0.0 || z <= 0.0 {
@@ -186,7 +243,12 @@ fn inverse_depth_noise_does_not_grow_with_depth() {
             }
         }
     }
-    assert!(near.len() > 2000 && far.len() > 2000, "{} near, {} far samples", near.len(), far.len());
+    assert!(
+        near.len() > 2000 && far.len() > 2000,
+        "{} near, {} far samples",
+        near.len(),
+        far.len()
+    );
     let std = |v: &[(f64, f64)]| {
         let m = v.iter().map(|r| r.0).sum::<f64>() / v.len() as f64;
         (v.iter().map(|r| (r.0 - m).powi(2)).sum::<f64>() / v.len() as f64).sqrt()
@@ -197,9 +259,24 @@ fn inverse_depth_noise_does_not_grow_with_depth() {
         (d.iter().map(|x| (x - m).powi(2)).sum::<f64>() / d.len() as f64).sqrt()
     };
     let (sn, sf) = (std(&near), std(&far));
-    assert!((sn / expected - 1.0).abs() < 0.25, "near inverse-depth std {sn} vs model {expected}");
-    assert!((sf / expected - 1.0).abs() < 0.25, "far inverse-depth std {sf} vs model {expected}");
-    assert!((sf / sn) < 1.25 && (sf / sn) > 0.8, "ratio far/near {}", sf / sn);
+    assert!(
+        (sn / expected - 1.0).abs() < 0.25,
+        "near inverse-depth std {sn} vs model {expected}"
+    );
+    assert!(
+        (sf / expected - 1.0).abs() < 0.25,
+        "far inverse-depth std {sf} vs model {expected}"
+    );
+    assert!(
+        (sf / sn) < 1.25 && (sf / sn) > 0.8,
+        "ratio far/near {}",
+        sf / sn
+    );
     // Depth noise itself grows roughly with z^2.
-    assert!(depth_std(&far) > 4.0 * depth_std(&near), "{} vs {}", depth_std(&far), depth_std(&near));
+    assert!(
+        depth_std(&far) > 4.0 * depth_std(&near),
+        "{} vs {}",
+        depth_std(&far),
+        depth_std(&near)
+    );
 }

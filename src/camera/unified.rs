@@ -40,7 +40,16 @@ pub struct UnifiedCamera {
 impl UnifiedCamera {
     /// A model without field-of-view mask.
     pub fn new(xi: f64, gamma: f64, cx: f64, cy: f64, width: u32, height: u32) -> Self {
-        UnifiedCamera { xi, gamma, cx, cy, width, height, fov_radius: None, inner_radius: None }
+        UnifiedCamera {
+            xi,
+            gamma,
+            cx,
+            cy,
+            width,
+            height,
+            fov_radius: None,
+            inner_radius: None,
+        }
     }
 
     /// A typical catadioptric camera filling a `width x height` image: xi = 0.9, the mirror
@@ -67,14 +76,26 @@ impl UnifiedCamera {
     /// Checks the parameters.
     pub fn validate(&self) -> Result<(), CameraError> {
         if !(self.xi.is_finite() && self.xi >= 0.0) {
-            return Err(CameraError::InvalidParameter { name: "xi", value: self.xi, why: "must be finite and >= 0" });
+            return Err(CameraError::InvalidParameter {
+                name: "xi",
+                value: self.xi,
+                why: "must be finite and >= 0",
+            });
         }
         if !(self.gamma.is_finite() && self.gamma > 0.0) {
-            return Err(CameraError::InvalidParameter { name: "gamma", value: self.gamma, why: "must be finite and > 0" });
+            return Err(CameraError::InvalidParameter {
+                name: "gamma",
+                value: self.gamma,
+                why: "must be finite and > 0",
+            });
         }
         for (name, value) in [("cx", self.cx), ("cy", self.cy)] {
             if !value.is_finite() {
-                return Err(CameraError::InvalidParameter { name, value, why: "must be finite" });
+                return Err(CameraError::InvalidParameter {
+                    name,
+                    value,
+                    why: "must be finite",
+                });
             }
         }
         if self.width == 0 || self.height == 0 {
@@ -110,7 +131,10 @@ impl UnifiedCamera {
         }
         let rho = p.length();
         let w = p.z + self.xi * rho;
-        Some(DVec2::new(self.gamma * p.x / w + self.cx, self.gamma * p.y / w + self.cy))
+        Some(DVec2::new(
+            self.gamma * p.x / w + self.cx,
+            self.gamma * p.y / w + self.cy,
+        ))
     }
 
     /// Lifts a pixel to the unit sphere (a unit ray direction in the camera frame); `None`
@@ -152,7 +176,11 @@ impl UnifiedCamera {
         let w = p.z + self.xi * rho;
         let g = self.gamma / (w * w);
         // dw/dp = (xi x / rho, xi y / rho, 1 + xi z / rho)
-        let dw = [self.xi * p.x / rho, self.xi * p.y / rho, 1.0 + self.xi * p.z / rho];
+        let dw = [
+            self.xi * p.x / rho,
+            self.xi * p.y / rho,
+            1.0 + self.xi * p.z / rho,
+        ];
         [
             [g * (w - p.x * dw[0]), -g * p.x * dw[1], -g * p.x * dw[2]],
             [-g * p.y * dw[0], g * (w - p.y * dw[1]), -g * p.y * dw[2]],
@@ -232,7 +260,10 @@ mod tests {
                     continue;
                 };
                 let s = c.unproject(uv).expect("pre-image exists");
-                assert!((s - p.normalize()).length() < 1e-9, "{c:?} {p} -> {uv} -> {s}");
+                assert!(
+                    (s - p.normalize()).length() < 1e-9,
+                    "{c:?} {p} -> {uv} -> {s}"
+                );
                 assert!((c.project(s).unwrap() - uv).length() < 1e-7);
             }
             // Pixel -> sphere -> pixel over a grid.
@@ -253,7 +284,9 @@ mod tests {
     fn wide_angle_sees_behind_the_image_plane() {
         let c = UnifiedCamera::catadioptric(640, 480);
         let p = DVec3::new(1.0, 0.0, -0.2);
-        let uv = c.project(p).expect("points slightly behind are visible with xi = 0.9");
+        let uv = c
+            .project(p)
+            .expect("points slightly behind are visible with xi = 0.9");
         assert!(c.in_fov(uv));
         assert!(c.project(DVec3::new(0.0, 0.0, -1.0)).is_none());
         let mask = c.fov_mask();
@@ -275,7 +308,10 @@ mod tests {
                     let mut dp = DVec3::ZERO;
                     dp[k] = h;
                     let d = (c.project(p + dp).unwrap() - c.project(p - dp).unwrap()) / (2.0 * h);
-                    assert!((d.x - j[0][k]).abs() < 1e-4 && (d.y - j[1][k]).abs() < 1e-4, "{c:?} {p} k={k}");
+                    assert!(
+                        (d.x - j[0][k]).abs() < 1e-4 && (d.y - j[1][k]).abs() < 1e-4,
+                        "{c:?} {p} k={k}"
+                    );
                 }
                 let jp = c.project_param_jacobian(p);
                 for k in 0..4 {
@@ -300,7 +336,10 @@ mod tests {
                         }
                     }
                     let d = (a.project(p).unwrap() - b.project(p).unwrap()) / (2.0 * h);
-                    assert!((d.x - jp[0][k]).abs() < 1e-4 && (d.y - jp[1][k]).abs() < 1e-4, "param {k}");
+                    assert!(
+                        (d.x - jp[0][k]).abs() < 1e-4 && (d.y - jp[1][k]).abs() < 1e-4,
+                        "param {k}"
+                    );
                 }
                 let uv = c.project(p).unwrap();
                 let ju = c.unproject_jacobian(uv);
@@ -309,7 +348,10 @@ mod tests {
                     du[k] = 1e-4;
                     let d = (c.unproject(uv + du).unwrap() - c.unproject(uv - du).unwrap()) / 2e-4;
                     for r in 0..3 {
-                        assert!((d[r] - ju[r][k]).abs() < 1e-7, "unproject {c:?} {uv} r={r} k={k}");
+                        assert!(
+                            (d[r] - ju[r][k]).abs() < 1e-7,
+                            "unproject {c:?} {uv} r={r} k={k}"
+                        );
                     }
                 }
             }
@@ -318,10 +360,18 @@ mod tests {
 
     #[test]
     fn validation_rejects_bad_parameters() {
-        assert!(UnifiedCamera::new(-0.1, 300.0, 0.0, 0.0, 10, 10).validate().is_err());
-        assert!(UnifiedCamera::new(0.5, 0.0, 0.0, 0.0, 10, 10).validate().is_err());
-        assert!(UnifiedCamera::new(0.5, 300.0, f64::NAN, 0.0, 10, 10).validate().is_err());
-        assert!(UnifiedCamera::new(0.5, 300.0, 0.0, 0.0, 0, 10).validate().is_err());
+        assert!(UnifiedCamera::new(-0.1, 300.0, 0.0, 0.0, 10, 10)
+            .validate()
+            .is_err());
+        assert!(UnifiedCamera::new(0.5, 0.0, 0.0, 0.0, 10, 10)
+            .validate()
+            .is_err());
+        assert!(UnifiedCamera::new(0.5, 300.0, f64::NAN, 0.0, 10, 10)
+            .validate()
+            .is_err());
+        assert!(UnifiedCamera::new(0.5, 300.0, 0.0, 0.0, 0, 10)
+            .validate()
+            .is_err());
         assert!(UnifiedCamera::catadioptric(640, 480).validate().is_ok());
     }
 }

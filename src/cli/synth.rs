@@ -11,7 +11,9 @@ use rgbid::camera::{PinholeCamera, UnifiedCamera};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::io::tum_writer::TumWriter;
 use rgbid::synth::trajectory::{TrajectoryKind, TRAJECTORIES};
-use rgbid::synth::{CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig, Trajectory, PRESETS};
+use rgbid::synth::{
+    CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig, Trajectory, PRESETS,
+};
 
 /// Camera kinds of `--camera`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -96,7 +98,9 @@ fn camera(kind: CameraKind, w: u32, h: u32) -> CameraModel {
 
 fn progress(len: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len as u64);
-    if let Ok(style) = ProgressStyle::with_template("{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} ({per_sec}, eta {eta})") {
+    if let Ok(style) = ProgressStyle::with_template(
+        "{msg} [{elapsed_precise}] {wide_bar} {pos}/{len} ({per_sec}, eta {eta})",
+    ) {
         bar.set_style(style);
     }
     bar.set_message(what.to_string());
@@ -106,7 +110,11 @@ fn progress(len: usize, what: &str) -> ProgressBar {
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
     if !PRESETS.contains(&args.scene.as_str()) {
-        bail!("unknown scene '{}' (known: {})", args.scene, PRESETS.join(", "));
+        bail!(
+            "unknown scene '{}' (known: {})",
+            args.scene,
+            PRESETS.join(", ")
+        );
     }
     let kind = TrajectoryKind::from_name(&args.trajectory)?;
     if args.frames == 0 {
@@ -118,7 +126,11 @@ pub fn run(args: Args) -> Result<()> {
         frames: args.frames,
         fps: args.fps,
         start_time: 0.0,
-        sensor: if args.no_noise { SensorModel::noiseless() } else { SensorModel::kinect() },
+        sensor: if args.no_noise {
+            SensorModel::noiseless()
+        } else {
+            SensorModel::kinect()
+        },
         seed: args.seed,
         exposure_changes: args.exposure_changes,
         motion_blur: args.motion_blur,
@@ -138,8 +150,18 @@ pub fn run(args: Args) -> Result<()> {
     let sessions = args.sessions.max(1);
     for s in 0..sessions {
         let scene = Arc::new(base.session(s));
-        let dir = if sessions > 1 { out.join(format!("session_{s:02}")) } else { out.clone() };
-        let mut seq = Sequence::new(scene.clone(), cam, trajectory.clone(), config.clone(), &backend)?;
+        let dir = if sessions > 1 {
+            out.join(format!("session_{s:02}"))
+        } else {
+            out.clone()
+        };
+        let mut seq = Sequence::new(
+            scene.clone(),
+            cam,
+            trajectory.clone(),
+            config.clone(),
+            &backend,
+        )?;
         let mut writer = TumWriter::create(&dir, &cam)?;
         let bar = progress(args.frames, &format!("session {s}"));
         let started = Instant::now();
@@ -149,13 +171,32 @@ pub fn run(args: Args) -> Result<()> {
             bar.inc(1);
         }
         bar.finish_and_clear();
-        let readme = readme(&args, &scene, &cam, &config, s, seq.renderer().backend_name());
+        let readme = readme(
+            &args,
+            &scene,
+            &cam,
+            &config,
+            s,
+            seq.renderer().backend_name(),
+        );
         let session_txt = format!(
             "session {s}\nchanged_objects {}\n",
-            scene.changed_objects().iter().map(|i| i.to_string()).collect::<Vec<_>>().join(" ")
+            scene
+                .changed_objects()
+                .iter()
+                .map(|i| i.to_string())
+                .collect::<Vec<_>>()
+                .join(" ")
         );
-        let scene_json = serde_json::to_string_pretty(scene.params()).context("scene parameters to JSON")?;
-        writer.finish(&readme, &[("session.txt", session_txt), ("scene.json", scene_json + "\n")])?;
+        let scene_json =
+            serde_json::to_string_pretty(scene.params()).context("scene parameters to JSON")?;
+        writer.finish(
+            &readme,
+            &[
+                ("session.txt", session_txt),
+                ("scene.json", scene_json + "\n"),
+            ],
+        )?;
         println!(
             "wrote {} frames to {} in {:.1} s ({})",
             args.frames,
@@ -167,7 +208,14 @@ pub fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
-fn readme(args: &Args, scene: &Scene, cam: &CameraModel, config: &SequenceConfig, session: u32, backend: String) -> String {
+fn readme(
+    args: &Args,
+    scene: &Scene,
+    cam: &CameraModel,
+    config: &SequenceConfig,
+    session: u32,
+    backend: String,
+) -> String {
     let sensor = serde_json::to_string(&config.sensor).unwrap_or_default();
     let camera = serde_json::to_string(cam).unwrap_or_default();
     format!(
@@ -206,10 +254,18 @@ fn readme(args: &Args, scene: &Scene, cam: &CameraModel, config: &SequenceConfig
     )
 }
 
-fn bench(args: &Args, scene: Arc<Scene>, cam: CameraModel, trajectory: Trajectory, config: SequenceConfig) -> Result<()> {
+fn bench(
+    args: &Args,
+    scene: Arc<Scene>,
+    cam: CameraModel,
+    trajectory: Trajectory,
+    config: SequenceConfig,
+) -> Result<()> {
     let mut backends = vec![RenderBackend::Cpu];
     if args.backend != BackendChoice::Cpu {
-        if let Ok(ComputeBackend::Gpu(g)) = select_backend(BackendChoice::Gpu, args.adapter.as_deref()) {
+        if let Ok(ComputeBackend::Gpu(g)) =
+            select_backend(BackendChoice::Gpu, args.adapter.as_deref())
+        {
             backends.push(RenderBackend::Gpu(g));
         } else {
             println!("no GPU adapter: timing the CPU backend only");
@@ -225,7 +281,13 @@ fn bench(args: &Args, scene: Arc<Scene>, cam: CameraModel, trajectory: Trajector
         args.trajectory
     );
     for backend in backends {
-        let mut seq = Sequence::new(scene.clone(), cam, trajectory.clone(), config.clone(), &backend)?;
+        let mut seq = Sequence::new(
+            scene.clone(),
+            cam,
+            trajectory.clone(),
+            config.clone(),
+            &backend,
+        )?;
         let name = seq.renderer().backend_name();
         // One warm-up frame (pipeline compilation on GPUs) outside the timing.
         seq.render_frame(0)?;
@@ -234,7 +296,8 @@ fn bench(args: &Args, scene: Arc<Scene>, cam: CameraModel, trajectory: Trajector
         let mut checksum = 0u64;
         for f in &mut seq {
             let f = f?;
-            checksum = checksum.wrapping_add(f.frame.rgb.iter().map(|v| u64::from(*v)).sum::<u64>());
+            checksum =
+                checksum.wrapping_add(f.frame.rgb.iter().map(|v| u64::from(*v)).sum::<u64>());
             bar.inc(1);
         }
         bar.finish_and_clear();

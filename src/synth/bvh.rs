@@ -14,7 +14,10 @@ pub struct Aabb {
 
 impl Aabb {
     /// The empty box (union identity).
-    pub const EMPTY: Aabb = Aabb { min: [f64::INFINITY; 3], max: [f64::NEG_INFINITY; 3] };
+    pub const EMPTY: Aabb = Aabb {
+        min: [f64::INFINITY; 3],
+        max: [f64::NEG_INFINITY; 3],
+    };
 
     /// Smallest box holding both.
     pub fn union(&self, o: &Aabb) -> Aabb {
@@ -28,7 +31,11 @@ impl Aabb {
 
     /// Surface area (0 for the empty box).
     pub fn area(&self) -> f64 {
-        let e = [self.max[0] - self.min[0], self.max[1] - self.min[1], self.max[2] - self.min[2]];
+        let e = [
+            self.max[0] - self.min[0],
+            self.max[1] - self.min[1],
+            self.max[2] - self.min[2],
+        ];
         if e.iter().any(|x| *x < 0.0) {
             return 0.0;
         }
@@ -54,27 +61,52 @@ pub fn build(prims: &[(PackedPrim, Aabb)]) -> (Vec<PackedNode>, Vec<PackedPrim>)
     if prims.is_empty() {
         return (nodes, Vec::new());
     }
-    nodes.push(PackedNode { min: [0.0; 4], max: [0.0; 4] });
+    nodes.push(PackedNode {
+        min: [0.0; 4],
+        max: [0.0; 4],
+    });
     // Work list: (node index, start, end, depth).
     let mut work = vec![(0usize, 0usize, prims.len(), 0usize)];
     while let Some((ni, start, end, depth)) = work.pop() {
-        let bounds = order[start..end].iter().fold(Aabb::EMPTY, |b, &i| b.union(&prims[i].1));
+        let bounds = order[start..end]
+            .iter()
+            .fold(Aabb::EMPTY, |b, &i| b.union(&prims[i].1));
         let count = end - start;
-        let split = if count <= LEAF_SIZE { None } else { best_split(prims, &mut order[start..end], depth) };
+        let split = if count <= LEAF_SIZE {
+            None
+        } else {
+            best_split(prims, &mut order[start..end], depth)
+        };
         let (a, c) = match split {
             None => (start as u32, count as u32),
             Some(mid) => {
                 let left = nodes.len();
-                nodes.push(PackedNode { min: [0.0; 4], max: [0.0; 4] });
-                nodes.push(PackedNode { min: [0.0; 4], max: [0.0; 4] });
+                nodes.push(PackedNode {
+                    min: [0.0; 4],
+                    max: [0.0; 4],
+                });
+                nodes.push(PackedNode {
+                    min: [0.0; 4],
+                    max: [0.0; 4],
+                });
                 work.push((left, start, start + mid, depth + 1));
                 work.push((left + 1, start + mid, end, depth + 1));
                 (left as u32, 0)
             }
         };
         nodes[ni] = PackedNode {
-            min: [bounds.min[0] as f32, bounds.min[1] as f32, bounds.min[2] as f32, f32::from_bits(a)],
-            max: [bounds.max[0] as f32, bounds.max[1] as f32, bounds.max[2] as f32, f32::from_bits(c)],
+            min: [
+                bounds.min[0] as f32,
+                bounds.min[1] as f32,
+                bounds.min[2] as f32,
+                f32::from_bits(a),
+            ],
+            max: [
+                bounds.max[0] as f32,
+                bounds.max[1] as f32,
+                bounds.max[2] as f32,
+                f32::from_bits(c),
+            ],
         };
     }
     // Slightly inflate f32 boxes so rounding never culls a surface lying on a face.
@@ -115,7 +147,10 @@ fn best_split(prims: &[(PackedPrim, Aabb)], idx: &mut [usize], depth: usize) -> 
         }
     }
     let (cost, axis, split) = best?;
-    let total = idx.iter().fold(Aabb::EMPTY, |b, &i| b.union(&prims[i].1)).area();
+    let total = idx
+        .iter()
+        .fold(Aabb::EMPTY, |b, &i| b.union(&prims[i].1))
+        .area();
     // Leaf if splitting does not pay (traversal cost ~1 box test, intersection ~1.5).
     if n <= 4 && cost * 1.5 >= total * 1.5 * n as f64 - total {
         return None;

@@ -35,20 +35,36 @@ pub struct GpuRayCaster {
 impl GpuRayCaster {
     /// Compiles the kernel (once per caster) and uploads the scene and rays.
     pub fn new(ctx: Arc<GpuContext>, scene: &Scene, rays: &RayTable) -> Result<Self, SynthError> {
-        let src = crate::gpu::shaders::assembled(SHADER)
-            .ok_or_else(|| crate::gpu::GpuError::Shader { name: SHADER.into(), message: "not embedded".into() })?;
+        let src =
+            crate::gpu::shaders::assembled(SHADER).ok_or_else(|| crate::gpu::GpuError::Shader {
+                name: SHADER.into(),
+                message: "not embedded".into(),
+            })?;
         let mut pipelines = ctx.compute_pipelines(SHADER, &src, &["raycast"])?;
         let pipeline = pipelines.remove(0);
         let packed = scene.packed();
         // Empty arrays are not valid bindings: pad with one zero element.
-        let prims: Vec<PackedPrim> =
-            if packed.prims.is_empty() { vec![bytemuck::Zeroable::zeroed()] } else { packed.prims.clone() };
-        let nodes: Vec<PackedNode> =
-            if packed.nodes.is_empty() { vec![bytemuck::Zeroable::zeroed()] } else { packed.nodes.clone() };
-        let materials: Vec<PackedMaterial> =
-            if packed.materials.is_empty() { vec![bytemuck::Zeroable::zeroed()] } else { packed.materials.clone() };
+        let prims: Vec<PackedPrim> = if packed.prims.is_empty() {
+            vec![bytemuck::Zeroable::zeroed()]
+        } else {
+            packed.prims.clone()
+        };
+        let nodes: Vec<PackedNode> = if packed.nodes.is_empty() {
+            vec![bytemuck::Zeroable::zeroed()]
+        } else {
+            packed.nodes.clone()
+        };
+        let materials: Vec<PackedMaterial> = if packed.materials.is_empty() {
+            vec![bytemuck::Zeroable::zeroed()]
+        } else {
+            packed.materials.clone()
+        };
         let pixels = rays.width * rays.height;
-        let ray_data: Vec<[f32; 4]> = if rays.rays.is_empty() { vec![[0.0; 4]] } else { rays.rays.clone() };
+        let ray_data: Vec<[f32; 4]> = if rays.rays.is_empty() {
+            vec![[0.0; 4]]
+        } else {
+            rays.rays.clone()
+        };
         let b_prims = ctx.storage_init("synth prims", &prims);
         let b_nodes = ctx.storage_init("synth nodes", &nodes);
         let b_mats = ctx.storage_init("synth materials", &materials);
@@ -70,7 +86,10 @@ impl GpuRayCaster {
             (5, &out_color),
             (6, &out_depth),
         ]
-        .map(|(binding, b)| wgpu::BindGroupEntry { binding, resource: b.as_entire_binding() });
+        .map(|(binding, b)| wgpu::BindGroupEntry {
+            binding,
+            resource: b.as_entire_binding(),
+        });
         let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("synth raycast"),
             layout: &layout,
@@ -89,7 +108,14 @@ impl GpuRayCaster {
             staging_depth,
             pixels,
             node_count: packed.nodes.len() as u32,
-            lighting: [l.to_light[0], l.to_light[1], l.to_light[2], l.ambient, l.diffuse, 0.0],
+            lighting: [
+                l.to_light[0],
+                l.to_light[1],
+                l.to_light[2],
+                l.ambient,
+                l.diffuse,
+                0.0,
+            ],
         })
     }
 
@@ -117,14 +143,23 @@ impl GpuRayCaster {
         u[21] = f32::from_bits(w);
         u[22] = f32::from_bits(1);
         u[23] = f32::from_bits(self.node_count);
-        self.ctx.queue.write_buffer(&self.params, 0, bytemuck::cast_slice(&u));
+        self.ctx
+            .queue
+            .write_buffer(&self.params, 0, bytemuck::cast_slice(&u));
         let groups = (self.pixels as u32).div_ceil(WORKGROUP);
         let gx = groups.min(32768);
         let gy = groups.div_ceil(gx);
-        let mut enc = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("synth raycast") });
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("synth raycast"),
+            });
         {
-            let mut pass =
-                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("synth raycast"), timestamp_writes: None });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("synth raycast"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, &self.bind_group, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
@@ -139,7 +174,12 @@ impl GpuRayCaster {
         Ok(color
             .iter()
             .zip(&depth)
-            .map(|(c, d)| CastSample { z: d[0], cos_incidence: d[1], rgb: [c[0], c[1], c[2]], object: c[3].to_bits() })
+            .map(|(c, d)| CastSample {
+                z: d[0],
+                cos_incidence: d[1],
+                rgb: [c[0], c[1], c[2]],
+                object: c[3].to_bits(),
+            })
             .collect())
     }
 }

@@ -25,9 +25,13 @@ pub mod trajectory;
 
 pub use bvh::Aabb;
 pub use gpu::GpuRayCaster;
-pub use render::{cast_cpu, finish_frame, render, render_pinhole, CameraModel, RayTable, RenderBackend, RenderedFrame, Renderer};
+pub use render::{
+    cast_cpu, finish_frame, render, render_pinhole, CameraModel, RayTable, RenderBackend,
+    RenderedFrame, Renderer,
+};
 pub use scene::{
-    FreeArea, FurnitureStyle, Layout, ObjectKind, Primitive, Scene, SceneObject, SceneParams, Shape, PRESETS,
+    FreeArea, FurnitureStyle, Layout, ObjectKind, Primitive, Scene, SceneObject, SceneParams,
+    Shape, PRESETS,
 };
 pub use sensor::{SensorModel, DEPTH_FACTOR};
 pub use sequence::{Sequence, SequenceConfig, SequenceFrame};

@@ -97,7 +97,12 @@ pub struct CastSample {
 
 impl CastSample {
     /// A ray that hit nothing.
-    pub const MISS: CastSample = CastSample { z: 0.0, cos_incidence: 0.0, rgb: [0.0; 3], object: NO_OBJECT };
+    pub const MISS: CastSample = CastSample {
+        z: 0.0,
+        cos_incidence: 0.0,
+        rgb: [0.0; 3],
+        object: NO_OBJECT,
+    };
 }
 
 #[inline]
@@ -179,7 +184,11 @@ pub fn pattern_value(m: &PackedMaterial, u: f32, v: f32) -> f32 {
             let ox = su - cx - (0.3 + 0.4 * unit(pcg_hash(h)));
             let oy = sv - cy - (0.3 + 0.4 * unit(pcg_hash(h + 1)));
             let r = 0.12 + 0.2 * unit(pcg_hash(h + 2));
-            let inside = if h & 1 == 0 { ox * ox + oy * oy < r * r } else { ox.abs() < r && oy.abs() < r };
+            let inside = if h & 1 == 0 {
+                ox * ox + oy * oy < r * r
+            } else {
+                ox.abs() < r && oy.abs() < r
+            };
             if inside {
                 unit(pcg_hash(h + 3))
             } else {
@@ -303,7 +312,11 @@ fn intersect_prim(p: &PackedPrim, o: [f32; 3], d: [f32; 3], t_min: f32, t_max: f
     if hit_t <= 0.0 {
         return None;
     }
-    let q = [lo[0] + hit_t * ld[0], lo[1] + hit_t * ld[1], lo[2] + hit_t * ld[2]];
+    let q = [
+        lo[0] + hit_t * ld[0],
+        lo[1] + hit_t * ld[1],
+        lo[2] + hit_t * ld[2],
+    ];
     // Texture coordinates: the two coordinates across the dominant normal axis (plus the
     // anchor), so planar faces get undistorted textures; curved sides use a slanted pair.
     let an = [ln[0].abs(), ln[1].abs(), ln[2].abs()];
@@ -327,7 +340,12 @@ fn intersect_prim(p: &PackedPrim, o: [f32; 3], d: [f32; 3], t_min: f32, t_max: f
         r0[1] * ln[0] + r1[1] * ln[1] + r2[1] * ln[2],
         r0[2] * ln[0] + r1[2] * ln[1] + r2[2] * ln[2],
     ];
-    Some(Hit { t: hit_t, normal: n, u, v })
+    Some(Hit {
+        t: hit_t,
+        normal: n,
+        u,
+        v,
+    })
 }
 
 /// Slab test of a node's AABB against the ray; returns the entry distance if it is below `t_max`.
@@ -360,7 +378,13 @@ pub struct PackedScene {
 
 /// Casts one ray (world frame, `d` unit) and shades the hit. `dz` is the ray direction's
 /// camera-frame z component (to turn distance into depth).
-pub fn cast_ray(scene: &PackedScene, light: &Lighting, o: [f32; 3], d: [f32; 3], dz: f32) -> CastSample {
+pub fn cast_ray(
+    scene: &PackedScene,
+    light: &Lighting,
+    o: [f32; 3],
+    d: [f32; 3],
+    dz: f32,
+) -> CastSample {
     if scene.nodes.is_empty() {
         return CastSample::MISS;
     }

@@ -62,7 +62,11 @@ impl CameraModel {
         match self {
             CameraModel::Pinhole(c) => {
                 let d = DVec2::new((uv.x - c.cx) / c.fx, (uv.y - c.cy) / c.fy);
-                let n = if c.distortion.is_zero() { d } else { c.distortion.undistort(d) };
+                let n = if c.distortion.is_zero() {
+                    d
+                } else {
+                    c.distortion.undistort(d)
+                };
                 Some(DVec3::new(n.x, n.y, 1.0).normalize())
             }
             CameraModel::Unified(c) => {
@@ -92,12 +96,18 @@ impl RayTable {
         let (w, h) = (camera.width(), camera.height());
         let rays = (0..w * h)
             .into_par_iter()
-            .map(|i| match camera.ray(DVec2::new((i % w) as f64, (i / w) as f64)) {
-                Some(d) => [d.x as f32, d.y as f32, d.z as f32, 1.0],
-                None => [0.0, 0.0, 0.0, 0.0],
-            })
+            .map(
+                |i| match camera.ray(DVec2::new((i % w) as f64, (i / w) as f64)) {
+                    Some(d) => [d.x as f32, d.y as f32, d.z as f32, 1.0],
+                    None => [0.0, 0.0, 0.0, 0.0],
+                },
+            )
             .collect();
-        RayTable { width: w, height: h, rays }
+        RayTable {
+            width: w,
+            height: h,
+            rays,
+        }
     }
 }
 
@@ -131,14 +141,26 @@ impl RenderedFrame {
     }
     /// The frame as the odometry consumes it.
     pub fn to_rgbd_frame(&self, timestamp: f64) -> RgbdFrame {
-        RgbdFrame { timestamp, intensity: self.intensity.clone(), inverse_depth: self.inverse_depth.clone() }
+        RgbdFrame {
+            timestamp,
+            intensity: self.intensity.clone(),
+            inverse_depth: self.inverse_depth.clone(),
+        }
     }
     /// Depth as 16-bit TUM values (`round(depth * 5000)`, 0 = invalid), row-major.
     pub fn depth_u16(&self) -> Vec<u16> {
         self.inverse_depth
             .data
             .iter()
-            .map(|&d| if d > 0.0 { (sensor::DEPTH_FACTOR / f64::from(d)).round().clamp(0.0, 65535.0) as u16 } else { 0 })
+            .map(|&d| {
+                if d > 0.0 {
+                    (sensor::DEPTH_FACTOR / f64::from(d))
+                        .round()
+                        .clamp(0.0, 65535.0) as u16
+                } else {
+                    0
+                }
+            })
             .collect()
     }
 }
@@ -160,20 +182,22 @@ pub fn cast_cpu(scene: &Scene, rays: &RayTable, world_from_camera: &Se3) -> Vec<
     let packed = scene.packed();
     let light = scene.lighting();
     let mut out = vec![CastSample::MISS; rays.width * rays.height];
-    out.par_chunks_mut(rays.width.max(1)).enumerate().for_each(|(y, row)| {
-        for (x, s) in row.iter_mut().enumerate() {
-            let c = rays.rays[y * rays.width + x];
-            if c[3] == 0.0 {
-                continue;
+    out.par_chunks_mut(rays.width.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, s) in row.iter_mut().enumerate() {
+                let c = rays.rays[y * rays.width + x];
+                if c[3] == 0.0 {
+                    continue;
+                }
+                let d = [
+                    r[0][0] * c[0] + r[1][0] * c[1] + r[2][0] * c[2],
+                    r[0][1] * c[0] + r[1][1] * c[1] + r[2][1] * c[2],
+                    r[0][2] * c[0] + r[1][2] * c[1] + r[2][2] * c[2],
+                ];
+                *s = cast_ray(packed, light, o, d, c[2]);
             }
-            let d = [
-                r[0][0] * c[0] + r[1][0] * c[1] + r[2][0] * c[2],
-                r[0][1] * c[0] + r[1][1] * c[1] + r[2][1] * c[2],
-                r[0][2] * c[0] + r[1][2] * c[1] + r[2][2] * c[2],
-            ];
-            *s = cast_ray(packed, light, o, d, c[2]);
-        }
-    });
+        });
     out
 }
 
@@ -190,10 +214,25 @@ pub fn finish_frame(
     let out = sensor::apply(samples, width, height, sensor_model, focal_px, seed);
     let object_ids: Vec<u32> = samples.iter().map(|s| s.object).collect();
     let changed = scene.changed_objects();
-    let moved_mask = (scene.session_index() != 0)
-        .then(|| object_ids.iter().map(|o| *o != NO_OBJECT && changed.binary_search(o).is_ok()).collect());
-    let true_depth = ImageF32 { width, height, data: samples.iter().map(|s| s.z).collect() };
-    RenderedFrame { intensity: out.intensity, inverse_depth: out.inverse_depth, moved_mask, rgb: out.rgb, object_ids, true_depth }
+    let moved_mask = (scene.session_index() != 0).then(|| {
+        object_ids
+            .iter()
+            .map(|o| *o != NO_OBJECT && changed.binary_search(o).is_ok())
+            .collect()
+    });
+    let true_depth = ImageF32 {
+        width,
+        height,
+        data: samples.iter().map(|s| s.z).collect(),
+    };
+    RenderedFrame {
+        intensity: out.intensity,
+        inverse_depth: out.inverse_depth,
+        moved_mask,
+        rgb: out.rgb,
+        object_ids,
+        true_depth,
+    }
 }
 
 /// Renders one frame through a pinhole camera on the CPU. `seed` drives the sensor noise.
@@ -204,7 +243,13 @@ pub fn render_pinhole(
     sensor_model: &SensorModel,
     seed: u64,
 ) -> RenderedFrame {
-    render(scene, &CameraModel::Pinhole(*camera), world_from_camera, sensor_model, seed)
+    render(
+        scene,
+        &CameraModel::Pinhole(*camera),
+        world_from_camera,
+        sensor_model,
+        seed,
+    )
 }
 
 /// Renders one frame through any camera model on the CPU.
@@ -217,7 +262,15 @@ pub fn render(
 ) -> RenderedFrame {
     let rays = RayTable::new(camera);
     let samples = cast_cpu(scene, &rays, world_from_camera);
-    finish_frame(scene, &samples, rays.width, rays.height, sensor_model, camera.focal_px(), seed)
+    finish_frame(
+        scene,
+        &samples,
+        rays.width,
+        rays.height,
+        sensor_model,
+        camera.focal_px(),
+        seed,
+    )
 }
 
 /// Which ray caster a [`Renderer`] uses.
@@ -245,14 +298,25 @@ pub struct Renderer {
 
 impl Renderer {
     /// Prepares rendering `scene` through `camera` on `backend`.
-    pub fn new(scene: Arc<Scene>, camera: CameraModel, backend: &RenderBackend) -> Result<Renderer, SynthError> {
+    pub fn new(
+        scene: Arc<Scene>,
+        camera: CameraModel,
+        backend: &RenderBackend,
+    ) -> Result<Renderer, SynthError> {
         camera.validate()?;
         let rays = RayTable::new(&camera);
         let caster = match backend {
             RenderBackend::Cpu => Caster::Cpu,
-            RenderBackend::Gpu(ctx) => Caster::Gpu(Box::new(GpuRayCaster::new(ctx.clone(), &scene, &rays)?)),
+            RenderBackend::Gpu(ctx) => {
+                Caster::Gpu(Box::new(GpuRayCaster::new(ctx.clone(), &scene, &rays)?))
+            }
         };
-        Ok(Renderer { scene, camera, rays, caster })
+        Ok(Renderer {
+            scene,
+            camera,
+            rays,
+            caster,
+        })
     }
 
     /// The camera.
@@ -280,8 +344,21 @@ impl Renderer {
     }
 
     /// Renders one frame with the sensor model; `seed` drives the noise.
-    pub fn render(&mut self, world_from_camera: &Se3, sensor_model: &SensorModel, seed: u64) -> Result<RenderedFrame, SynthError> {
+    pub fn render(
+        &mut self,
+        world_from_camera: &Se3,
+        sensor_model: &SensorModel,
+        seed: u64,
+    ) -> Result<RenderedFrame, SynthError> {
         let samples = self.cast(world_from_camera)?;
-        Ok(finish_frame(&self.scene, &samples, self.rays.width, self.rays.height, sensor_model, self.camera.focal_px(), seed))
+        Ok(finish_frame(
+            &self.scene,
+            &samples,
+            self.rays.width,
+            self.rays.height,
+            sensor_model,
+            self.camera.focal_px(),
+            seed,
+        ))
     }
 }

@@ -12,7 +12,8 @@ use rand_pcg::Pcg64;
 
 use super::bvh::{self, Aabb};
 use super::raycast::{
-    pattern, Lighting, PackedMaterial, PackedPrim, PackedScene, KIND_BOX, KIND_CYLINDER, KIND_SPHERE,
+    pattern, Lighting, PackedMaterial, PackedPrim, PackedScene, KIND_BOX, KIND_CYLINDER,
+    KIND_SPHERE,
 };
 use super::SynthError;
 
@@ -59,22 +60,33 @@ impl Primitive {
         let half = match self.shape {
             Shape::Box { half } => half,
             Shape::Sphere { radius } => DVec3::splat(radius),
-            Shape::Cylinder { radius, half_height } => DVec3::new(radius, radius, half_height),
+            Shape::Cylinder {
+                radius,
+                half_height,
+            } => DVec3::new(radius, radius, half_height),
         };
         let r = self.world_from_local;
         let mut e = [0.0; 3];
         for (i, ei) in e.iter_mut().enumerate() {
-            *ei = (r.col(0)[i] * half.x).abs() + (r.col(1)[i] * half.y).abs() + (r.col(2)[i] * half.z).abs();
+            *ei = (r.col(0)[i] * half.x).abs()
+                + (r.col(1)[i] * half.y).abs()
+                + (r.col(2)[i] * half.z).abs();
         }
         let c = self.center;
-        Aabb { min: [c.x - e[0], c.y - e[1], c.z - e[2]], max: [c.x + e[0], c.y + e[1], c.z + e[2]] }
+        Aabb {
+            min: [c.x - e[0], c.y - e[1], c.z - e[2]],
+            max: [c.x + e[0], c.y + e[1], c.z + e[2]],
+        }
     }
 
     fn pack(&self, object: u32) -> PackedPrim {
         let (kind, p) = match self.shape {
             Shape::Box { half } => (KIND_BOX, [half.x, half.y, half.z]),
             Shape::Sphere { radius } => (KIND_SPHERE, [radius, 0.0, 0.0]),
-            Shape::Cylinder { radius, half_height } => (KIND_CYLINDER, [radius, half_height, 0.0]),
+            Shape::Cylinder {
+                radius,
+                half_height,
+            } => (KIND_CYLINDER, [radius, half_height, 0.0]),
         };
         let r = self.world_from_local; // rows of local_from_world = columns of world_from_local
         let rows = [0, 1, 2].map(|i| {
@@ -85,12 +97,26 @@ impl Primitive {
             r.transpose() * self.center
         } else {
             let h = super::raycast::pcg_hash(object.wrapping_mul(7919));
-            DVec3::new(f64::from(h % 97) * 0.37, f64::from(h % 89) * 0.41, f64::from(h % 83) * 0.29)
+            DVec3::new(
+                f64::from(h % 97) * 0.37,
+                f64::from(h % 89) * 0.41,
+                f64::from(h % 83) * 0.29,
+            )
         };
         PackedPrim {
-            center: [self.center.x as f32, self.center.y as f32, self.center.z as f32, f32::from_bits(kind)],
+            center: [
+                self.center.x as f32,
+                self.center.y as f32,
+                self.center.z as f32,
+                f32::from_bits(kind),
+            ],
             rows,
-            anchor: [anchor.x as f32, anchor.y as f32, anchor.z as f32, f32::from_bits(self.material)],
+            anchor: [
+                anchor.x as f32,
+                anchor.y as f32,
+                anchor.z as f32,
+                f32::from_bits(self.material),
+            ],
             extra: [f32::from_bits(object), 0.0, 0.0, 0.0],
         }
     }
@@ -250,7 +276,10 @@ impl SceneParams {
                 ..base
             },
             _ => {
-                return Err(SynthError::UnknownPreset { name: name.to_string(), known: PRESETS.join(", ") });
+                return Err(SynthError::UnknownPreset {
+                    name: name.to_string(),
+                    known: PRESETS.join(", "),
+                });
             }
         })
     }
@@ -258,17 +287,24 @@ impl SceneParams {
     /// Checks that the sizes make a usable scene.
     pub fn validate(&self) -> Result<(), SynthError> {
         let [x, y, z] = self.size;
-        let ok = x.is_finite() && y.is_finite() && z.is_finite() && x >= 1.5 && y >= 1.5 && z >= 2.1;
+        let ok =
+            x.is_finite() && y.is_finite() && z.is_finite() && x >= 1.5 && y >= 1.5 && z >= 2.1;
         if !ok {
             return Err(SynthError::InvalidParameter {
                 name: "size",
-                why: format!("{:?}: need finite sizes with length, width >= 1.5 m and height >= 2.1 m", self.size),
+                why: format!(
+                    "{:?}: need finite sizes with length, width >= 1.5 m and height >= 2.1 m",
+                    self.size
+                ),
             });
         }
         if !(self.wall_band > 0.0 && 2.0 * self.wall_band < x.min(y) + 0.5) {
             return Err(SynthError::InvalidParameter {
                 name: "wall_band",
-                why: format!("{} leaves no free space in a {x} x {y} m floor", self.wall_band),
+                why: format!(
+                    "{} leaves no free space in a {x} x {y} m floor",
+                    self.wall_band
+                ),
             });
         }
         if self.pile_items.0 > self.pile_items.1 || self.pile_items.1 > 64 {
@@ -328,7 +364,14 @@ impl Scene {
         params.validate()?;
         let mut g = Generator::new(params, seed);
         g.build();
-        Ok(Scene::assemble(params.clone(), seed, 0, g.objects, g.materials, Vec::new()))
+        Ok(Scene::assemble(
+            params.clone(),
+            seed,
+            0,
+            g.objects,
+            g.materials,
+            Vec::new(),
+        ))
     }
 
     fn assemble(
@@ -339,8 +382,10 @@ impl Scene {
         materials: Vec<PackedMaterial>,
         mut changed: Vec<u32>,
     ) -> Scene {
-        let prims: Vec<(PackedPrim, Aabb)> =
-            objects.iter().flat_map(|o| o.prims.iter().map(move |p| (p.pack(o.id), p.aabb()))).collect();
+        let prims: Vec<(PackedPrim, Aabb)> = objects
+            .iter()
+            .flat_map(|o| o.prims.iter().map(move |p| (p.pack(o.id), p.aabb())))
+            .collect();
         let (nodes, prims) = bvh::build(&prims);
         changed.sort_unstable();
         changed.dedup();
@@ -357,7 +402,11 @@ impl Scene {
             objects,
             materials: materials.clone(),
             changed,
-            packed: PackedScene { prims, nodes, materials },
+            packed: PackedScene {
+                prims,
+                nodes,
+                materials,
+            },
             lighting,
         }
     }
@@ -396,7 +445,8 @@ impl Scene {
                 let dir = rng.random_range(0.0..std::f64::consts::TAU);
                 let dist = rng.random_range(0.15..0.5);
                 let mut moved = o.clone();
-                let c = o.prims.iter().fold(DVec3::ZERO, |a, p| a + p.center) / o.prims.len().max(1) as f64;
+                let c = o.prims.iter().fold(DVec3::ZERO, |a, p| a + p.center)
+                    / o.prims.len().max(1) as f64;
                 let rot = DMat3::from_rotation_z(yaw);
                 let shift = DVec3::new(dir.cos() * dist, dir.sin() * dist, 0.0);
                 for p in &mut moved.prims {
@@ -428,7 +478,14 @@ impl Scene {
             changed.push(id);
         }
         objects.extend(g.objects);
-        Scene::assemble(base.params.clone(), self.seed, index, objects, g.materials, changed)
+        Scene::assemble(
+            base.params.clone(),
+            self.seed,
+            index,
+            objects,
+            g.materials,
+            changed,
+        )
     }
 
     /// The generator parameters.
@@ -468,7 +525,11 @@ impl Scene {
         let [x, y, z] = self.params.size;
         let b = self.params.wall_band;
         match self.params.layout {
-            Layout::Room => FreeArea { min: DVec2::new(b, b), max: DVec2::new(x - b, y - b), ceiling: z },
+            Layout::Room => FreeArea {
+                min: DVec2::new(b, b),
+                max: DVec2::new(x - b, y - b),
+                ceiling: z,
+            },
             Layout::Corridor => FreeArea {
                 min: DVec2::new(1.0, b.min(y * 0.5 - 0.1)),
                 max: DVec2::new(x - 1.0, (y - b).max(y * 0.5 + 0.1)),
@@ -508,13 +569,26 @@ impl Wall {
 
 impl<'a> Generator<'a> {
     fn new(p: &'a SceneParams, seed: u64) -> Self {
-        Generator { p, rng: Pcg64::seed_from_u64(seed), objects: Vec::new(), materials: Vec::new(), next_id: 1 }
+        Generator {
+            p,
+            rng: Pcg64::seed_from_u64(seed),
+            objects: Vec::new(),
+            materials: Vec::new(),
+            next_id: 1,
+        }
     }
 
     fn color(&mut self, lo: f32, hi: f32) -> [f32; 3] {
         let base: f32 = self.rng.random_range(lo..hi);
-        let tint = [self.rng.random_range(-0.25..0.25f32), self.rng.random_range(-0.25..0.25f32)];
-        [(base + tint[0]).clamp(0.02, 1.0), base.clamp(0.02, 1.0), (base + tint[1]).clamp(0.02, 1.0)]
+        let tint = [
+            self.rng.random_range(-0.25..0.25f32),
+            self.rng.random_range(-0.25..0.25f32),
+        ];
+        [
+            (base + tint[0]).clamp(0.02, 1.0),
+            base.clamp(0.02, 1.0),
+            (base + tint[1]).clamp(0.02, 1.0),
+        ]
     }
 
     /// Adds a material with two contrasting colours; returns its index.
@@ -531,24 +605,48 @@ impl<'a> Generator<'a> {
     }
 
     fn random_material(&mut self, small: bool) -> u32 {
-        let kind = [pattern::NOISE, pattern::STRIPES, pattern::CHECKER, pattern::POSTER, pattern::GRAIN]
-            [self.rng.random_range(0..5)];
-        let scale = if small { self.rng.random_range(0.04..0.12) } else { self.rng.random_range(0.12..0.5) };
+        let kind = [
+            pattern::NOISE,
+            pattern::STRIPES,
+            pattern::CHECKER,
+            pattern::POSTER,
+            pattern::GRAIN,
+        ][self.rng.random_range(0..5)];
+        let scale = if small {
+            self.rng.random_range(0.04..0.12)
+        } else {
+            self.rng.random_range(0.12..0.5)
+        };
         let spec = self.rng.random_range(0.0..0.12);
         self.material(kind, scale, spec)
     }
 
     fn push_object(&mut self, kind: ObjectKind, movable: bool, prims: Vec<Primitive>) -> u32 {
-        let id = if kind == ObjectKind::Structure { 0 } else { self.next_id };
+        let id = if kind == ObjectKind::Structure {
+            0
+        } else {
+            self.next_id
+        };
         if kind != ObjectKind::Structure {
             self.next_id += 1;
         }
-        self.objects.push(SceneObject { id, kind, movable, prims });
+        self.objects.push(SceneObject {
+            id,
+            kind,
+            movable,
+            prims,
+        });
         id
     }
 
     fn boxp(center: DVec3, half: DVec3, rot: DMat3, material: u32) -> Primitive {
-        Primitive { shape: Shape::Box { half }, center, world_from_local: rot, material, world_texture: false }
+        Primitive {
+            shape: Shape::Box { half },
+            center,
+            world_from_local: rot,
+            material,
+            world_texture: false,
+        }
     }
 
     fn build(&mut self) {
@@ -559,7 +657,11 @@ impl<'a> Generator<'a> {
             FurnitureStyle::Office => pattern::GRAIN,
             _ => pattern::NOISE,
         };
-        let floor_scale = if floor_kind == pattern::CHECKER { 0.3 } else { 0.35 };
+        let floor_scale = if floor_kind == pattern::CHECKER {
+            0.3
+        } else {
+            0.35
+        };
         let floor_mat = self.material(floor_kind, floor_scale, 0.05);
         let ceil_mat = self.material(pattern::NOISE, 0.25, 0.0);
         let wall_mat = self.material(pattern::NOISE, 0.2, 0.02);
@@ -576,30 +678,84 @@ impl<'a> Generator<'a> {
         let cy = sy * 0.5;
         let hx = sx * 0.5 + m + 0.2;
         let hy = sy * 0.5 + m + 0.2;
-        s.push(wt(Self::boxp(DVec3::new(cx, cy, -0.05), DVec3::new(hx, hy, 0.05), id, floor_mat)));
-        s.push(wt(Self::boxp(DVec3::new(cx, cy, sz + 0.05), DVec3::new(hx, hy, 0.05), id, ceil_mat)));
+        s.push(wt(Self::boxp(
+            DVec3::new(cx, cy, -0.05),
+            DVec3::new(hx, hy, 0.05),
+            id,
+            floor_mat,
+        )));
+        s.push(wt(Self::boxp(
+            DVec3::new(cx, cy, sz + 0.05),
+            DVec3::new(hx, hy, 0.05),
+            id,
+            ceil_mat,
+        )));
         // Exterior enclosure walls.
         for (c, h) in [
-            (DVec3::new(cx, -m - 0.1, sz * 0.5), DVec3::new(hx, 0.1, sz * 0.5)),
-            (DVec3::new(cx, sy + m + 0.1, sz * 0.5), DVec3::new(hx, 0.1, sz * 0.5)),
-            (DVec3::new(-m - 0.1, cy, sz * 0.5), DVec3::new(0.1, hy, sz * 0.5)),
-            (DVec3::new(sx + m + 0.1, cy, sz * 0.5), DVec3::new(0.1, hy, sz * 0.5)),
+            (
+                DVec3::new(cx, -m - 0.1, sz * 0.5),
+                DVec3::new(hx, 0.1, sz * 0.5),
+            ),
+            (
+                DVec3::new(cx, sy + m + 0.1, sz * 0.5),
+                DVec3::new(hx, 0.1, sz * 0.5),
+            ),
+            (
+                DVec3::new(-m - 0.1, cy, sz * 0.5),
+                DVec3::new(0.1, hy, sz * 0.5),
+            ),
+            (
+                DVec3::new(sx + m + 0.1, cy, sz * 0.5),
+                DVec3::new(0.1, hy, sz * 0.5),
+            ),
         ] {
             s.push(wt(Self::boxp(c, h, id, ext_mat)));
         }
         let walls = [
-            Wall { origin: DVec3::new(0.0, 0.0, 0.0), dir: DVec3::X, inward: DVec3::Y, length: sx },
-            Wall { origin: DVec3::new(sx, sy, 0.0), dir: -DVec3::X, inward: -DVec3::Y, length: sx },
-            Wall { origin: DVec3::new(0.0, sy, 0.0), dir: -DVec3::Y, inward: DVec3::X, length: sy },
-            Wall { origin: DVec3::new(sx, 0.0, 0.0), dir: DVec3::Y, inward: -DVec3::X, length: sy },
+            Wall {
+                origin: DVec3::new(0.0, 0.0, 0.0),
+                dir: DVec3::X,
+                inward: DVec3::Y,
+                length: sx,
+            },
+            Wall {
+                origin: DVec3::new(sx, sy, 0.0),
+                dir: -DVec3::X,
+                inward: -DVec3::Y,
+                length: sx,
+            },
+            Wall {
+                origin: DVec3::new(0.0, sy, 0.0),
+                dir: -DVec3::Y,
+                inward: DVec3::X,
+                length: sy,
+            },
+            Wall {
+                origin: DVec3::new(sx, 0.0, 0.0),
+                dir: DVec3::Y,
+                inward: -DVec3::X,
+                length: sy,
+            },
         ];
         // Openings per wall: (u0, u1, z0, z1).
         let mut openings: Vec<Vec<(f64, f64, f64, f64)>> = vec![Vec::new(); 4];
-        let long_walls: Vec<usize> = if self.p.layout == Layout::Corridor { vec![0, 1] } else { vec![0, 1, 2, 3] };
+        let long_walls: Vec<usize> = if self.p.layout == Layout::Corridor {
+            vec![0, 1]
+        } else {
+            vec![0, 1, 2, 3]
+        };
         for k in 0..self.p.doors + self.p.windows {
             let is_door = k < self.p.doors;
-            let w = if is_door { 0.9 } else { self.rng.random_range(1.0..1.5) };
-            let (z0, z1) = if is_door { (0.0, 2.05) } else { (0.9, (0.9 + 1.1f64).min(sz - 0.3)) };
+            let w = if is_door {
+                0.9
+            } else {
+                self.rng.random_range(1.0..1.5)
+            };
+            let (z0, z1) = if is_door {
+                (0.0, 2.05)
+            } else {
+                (0.9, (0.9 + 1.1f64).min(sz - 0.3))
+            };
             for _attempt in 0..20 {
                 let wi = long_walls[self.rng.random_range(0..long_walls.len())];
                 let len = walls[wi].length;
@@ -607,7 +763,9 @@ impl<'a> Generator<'a> {
                     continue;
                 }
                 let u0 = self.rng.random_range(0.4..len - w - 0.4);
-                let clash = openings[wi].iter().any(|o| u0 < o.1 + 0.5 && u0 + w > o.0 - 0.5);
+                let clash = openings[wi]
+                    .iter()
+                    .any(|o| u0 < o.1 + 0.5 && u0 + w > o.0 - 0.5);
                 if !clash {
                     openings[wi].push((u0, u0 + w, z0, z1));
                     break;
@@ -637,7 +795,12 @@ impl<'a> Generator<'a> {
                     continue;
                 }
                 let c = wall.point(0.5 * (a + b), -0.5 * t, 0.5 * (z0 + z1));
-                s.push(wt(Self::boxp(c, DVec3::new(0.5 * (b - a), 0.5 * t, 0.5 * (z1 - z0)), rot, mat)));
+                s.push(wt(Self::boxp(
+                    c,
+                    DVec3::new(0.5 * (b - a), 0.5 * t, 0.5 * (z1 - z0)),
+                    rot,
+                    mat,
+                )));
             }
         }
         self.push_object(ObjectKind::Structure, false, s);
@@ -650,9 +813,13 @@ impl<'a> Generator<'a> {
             if wall.length < w + 0.4 {
                 continue;
             }
-            let u = self.rng.random_range(0.2 + w * 0.5..wall.length - 0.2 - w * 0.5);
+            let u = self
+                .rng
+                .random_range(0.2 + w * 0.5..wall.length - 0.2 - w * 0.5);
             let z = self.rng.random_range(1.2f64..1.9).min(sz - h * 0.5 - 0.1);
-            let clash = openings[wi].iter().any(|o| u + w * 0.5 > o.0 - 0.1 && u - w * 0.5 < o.1 + 0.1);
+            let clash = openings[wi]
+                .iter()
+                .any(|o| u + w * 0.5 > o.0 - 0.1 && u - w * 0.5 < o.1 + 0.1);
             if clash {
                 continue;
             }
@@ -666,12 +833,21 @@ impl<'a> Generator<'a> {
         for (wi, wall) in walls.iter().enumerate() {
             let mut u = self.rng.random_range(0.05..0.4);
             while u < wall.length - 0.4 {
-                let w = self.rng.random_range(0.6..1.5f64).min(wall.length - u - 0.05);
+                let w = self
+                    .rng
+                    .random_range(0.6..1.5f64)
+                    .min(wall.length - u - 0.05);
                 if w < 0.4 {
                     break;
                 }
-                let blocked = openings[wi].iter().any(|o| o.2 < 0.5 && u < o.1 + 0.1 && u + w > o.0 - 0.1);
-                if !blocked && self.rng.random_bool(self.p.furniture_density.clamp(0.0, 1.0)) {
+                let blocked = openings[wi]
+                    .iter()
+                    .any(|o| o.2 < 0.5 && u < o.1 + 0.1 && u + w > o.0 - 0.1);
+                if !blocked
+                    && self
+                        .rng
+                        .random_bool(self.p.furniture_density.clamp(0.0, 1.0))
+                {
                     self.furniture(wall, u, w);
                 }
                 u += w + self.rng.random_range(0.05..0.4);
@@ -681,7 +857,11 @@ impl<'a> Generator<'a> {
         for _ in 0..self.p.piles {
             let wall = walls[long_walls[self.rng.random_range(0..long_walls.len())]];
             let u = self.rng.random_range(0.4..wall.length - 0.4);
-            let band = if self.p.layout == Layout::Corridor { 0.35 } else { (self.p.wall_band - 0.35).max(0.3) };
+            let band = if self.p.layout == Layout::Corridor {
+                0.35
+            } else {
+                (self.p.wall_band - 0.35).max(0.3)
+            };
             let d = self.rng.random_range(0.25..band.max(0.26));
             let c = wall.point(u, d, 0.0);
             self.pile(c, 0.3);
@@ -704,7 +884,12 @@ impl<'a> Generator<'a> {
                 // Desk: top, two side panels, modesty panel.
                 let d = 0.7;
                 let h = 0.74;
-                prims.push(Self::boxp(wall.point(mid, d * 0.5, h - 0.015), DVec3::new(w * 0.5, d * 0.5, 0.015), rot, body));
+                prims.push(Self::boxp(
+                    wall.point(mid, d * 0.5, h - 0.015),
+                    DVec3::new(w * 0.5, d * 0.5, 0.015),
+                    rot,
+                    body,
+                ));
                 for s in [-1.0, 1.0] {
                     prims.push(Self::boxp(
                         wall.point(mid + s * (w * 0.5 - 0.02), d * 0.5, (h - 0.03) * 0.5),
@@ -713,14 +898,29 @@ impl<'a> Generator<'a> {
                         second,
                     ));
                 }
-                prims.push(Self::boxp(wall.point(mid, 0.1, h * 0.55), DVec3::new(w * 0.5 - 0.04, 0.01, h * 0.2), rot, second));
+                prims.push(Self::boxp(
+                    wall.point(mid, 0.1, h * 0.55),
+                    DVec3::new(w * 0.5 - 0.04, 0.01, h * 0.2),
+                    rot,
+                    second,
+                ));
                 top_z = Some((h, d));
                 if style == FurnitureStyle::Office {
                     // Monitor on the desk (part of the desk object).
                     let screen = self.material(pattern::POSTER, 0.05, 0.2);
                     let mw = (w * 0.4).min(0.6);
-                    prims.push(Self::boxp(wall.point(mid, 0.2, h + 0.3), DVec3::new(mw * 0.5, 0.02, 0.18), rot, screen));
-                    prims.push(Self::boxp(wall.point(mid, 0.22, h + 0.06), DVec3::new(0.03, 0.03, 0.06), rot, second));
+                    prims.push(Self::boxp(
+                        wall.point(mid, 0.2, h + 0.3),
+                        DVec3::new(mw * 0.5, 0.02, 0.18),
+                        rot,
+                        screen,
+                    ));
+                    prims.push(Self::boxp(
+                        wall.point(mid, 0.22, h + 0.06),
+                        DVec3::new(0.03, 0.03, 0.06),
+                        rot,
+                        second,
+                    ));
                     // A chair in front (movable).
                     self.chair(wall, mid, d + 0.25);
                 }
@@ -729,18 +929,38 @@ impl<'a> Generator<'a> {
                 // Counter with doors, worktop, upper cabinet.
                 let d = 0.6;
                 let h = 0.9;
-                prims.push(Self::boxp(wall.point(mid, d * 0.5 - 0.02, (h - 0.04) * 0.5), DVec3::new(w * 0.5, d * 0.5 - 0.02, (h - 0.04) * 0.5), rot, body));
-                prims.push(Self::boxp(wall.point(mid, d * 0.5, h - 0.02), DVec3::new(w * 0.5, d * 0.5, 0.02), rot, second));
+                prims.push(Self::boxp(
+                    wall.point(mid, d * 0.5 - 0.02, (h - 0.04) * 0.5),
+                    DVec3::new(w * 0.5, d * 0.5 - 0.02, (h - 0.04) * 0.5),
+                    rot,
+                    body,
+                ));
+                prims.push(Self::boxp(
+                    wall.point(mid, d * 0.5, h - 0.02),
+                    DVec3::new(w * 0.5, d * 0.5, 0.02),
+                    rot,
+                    second,
+                ));
                 let handle = self.material(pattern::NOISE, 0.05, 0.3);
                 let doors = (w / 0.5).floor().max(1.0) as usize;
                 for k in 0..doors {
                     let du = u + (k as f64 + 0.5) * w / doors as f64;
-                    prims.push(Self::boxp(wall.point(du, d - 0.03, h - 0.2), DVec3::new(0.06, 0.012, 0.012), rot, handle));
+                    prims.push(Self::boxp(
+                        wall.point(du, d - 0.03, h - 0.2),
+                        DVec3::new(0.06, 0.012, 0.012),
+                        rot,
+                        handle,
+                    ));
                 }
                 if sz > 2.3 && pick < 80 {
                     let top = (sz - 0.1).min(2.25);
                     let ud = 0.35;
-                    prims.push(Self::boxp(wall.point(mid, ud * 0.5, (1.5 + top) * 0.5), DVec3::new(w * 0.5, ud * 0.5, (top - 1.5) * 0.5), rot, second));
+                    prims.push(Self::boxp(
+                        wall.point(mid, ud * 0.5, (1.5 + top) * 0.5),
+                        DVec3::new(w * 0.5, ud * 0.5, (top - 1.5) * 0.5),
+                        rot,
+                        second,
+                    ));
                 }
                 top_z = Some((h, d));
             }
@@ -748,9 +968,19 @@ impl<'a> Generator<'a> {
                 // Bench.
                 let d = 0.4;
                 let h = 0.45;
-                prims.push(Self::boxp(wall.point(mid, d * 0.5, h - 0.03), DVec3::new(w * 0.5, d * 0.5, 0.03), rot, body));
+                prims.push(Self::boxp(
+                    wall.point(mid, d * 0.5, h - 0.03),
+                    DVec3::new(w * 0.5, d * 0.5, 0.03),
+                    rot,
+                    body,
+                ));
                 for s in [-1.0, 1.0] {
-                    prims.push(Self::boxp(wall.point(mid + s * (w * 0.5 - 0.05), d * 0.5, (h - 0.06) * 0.5), DVec3::new(0.03, d * 0.5 - 0.03, (h - 0.06) * 0.5), rot, second));
+                    prims.push(Self::boxp(
+                        wall.point(mid + s * (w * 0.5 - 0.05), d * 0.5, (h - 0.06) * 0.5),
+                        DVec3::new(0.03, d * 0.5 - 0.03, (h - 0.06) * 0.5),
+                        rot,
+                        second,
+                    ));
                 }
                 top_z = Some((h, d));
             }
@@ -759,13 +989,28 @@ impl<'a> Generator<'a> {
                 let d = 0.35;
                 let h = self.rng.random_range(1.5f64..2.1).min(sz - 0.2);
                 let boards = 4;
-                prims.push(Self::boxp(wall.point(mid, 0.01, h * 0.5), DVec3::new(w * 0.5, 0.01, h * 0.5), rot, second));
+                prims.push(Self::boxp(
+                    wall.point(mid, 0.01, h * 0.5),
+                    DVec3::new(w * 0.5, 0.01, h * 0.5),
+                    rot,
+                    second,
+                ));
                 for s in [-1.0, 1.0] {
-                    prims.push(Self::boxp(wall.point(mid + s * (w * 0.5 - 0.015), d * 0.5, h * 0.5), DVec3::new(0.015, d * 0.5, h * 0.5), rot, body));
+                    prims.push(Self::boxp(
+                        wall.point(mid + s * (w * 0.5 - 0.015), d * 0.5, h * 0.5),
+                        DVec3::new(0.015, d * 0.5, h * 0.5),
+                        rot,
+                        body,
+                    ));
                 }
                 for k in 0..=boards {
                     let z = 0.05 + (h - 0.07) * k as f64 / boards as f64;
-                    prims.push(Self::boxp(wall.point(mid, d * 0.5, z), DVec3::new(w * 0.5 - 0.03, d * 0.5, 0.015), rot, body));
+                    prims.push(Self::boxp(
+                        wall.point(mid, d * 0.5, z),
+                        DVec3::new(w * 0.5 - 0.03, d * 0.5, 0.015),
+                        rot,
+                        body,
+                    ));
                     if k < boards {
                         // A row of books, slightly tilted, varying sizes.
                         let mut bu = u + 0.04;
@@ -777,7 +1022,16 @@ impl<'a> Generator<'a> {
                             let tilt = DMat3::from_rotation_y(self.rng.random_range(-0.12..0.12));
                             let mat = self.random_material(true);
                             if self.rng.random_bool(0.85) {
-                                prims.push(Self::boxp(wall.point(bu + bw * 0.5, bd * 0.5 + 0.03, z + 0.015 + bh * 0.5), DVec3::new(bw * 0.5, bd * 0.5, bh * 0.5), rot * tilt, mat));
+                                prims.push(Self::boxp(
+                                    wall.point(
+                                        bu + bw * 0.5,
+                                        bd * 0.5 + 0.03,
+                                        z + 0.015 + bh * 0.5,
+                                    ),
+                                    DVec3::new(bw * 0.5, bd * 0.5, bh * 0.5),
+                                    rot * tilt,
+                                    mat,
+                                ));
                             }
                             bu += bw + 0.004;
                         }
@@ -788,9 +1042,19 @@ impl<'a> Generator<'a> {
                 // Cabinet with a handle.
                 let d = 0.5;
                 let h = self.rng.random_range(0.75..1.25);
-                prims.push(Self::boxp(wall.point(mid, d * 0.5, h * 0.5), DVec3::new(w * 0.5, d * 0.5, h * 0.5), rot, body));
+                prims.push(Self::boxp(
+                    wall.point(mid, d * 0.5, h * 0.5),
+                    DVec3::new(w * 0.5, d * 0.5, h * 0.5),
+                    rot,
+                    body,
+                ));
                 let handle = self.material(pattern::NOISE, 0.05, 0.3);
-                prims.push(Self::boxp(wall.point(mid, d + 0.015, h * 0.75), DVec3::new(0.01, 0.015, 0.08), rot, handle));
+                prims.push(Self::boxp(
+                    wall.point(mid, d + 0.015, h * 0.75),
+                    DVec3::new(0.01, 0.015, 0.08),
+                    rot,
+                    handle,
+                ));
                 top_z = Some((h, d));
             }
         }
@@ -811,13 +1075,26 @@ impl<'a> Generator<'a> {
         let c = wall.point(u, depth, 0.0);
         let mat = self.random_material(false);
         let leg = self.material(pattern::NOISE, 0.05, 0.2);
-        let mut p = vec![Self::boxp(c + DVec3::Z * 0.46, DVec3::new(0.22, 0.22, 0.03), rot, mat)];
+        let mut p = vec![Self::boxp(
+            c + DVec3::Z * 0.46,
+            DVec3::new(0.22, 0.22, 0.03),
+            rot,
+            mat,
+        )];
         // Back rest on the far side from the desk (local +y).
-        p.push(Self::boxp(c + rot * DVec3::new(0.0, 0.2, 0.75), DVec3::new(0.2, 0.02, 0.25), rot, mat));
+        p.push(Self::boxp(
+            c + rot * DVec3::new(0.0, 0.2, 0.75),
+            DVec3::new(0.2, 0.02, 0.25),
+            rot,
+            mat,
+        ));
         for (sx, sy) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
             let lc = c + rot * DVec3::new(sx * 0.18, sy * 0.18, 0.215);
             p.push(Primitive {
-                shape: Shape::Cylinder { radius: 0.018, half_height: 0.215 },
+                shape: Shape::Cylinder {
+                    radius: 0.018,
+                    half_height: 0.215,
+                },
                 center: lc,
                 world_from_local: rot,
                 material: leg,
@@ -834,18 +1111,31 @@ impl<'a> Generator<'a> {
         let yaw = DMat3::from_rotation_z(self.rng.random_range(0.0..std::f64::consts::TAU));
         let p = match kind {
             0 => {
-                let h = DVec3::new(self.rng.random_range(0.03..0.12), self.rng.random_range(0.03..0.1), self.rng.random_range(0.02..0.12));
+                let h = DVec3::new(
+                    self.rng.random_range(0.03..0.12),
+                    self.rng.random_range(0.03..0.1),
+                    self.rng.random_range(0.02..0.12),
+                );
                 Self::boxp(base + DVec3::Z * h.z, h, rot * yaw, mat)
             }
             1 => {
                 let r = self.rng.random_range(0.03..0.08);
-                Primitive { shape: Shape::Sphere { radius: r }, center: base + DVec3::Z * r, world_from_local: yaw, material: mat, world_texture: false }
+                Primitive {
+                    shape: Shape::Sphere { radius: r },
+                    center: base + DVec3::Z * r,
+                    world_from_local: yaw,
+                    material: mat,
+                    world_texture: false,
+                }
             }
             _ => {
                 let r = self.rng.random_range(0.025..0.05);
                 let hh = self.rng.random_range(0.05..0.15);
                 Primitive {
-                    shape: Shape::Cylinder { radius: r, half_height: hh },
+                    shape: Shape::Cylinder {
+                        radius: r,
+                        half_height: hh,
+                    },
                     center: base + DVec3::Z * hh,
                     world_from_local: yaw,
                     material: mat,
@@ -864,26 +1154,47 @@ impl<'a> Generator<'a> {
         let mut top = 0.0f64;
         for k in 0..n {
             let mat = self.random_material(true);
-            let off = DVec3::new(self.rng.random_range(-radius..radius), self.rng.random_range(-radius..radius), 0.0);
+            let off = DVec3::new(
+                self.rng.random_range(-radius..radius),
+                self.rng.random_range(-radius..radius),
+                0.0,
+            );
             let rot = DMat3::from_rotation_z(self.rng.random_range(0.0..std::f64::consts::TAU))
                 * DMat3::from_rotation_x(self.rng.random_range(-0.35..0.35))
                 * DMat3::from_rotation_y(self.rng.random_range(-0.35..0.35));
-            let z = if k == 0 { 0.0 } else { self.rng.random_range(0.0..top.max(0.01)) };
+            let z = if k == 0 {
+                0.0
+            } else {
+                self.rng.random_range(0.0..top.max(0.01))
+            };
             let kind: u32 = self.rng.random_range(0..10);
             let p = if kind < 6 {
-                let h = DVec3::new(self.rng.random_range(0.05..0.2), self.rng.random_range(0.05..0.2), self.rng.random_range(0.04..0.16));
+                let h = DVec3::new(
+                    self.rng.random_range(0.05..0.2),
+                    self.rng.random_range(0.05..0.2),
+                    self.rng.random_range(0.04..0.16),
+                );
                 top = top.max(z + 2.0 * h.z);
                 Self::boxp(c + off + DVec3::Z * (z + h.z), h, rot, mat)
             } else if kind < 8 {
                 let r = self.rng.random_range(0.05..0.14);
                 top = top.max(z + 2.0 * r);
-                Primitive { shape: Shape::Sphere { radius: r }, center: c + off + DVec3::Z * (z + r), world_from_local: rot, material: mat, world_texture: false }
+                Primitive {
+                    shape: Shape::Sphere { radius: r },
+                    center: c + off + DVec3::Z * (z + r),
+                    world_from_local: rot,
+                    material: mat,
+                    world_texture: false,
+                }
             } else {
                 let r = self.rng.random_range(0.04..0.1);
                 let hh = self.rng.random_range(0.08..0.25);
                 top = top.max(z + 2.0 * hh);
                 Primitive {
-                    shape: Shape::Cylinder { radius: r, half_height: hh },
+                    shape: Shape::Cylinder {
+                        radius: r,
+                        half_height: hh,
+                    },
                     center: c + off + DVec3::Z * (z + hh),
                     world_from_local: rot,
                     material: mat,

@@ -135,71 +135,87 @@ pub(crate) fn apply(
     let mut rgb = vec![0u8; 3 * n];
     let mut intensity = vec![0f32; n];
     let mut inverse = vec![0f32; n];
-    let rows = rgb.par_chunks_mut(3 * width.max(1)).zip(intensity.par_chunks_mut(width.max(1))).zip(inverse.par_chunks_mut(width.max(1)));
-    rows.enumerate().for_each(|(y, ((rgb_row, int_row), inv_row))| {
-        for x in 0..width {
-            let i = y * width + x;
-            let s = &samples[i];
-            // Colour: gain, noise, 8-bit.
-            let mut c8 = [0u8; 3];
-            for k in 0..3 {
-                let mut v = f64::from(s.rgb[k]) * 255.0 * sensor.gain;
-                if sensor.color_sigma > 0.0 {
-                    v += sensor.color_sigma * gauss(seed, i as u32, 1 + k as u32);
-                }
-                c8[k] = v.round().clamp(0.0, 255.0) as u8;
-            }
-            rgb_row[3 * x..3 * x + 3].copy_from_slice(&c8);
-            int_row[x] = rgb_to_intensity(c8[0], c8[1], c8[2]);
-            // Depth.
-            let z = f64::from(s.z);
-            if s.object == NO_OBJECT || z <= 0.0 || z < sensor.min_range || z > sensor.max_range {
-                continue;
-            }
-            if f64::from(s.cos_incidence) < cos_min {
-                continue;
-            }
-            if sensor.discontinuity > 0.0 {
-                let mut shadow = false;
-                let nb = [
-                    (x > 0).then(|| i - 1),
-                    (x + 1 < width).then(|| i + 1),
-                    (y > 0).then(|| i - width),
-                    (y + 1 < height).then(|| i + width),
-                ];
-                for j in nb.into_iter().flatten() {
-                    let zn = f64::from(samples[j].z);
-                    if samples[j].object == NO_OBJECT || zn <= 0.0 || z > zn * (1.0 + sensor.discontinuity) {
-                        shadow = true;
+    let rows = rgb
+        .par_chunks_mut(3 * width.max(1))
+        .zip(intensity.par_chunks_mut(width.max(1)))
+        .zip(inverse.par_chunks_mut(width.max(1)));
+    rows.enumerate()
+        .for_each(|(y, ((rgb_row, int_row), inv_row))| {
+            for x in 0..width {
+                let i = y * width + x;
+                let s = &samples[i];
+                // Colour: gain, noise, 8-bit.
+                let mut c8 = [0u8; 3];
+                for k in 0..3 {
+                    let mut v = f64::from(s.rgb[k]) * 255.0 * sensor.gain;
+                    if sensor.color_sigma > 0.0 {
+                        v += sensor.color_sigma * gauss(seed, i as u32, 1 + k as u32);
                     }
+                    c8[k] = v.round().clamp(0.0, 255.0) as u8;
                 }
-                if shadow {
+                rgb_row[3 * x..3 * x + 3].copy_from_slice(&c8);
+                int_row[x] = rgb_to_intensity(c8[0], c8[1], c8[2]);
+                // Depth.
+                let z = f64::from(s.z);
+                if s.object == NO_OBJECT || z <= 0.0 || z < sensor.min_range || z > sensor.max_range
+                {
                     continue;
                 }
+                if f64::from(s.cos_incidence) < cos_min {
+                    continue;
+                }
+                if sensor.discontinuity > 0.0 {
+                    let mut shadow = false;
+                    let nb = [
+                        (x > 0).then(|| i - 1),
+                        (x + 1 < width).then(|| i + 1),
+                        (y > 0).then(|| i - width),
+                        (y + 1 < height).then(|| i + width),
+                    ];
+                    for j in nb.into_iter().flatten() {
+                        let zn = f64::from(samples[j].z);
+                        if samples[j].object == NO_OBJECT
+                            || zn <= 0.0
+                            || z > zn * (1.0 + sensor.discontinuity)
+                        {
+                            shadow = true;
+                        }
+                    }
+                    if shadow {
+                        continue;
+                    }
+                }
+                if sensor.dropout > 0.0 && uniform(seed, i as u32, 7) < sensor.dropout {
+                    continue;
+                }
+                let mut disparity = fb / z;
+                if sensor.disparity_sigma > 0.0 {
+                    disparity += sensor.disparity_sigma * gauss(seed, i as u32, 8);
+                }
+                if sensor.disparity_step > 0.0 {
+                    disparity = (disparity / sensor.disparity_step).round() * sensor.disparity_step;
+                }
+                if disparity <= 0.0 {
+                    continue;
+                }
+                let zq = (fb / disparity * DEPTH_FACTOR).round();
+                if zq < 1.0 || zq > 65535.0 {
+                    continue;
+                }
+                inv_row[x] = (DEPTH_FACTOR / zq) as f32;
             }
-            if sensor.dropout > 0.0 && uniform(seed, i as u32, 7) < sensor.dropout {
-                continue;
-            }
-            let mut disparity = fb / z;
-            if sensor.disparity_sigma > 0.0 {
-                disparity += sensor.disparity_sigma * gauss(seed, i as u32, 8);
-            }
-            if sensor.disparity_step > 0.0 {
-                disparity = (disparity / sensor.disparity_step).round() * sensor.disparity_step;
-            }
-            if disparity <= 0.0 {
-                continue;
-            }
-            let zq = (fb / disparity * DEPTH_FACTOR).round();
-            if zq < 1.0 || zq > 65535.0 {
-                continue;
-            }
-            inv_row[x] = (DEPTH_FACTOR / zq) as f32;
-        }
-    });
+        });
     SensorOutput {
         rgb,
-        intensity: ImageF32 { width, height, data: intensity },
-        inverse_depth: ImageF32 { width, height, data: inverse },
+        intensity: ImageF32 {
+            width,
+            height,
+            data: intensity,
+        },
+        inverse_depth: ImageF32 {
+            width,
+            height,
+            data: inverse,
+        },
     }
 }

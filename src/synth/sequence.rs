@@ -88,10 +88,18 @@ impl Sequence {
         backend: &RenderBackend,
     ) -> Result<Sequence, SynthError> {
         if !(config.fps.is_finite() && config.fps > 0.0) {
-            return Err(SynthError::InvalidParameter { name: "fps", why: format!("{} must be > 0", config.fps) });
+            return Err(SynthError::InvalidParameter {
+                name: "fps",
+                why: format!("{} must be > 0", config.fps),
+            });
         }
         let renderer = Renderer::new(scene, camera, backend)?;
-        Ok(Sequence { renderer, trajectory, config, next: 0 })
+        Ok(Sequence {
+            renderer,
+            trajectory,
+            config,
+            next: 0,
+        })
     }
 
     /// The configuration.
@@ -136,7 +144,10 @@ impl Sequence {
             return self.config.sensor.gain;
         }
         let t = self.local_time(index);
-        self.config.sensor.gain * (1.0 + 0.15 * (std::f64::consts::TAU * t / 7.0).sin() + 0.05 * (std::f64::consts::TAU * t / 2.3).sin())
+        self.config.sensor.gain
+            * (1.0
+                + 0.15 * (std::f64::consts::TAU * t / 7.0).sin()
+                + 0.05 * (std::f64::consts::TAU * t / 2.3).sin())
     }
 
     /// Renders frame `index` (any order).
@@ -164,10 +175,25 @@ impl Sequence {
         }
         let mut sensor = self.config.sensor.clone();
         sensor.gain = self.gain(index);
-        let seed = self.config.seed ^ (u64::from(pcg_hash(index as u32 ^ 0x51ed_270b)) << 32) ^ index as u64;
+        let seed = self.config.seed
+            ^ (u64::from(pcg_hash(index as u32 ^ 0x51ed_270b)) << 32)
+            ^ index as u64;
         let cam = *self.renderer.camera();
-        let frame = finish_frame(self.renderer.scene(), &samples, cam.width(), cam.height(), &sensor, cam.focal_px(), seed);
-        Ok(SequenceFrame { index, timestamp: self.config.start_time + t, world_from_camera: pose, frame })
+        let frame = finish_frame(
+            self.renderer.scene(),
+            &samples,
+            cam.width(),
+            cam.height(),
+            &sensor,
+            cam.focal_px(),
+            seed,
+        );
+        Ok(SequenceFrame {
+            index,
+            timestamp: self.config.start_time + t,
+            world_from_camera: pose,
+            frame,
+        })
     }
 }
 

@@ -24,7 +24,16 @@ use crate::geometry::Se3;
 use crate::io::trajectory::TimedPose;
 
 /// Names accepted by [`TrajectoryKind::from_name`].
-pub const TRAJECTORIES: &[&str] = &["handheld", "slow", "fast", "loop", "walk-head", "walk-chest", "stairs", "robot"];
+pub const TRAJECTORIES: &[&str] = &[
+    "handheld",
+    "slow",
+    "fast",
+    "loop",
+    "walk-head",
+    "walk-chest",
+    "stairs",
+    "robot",
+];
 
 /// The kinds of trajectory.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -60,7 +69,10 @@ impl TrajectoryKind {
             "stairs" => TrajectoryKind::Stairs,
             "robot" => TrajectoryKind::Robot,
             _ => {
-                return Err(SynthError::UnknownTrajectory { name: name.into(), known: TRAJECTORIES.join(", ") });
+                return Err(SynthError::UnknownTrajectory {
+                    name: name.into(),
+                    known: TRAJECTORIES.join(", "),
+                });
             }
         })
     }
@@ -117,10 +129,22 @@ impl Default for WalkingParams {
             beta: 1.7544,
             mount: Mount::Head,
             schedule: vec![
-                PaceSegment { duration: 6.0, frequency: 1.6 },
-                PaceSegment { duration: 5.0, frequency: 2.0 },
-                PaceSegment { duration: 2.0, frequency: 0.0 },
-                PaceSegment { duration: 6.0, frequency: 1.3 },
+                PaceSegment {
+                    duration: 6.0,
+                    frequency: 1.6,
+                },
+                PaceSegment {
+                    duration: 5.0,
+                    frequency: 2.0,
+                },
+                PaceSegment {
+                    duration: 2.0,
+                    frequency: 0.0,
+                },
+                PaceSegment {
+                    duration: 6.0,
+                    frequency: 1.3,
+                },
             ],
             transition: 0.8,
             bob_amplitude: 0.025,
@@ -180,7 +204,11 @@ struct Spline {
 
 impl Spline {
     fn new(points: Vec<[f64; 5]>, closed: bool) -> Spline {
-        let mut s = Spline { points, closed, table: Vec::new() };
+        let mut s = Spline {
+            points,
+            closed,
+            table: Vec::new(),
+        };
         let segs = s.segments();
         let per = 200;
         let mut acc = 0.0;
@@ -189,7 +217,8 @@ impl Spline {
         for i in 1..=segs * per {
             let u = i as f64 / per as f64;
             let p = s.eval(u);
-            acc += ((p[0] - prev[0]).powi(2) + (p[1] - prev[1]).powi(2) + (p[2] - prev[2]).powi(2)).sqrt();
+            acc += ((p[0] - prev[0]).powi(2) + (p[1] - prev[1]).powi(2) + (p[2] - prev[2]).powi(2))
+                .sqrt();
             s.table.push((u, acc));
             prev = p;
         }
@@ -227,7 +256,12 @@ impl Spline {
         let u = u.clamp(0.0, segs);
         let i = (u.floor() as i64).min(segs as i64 - 1);
         let t = u - i as f64;
-        let (p0, p1, p2, p3) = (self.point(i - 1), self.point(i), self.point(i + 1), self.point(i + 2));
+        let (p0, p1, p2, p3) = (
+            self.point(i - 1),
+            self.point(i),
+            self.point(i + 1),
+            self.point(i + 2),
+        );
         let t2 = t * t;
         let t3 = t2 * t;
         let mut out = [0.0; 5];
@@ -244,7 +278,11 @@ impl Spline {
     /// Point at arc length `s` (clamped; wrapped for closed splines).
     fn at_length(&self, s: f64) -> [f64; 5] {
         let len = self.length();
-        let s = if self.closed && len > 0.0 { s.rem_euclid(len) } else { s.clamp(0.0, len) };
+        let s = if self.closed && len > 0.0 {
+            s.rem_euclid(len)
+        } else {
+            s.clamp(0.0, len)
+        };
         let k = self.table.partition_point(|e| e.1 < s);
         let u = if k == 0 {
             0.0
@@ -274,11 +312,23 @@ struct Jitter {
 
 impl Jitter {
     fn new(rng: &mut Pcg64, amplitude: f64, freqs: &[f64]) -> Jitter {
-        let terms = freqs.iter().map(|&f| (amplitude / freqs.len() as f64 * 1.6, f, rng.random_range(0.0..TAU))).collect();
+        let terms = freqs
+            .iter()
+            .map(|&f| {
+                (
+                    amplitude / freqs.len() as f64 * 1.6,
+                    f,
+                    rng.random_range(0.0..TAU),
+                )
+            })
+            .collect();
         Jitter { terms }
     }
     fn at(&self, x: f64) -> f64 {
-        self.terms.iter().map(|(a, f, p)| a * (TAU * f * x + p).sin()).sum()
+        self.terms
+            .iter()
+            .map(|(a, f, p)| a * (TAU * f * x + p).sin())
+            .sum()
     }
 }
 
@@ -286,17 +336,40 @@ impl Jitter {
 /// along +x), pitch (up positive) and roll (about the viewing direction).
 pub fn camera_pose(eye: DVec3, yaw: f64, pitch: f64, roll: f64) -> Se3 {
     // Camera axes for yaw = pitch = roll = 0: z_c -> +x_w, x_c -> -y_w, y_c -> -z_w.
-    let base = DMat3::from_cols(DVec3::new(0.0, -1.0, 0.0), DVec3::new(0.0, 0.0, -1.0), DVec3::new(1.0, 0.0, 0.0));
-    let r = DMat3::from_rotation_z(yaw) * DMat3::from_rotation_y(-pitch) * DMat3::from_rotation_x(roll) * base;
+    let base = DMat3::from_cols(
+        DVec3::new(0.0, -1.0, 0.0),
+        DVec3::new(0.0, 0.0, -1.0),
+        DVec3::new(1.0, 0.0, 0.0),
+    );
+    let r = DMat3::from_rotation_z(yaw)
+        * DMat3::from_rotation_y(-pitch)
+        * DMat3::from_rotation_x(roll)
+        * base;
     Se3::new(DQuat::from_mat3(&r), eye)
 }
 
 #[derive(Clone, Debug)]
 enum Motion {
-    Handheld { spline: Spline, speed: f64, jitter: [Jitter; 6] },
-    Loop { spline: Spline, jitter: [Jitter; 6] },
-    Walk { path: Spline, params: WalkingParams, table: Vec<(f64, f64)>, dt: f64, head: [Jitter; 2] },
-    Robot { path: Spline, speed: f64 },
+    Handheld {
+        spline: Spline,
+        speed: f64,
+        jitter: [Jitter; 6],
+    },
+    Loop {
+        spline: Spline,
+        jitter: [Jitter; 6],
+    },
+    Walk {
+        path: Spline,
+        params: WalkingParams,
+        table: Vec<(f64, f64)>,
+        dt: f64,
+        head: [Jitter; 2],
+    },
+    Robot {
+        path: Spline,
+        speed: f64,
+    },
 }
 
 /// A camera trajectory: `world_from_camera` as a function of time over `[0, duration]`.
@@ -307,7 +380,14 @@ pub struct Trajectory {
     motion: Motion,
 }
 
-fn ellipse_points(area: &FreeArea, n: usize, shrink: f64, rng: &mut Pcg64, z: (f64, f64), outward: bool) -> Vec<[f64; 5]> {
+fn ellipse_points(
+    area: &FreeArea,
+    n: usize,
+    shrink: f64,
+    rng: &mut Pcg64,
+    z: (f64, f64),
+    outward: bool,
+) -> Vec<[f64; 5]> {
     let c = area.center();
     let e = area.extent() * 0.5 * shrink;
     (0..n)
@@ -316,8 +396,16 @@ fn ellipse_points(area: &FreeArea, n: usize, shrink: f64, rng: &mut Pcg64, z: (f
             let r = rng.random_range(0.8..1.0);
             let x = c.x + e.x * r * th.cos();
             let y = c.y + e.y * r * th.sin();
-            let yaw = if outward { th + rng.random_range(-0.5..0.5) } else { th + PI * 0.5 };
-            let height = if z.1 > z.0 { rng.random_range(z.0..z.1) } else { z.0 };
+            let yaw = if outward {
+                th + rng.random_range(-0.5..0.5)
+            } else {
+                th + PI * 0.5
+            };
+            let height = if z.1 > z.0 {
+                rng.random_range(z.0..z.1)
+            } else {
+                z.0
+            };
             [x, y, height, yaw, rng.random_range(-0.3..0.05)]
         })
         .collect()
@@ -325,13 +413,24 @@ fn ellipse_points(area: &FreeArea, n: usize, shrink: f64, rng: &mut Pcg64, z: (f
 
 impl Trajectory {
     /// A trajectory of `kind` through `scene`'s free area lasting `duration` seconds.
-    pub fn new(kind: TrajectoryKind, scene: &Scene, duration: f64, seed: u64) -> Result<Trajectory, SynthError> {
+    pub fn new(
+        kind: TrajectoryKind,
+        scene: &Scene,
+        duration: f64,
+        seed: u64,
+    ) -> Result<Trajectory, SynthError> {
         if !(duration.is_finite() && duration > 0.0) {
-            return Err(SynthError::InvalidParameter { name: "duration", why: format!("{duration} s must be > 0") });
+            return Err(SynthError::InvalidParameter {
+                name: "duration",
+                why: format!("{duration} s must be > 0"),
+            });
         }
         let area = scene.free_area();
         let mut rng = Pcg64::seed_from_u64(seed ^ 0x7a3c_0000_0000_0001);
-        let eye = (1.3f64.min(area.ceiling - 0.5), 1.6f64.min(area.ceiling - 0.3));
+        let eye = (
+            1.3f64.min(area.ceiling - 0.5),
+            1.6f64.min(area.ceiling - 0.3),
+        );
         let motion = match kind {
             TrajectoryKind::Handheld | TrajectoryKind::Slow | TrajectoryKind::Fast => {
                 let (speed, yaw_rate, tremor) = match kind {
@@ -347,7 +446,13 @@ impl Trajectory {
                 let mut pts = Vec::with_capacity(n);
                 let (mut x, mut y) = (area.center().x, area.center().y);
                 for _ in 0..n {
-                    pts.push([x, y, rng.random_range(eye.0..eye.1), yaw, rng.random_range(-0.35..0.05)]);
+                    pts.push([
+                        x,
+                        y,
+                        rng.random_range(eye.0..eye.1),
+                        yaw,
+                        rng.random_range(-0.35..0.05),
+                    ]);
                     let step = speed * seg_time;
                     let dir = rng.random_range(0.0..TAU);
                     x = (x + step * dir.cos()).clamp(area.min.x, area.max.x);
@@ -365,7 +470,11 @@ impl Trajectory {
                     Jitter::new(&mut rng, tremor * 2.0, &fr),
                     Jitter::new(&mut rng, tremor * 2.0, &fr),
                 ];
-                Motion::Handheld { spline, speed: sp, jitter }
+                Motion::Handheld {
+                    spline,
+                    speed: sp,
+                    jitter,
+                }
             }
             TrajectoryKind::Loop => {
                 let pts = ellipse_points(&area, 8, 0.9, &mut rng, eye, true);
@@ -384,22 +493,36 @@ impl Trajectory {
             }
             TrajectoryKind::WalkHead | TrajectoryKind::WalkChest | TrajectoryKind::Stairs => {
                 let mut params = WalkingParams {
-                    mount: if kind == TrajectoryKind::WalkChest { Mount::Chest } else { Mount::Head },
+                    mount: if kind == TrajectoryKind::WalkChest {
+                        Mount::Chest
+                    } else {
+                        Mount::Head
+                    },
                     ..WalkingParams::default()
                 };
                 if kind == TrajectoryKind::Stairs {
                     params.stairs = Some((duration * 0.3, 12, 0.17));
-                    params.schedule = vec![PaceSegment { duration: 1e9, frequency: 1.5 }];
+                    params.schedule = vec![PaceSegment {
+                        duration: 1e9,
+                        frequency: 1.5,
+                    }];
                 }
                 return Ok(Trajectory::walking(scene, params, duration, seed));
             }
             TrajectoryKind::Robot => {
                 let pts = ellipse_points(&area, 6, 0.8, &mut rng, (0.4, 0.4), false);
                 let spline = Spline::new(pts, true);
-                Motion::Robot { path: spline, speed: 0.3 }
+                Motion::Robot {
+                    path: spline,
+                    speed: 0.3,
+                }
             }
         };
-        Ok(Trajectory { kind, duration, motion })
+        Ok(Trajectory {
+            kind,
+            duration,
+            motion,
+        })
     }
 
     /// A walking trajectory with explicit parameters (head or chest mount, schedule, stairs)
@@ -421,7 +544,10 @@ impl Trajectory {
             s += params.speed(f) * dt;
             phase += f * dt;
         }
-        let head = [Jitter::new(&mut rng, 0.25, &[0.07, 0.13]), Jitter::new(&mut rng, 0.08, &[0.05, 0.11])];
+        let head = [
+            Jitter::new(&mut rng, 0.25, &[0.07, 0.13]),
+            Jitter::new(&mut rng, 0.08, &[0.05, 0.11]),
+        ];
         let kind = if params.stairs.is_some() {
             TrajectoryKind::Stairs
         } else if params.mount == Mount::Chest {
@@ -429,7 +555,17 @@ impl Trajectory {
         } else {
             TrajectoryKind::WalkHead
         };
-        Trajectory { kind, duration, motion: Motion::Walk { path, params, table, dt, head } }
+        Trajectory {
+            kind,
+            duration,
+            motion: Motion::Walk {
+                path,
+                params,
+                table,
+                dt,
+                head,
+            },
+        }
     }
 
     /// The kind.
@@ -460,23 +596,39 @@ impl Trajectory {
     pub fn pose_at(&self, t: f64) -> Se3 {
         let t = t.clamp(0.0, self.duration);
         match &self.motion {
-            Motion::Handheld { spline, speed, jitter } => {
+            Motion::Handheld {
+                spline,
+                speed,
+                jitter,
+            } => {
                 let p = spline.at_length(speed * t);
                 let j: Vec<f64> = jitter.iter().map(|j| j.at(t)).collect();
-                camera_pose(DVec3::new(p[0] + j[0], p[1] + j[1], p[2] + j[2]), p[3] + j[3], p[4] + j[4], j[5])
+                camera_pose(
+                    DVec3::new(p[0] + j[0], p[1] + j[1], p[2] + j[2]),
+                    p[3] + j[3],
+                    p[4] + j[4],
+                    j[5],
+                )
             }
             Motion::Loop { spline, jitter } => {
                 let phase = t / self.duration;
                 let p = spline.at_length(phase * spline.length());
                 let j: Vec<f64> = jitter.iter().map(|j| j.at(phase)).collect();
-                camera_pose(DVec3::new(p[0] + j[0], p[1] + j[1], p[2] + j[2]), p[3] + j[3], p[4] + j[4], j[5])
+                camera_pose(
+                    DVec3::new(p[0] + j[0], p[1] + j[1], p[2] + j[2]),
+                    p[3] + j[3],
+                    p[4] + j[4],
+                    j[5],
+                )
             }
             Motion::Robot { path, speed } => {
                 let s = speed * t;
                 let p = path.at_length(s);
                 camera_pose(DVec3::new(p[0], p[1], 0.4), path.heading_at(s), 0.0, 0.0)
             }
-            Motion::Walk { path, params, head, .. } => {
+            Motion::Walk {
+                path, params, head, ..
+            } => {
                 let (s, phase) = self.walking_state(t).unwrap_or((0.0, 0.0));
                 let p = path.at_length(s);
                 let heading = path.heading_at(s);
@@ -488,7 +640,11 @@ impl Trajectory {
                 let lateral = DVec3::new(-heading.sin(), heading.cos(), 0.0);
                 let (height, yaw_look, pitch) = match params.mount {
                     Mount::Head => (0.93 * params.height, head[0].at(t), -0.1 + head[1].at(t)),
-                    Mount::Chest => (0.72 * params.height, 0.05 * (PI * phase).sin() * walking, -0.05),
+                    Mount::Chest => (
+                        0.72 * params.height,
+                        0.05 * (PI * phase).sin() * walking,
+                        -0.05,
+                    ),
                 };
                 let mut z = height + bob;
                 if let Some((start, steps, rise)) = params.stairs {
@@ -513,7 +669,10 @@ impl Trajectory {
         (0..frames)
             .map(|i| {
                 let t = i as f64 / fps;
-                TimedPose { timestamp: t0 + t, world_from_camera: self.pose_at(t) }
+                TimedPose {
+                    timestamp: t0 + t,
+                    world_from_camera: self.pose_at(t),
+                }
             })
             .collect()
     }
