@@ -5,5 +5,7 @@
 //! Depth along z in metres; inverse depth in 1/m with 0 meaning "no measurement".
 
 mod pinhole;
+mod unified;
 
 pub use pinhole::{BrownConrady, CameraError, PinholeCamera};
+pub use unified::UnifiedCamera;

@@ -5,6 +5,7 @@
 //! there is one) and the cause; nothing here panics on input.
 
 pub mod trajectory;
+pub mod tum_writer;
 
 use std::path::PathBuf;
 
