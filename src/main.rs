@@ -40,6 +40,11 @@ enum Command {
 
 fn main() {
     let cli = Cli::parse();
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        // Mesa's Vulkan drivers complain on every adapter query when this is unset (headless
+        // servers); a private temporary directory is what they need.
+        std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir());
+    }
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(&cli.log))
         .format_timestamp(None)
         .init();

@@ -22,9 +22,14 @@ fn views(motion: &[f64; 6], noise: bool) -> (RgbdFrame, RgbdFrame, Se3) {
     let world_from_ref = camera_pose(DVec3::new(c.x - 0.8, c.y - 0.3, 1.4), 0.6, -0.15, 0.0);
     let ref_from_cur = Se3::exp(motion);
     let world_from_cur = world_from_ref * ref_from_cur;
-    let sensor = if noise { SensorModel::kinect() } else { SensorModel::noiseless() };
+    let sensor = if noise {
+        SensorModel::kinect()
+    } else {
+        SensorModel::noiseless()
+    };
     let a = render_pinhole(&scene, &camera(), &world_from_ref, &sensor, 1).to_rgbd_frame(0.0);
-    let b = render_pinhole(&scene, &camera(), &world_from_cur, &sensor, 2).to_rgbd_frame(1.0 / 30.0);
+    let b =
+        render_pinhole(&scene, &camera(), &world_from_cur, &sensor, 2).to_rgbd_frame(1.0 / 30.0);
     (a, b, ref_from_cur.inverse())
 }
 
@@ -47,11 +52,16 @@ fn backends() -> Vec<ComputeBackend> {
 fn known_motion_is_recovered_on_every_backend() {
     let (a, b, truth) = views(&MOTION, true);
     for backend in backends() {
-        let mut odo = Odometry::new(OdometryConfig::default(), camera(), &backend).expect("odometry");
+        let mut odo =
+            Odometry::new(OdometryConfig::default(), camera(), &backend).expect("odometry");
         let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
         let (mm, deg) = errors(&al.cur_from_ref, &truth);
         println!("{}: error {mm:.3} mm {deg:.4} deg", backend.name());
-        assert!(mm < 1.0 && deg < 0.05, "{}: {mm} mm {deg} deg", backend.name());
+        assert!(
+            mm < 1.0 && deg < 0.05,
+            "{}: {mm} mm {deg} deg",
+            backend.name()
+        );
         assert!(al.covariance.is_some() && al.condition_number.is_finite());
     }
 }
@@ -79,23 +89,33 @@ fn student_t_rejects_a_moving_object_that_least_squares_cannot() {
     add_moving_object(&mut b);
     let mut res = Vec::new();
     for est in [Estimator::Student, Estimator::LeastSquares] {
-        let cfg = OdometryConfig { estimator: est, ..Default::default() };
+        let cfg = OdometryConfig {
+            estimator: est,
+            ..Default::default()
+        };
         let mut odo = Odometry::new(cfg, camera(), &ComputeBackend::Cpu).expect("odometry");
         let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
         let e = errors(&al.cur_from_ref, &truth);
-        println!("{est:?} with a moving object over 20 % of the image: {:.3} mm {:.4} deg", e.0, e.1);
+        println!(
+            "{est:?} with a moving object over 20 % of the image: {:.3} mm {:.4} deg",
+            e.0, e.1
+        );
         res.push(e);
     }
     let (s, l) = (res[0], res[1]);
     assert!(s.0 < 1.0 && s.1 < 0.05, "Student-t: {s:?}");
-    assert!(l.0 > 5.0 * s.0.max(0.2) || l.1 > 5.0 * s.1.max(0.01), "least squares was not hurt: {l:?} vs {s:?}");
+    assert!(
+        l.0 > 5.0 * s.0.max(0.2) || l.1 > 5.0 * s.1.max(0.01),
+        "least squares was not hurt: {l:?} vs {s:?}"
+    );
 }
 
 #[test]
 fn tracking_a_rendered_sequence_switches_references_and_stays_accurate() {
     let scene = Scene::preset("office", 5).expect("preset");
     let c = scene.free_area().center();
-    let mut odo = Odometry::new(OdometryConfig::default(), camera(), &ComputeBackend::Cpu).expect("odometry");
+    let mut odo =
+        Odometry::new(OdometryConfig::default(), camera(), &ComputeBackend::Cpu).expect("odometry");
     let start = camera_pose(DVec3::new(c.x, c.y, 1.5), 0.0, -0.1, 0.0);
     odo.set_initial_pose(start);
     let mut switches = 0;
@@ -104,13 +124,17 @@ fn tracking_a_rendered_sequence_switches_references_and_stays_accurate() {
     for k in 0..30 {
         // A slow turn with a little forward motion: 1 cm and 0.6 deg per frame.
         truth = start * Se3::exp(&[0.0, 0.0, 0.01 * k as f64, 0.0, 0.0105 * k as f64, 0.0]);
-        let f = render_pinhole(&scene, &camera(), &truth, &SensorModel::kinect(), k).to_rgbd_frame(k as f64 / 30.0);
+        let f = render_pinhole(&scene, &camera(), &truth, &SensorModel::kinect(), k)
+            .to_rgbd_frame(k as f64 / 30.0);
         let r = odo.track(&f).expect("track");
         switches += usize::from(r.stats.new_reference);
         last = r.world_from_camera;
     }
     let (mm, deg) = errors(&last, &truth);
     println!("after 30 frames: drift {mm:.2} mm {deg:.3} deg, {switches} reference frames");
-    assert!(switches >= 2 && switches < 30, "{switches} reference frames");
+    assert!(
+        switches >= 2 && switches < 30,
+        "{switches} reference frames"
+    );
     assert!(mm < 15.0 && deg < 0.5, "{mm} mm {deg} deg");
 }

@@ -8,7 +8,16 @@ use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::image::test_pattern;
-use rgbid::odometry::{Odometry, OdometryConfig};
+use std::path::PathBuf;
+use std::process::Command as Process;
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+use rgbid::io::trajectory::{write_tum, TimedPose};
+use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::odometry::{Odometry, OdometryConfig, OdometryError};
+
+use super::odometry::OdometryOptions;
 
 /// Subcommands of `rgbid bench`.
 #[derive(clap::Subcommand)]
@@ -16,6 +25,9 @@ pub enum Command {
     /// Odometry kernels on generated frames (no data needed): pyramid, scale estimation,
     /// normal equations, solve, per backend and image size.
     Kernels(KernelBench),
+    /// Odometry speed and accuracy per backend on a TUM sequence, against OpenCV / Open3D run
+    /// on the same data by `../shared/eval/peer_odometry.py`.
+    Odometry(OdometryBench),
 }
 
 /// Arguments of `rgbid bench kernels`.
@@ -48,6 +60,7 @@ pub fn median(v: &mut [f64]) -> f64 {
 pub fn run(c: Command) -> Result<()> {
     match c {
         Command::Kernels(a) => kernels(a),
+        Command::Odometry(a) => odometry(a),
     }
 }
 
@@ -128,4 +141,309 @@ fn kernels(a: KernelBench) -> Result<()> {
     }
     println!("(align = pyramids of both frames + coarse-to-fine Gauss-Newton; the pyramid column is for both frames)");
     Ok(())
+}
+
+/// Arguments of `rgbid bench odometry`.
+#[derive(clap::Args)]
+pub struct OdometryBench {
+    /// TUM-layout sequence folder (with groundtruth.txt for accuracy figures).
+    pub sequence: PathBuf,
+    /// Backends to measure, comma-separated: cpu, gpu.
+    #[arg(long, default_value = "cpu,gpu")]
+    pub backends: String,
+    /// Process at most this many frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Peer methods of `../shared/eval/peer_odometry.py` to run in the same benchmark
+    /// (comma-separated; empty for none).
+    #[arg(long, default_value = "cv_rgbd,o3dt_hybrid")]
+    pub peers: String,
+    /// The peer script.
+    #[arg(long, default_value = "../shared/eval/peer_odometry.py")]
+    pub peer_script: PathBuf,
+    /// Python interpreter with numpy, scipy, opencv and open3d.
+    #[arg(long, default_value = "python3")]
+    pub python: String,
+    /// Folder for the trajectories written by the benchmark.
+    #[arg(long, default_value = "bench-out")]
+    pub out: PathBuf,
+    /// Camera preset or config file (default: calib.txt beside the sequence).
+    #[arg(long)]
+    pub camera: Option<String>,
+    #[command(flatten)]
+    pub odometry: OdometryOptions,
+}
+
+/// One row of the result table.
+#[derive(Debug, Clone, serde::Serialize)]
+struct Row {
+    method: String,
+    frames: usize,
+    ms_median: f64,
+    ms_p90: f64,
+    ate_rmse: Option<f64>,
+    rpe_rmse_per_s: Option<f64>,
+    stages: Option<[f64; 5]>,
+    peak_rss_mib: Option<f64>,
+}
+
+fn percentile(v: &mut [f64], p: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Peak and current resident memory in MiB, from /proc/self/status (Linux).
+fn rss_mib() -> (Option<f64>, Option<f64>) {
+    let Ok(s) = std::fs::read_to_string("/proc/self/status") else {
+        return (None, None);
+    };
+    let field = |name: &str| {
+        s.lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse::<f64>().ok())
+            .map(|kib| kib / 1024.0)
+    };
+    (field("VmHWM:"), field("VmRSS:"))
+}
+
+fn odometry(a: OdometryBench) -> Result<()> {
+    let config = a.odometry.config()?;
+    let mut opts = OpenOptions {
+        max_frames: a.max_frames,
+        ..Default::default()
+    };
+    if let Some(c) = &a.camera {
+        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
+    }
+    let seq = TumSequence::open(&a.sequence, &opts)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
+    let gt = seq
+        .groundtruth
+        .as_ref()
+        .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
+    let mut rows = Vec::new();
+    for name in a
+        .backends
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+    {
+        let backend = match name {
+            "cpu" => ComputeBackend::Cpu,
+            "gpu" => match select_backend(BackendChoice::Gpu, a.odometry.adapter.as_deref()) {
+                Ok(b) => b,
+                Err(e) => {
+                    println!("backend gpu: unavailable ({e})");
+                    continue;
+                }
+            },
+            other => anyhow::bail!("unknown backend '{other}' (cpu or gpu)"),
+        };
+        let label = backend.name();
+        let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
+        if let (Some(gt), Some(e)) = (&gt, seq.entries.first()) {
+            if let Some(near) = gt.iter().min_by(|x, y| {
+                (x.timestamp - e.timestamp)
+                    .abs()
+                    .total_cmp(&(y.timestamp - e.timestamp).abs())
+            }) {
+                odo.set_initial_pose(near.world_from_camera);
+            }
+        }
+        let bar = ProgressBar::new(seq.len() as u64);
+        bar.set_style(
+            ProgressStyle::with_template("{msg} {bar:30} {pos}/{len}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_message(label.clone());
+        let mut totals = Vec::new();
+        let mut stages: [Vec<f64>; 5] = Default::default();
+        let mut load_ms = Vec::new();
+        let mut poses = Vec::new();
+        let mut rss_early = None;
+        for i in 0..seq.len() {
+            let t = std::time::Instant::now();
+            let frame = seq.load(i)?;
+            load_ms.push(t.elapsed().as_secs_f64() * 1e3);
+            let r = match odo.track(&frame) {
+                Ok(r) => r,
+                Err(OdometryError::TrackingFailed(m)) => {
+                    log::warn!("frame {i}: {m}");
+                    continue;
+                }
+                Err(e) => return Err(e.into()),
+            };
+            poses.push(TimedPose {
+                timestamp: frame.timestamp,
+                world_from_camera: r.world_from_camera,
+            });
+            if i > 0 {
+                let s = r.stats.times;
+                totals.push(s.total_ms);
+                for (k, v) in [
+                    s.pyramid_ms,
+                    s.scale_ms,
+                    s.reduce_ms,
+                    s.solve_ms,
+                    s.covisibility_ms,
+                ]
+                .into_iter()
+                .enumerate()
+                {
+                    stages[k].push(v);
+                }
+            }
+            if i == 10 {
+                rss_early = rss_mib().1;
+            }
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        let (peak, rss_end) = rss_mib();
+        let path = a.out.join(format!("rgbid_{name}.txt"));
+        write_tum(&path, &poses)?;
+        let (ate, rpe) = accuracy(gt.as_deref(), &poses);
+        let st = [
+            median(&mut stages[0]),
+            median(&mut stages[1]),
+            median(&mut stages[2]),
+            median(&mut stages[3]),
+            median(&mut stages[4]),
+        ];
+        println!(
+            "rgbid {label}: per-frame median {:.2} ms (pyramid {:.2}, scale {:.2}, reduce {:.2}, solve {:.2}, covisibility {:.2}); decode {:.2} ms/frame (not counted)",
+            median(&mut totals.clone()),
+            st[0],
+            st[1],
+            st[2],
+            st[3],
+            st[4],
+            median(&mut load_ms)
+        );
+        if let (Some(e), Some(l)) = (rss_early, rss_end) {
+            println!("  resident memory: {e:.0} MiB after 10 frames, {l:.0} MiB at the end, peak {:.0} MiB", peak.unwrap_or(f64::NAN));
+        }
+        rows.push(Row {
+            method: format!("rgbid {name}"),
+            frames: poses.len(),
+            ms_median: median(&mut totals.clone()),
+            ms_p90: percentile(&mut totals, 0.9),
+            ate_rmse: ate,
+            rpe_rmse_per_s: rpe,
+            stages: Some(st),
+            peak_rss_mib: peak,
+        });
+    }
+    if !a.peers.trim().is_empty() {
+        match run_peers(&a, &seq) {
+            Ok(mut peers) => rows.append(&mut peers),
+            Err(e) => println!("peers not measured: {e:#}"),
+        }
+    }
+    print_table(&rows);
+    Ok(())
+}
+
+fn accuracy(gt: Option<&[TimedPose]>, est: &[TimedPose]) -> (Option<f64>, Option<f64>) {
+    let Some(gt) = gt else { return (None, None) };
+    match rgbid::eval::evaluate(gt, est, &rgbid::eval::EvalOptions::default()) {
+        Ok(r) => (
+            Some(r.ate.translation.rmse),
+            r.rpe.map(|x| x.translation_m_per_s.rmse),
+        ),
+        Err(e) => {
+            log::warn!("evaluation failed: {e}");
+            (None, None)
+        }
+    }
+}
+
+fn run_peers(a: &OdometryBench, seq: &TumSequence) -> Result<Vec<Row>> {
+    if !a.peer_script.exists() {
+        anyhow::bail!("{} not found (pass --peer-script)", a.peer_script.display());
+    }
+    let mut cmd = Process::new(&a.python);
+    cmd.arg(&a.peer_script)
+        .arg(&seq.root)
+        .arg(a.out.join("peers"))
+        .arg("--methods")
+        .arg(&a.peers);
+    if let Some(n) = a.max_frames {
+        cmd.arg("--max-frames").arg(n.to_string());
+    }
+    println!("running peers: {:?}", cmd);
+    let out = cmd
+        .output()
+        .with_context(|| format!("starting {}", a.python))?;
+    if !out.status.success() {
+        anyhow::bail!(
+            "peer script failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        );
+    }
+    let mut rows = Vec::new();
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else {
+            continue;
+        };
+        let method = v["method"].as_str().unwrap_or("?").to_string();
+        // Re-evaluate the peers' trajectories with rgbid's own metrics, like rgbid's rows.
+        let est =
+            rgbid::io::trajectory::read_tum(&a.out.join("peers").join(format!("{method}.txt")))
+                .ok();
+        let gt = seq
+            .groundtruth
+            .as_ref()
+            .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
+        let (ate, rpe) = match (&gt, &est) {
+            (Some(g), Some(e)) => accuracy(Some(g), e),
+            _ => (v["ate_rmse"].as_f64(), v["rpe_rmse_per_s"].as_f64()),
+        };
+        rows.push(Row {
+            method,
+            frames: v["frames"].as_u64().unwrap_or(0) as usize,
+            ms_median: v["ms_median"].as_f64().unwrap_or(f64::NAN),
+            ms_p90: v["ms_p90"].as_f64().unwrap_or(f64::NAN),
+            ate_rmse: ate,
+            rpe_rmse_per_s: rpe,
+            stages: None,
+            peak_rss_mib: None,
+        });
+    }
+    Ok(rows)
+}
+
+fn print_table(rows: &[Row]) {
+    let reference = rows
+        .iter()
+        .find(|r| r.method == "cv_rgbd")
+        .map(|r| r.ms_median);
+    println!("\n| method | frames | ATE RMSE m | RPE m/s | median ms/frame | p90 ms | speed-up vs OpenCV RGB_DEPTH |");
+    println!("|---|---|---|---|---|---|---|");
+    for r in rows {
+        let f = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_else(|| "-".into());
+        let ratio = reference
+            .map(|p| format!("{:.2}x", p / r.ms_median))
+            .unwrap_or_else(|| "-".into());
+        println!(
+            "| {} | {} | {} | {} | {:.1} | {:.1} | {} |",
+            r.method,
+            r.frames,
+            f(r.ate_rmse),
+            f(r.rpe_rmse_per_s),
+            r.ms_median,
+            r.ms_p90,
+            ratio
+        );
+    }
+    if let Ok(j) = serde_json::to_string(rows) {
+        println!("\njson: {j}");
+    }
 }

@@ -41,14 +41,41 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string(&m)?);
         return Ok(());
     }
+    print_metrics(&m, args.scale, args.delta);
+    Ok(())
+}
+
+/// Reads two TUM trajectories and prints ATE / RPE with the default options.
+pub fn print_against(gt: &std::path::Path, est: &std::path::Path) -> anyhow::Result<()> {
+    let g = read_tum(gt).with_context(|| format!("reading ground truth {}", gt.display()))?;
+    let e = read_tum(est).with_context(|| format!("reading estimate {}", est.display()))?;
+    let m = evaluate(&g, &e, &EvalOptions::default())?;
+    print_metrics(&m, false, 1.0);
+    Ok(())
+}
+
+/// Prints the metrics table.
+pub fn print_metrics(m: &rgbid::eval::TrajectoryMetrics, scale: bool, delta: f64) {
     let a = &m.ate.translation;
-    println!("matched poses      {} of {} estimated ({} ground truth)", m.matched, m.est_poses, m.gt_poses);
-    println!("path length        {:.3} m over {:.2} s", m.path_length_m, m.duration_s);
-    if args.scale {
+    println!(
+        "matched poses      {} of {} estimated ({} ground truth)",
+        m.matched, m.est_poses, m.gt_poses
+    );
+    println!(
+        "path length        {:.3} m over {:.2} s",
+        m.path_length_m, m.duration_s
+    );
+    if scale {
         println!("alignment scale    {:.6}", m.ate.alignment.scale);
     }
-    println!("{:<18} {:>10} {:>10} {:>10} {:>10} {:>6}", "metric", "rmse", "mean", "median", "max", "n");
-    println!("{:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}", "ATE m", a.rmse, a.mean, a.median, a.max, a.count);
+    println!(
+        "{:<18} {:>10} {:>10} {:>10} {:>10} {:>6}",
+        "metric", "rmse", "mean", "median", "max", "n"
+    );
+    println!(
+        "{:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}",
+        "ATE m", a.rmse, a.mean, a.median, a.max, a.count
+    );
     let rows = |name: &str, r: &Option<RpeResult>| {
         if let Some(r) = r {
             for (unit, s) in [
@@ -58,13 +85,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 ("deg/s", &r.rotation_deg_per_s),
             ] {
                 let label = format!("{name} {unit}");
-                println!("{label:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}", s.rmse, s.mean, s.median, s.max, s.count);
+                println!(
+                    "{label:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}",
+                    s.rmse, s.mean, s.median, s.max, s.count
+                );
             }
         } else {
             println!("{name:<18} no pose pairs span the interval");
         }
     };
-    rows(&format!("RPE {}s", args.delta), &m.rpe);
+    rows(&format!("RPE {delta}s"), &m.rpe);
     rows("RPE 1fr", &m.rpe_frame);
-    Ok(())
 }

@@ -11,7 +11,10 @@ pub mod tum_writer;
 pub mod undistort;
 
 pub use config::CameraConfig;
-pub use tum::{load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions, SequenceEntry, TumSequence};
+pub use tum::{
+    load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions,
+    SequenceEntry, TumSequence,
+};
 pub use undistort::UndistortMap;
 
 use std::path::PathBuf;
