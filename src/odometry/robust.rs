@@ -155,9 +155,15 @@ pub fn estimate_nu(z2: &[f64]) -> f64 {
     0.5 * (lo + hi)
 }
 
-/// `E[w(Z) Z^2]` for a standard normal Z: the consistency constant of the M-scale.
+/// `E[w(Z) Z^2]` for a standard normal Z: the consistency constant of the M-scale (computed
+/// once per estimator).
 fn gaussian_consistency(estimator: u32) -> f64 {
-    if estimator == 0 {
+    static CACHE: std::sync::OnceLock<[f64; 4]> = std::sync::OnceLock::new();
+    CACHE.get_or_init(|| [0, 1, 2, 3].map(gaussian_consistency_uncached))[estimator.min(3) as usize]
+}
+
+fn gaussian_consistency_uncached(estimator: u32) -> f64 {
+    if estimator == 0 || estimator == 3 {
         return 1.0;
     }
     // Simpson's rule on [-12, 12].
@@ -264,6 +270,57 @@ pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> S
             }
         }
     }
+    ScaleEstimate {
+        sigma: sigma2.max(0.0).sqrt(),
+        nu,
+    }
+}
+
+/// Like [`estimate_scale`], warm-started from the previous iteration's estimate: the scale
+/// takes three fixed-point steps from `prev.sigma` and the degrees of freedom are kept. This is
+/// the per-iteration update inside a pyramid level; the full estimate runs once per level.
+pub fn update_scale(
+    r: &[f64],
+    estimator: Estimator,
+    method: ScaleMethod,
+    prev: ScaleEstimate,
+) -> ScaleEstimate {
+    let n = r.len();
+    if n < 8 || !(prev.sigma > 0.0) {
+        return estimate_scale(r, estimator, method);
+    }
+    let nu = prev.nu;
+    let code = estimator.code();
+    let sigma2 = match (estimator, method) {
+        (_, ScaleMethod::Mad) => mad_sigma(r).powi(2),
+        (Estimator::LeastSquares, _) | (_, ScaleMethod::Fixed) => {
+            r.iter().map(|x| x * x).sum::<f64>() / n as f64
+        }
+        (Estimator::Student, ScaleMethod::Ml) => {
+            let mut s2 = prev.sigma * prev.sigma;
+            for _ in 0..3 {
+                s2 = r
+                    .iter()
+                    .map(|x| x * x * (nu + 1.0) / (nu + x * x / s2))
+                    .sum::<f64>()
+                    / n as f64;
+            }
+            s2
+        }
+        (Estimator::Huber | Estimator::Tukey, ScaleMethod::Ml) => {
+            let c = gaussian_consistency(code);
+            let mut s2 = prev.sigma * prev.sigma;
+            for _ in 0..3 {
+                let s = s2.sqrt();
+                s2 = r
+                    .iter()
+                    .map(|x| f64::from(weight(code, (x / s) as f32, 0.0)) * x * x)
+                    .sum::<f64>()
+                    / (n as f64 * c);
+            }
+            s2
+        }
+    };
     ScaleEstimate {
         sigma: sigma2.max(0.0).sqrt(),
         nu,

@@ -6,7 +6,7 @@ use super::config::OdometryConfig;
 use super::cpu::{self, CpuPyramid};
 use super::gpu::{GpuOdometry, GpuPyramid};
 use super::kernel::{WarpParams, INVALID_RESIDUAL, PARTIAL_LEN};
-use super::robust::{estimate_scale, ScaleMethod, NU_DEFAULT};
+use super::robust::{estimate_scale, update_scale, ScaleMethod, NU_DEFAULT};
 use super::solver::NormalEquations;
 use super::OdometryError;
 use crate::camera::PinholeCamera;
@@ -474,6 +474,10 @@ impl Odometry {
                 ..Default::default()
             };
             let mut level_ne = None;
+            let mut prev_scale: Option<(
+                super::robust::ScaleEstimate,
+                super::robust::ScaleEstimate,
+            )> = None;
             for _ in 0..cfg.iterations_at(level) {
                 let mut p = self.params(level, &cur_from_ref, samples);
                 // Scales.
@@ -501,10 +505,20 @@ impl Odometry {
                         .filter(|v| v[1] != INVALID_RESIDUAL)
                         .map(|v| f64::from(v[1]))
                         .collect();
-                    (
-                        estimate_scale(&photo, cfg.estimator, cfg.scale),
-                        estimate_scale(&geo, cfg.estimator, cfg.scale),
-                    )
+                    // Full estimate (scale and degrees of freedom) on the first iteration of a
+                    // level, warm-started scale updates after that.
+                    let e = match prev_scale {
+                        None => (
+                            estimate_scale(&photo, cfg.estimator, cfg.scale),
+                            estimate_scale(&geo, cfg.estimator, cfg.scale),
+                        ),
+                        Some((pp, pg)) => (
+                            update_scale(&photo, cfg.estimator, cfg.scale, pp),
+                            update_scale(&geo, cfg.estimator, cfg.scale, pg),
+                        ),
+                    };
+                    prev_scale = Some(e);
+                    e
                 };
                 // Guard against zero scales on noiseless data.
                 let sigma_photo = sp.sigma.max(1e-3);
