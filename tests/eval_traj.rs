@@ -15,7 +15,12 @@ fn helix(n: usize, dt: f64) -> Vec<TimedPose> {
             TimedPose {
                 timestamp: 100.0 + t,
                 world_from_camera: Se3::new(
-                    DQuat::from_euler(glam::EulerRot::ZYX, 0.3 * t, 0.1 * (t * 0.7).sin(), 0.05 * t.cos()),
+                    DQuat::from_euler(
+                        glam::EulerRot::ZYX,
+                        0.3 * t,
+                        0.1 * (t * 0.7).sin(),
+                        0.05 * t.cos(),
+                    ),
                     DVec3::new(t.cos(), t.sin(), 0.2 * t),
                 ),
             }
@@ -54,12 +59,23 @@ fn scaled_estimate_needs_sim3() {
         .iter()
         .map(|p| TimedPose {
             timestamp: p.timestamp,
-            world_from_camera: Se3::new(p.world_from_camera.rotation, 0.4 * p.world_from_camera.translation),
+            world_from_camera: Se3::new(
+                p.world_from_camera.rotation,
+                0.4 * p.world_from_camera.translation,
+            ),
         })
         .collect();
     let rigid = evaluate(&gt, &est, &EvalOptions::default()).unwrap();
     assert!(rigid.ate.translation.rmse > 0.1);
-    let sim = evaluate(&gt, &est, &EvalOptions { with_scale: true, ..Default::default() }).unwrap();
+    let sim = evaluate(
+        &gt,
+        &est,
+        &EvalOptions {
+            with_scale: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert!(sim.ate.translation.rmse < 1e-9);
     assert!((sim.ate.alignment.scale - 2.5).abs() < 1e-9);
 }
@@ -87,27 +103,56 @@ fn constant_velocity_error_gives_known_rpe() {
     // t_k is the first stamp >= t_i + 1, so dt is 1.0 s (or 1.1 s where float rounding of
     // i * 0.1 + 1 pushes past a stamp): errors 0.10 or 0.11 m; per second exactly 0.1 m/s.
     assert!(r.translation_m.min >= 0.1 - 1e-9 && r.translation_m.max <= 0.11 + 1e-9);
-    assert!((r.translation_m_per_s.rmse - 0.1).abs() < 1e-9, "{:?}", r.translation_m_per_s);
+    assert!(
+        (r.translation_m_per_s.rmse - 0.1).abs() < 1e-9,
+        "{:?}",
+        r.translation_m_per_s
+    );
     assert!((r.translation_m_per_s.max - 0.1).abs() < 1e-9);
     assert!(r.rotation_deg.max == 0.0);
     let f = m.rpe_frame.unwrap();
-    assert!((f.translation_m.mean - 0.01).abs() < 1e-12 && (f.translation_m_per_s.mean - 0.1).abs() < 1e-9);
+    assert!(
+        (f.translation_m.mean - 0.01).abs() < 1e-12
+            && (f.translation_m_per_s.mean - 0.1).abs() < 1e-9
+    );
     // Frames mode with n = 10 reproduces the 1 s figure exactly.
-    let r10 = rgbid::eval::rpe(&gt, &est, RpeDelta::Frames(10)).unwrap().unwrap();
+    let r10 = rgbid::eval::rpe(&gt, &est, RpeDelta::Frames(10))
+        .unwrap()
+        .unwrap();
     assert!((r10.translation_m.rmse - 0.1).abs() < 1e-12);
 }
 
 #[test]
 fn too_few_matches_is_an_error() {
     let gt = helix(10, 0.1);
-    let est: Vec<TimedPose> = gt.iter().map(|p| TimedPose { timestamp: p.timestamp + 0.05, ..*p }).collect();
+    let est: Vec<TimedPose> = gt
+        .iter()
+        .map(|p| TimedPose {
+            timestamp: p.timestamp + 0.05,
+            ..*p
+        })
+        .collect();
     match evaluate(&gt, &est, &EvalOptions::default()) {
         Err(EvalError::TooFewMatches { matched: 0, .. }) => {}
         other => panic!("{other:?}"),
     }
-    assert!(evaluate(&gt, &est, &EvalOptions { max_time_difference: 0.06, ..Default::default() }).is_ok());
-    let bad = EvalOptions { delta: RpeDelta::Seconds(0.0), ..Default::default() };
-    assert!(matches!(evaluate(&gt, &gt, &bad), Err(EvalError::InvalidOption { .. })));
+    assert!(evaluate(
+        &gt,
+        &est,
+        &EvalOptions {
+            max_time_difference: 0.06,
+            ..Default::default()
+        }
+    )
+    .is_ok());
+    let bad = EvalOptions {
+        delta: RpeDelta::Seconds(0.0),
+        ..Default::default()
+    };
+    assert!(matches!(
+        evaluate(&gt, &gt, &bad),
+        Err(EvalError::InvalidOption { .. })
+    ));
 }
 
 #[test]
@@ -118,7 +163,10 @@ fn cli_prints_json_and_table() {
         .iter()
         .map(|p| TimedPose {
             timestamp: p.timestamp,
-            world_from_camera: Se3::new(p.world_from_camera.rotation, p.world_from_camera.translation + DVec3::X * 0.5),
+            world_from_camera: Se3::new(
+                p.world_from_camera.rotation,
+                p.world_from_camera.translation + DVec3::X * 0.5,
+            ),
         })
         .collect();
     write_tum(&tmp.path().join("gt.txt"), &gt).unwrap();
@@ -130,7 +178,11 @@ fn cli_prints_json_and_table() {
         .arg(tmp.path().join("est.txt"))
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["matched"], 90);
     assert!(v["ate"]["translation"]["rmse"].as_f64().unwrap() < 1e-6);
@@ -149,14 +201,19 @@ fn cli_prints_json_and_table() {
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("ATE m") && text.contains("RPE 1s m/s"), "{text}");
+    assert!(
+        text.contains("ATE m") && text.contains("RPE 1s m/s"),
+        "{text}"
+    );
 }
 
 fn perturbed(gt: &[TimedPose], seed: u64) -> Vec<TimedPose> {
     // Deterministic drift + noise + a time offset of 4 ms.
     let mut s = seed;
     let mut rnd = move || {
-        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
     };
     let mut drift = Se3::IDENTITY;
@@ -166,10 +223,20 @@ fn perturbed(gt: &[TimedPose], seed: u64) -> Vec<TimedPose> {
     for p in gt {
         let step = prev.inverse() * p.world_from_camera;
         prev = p.world_from_camera;
-        let noise = Se3::exp(&[0.002 * rnd(), 0.002 * rnd(), 0.002 * rnd(), 0.003 * rnd(), 0.003 * rnd(), 0.003 * rnd()]);
+        let noise = Se3::exp(&[
+            0.002 * rnd(),
+            0.002 * rnd(),
+            0.002 * rnd(),
+            0.003 * rnd(),
+            0.003 * rnd(),
+            0.003 * rnd(),
+        ]);
         drift = drift * Se3::exp(&[0.0002, 0.0, 0.0001, 0.0, 0.0003, 0.0]);
         est_pose = est_pose * step * noise;
-        out.push(TimedPose { timestamp: p.timestamp + 0.004, world_from_camera: est_pose * drift });
+        out.push(TimedPose {
+            timestamp: p.timestamp + 0.004,
+            world_from_camera: est_pose * drift,
+        });
     }
     out
 }
@@ -184,10 +251,15 @@ fn python() -> Option<(PathBuf, PathBuf)> {
 #[test]
 #[ignore = "needs ../shared/data"]
 fn cross_check_against_python_reference_on_redkitchen() {
-    let data = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/rgbd/redkitchen_0_299"));
+    let data = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/rgbd/redkitchen_0_299"
+    ));
     let gt_path = data.join("groundtruth.txt");
     let gt = read_tum(&gt_path).unwrap();
-    let Some((py, script)) = python() else { panic!("needs ../.venv-peers and ../shared/eval/traj_metrics.py") };
+    let Some((py, script)) = python() else {
+        panic!("needs ../.venv-peers and ../shared/eval/traj_metrics.py")
+    };
     let tmp = tempfile::tempdir().unwrap();
     for (seed, scale, delta) in [(1u64, false, 1.0), (2, false, 0.5), (3, true, 1.0)] {
         let est_path = tmp.path().join(format!("est{seed}.txt"));
@@ -201,14 +273,25 @@ fn cross_check_against_python_reference_on_redkitchen() {
         // Both sides read the written file, so they see the same rounded numbers.
         let est = read_tum(&est_path).unwrap();
         let mut cmd = std::process::Command::new(&py);
-        cmd.arg(&script).arg(&gt_path).arg(&est_path).args(["--delta", &delta.to_string()]);
+        cmd.arg(&script)
+            .arg(&gt_path)
+            .arg(&est_path)
+            .args(["--delta", &delta.to_string()]);
         if scale {
             cmd.arg("--scale");
         }
         let out = cmd.output().unwrap();
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let py_m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-        let opts = EvalOptions { delta: RpeDelta::Seconds(delta), with_scale: scale, ..Default::default() };
+        let opts = EvalOptions {
+            delta: RpeDelta::Seconds(delta),
+            with_scale: scale,
+            ..Default::default()
+        };
         let m = evaluate(&gt, &est, &opts).unwrap();
         let rpe = m.rpe.as_ref().unwrap();
         // The script reports the per-pair error / dt * delta.
@@ -224,9 +307,14 @@ fn cross_check_against_python_reference_on_redkitchen() {
         assert_eq!(py_m["matched"].as_u64().unwrap() as usize, m.matched);
         for (k, ours) in pairs {
             let theirs = py_m[k].as_f64().unwrap();
-            println!("seed {seed} scale {scale} delta {delta}: {k} rust {ours:.9} python {theirs:.9}");
+            println!(
+                "seed {seed} scale {scale} delta {delta}: {k} rust {ours:.9} python {theirs:.9}"
+            );
             assert!(rel(ours, theirs) < 1e-6, "{k}: {ours} vs {theirs}");
         }
-        assert!(m.ate.translation.rmse > 0.001, "the perturbation must be visible");
+        assert!(
+            m.ate.translation.rmse > 0.001,
+            "the perturbation must be visible"
+        );
     }
 }

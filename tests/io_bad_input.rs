@@ -10,11 +10,17 @@ const W: u32 = 16;
 const H: u32 = 12;
 
 fn rgb_png(path: &Path, w: u32, h: u32) {
-    image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 10) as u8, (y * 10) as u8, 50])).save(path).unwrap();
+    image::RgbImage::from_fn(w, h, |x, y| {
+        image::Rgb([(x * 10) as u8, (y * 10) as u8, 50])
+    })
+    .save(path)
+    .unwrap();
 }
 
 fn depth_png(path: &Path, w: u32, h: u32, raw: u16) {
-    image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |_, _| image::Luma([raw])).save(path).unwrap();
+    image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |_, _| image::Luma([raw]))
+        .save(path)
+        .unwrap();
 }
 
 /// A valid 2-frame sequence (2 m depth at factor 5000) in rgb.txt/depth.txt layout.
@@ -26,12 +32,23 @@ fn good_sequence(dir: &Path) {
         depth_png(&dir.join(format!("depth/{i}.png")), W, H, 10000);
     }
     std::fs::write(dir.join("rgb.txt"), "# rgb\n0.0 rgb/0.png\n0.1 rgb/1.png\n").unwrap();
-    std::fs::write(dir.join("depth.txt"), "# depth\n0.001 depth/0.png\n0.101 depth/1.png\n").unwrap();
+    std::fs::write(
+        dir.join("depth.txt"),
+        "# depth\n0.001 depth/0.png\n0.101 depth/1.png\n",
+    )
+    .unwrap();
 }
 
 fn opts() -> OpenOptions {
     let camera = PinholeCamera::new(20.0, 20.0, 7.5, 5.5, W, H);
-    OpenOptions { camera: Some(CameraConfig { camera, depth_factor: 5000.0, source: "test camera".into() }), ..Default::default() }
+    OpenOptions {
+        camera: Some(CameraConfig {
+            camera,
+            depth_factor: 5000.0,
+            source: "test camera".into(),
+        }),
+        ..Default::default()
+    }
 }
 
 fn open_err(dir: &Path) -> (IoError, String) {
@@ -53,7 +70,10 @@ fn good_sequence_opens() {
 fn missing_folder() {
     let (e, s) = open_err(Path::new("/nonexistent/rgbid-seq"));
     assert!(matches!(e, IoError::MissingFolder { .. }));
-    assert!(s.contains("/nonexistent/rgbid-seq") && s.contains("not found"), "{s}");
+    assert!(
+        s.contains("/nonexistent/rgbid-seq") && s.contains("not found"),
+        "{s}"
+    );
 }
 
 #[test]
@@ -85,7 +105,10 @@ fn corrupt_and_truncated_images() {
     let e = seq.load(1).unwrap_err();
     let s = e.to_string();
     assert!(matches!(e, IoError::Image { .. }), "{s}");
-    assert!(s.contains("rgb/1.png") && s.contains("cannot decode"), "{s}");
+    assert!(
+        s.contains("rgb/1.png") && s.contains("cannot decode"),
+        "{s}"
+    );
 
     // A PNG cut in half.
     let bytes = std::fs::read(tmp.path().join("depth/0.png")).unwrap();
@@ -97,7 +120,11 @@ fn corrupt_and_truncated_images() {
     assert!(s.contains("depth/1.png"), "{s}");
 
     // A corrupt first frame is reported by open itself.
-    std::fs::write(tmp.path().join("rgb/0.png"), [0x89, b'P', b'N', b'G', 0, 0, 0]).unwrap();
+    std::fs::write(
+        tmp.path().join("rgb/0.png"),
+        [0x89, b'P', b'N', b'G', 0, 0, 0],
+    )
+    .unwrap();
     let (e, s) = open_err(tmp.path());
     assert!(matches!(e, IoError::Image { .. }), "{s}");
 }
@@ -109,7 +136,13 @@ fn colour_depth_size_mismatch() {
     depth_png(&tmp.path().join("depth/0.png"), W / 2, H / 2, 10000);
     let (e, s) = open_err(tmp.path());
     assert!(matches!(e, IoError::ImageSizeMismatch { .. }), "{s}");
-    assert!(s.contains("rgb/0.png") && s.contains("depth/0.png") && s.contains("(16, 12)") && s.contains("(8, 6)"), "{s}");
+    assert!(
+        s.contains("rgb/0.png")
+            && s.contains("depth/0.png")
+            && s.contains("(16, 12)")
+            && s.contains("(8, 6)"),
+        "{s}"
+    );
 }
 
 #[test]
@@ -124,17 +157,25 @@ fn image_size_differs_from_camera() {
     let e = TumSequence::open(tmp.path(), &o).unwrap_err();
     let s = e.to_string();
     assert!(matches!(e, IoError::CameraSizeMismatch { .. }), "{s}");
-    assert!(s.contains("rgb/0.png") && s.contains("(640, 480)") && s.contains("test camera"), "{s}");
+    assert!(
+        s.contains("rgb/0.png") && s.contains("(640, 480)") && s.contains("test camera"),
+        "{s}"
+    );
 }
 
 #[test]
 fn depth_not_16_bit() {
     let tmp = tempfile::tempdir().unwrap();
     good_sequence(tmp.path());
-    image::GrayImage::from_fn(W, H, |_, _| image::Luma([200])).save(tmp.path().join("depth/0.png")).unwrap();
+    image::GrayImage::from_fn(W, H, |_, _| image::Luma([200]))
+        .save(tmp.path().join("depth/0.png"))
+        .unwrap();
     let (e, s) = open_err(tmp.path());
     assert!(matches!(e, IoError::DepthNot16Bit { .. }), "{s}");
-    assert!(s.contains("depth/0.png") && s.contains("16-bit") && s.contains("L8"), "{s}");
+    assert!(
+        s.contains("depth/0.png") && s.contains("16-bit") && s.contains("L8"),
+        "{s}"
+    );
 }
 
 #[test]
@@ -148,29 +189,67 @@ fn wrong_depth_scale_is_detected_with_a_suggestion() {
     let e = TumSequence::open(tmp.path(), &o).unwrap_err();
     let s = e.to_string();
     match &e {
-        IoError::DepthScaleMismatch { factor, suggested, median_m, .. } => {
+        IoError::DepthScaleMismatch {
+            factor,
+            suggested,
+            median_m,
+            ..
+        } => {
             assert_eq!(*factor, 1.0);
             assert_eq!(*median_m, 10000.0);
             assert_eq!(*suggested, Some(5000.0));
         }
         other => panic!("wrong error {other:?}"),
     }
-    assert!(s.contains("depth/0.png") && s.contains("factor 5000 would fit"), "{s}");
+    assert!(
+        s.contains("depth/0.png") && s.contains("factor 5000 would fit"),
+        "{s}"
+    );
 
     // Also through the loose-pair loader (millimetre data read with a 10x too small factor).
-    let e = load_pair_frame(&tmp.path().join("rgb/0.png"), &tmp.path().join("depth/0.png"), &o.camera.unwrap().camera, 100.0)
-        .unwrap_err();
+    let e = load_pair_frame(
+        &tmp.path().join("rgb/0.png"),
+        &tmp.path().join("depth/0.png"),
+        &o.camera.unwrap().camera,
+        100.0,
+    )
+    .unwrap_err();
     assert!(matches!(e, IoError::DepthScaleMismatch { .. }), "{e}");
 }
 
 #[test]
 fn nan_and_malformed_lines_name_file_and_line() {
     let cases: [(&str, &str, &str, &str); 5] = [
-        ("rgb.txt", "# rgb\n0.0 rgb/0.png\nnan rgb/1.png\n", "rgb.txt:3", "not finite"),
-        ("rgb.txt", "0.0 rgb/0.png\ninf rgb/1.png\n", "rgb.txt:2", "not finite"),
-        ("depth.txt", "0.001 depth/0.png\n0.101\n", "depth.txt:2", "expected `timestamp path`"),
-        ("depth.txt", "zero depth/0.png\n", "depth.txt:1", "not a number"),
-        ("associations.txt", "0.0 rgb/0.png 0.0\n", "associations.txt:1", "expected `t_rgb rgb_path t_depth depth_path`"),
+        (
+            "rgb.txt",
+            "# rgb\n0.0 rgb/0.png\nnan rgb/1.png\n",
+            "rgb.txt:3",
+            "not finite",
+        ),
+        (
+            "rgb.txt",
+            "0.0 rgb/0.png\ninf rgb/1.png\n",
+            "rgb.txt:2",
+            "not finite",
+        ),
+        (
+            "depth.txt",
+            "0.001 depth/0.png\n0.101\n",
+            "depth.txt:2",
+            "expected `timestamp path`",
+        ),
+        (
+            "depth.txt",
+            "zero depth/0.png\n",
+            "depth.txt:1",
+            "not a number",
+        ),
+        (
+            "associations.txt",
+            "0.0 rgb/0.png 0.0\n",
+            "associations.txt:1",
+            "expected `t_rgb rgb_path t_depth depth_path`",
+        ),
     ];
     for (file, text, at, cause) in cases {
         let tmp = tempfile::tempdir().unwrap();
@@ -193,18 +272,35 @@ fn empty_sequence() {
 
     let tmp = tempfile::tempdir().unwrap();
     good_sequence(tmp.path());
-    let e = TumSequence::open(tmp.path(), &OpenOptions { max_frames: Some(0), ..opts() }).unwrap_err();
-    assert!(matches!(e, IoError::Empty { .. }) && e.to_string().contains("no frames"), "{e}");
+    let e = TumSequence::open(
+        tmp.path(),
+        &OpenOptions {
+            max_frames: Some(0),
+            ..opts()
+        },
+    )
+    .unwrap_err();
+    assert!(
+        matches!(e, IoError::Empty { .. }) && e.to_string().contains("no frames"),
+        "{e}"
+    );
 }
 
 #[test]
 fn no_associations_within_tolerance() {
     let tmp = tempfile::tempdir().unwrap();
     good_sequence(tmp.path());
-    std::fs::write(tmp.path().join("depth.txt"), "5.0 depth/0.png\n5.1 depth/1.png\n").unwrap();
+    std::fs::write(
+        tmp.path().join("depth.txt"),
+        "5.0 depth/0.png\n5.1 depth/1.png\n",
+    )
+    .unwrap();
     let (e, s) = open_err(tmp.path());
     assert!(matches!(e, IoError::NoAssociations { .. }), "{s}");
-    assert!(s.contains("no colour/depth pairs within 0.02 s") && s.contains("4.9"), "{s}");
+    assert!(
+        s.contains("no colour/depth pairs within 0.02 s") && s.contains("4.9"),
+        "{s}"
+    );
 }
 
 #[test]
@@ -224,22 +320,39 @@ fn bad_camera_files() {
     for (text, cause) in [
         ("525 525 319.5\n", "found 3 numbers"),
         ("# c\n525 525 nan 239.5 5000\n", "not finite"),
-        ("525 525 319.5 239.5 5000 16.5 12\n", "not a positive integer size"),
+        (
+            "525 525 319.5 239.5 5000 16.5 12\n",
+            "not a positive integer size",
+        ),
     ] {
         std::fs::write(&calib, text).unwrap();
-        let e = TumSequence::open(tmp.path(), &OpenOptions::default()).unwrap_err().to_string();
+        let e = TumSequence::open(tmp.path(), &OpenOptions::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("calib.txt:") && e.contains(cause), "{e}");
     }
     std::fs::write(&calib, "-525 525 7.5 5.5 5000 16 12\n").unwrap();
-    let e = TumSequence::open(tmp.path(), &OpenOptions::default()).unwrap_err().to_string();
+    let e = TumSequence::open(tmp.path(), &OpenOptions::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("calib.txt") && e.contains("fx"), "{e}");
     std::fs::write(&calib, "20 20 7.5 5.5 0 16 12\n").unwrap();
-    let e = TumSequence::open(tmp.path(), &OpenOptions::default()).unwrap_err().to_string();
-    assert!(e.contains("calib.txt") && e.contains("depth factor 0"), "{e}");
+    let e = TumSequence::open(tmp.path(), &OpenOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("calib.txt") && e.contains("depth factor 0"),
+        "{e}"
+    );
 
     let cfg = tmp.path().join("cam.cfg");
     std::fs::write(&cfg, "fx = 500\nfy = 500\ncx 3\n").unwrap();
-    let e = cfg.to_str().unwrap().parse::<CameraConfig>().unwrap_err().to_string();
+    let e = cfg
+        .to_str()
+        .unwrap()
+        .parse::<CameraConfig>()
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("cam.cfg:3") && e.contains("key = value"), "{e}");
 }
 
@@ -250,7 +363,9 @@ fn garbage_text_never_panics() {
     good_sequence(tmp.path());
     let mut state = 0x1234_5678u64;
     let mut next = || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (state >> 33) as u32
     };
     let base = "0.0 rgb/0.png\n0.1 rgb/1.png\n".as_bytes().to_vec();

@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 use rgbid::camera::{BrownConrady, PinholeCamera};
 use rgbid::image::rgb_to_intensity;
 use rgbid::io::tum::associate;
-use rgbid::io::{load_pair_frame, read_pose_file, CameraConfig, OpenOptions, TumSequence, UndistortMap};
+use rgbid::io::{
+    load_pair_frame, read_pose_file, CameraConfig, OpenOptions, TumSequence, UndistortMap,
+};
 
 const W: u32 = 32;
 const H: u32 = 24;
@@ -26,7 +28,9 @@ fn raw_depth(i: usize, x: u32, y: u32) -> u16 {
 fn write_frame(dir: &Path, i: usize, rgb_name: &str, depth_name: &str) {
     let rgb = image::RgbImage::from_fn(W, H, |x, y| image::Rgb(colour(i, x, y)));
     rgb.save(dir.join(rgb_name)).unwrap();
-    let d = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(W, H, |x, y| image::Luma([raw_depth(i, x, y)]));
+    let d = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(W, H, |x, y| {
+        image::Luma([raw_depth(i, x, y)])
+    });
     d.save(dir.join(depth_name)).unwrap();
 }
 
@@ -38,7 +42,10 @@ fn write_sequence(dir: &Path, n: usize, lag: f64) {
     let mut depth_txt = String::from("# depth images\n\n");
     for i in 0..n {
         let t = 1.0 + i as f64 / 30.0;
-        let (r, d) = (format!("rgb/{t:.6}.png"), format!("depth/{:.6}.png", t + lag));
+        let (r, d) = (
+            format!("rgb/{t:.6}.png"),
+            format!("depth/{:.6}.png", t + lag),
+        );
         write_frame(dir, i, &r, &d);
         rgb_txt += &format!("{t:.6} {r}\n");
         depth_txt += &format!("{:.6} {d}\n", t + lag);
@@ -56,7 +63,10 @@ fn small_camera() -> CameraConfig {
 }
 
 fn opts() -> OpenOptions {
-    OpenOptions { camera: Some(small_camera()), ..Default::default() }
+    OpenOptions {
+        camera: Some(small_camera()),
+        ..Default::default()
+    }
 }
 
 #[test]
@@ -67,11 +77,17 @@ fn tiny_sequence_round_trip() {
     let seq = TumSequence::open(tmp.path(), &opts()).unwrap();
     assert_eq!(seq.len(), 4);
     assert!(!seq.is_empty());
-    assert_eq!(seq.groundtruth.as_deref(), Some(tmp.path().join("groundtruth.txt").as_path()));
+    assert_eq!(
+        seq.groundtruth.as_deref(),
+        Some(tmp.path().join("groundtruth.txt").as_path())
+    );
     for i in 0..4 {
         let e = &seq.entries[i];
         assert!((e.timestamp - (1.0 + i as f64 / 30.0)).abs() < 1e-6);
-        assert!(e.depth.to_string_lossy().contains(&format!("{:.6}", e.timestamp + 0.005)));
+        assert!(e
+            .depth
+            .to_string_lossy()
+            .contains(&format!("{:.6}", e.timestamp + 0.005)));
         let f = seq.load(i).unwrap();
         assert_eq!((f.width(), f.height()), (W as usize, H as usize));
         assert_eq!(f.timestamp, e.timestamp);
@@ -81,12 +97,23 @@ fn tiny_sequence_round_trip() {
             assert_eq!(f.intensity.at(x as usize, y as usize), want);
             let d = raw_depth(i, x, y);
             let want_inv = if d == 0 { 0.0 } else { 5000.0 / f32::from(d) };
-            assert_eq!(f.inverse_depth.at(x as usize, y as usize), want_inv, "({x},{y})");
+            assert_eq!(
+                f.inverse_depth.at(x as usize, y as usize),
+                want_inv,
+                "({x},{y})"
+            );
         }
     }
     assert!(seq.load(4).is_err());
 
-    let seq = TumSequence::open(tmp.path(), &OpenOptions { max_frames: Some(2), ..opts() }).unwrap();
+    let seq = TumSequence::open(
+        tmp.path(),
+        &OpenOptions {
+            max_frames: Some(2),
+            ..opts()
+        },
+    )
+    .unwrap();
     assert_eq!(seq.len(), 2);
 }
 
@@ -95,9 +122,17 @@ fn association_tolerance_is_respected() {
     let tmp = tempfile::tempdir().unwrap();
     write_sequence(tmp.path(), 3, 0.015);
     assert_eq!(TumSequence::open(tmp.path(), &opts()).unwrap().len(), 3);
-    let tight = OpenOptions { max_time_difference: 0.01, ..opts() };
-    let e = TumSequence::open(tmp.path(), &tight).unwrap_err().to_string();
-    assert!(e.contains("no colour/depth pairs within 0.01 s") && e.contains("0.015"), "{e}");
+    let tight = OpenOptions {
+        max_time_difference: 0.01,
+        ..opts()
+    };
+    let e = TumSequence::open(tmp.path(), &tight)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("no colour/depth pairs within 0.01 s") && e.contains("0.015"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -110,7 +145,10 @@ fn association_is_greedy_one_to_one() {
     assert_eq!(associate(&a, &b, 0.005), vec![(1, 0)]);
     assert!(associate(&a, &b, 0.001).is_empty());
     // Unsorted input lists are handled.
-    assert_eq!(associate(&[0.5, 0.0], &[0.49, 0.01], 0.02), vec![(1, 1), (0, 0)]);
+    assert_eq!(
+        associate(&[0.5, 0.0], &[0.49, 0.01], 0.02),
+        vec![(1, 1), (0, 0)]
+    );
 }
 
 #[test]
@@ -137,13 +175,32 @@ fn distorted_camera_is_undistorted_on_load() {
     let tmp = tempfile::tempdir().unwrap();
     write_sequence(tmp.path(), 1, 0.0);
     let mut cfg = small_camera();
-    cfg.camera.distortion = BrownConrady { k1: 0.25, k2: -0.9, p1: -0.005, p2: 0.003, k3: 1.1 };
-    let seq = TumSequence::open(tmp.path(), &OpenOptions { camera: Some(cfg.clone()), ..Default::default() }).unwrap();
+    cfg.camera.distortion = BrownConrady {
+        k1: 0.25,
+        k2: -0.9,
+        p1: -0.005,
+        p2: 0.003,
+        k3: 1.1,
+    };
+    let seq = TumSequence::open(
+        tmp.path(),
+        &OpenOptions {
+            camera: Some(cfg.clone()),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let f = seq.load(0).unwrap();
-    let plain = TumSequence::open(tmp.path(), &opts()).unwrap().load(0).unwrap();
+    let plain = TumSequence::open(tmp.path(), &opts())
+        .unwrap()
+        .load(0)
+        .unwrap();
     let map = UndistortMap::new(&cfg.camera);
     assert_eq!(f.intensity, map.intensity(&plain.intensity).unwrap());
-    assert_eq!(f.inverse_depth, map.inverse_depth(&plain.inverse_depth).unwrap());
+    assert_eq!(
+        f.inverse_depth,
+        map.inverse_depth(&plain.inverse_depth).unwrap()
+    );
     assert_ne!(f.intensity, plain.intensity);
     assert!(seq.undistorted_camera().distortion.is_zero());
 }
@@ -154,15 +211,23 @@ fn jpeg_colour_and_loose_pairs() {
     let dir = tmp.path();
     let rgb = image::RgbImage::from_fn(W, H, |_, _| image::Rgb([100, 150, 200]));
     rgb.save(dir.join("c.jpg")).unwrap();
-    let d = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(W, H, |_, _| image::Luma([2000]));
+    let d =
+        image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(W, H, |_, _| image::Luma([2000]));
     d.save(dir.join("d.png")).unwrap();
     let cam = small_camera().camera;
     let f = load_pair_frame(&dir.join("c.jpg"), &dir.join("d.png"), &cam, 1000.0).unwrap();
     let want = rgb_to_intensity(100, 150, 200);
-    assert!(f.intensity.data.iter().all(|v| (v - want).abs() < 3.0), "JPEG is lossy but close");
+    assert!(
+        f.intensity.data.iter().all(|v| (v - want).abs() < 3.0),
+        "JPEG is lossy but close"
+    );
     assert!(f.inverse_depth.data.iter().all(|&v| v == 0.5));
 
-    std::fs::write(dir.join("pose.txt"), "1.3303 0.6256 1.6464 0.6579 0.6161 -0.2932 -0.3189\n").unwrap();
+    std::fs::write(
+        dir.join("pose.txt"),
+        "1.3303 0.6256 1.6464 0.6579 0.6161 -0.2932 -0.3189\n",
+    )
+    .unwrap();
     let p = read_pose_file(&dir.join("pose.txt")).unwrap();
     assert!((p.translation.x - 1.3303).abs() < 1e-12);
     assert!((p.rotation.length() - 1.0).abs() < 1e-12);
@@ -177,7 +242,10 @@ fn camera_flag_parses_presets_and_files() {
     std::fs::write(&p, "preset = tum_fr3\nwidth = 320\n").unwrap();
     let c: CameraConfig = p.to_str().unwrap().parse().unwrap();
     assert_eq!((c.camera.fx, c.camera.width), (535.4, 320));
-    let e = "no_such_camera".parse::<CameraConfig>().unwrap_err().to_string();
+    let e = "no_such_camera"
+        .parse::<CameraConfig>()
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("no_such_camera") && e.contains("tum_fr1"), "{e}");
 }
 
@@ -188,14 +256,27 @@ fn data_dir() -> PathBuf {
 #[test]
 #[ignore = "needs ../shared/data"]
 fn real_data_redkitchen_and_tum_pair() {
-    let seq = TumSequence::open(&data_dir().join("redkitchen_0_299"), &OpenOptions::default()).unwrap();
+    let seq = TumSequence::open(
+        &data_dir().join("redkitchen_0_299"),
+        &OpenOptions::default(),
+    )
+    .unwrap();
     assert_eq!(seq.len(), 300);
-    assert_eq!((seq.camera.fx, seq.camera.cx, seq.depth_factor), (585.0, 320.0, 5000.0));
+    assert_eq!(
+        (seq.camera.fx, seq.camera.cx, seq.depth_factor),
+        (585.0, 320.0, 5000.0)
+    );
     assert!(seq.groundtruth.is_some());
     for i in [0, 150, 299] {
         let f = seq.load(i).unwrap();
         assert_eq!((f.width(), f.height()), (640, 480));
-        let mut inv: Vec<f32> = f.inverse_depth.data.iter().copied().filter(|&d| d > 0.0).collect();
+        let mut inv: Vec<f32> = f
+            .inverse_depth
+            .data
+            .iter()
+            .copied()
+            .filter(|&d| d > 0.0)
+            .collect();
         assert!(inv.len() > 100_000, "frame {i}: {} valid depths", inv.len());
         inv.sort_by(f32::total_cmp);
         let median_m = 1.0 / inv[inv.len() / 2];
@@ -206,9 +287,18 @@ fn real_data_redkitchen_and_tum_pair() {
 
     let pairs = data_dir().join("tum_pairs");
     let cam = rgbid::io::read_intrinsic_matrix(&pairs.join("kinect_params.txt"), 640, 480).unwrap();
-    assert_eq!((cam.fx, cam.fy, cam.cx, cam.cy), (525.0, 525.0, 319.5, 239.5));
+    assert_eq!(
+        (cam.fx, cam.fy, cam.cx, cam.cy),
+        (525.0, 525.0, 319.5, 239.5)
+    );
     let case = pairs.join("case_1");
-    let f = load_pair_frame(&case.join("img_prev.png"), &case.join("dep_prev.png"), &cam, 5000.0).unwrap();
+    let f = load_pair_frame(
+        &case.join("img_prev.png"),
+        &case.join("dep_prev.png"),
+        &cam,
+        5000.0,
+    )
+    .unwrap();
     assert_eq!((f.width(), f.height()), (640, 480));
     assert!(f.inverse_depth.data.iter().filter(|&&d| d > 0.0).count() > 100_000);
     let prev = read_pose_file(&case.join("pose_prev.txt")).unwrap();

@@ -42,13 +42,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         return Ok(());
     }
     let a = &m.ate.translation;
-    println!("matched poses      {} of {} estimated ({} ground truth)", m.matched, m.est_poses, m.gt_poses);
-    println!("path length        {:.3} m over {:.2} s", m.path_length_m, m.duration_s);
+    println!(
+        "matched poses      {} of {} estimated ({} ground truth)",
+        m.matched, m.est_poses, m.gt_poses
+    );
+    println!(
+        "path length        {:.3} m over {:.2} s",
+        m.path_length_m, m.duration_s
+    );
     if args.scale {
         println!("alignment scale    {:.6}", m.ate.alignment.scale);
     }
-    println!("{:<18} {:>10} {:>10} {:>10} {:>10} {:>6}", "metric", "rmse", "mean", "median", "max", "n");
-    println!("{:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}", "ATE m", a.rmse, a.mean, a.median, a.max, a.count);
+    println!(
+        "{:<18} {:>10} {:>10} {:>10} {:>10} {:>6}",
+        "metric", "rmse", "mean", "median", "max", "n"
+    );
+    println!(
+        "{:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}",
+        "ATE m", a.rmse, a.mean, a.median, a.max, a.count
+    );
     let rows = |name: &str, r: &Option<RpeResult>| {
         if let Some(r) = r {
             for (unit, s) in [
@@ -58,7 +70,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 ("deg/s", &r.rotation_deg_per_s),
             ] {
                 let label = format!("{name} {unit}");
-                println!("{label:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}", s.rmse, s.mean, s.median, s.max, s.count);
+                println!(
+                    "{label:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}",
+                    s.rmse, s.mean, s.median, s.max, s.count
+                );
             }
         } else {
             println!("{name:<18} no pose pairs span the interval");

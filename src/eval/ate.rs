@@ -36,10 +36,18 @@ pub struct AteResult {
 
 /// Least-squares similarity (Umeyama 1991) with `dst ~ c R src + t`; `c = 1` unless
 /// `with_scale`. Needs at least 3 points; reflections are excluded.
-pub fn align_umeyama(src: &[DVec3], dst: &[DVec3], with_scale: bool) -> Result<Alignment, EvalError> {
+pub fn align_umeyama(
+    src: &[DVec3],
+    dst: &[DVec3],
+    with_scale: bool,
+) -> Result<Alignment, EvalError> {
     let n = src.len().min(dst.len());
     if n < 3 {
-        return Err(EvalError::TooFewMatches { matched: n, required: 3, max_time_difference: f64::NAN });
+        return Err(EvalError::TooFewMatches {
+            matched: n,
+            required: 3,
+            max_time_difference: f64::NAN,
+        });
     }
     let nf = n as f64;
     let ms = src[..n].iter().copied().sum::<DVec3>() / nf;
@@ -61,7 +69,11 @@ pub fn align_umeyama(src: &[DVec3], dst: &[DVec3], with_scale: bool) -> Result<A
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
         return Err(EvalError::DegenerateAlignment);
     };
-    let sign = if (u * vt).determinant() < 0.0 { -1.0 } else { 1.0 };
+    let sign = if (u * vt).determinant() < 0.0 {
+        -1.0
+    } else {
+        1.0
+    };
     let s = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 1.0, sign));
     let r = u * s * vt;
     let scale = if with_scale {
@@ -85,17 +97,31 @@ pub fn align_umeyama(src: &[DVec3], dst: &[DVec3], with_scale: bool) -> Result<A
     ]);
     let q = DQuat::from_mat3(&rm).normalize();
     let t = md - scale * (rm * ms);
-    Ok(Alignment { rotation_xyzw: [q.x, q.y, q.z, q.w], translation: t.to_array(), scale })
+    Ok(Alignment {
+        rotation_xyzw: [q.x, q.y, q.z, q.w],
+        translation: t.to_array(),
+        scale,
+    })
 }
 
 /// ATE of matched pose lists (`gt[i]` and `est[i]` at the same time): aligns the estimated
 /// positions to the ground-truth ones and takes the distances, metres.
 pub fn ate(gt: &[TimedPose], est: &[TimedPose], with_scale: bool) -> Result<AteResult, EvalError> {
-    let src: Vec<DVec3> = est.iter().map(|p| p.world_from_camera.translation).collect();
+    let src: Vec<DVec3> = est
+        .iter()
+        .map(|p| p.world_from_camera.translation)
+        .collect();
     let dst: Vec<DVec3> = gt.iter().map(|p| p.world_from_camera.translation).collect();
     let alignment = align_umeyama(&src, &dst, with_scale)?;
-    let errors: Vec<f64> = src.iter().zip(&dst).map(|(s, d)| (alignment.apply(*s) - *d).length()).collect();
-    Ok(AteResult { translation: ErrorStats::from_errors(&errors), alignment })
+    let errors: Vec<f64> = src
+        .iter()
+        .zip(&dst)
+        .map(|(s, d)| (alignment.apply(*s) - *d).length())
+        .collect();
+    Ok(AteResult {
+        translation: ErrorStats::from_errors(&errors),
+        alignment,
+    })
 }
 
 #[cfg(test)]
@@ -104,11 +130,12 @@ mod tests {
     use crate::geometry::Se3;
 
     fn points() -> Vec<DVec3> {
-        (0..20).map(|i| {
-            let t = i as f64 * 0.3;
-            DVec3::new(t.sin() * 2.0, t.cos() - 0.5 * t, 0.1 * t * t)
-        })
-        .collect()
+        (0..20)
+            .map(|i| {
+                let t = i as f64 * 0.3;
+                DVec3::new(t.sin() * 2.0, t.cos() - 0.5 * t, 0.1 * t * t)
+            })
+            .collect()
     }
 
     #[test]
@@ -125,7 +152,10 @@ mod tests {
         // Rigid fit of the same data cannot reach zero error.
         let r = align_umeyama(&src, &dst, false).unwrap();
         assert_eq!(r.scale, 1.0);
-        assert!(src.iter().zip(&dst).any(|(s, d)| (r.apply(*s) - *d).length() > 0.1));
+        assert!(src
+            .iter()
+            .zip(&dst)
+            .any(|(s, d)| (r.apply(*s) - *d).length() > 0.1));
     }
 
     #[test]
@@ -133,18 +163,31 @@ mod tests {
         let gt: Vec<TimedPose> = points()
             .into_iter()
             .enumerate()
-            .map(|(i, p)| TimedPose { timestamp: i as f64 * 0.1, world_from_camera: Se3::new(DQuat::IDENTITY, p) })
+            .map(|(i, p)| TimedPose {
+                timestamp: i as f64 * 0.1,
+                world_from_camera: Se3::new(DQuat::IDENTITY, p),
+            })
             .collect();
         let est: Vec<TimedPose> = gt
             .iter()
             .map(|p| TimedPose {
                 timestamp: p.timestamp,
-                world_from_camera: Se3::new(p.world_from_camera.rotation, p.world_from_camera.translation + DVec3::new(1.0, -2.0, 3.0)),
+                world_from_camera: Se3::new(
+                    p.world_from_camera.rotation,
+                    p.world_from_camera.translation + DVec3::new(1.0, -2.0, 3.0),
+                ),
             })
             .collect();
         let r = ate(&gt, &est, false).unwrap();
-        assert!(r.translation.rmse < 1e-12 && r.translation.max < 1e-12, "{:?}", r);
-        assert!((DVec3::from_array(r.alignment.translation) - DVec3::new(-1.0, 2.0, -3.0)).length() < 1e-12);
+        assert!(
+            r.translation.rmse < 1e-12 && r.translation.max < 1e-12,
+            "{:?}",
+            r
+        );
+        assert!(
+            (DVec3::from_array(r.alignment.translation) - DVec3::new(-1.0, 2.0, -3.0)).length()
+                < 1e-12
+        );
     }
 
     #[test]
@@ -157,14 +200,23 @@ mod tests {
         let gt: Vec<TimedPose> = pts
             .iter()
             .enumerate()
-            .map(|(i, p)| TimedPose { timestamp: i as f64, world_from_camera: Se3::new(DQuat::IDENTITY, *p) })
+            .map(|(i, p)| TimedPose {
+                timestamp: i as f64,
+                world_from_camera: Se3::new(DQuat::IDENTITY, *p),
+            })
             .collect();
         let est: Vec<TimedPose> = gt
             .iter()
             .enumerate()
             .map(|(i, p)| {
                 let s = if i < 2 { d } else { -d };
-                TimedPose { timestamp: p.timestamp, world_from_camera: Se3::new(DQuat::IDENTITY, p.world_from_camera.translation + DVec3::Z * s) }
+                TimedPose {
+                    timestamp: p.timestamp,
+                    world_from_camera: Se3::new(
+                        DQuat::IDENTITY,
+                        p.world_from_camera.translation + DVec3::Z * s,
+                    ),
+                }
             })
             .collect();
         let r = ate(&gt, &est, false).unwrap();

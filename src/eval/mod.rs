@@ -82,8 +82,20 @@ impl ErrorStats {
         let var = errors.iter().map(|e| (e - mean) * (e - mean)).sum::<f64>() / nf;
         let mut s = errors.to_vec();
         s.sort_by(f64::total_cmp);
-        let median = if n % 2 == 1 { s[n / 2] } else { 0.5 * (s[n / 2 - 1] + s[n / 2]) };
-        Self { count: n, rmse: ms.sqrt(), mean, median, std: var.sqrt(), min: s[0], max: s[n - 1] }
+        let median = if n % 2 == 1 {
+            s[n / 2]
+        } else {
+            0.5 * (s[n / 2 - 1] + s[n / 2])
+        };
+        Self {
+            count: n,
+            rmse: ms.sqrt(),
+            mean,
+            median,
+            std: var.sqrt(),
+            min: s[0],
+            max: s[n - 1],
+        }
     }
 }
 
@@ -100,7 +112,11 @@ pub struct EvalOptions {
 
 impl Default for EvalOptions {
     fn default() -> Self {
-        Self { max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE, delta: RpeDelta::Seconds(1.0), with_scale: false }
+        Self {
+            max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE,
+            delta: RpeDelta::Seconds(1.0),
+            with_scale: false,
+        }
     }
 }
 
@@ -129,7 +145,11 @@ pub struct TrajectoryMetrics {
 /// `max_time_difference` (several estimates may share one ground-truth pose). Both slices must be
 /// sorted by time (as [`crate::io::trajectory::read_tum`] returns them). Returns
 /// `(est_index, gt_index)` pairs in estimate order.
-pub fn associate(est: &[TimedPose], gt: &[TimedPose], max_time_difference: f64) -> Vec<(usize, usize)> {
+pub fn associate(
+    est: &[TimedPose],
+    gt: &[TimedPose],
+    max_time_difference: f64,
+) -> Vec<(usize, usize)> {
     let mut out = Vec::new();
     if gt.is_empty() {
         return out;
@@ -139,7 +159,9 @@ pub fn associate(est: &[TimedPose], gt: &[TimedPose], max_time_difference: f64) 
         let j = if gt.len() == 1 {
             0
         } else {
-            let k = gt.partition_point(|g| g.timestamp < t).clamp(1, gt.len() - 1);
+            let k = gt
+                .partition_point(|g| g.timestamp < t)
+                .clamp(1, gt.len() - 1);
             if (gt[k - 1].timestamp - t).abs() < (gt[k].timestamp - t).abs() {
                 k - 1
             } else {
@@ -154,7 +176,11 @@ pub fn associate(est: &[TimedPose], gt: &[TimedPose], max_time_difference: f64) 
 }
 
 /// Matches, aligns and computes ATE, RPE at `opts.delta` and frame-to-frame RPE.
-pub fn evaluate(gt: &[TimedPose], est: &[TimedPose], opts: &EvalOptions) -> Result<TrajectoryMetrics, EvalError> {
+pub fn evaluate(
+    gt: &[TimedPose],
+    est: &[TimedPose],
+    opts: &EvalOptions,
+) -> Result<TrajectoryMetrics, EvalError> {
     if !(opts.max_time_difference >= 0.0 && opts.max_time_difference.is_finite()) {
         return Err(EvalError::InvalidOption {
             name: "max_time_difference",
@@ -201,15 +227,24 @@ mod tests {
     use crate::geometry::Se3;
 
     fn tp(t: f64) -> TimedPose {
-        TimedPose { timestamp: t, world_from_camera: Se3::IDENTITY }
+        TimedPose {
+            timestamp: t,
+            world_from_camera: Se3::IDENTITY,
+        }
     }
 
     #[test]
     fn association_nearest_within_tolerance() {
         let gt: Vec<_> = [0.0, 0.1, 0.2, 0.3].into_iter().map(tp).collect();
-        let est: Vec<_> = [-0.5, 0.01, 0.14, 0.16, 0.29, 0.35].into_iter().map(tp).collect();
+        let est: Vec<_> = [-0.5, 0.01, 0.14, 0.16, 0.29, 0.35]
+            .into_iter()
+            .map(tp)
+            .collect();
         assert_eq!(associate(&est, &gt, 0.02), vec![(1, 0), (4, 3)]);
-        assert_eq!(associate(&est, &gt, 0.06), vec![(1, 0), (2, 1), (3, 2), (4, 3), (5, 3)]);
+        assert_eq!(
+            associate(&est, &gt, 0.06),
+            vec![(1, 0), (2, 1), (3, 2), (4, 3), (5, 3)]
+        );
         assert!(associate(&est, &[tp(0.0)], 0.02).len() == 1);
         assert!(associate(&est, &[], 0.02).is_empty());
     }
@@ -217,7 +252,10 @@ mod tests {
     #[test]
     fn stats() {
         let s = ErrorStats::from_errors(&[3.0, 4.0, 1.0, 2.0]);
-        assert_eq!((s.count, s.mean, s.median, s.min, s.max), (4, 2.5, 2.5, 1.0, 4.0));
+        assert_eq!(
+            (s.count, s.mean, s.median, s.min, s.max),
+            (4, 2.5, 2.5, 1.0, 4.0)
+        );
         assert!((s.rmse - 7.5f64.sqrt()).abs() < 1e-15);
     }
 }

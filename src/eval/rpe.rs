@@ -31,13 +31,21 @@ pub struct RpeResult {
 
 /// RPE of matched pose lists (`gt[i]` and `est[i]` at the same time, sorted by time). `None`
 /// when no pair spans the interval.
-pub fn rpe(gt: &[TimedPose], est: &[TimedPose], delta: RpeDelta) -> Result<Option<RpeResult>, EvalError> {
+pub fn rpe(
+    gt: &[TimedPose],
+    est: &[TimedPose],
+    delta: RpeDelta,
+) -> Result<Option<RpeResult>, EvalError> {
     let n = gt.len().min(est.len());
     let mut pairs = Vec::new();
     match delta {
         RpeDelta::Seconds(d) => {
             if !(d > 0.0 && d.is_finite()) {
-                return Err(EvalError::InvalidOption { name: "delta", value: d, why: "must be finite and > 0 seconds" });
+                return Err(EvalError::InvalidOption {
+                    name: "delta",
+                    value: d,
+                    why: "must be finite and > 0 seconds",
+                });
             }
             for i in 0..n {
                 let target = est[i].timestamp + d;
@@ -50,7 +58,11 @@ pub fn rpe(gt: &[TimedPose], est: &[TimedPose], delta: RpeDelta) -> Result<Optio
         }
         RpeDelta::Frames(f) => {
             if f == 0 {
-                return Err(EvalError::InvalidOption { name: "delta", value: 0.0, why: "must be >= 1 frame" });
+                return Err(EvalError::InvalidOption {
+                    name: "delta",
+                    value: 0.0,
+                    why: "must be >= 1 frame",
+                });
             }
             pairs.extend((0..n.saturating_sub(f)).map(|i| (i, i + f)));
         }
@@ -113,8 +125,15 @@ mod tests {
             expect.push((rel - DVec3::new(dt, 0.0, 0.0)).length());
         }
         let e = ErrorStats::from_errors(&expect);
-        assert!((r.translation_m.rmse - e.rmse).abs() < 1e-6, "{} vs {}", r.translation_m.rmse, e.rmse);
-        assert!((r.rotation_deg.rmse - 2.0).abs() < 1e-9 && (r.rotation_deg.max - 2.0).abs() < 1e-9);
+        assert!(
+            (r.translation_m.rmse - e.rmse).abs() < 1e-6,
+            "{} vs {}",
+            r.translation_m.rmse,
+            e.rmse
+        );
+        assert!(
+            (r.rotation_deg.rmse - 2.0).abs() < 1e-9 && (r.rotation_deg.max - 2.0).abs() < 1e-9
+        );
         assert!((r.translation_m_per_s.rmse - e.rmse).abs() < 1e-6);
 
         // Frame mode: each step the estimate goes 0.1375 m vs 0.125 m and yaws 0.25 deg.
@@ -128,12 +147,28 @@ mod tests {
     #[test]
     fn identical_trajectories_have_zero_rpe_and_bad_delta_is_rejected() {
         let gt: Vec<_> = (0..10)
-            .map(|i| TimedPose { timestamp: i as f64, world_from_camera: Se3::exp(&[0.1 * i as f64, 0.0, 0.2, 0.01, 0.02, 0.03 * i as f64]) })
+            .map(|i| TimedPose {
+                timestamp: i as f64,
+                world_from_camera: Se3::exp(&[
+                    0.1 * i as f64,
+                    0.0,
+                    0.2,
+                    0.01,
+                    0.02,
+                    0.03 * i as f64,
+                ]),
+            })
             .collect();
         let r = rpe(&gt, &gt, RpeDelta::Seconds(2.0)).unwrap().unwrap();
         assert!(r.translation_m.max < 1e-12 && r.rotation_deg.max < 1e-6);
         assert!(rpe(&gt, &gt, RpeDelta::Seconds(100.0)).unwrap().is_none());
-        assert!(matches!(rpe(&gt, &gt, RpeDelta::Seconds(-1.0)), Err(EvalError::InvalidOption { .. })));
-        assert!(matches!(rpe(&gt, &gt, RpeDelta::Frames(0)), Err(EvalError::InvalidOption { .. })));
+        assert!(matches!(
+            rpe(&gt, &gt, RpeDelta::Seconds(-1.0)),
+            Err(EvalError::InvalidOption { .. })
+        ));
+        assert!(matches!(
+            rpe(&gt, &gt, RpeDelta::Frames(0)),
+            Err(EvalError::InvalidOption { .. })
+        ));
     }
 }

@@ -45,21 +45,39 @@ impl CameraConfig {
                 516.5,
                 318.6,
                 255.3,
-                BrownConrady { k1: 0.2624, k2: -0.9531, p1: -0.0054, p2: 0.0026, k3: 1.1633 },
+                BrownConrady {
+                    k1: 0.2624,
+                    k2: -0.9531,
+                    p1: -0.0054,
+                    p2: 0.0026,
+                    k3: 1.1633,
+                },
             ),
             "tum_fr2" | "fr2" | "freiburg2" => (
                 520.9,
                 521.0,
                 325.1,
                 249.7,
-                BrownConrady { k1: 0.2312, k2: -0.7849, p1: -0.0033, p2: -0.0001, k3: 0.9172 },
+                BrownConrady {
+                    k1: 0.2312,
+                    k2: -0.7849,
+                    p1: -0.0033,
+                    p2: -0.0001,
+                    k3: 0.9172,
+                },
             ),
-            "tum_fr3" | "fr3" | "freiburg3" => (535.4, 539.2, 320.1, 247.6, BrownConrady::default()),
+            "tum_fr3" | "fr3" | "freiburg3" => {
+                (535.4, 539.2, 320.1, 247.6, BrownConrady::default())
+            }
             _ => return None,
         };
         let mut camera = PinholeCamera::new(fx, fy, cx, cy, 640, 480);
         camera.distortion = d;
-        Some(CameraConfig { camera, depth_factor: TUM_DEPTH_FACTOR, source: format!("preset {name}") })
+        Some(CameraConfig {
+            camera,
+            depth_factor: TUM_DEPTH_FACTOR,
+            source: format!("preset {name}"),
+        })
     }
 
     /// Reads a `key = value` camera config file.
@@ -72,8 +90,20 @@ impl CameraConfig {
     pub fn parse_config(text: &str, path: &Path) -> Result<CameraConfig, IoError> {
         let mut base: Option<CameraConfig> = None;
         let mut values: Vec<(&'static str, f64, usize)> = Vec::new();
-        const KEYS: [&str; 12] =
-            ["fx", "fy", "cx", "cy", "depth_factor", "width", "height", "k1", "k2", "p1", "p2", "k3"];
+        const KEYS: [&str; 12] = [
+            "fx",
+            "fy",
+            "cx",
+            "cy",
+            "depth_factor",
+            "width",
+            "height",
+            "k1",
+            "k2",
+            "p1",
+            "p2",
+            "k3",
+        ];
         for (i, raw) in text.lines().enumerate() {
             let line = i + 1;
             let s = raw.split('#').next().unwrap_or("").trim();
@@ -81,7 +111,11 @@ impl CameraConfig {
                 continue;
             }
             let Some(pos) = s.find(['=', ':']) else {
-                return Err(IoError::parse(path, line, format!("expected `key = value`, found '{s}'")));
+                return Err(IoError::parse(
+                    path,
+                    line,
+                    format!("expected `key = value`, found '{s}'"),
+                ));
             };
             let key = s[..pos].trim().to_ascii_lowercase();
             let value = s[pos + 1..].trim();
@@ -90,7 +124,11 @@ impl CameraConfig {
                     return Err(IoError::parse(path, line, "preset given twice"));
                 }
                 base = Some(Self::preset(value).ok_or_else(|| {
-                    IoError::parse(path, line, format!("unknown preset '{value}' (known: {})", PRESETS.join(", ")))
+                    IoError::parse(
+                        path,
+                        line,
+                        format!("unknown preset '{value}' (known: {})", PRESETS.join(", ")),
+                    )
                 })?);
                 continue;
             }
@@ -104,11 +142,19 @@ impl CameraConfig {
             if values.iter().any(|(n, _, _)| *n == k) {
                 return Err(IoError::parse(path, line, format!("key '{k}' given twice")));
             }
-            let v: f64 = value
-                .parse()
-                .map_err(|_| IoError::parse(path, line, format!("value of '{k}' is not a number: '{value}'")))?;
+            let v: f64 = value.parse().map_err(|_| {
+                IoError::parse(
+                    path,
+                    line,
+                    format!("value of '{k}' is not a number: '{value}'"),
+                )
+            })?;
             if !v.is_finite() {
-                return Err(IoError::parse(path, line, format!("value of '{k}' is not finite: '{value}'")));
+                return Err(IoError::parse(
+                    path,
+                    line,
+                    format!("value of '{k}' is not finite: '{value}'"),
+                ));
             }
             values.push((k, v, line));
         }
@@ -137,7 +183,11 @@ impl CameraConfig {
                 "depth_factor" => cfg.depth_factor = v,
                 "width" | "height" => {
                     if !((1.0..=65535.0).contains(&v) && v.fract() == 0.0) {
-                        return Err(IoError::parse(path, line, format!("{k} must be a positive integer, got {v}")));
+                        return Err(IoError::parse(
+                            path,
+                            line,
+                            format!("{k} must be a positive integer, got {v}"),
+                        ));
                     }
                     if k == "width" {
                         c.width = v as u32;
@@ -168,26 +218,48 @@ impl CameraConfig {
                 continue;
             }
             if found.is_some() {
-                return Err(IoError::parse(path, i + 1, "calib.txt holds more than one line of numbers"));
+                return Err(IoError::parse(
+                    path,
+                    i + 1,
+                    "calib.txt holds more than one line of numbers",
+                ));
             }
             let v = parse_numbers(s).map_err(|m| IoError::parse(path, i + 1, m))?;
             if !matches!(v.len(), 4 | 5 | 7) {
                 return Err(IoError::parse(
                     path,
                     i + 1,
-                    format!("expected `fx fy cx cy [depth_factor [width height]]`, found {} numbers", v.len()),
+                    format!(
+                        "expected `fx fy cx cy [depth_factor [width height]]`, found {} numbers",
+                        v.len()
+                    ),
                 ));
             }
-            let (w, h) = if v.len() == 7 { (v[5], v[6]) } else { (640.0, 480.0) };
+            let (w, h) = if v.len() == 7 {
+                (v[5], v[6])
+            } else {
+                (640.0, 480.0)
+            };
             let size_ok = |x: f64| (1.0..=65535.0).contains(&x) && x.fract() == 0.0;
             if !(size_ok(w) && size_ok(h)) {
-                return Err(IoError::parse(path, i + 1, format!("image size {w} x {h} is not a positive integer size")));
+                return Err(IoError::parse(
+                    path,
+                    i + 1,
+                    format!("image size {w} x {h} is not a positive integer size"),
+                ));
             }
             let camera = PinholeCamera::new(v[0], v[1], v[2], v[3], w as u32, h as u32);
             let depth_factor = v.get(4).copied().unwrap_or(TUM_DEPTH_FACTOR);
-            found = Some(CameraConfig { camera, depth_factor, source: path.display().to_string() });
+            found = Some(CameraConfig {
+                camera,
+                depth_factor,
+                source: path.display().to_string(),
+            });
         }
-        let cfg = found.ok_or_else(|| IoError::Empty { path: path.into(), message: "no calibration line".into() })?;
+        let cfg = found.ok_or_else(|| IoError::Empty {
+            path: path.into(),
+            message: "no calibration line".into(),
+        })?;
         cfg.validate(path)?;
         Ok(cfg)
     }
@@ -204,14 +276,25 @@ impl CameraConfig {
             }
             return Self::from_file(&p);
         }
-        Err(IoError::UnknownCamera { name: s.to_string(), presets: PRESETS.join(", ") })
+        Err(IoError::UnknownCamera {
+            name: s.to_string(),
+            presets: PRESETS.join(", "),
+        })
     }
 
     /// Checks intrinsics and depth factor; errors name `path`.
     pub fn validate(&self, path: &Path) -> Result<(), IoError> {
-        self.camera.validate().map_err(|source| IoError::InvalidCamera { path: path.into(), source })?;
+        self.camera
+            .validate()
+            .map_err(|source| IoError::InvalidCamera {
+                path: path.into(),
+                source,
+            })?;
         if !(self.depth_factor.is_finite() && self.depth_factor > 0.0) {
-            return Err(IoError::InvalidDepthFactor { path: path.into(), factor: self.depth_factor });
+            return Err(IoError::InvalidDepthFactor {
+                path: path.into(),
+                factor: self.depth_factor,
+            });
         }
         Ok(())
     }
@@ -248,29 +331,62 @@ mod tests {
             c.validate(Path::new(p)).unwrap();
             assert_eq!(c.depth_factor, 5000.0);
         }
-        assert!(CameraConfig::preset("tum_fr1").unwrap().camera.distortion.k1 > 0.26);
-        assert!(CameraConfig::preset("tum_fr3").unwrap().camera.distortion.is_zero());
+        assert!(
+            CameraConfig::preset("tum_fr1")
+                .unwrap()
+                .camera
+                .distortion
+                .k1
+                > 0.26
+        );
+        assert!(CameraConfig::preset("tum_fr3")
+            .unwrap()
+            .camera
+            .distortion
+            .is_zero());
         assert!(CameraConfig::preset("nope").is_none());
     }
 
     #[test]
     fn config_text_parses_and_reports_lines() {
         let p = Path::new("cam.cfg");
-        let c = CameraConfig::parse_config("# c\nfx = 500\nfy: 501\ncx=300 # x\ncy = 200\nk1 = 0.1\nwidth = 320\nheight = 240\n", p)
-            .unwrap();
-        assert_eq!((c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy), (500.0, 501.0, 300.0, 200.0));
-        assert_eq!((c.camera.width, c.camera.height, c.camera.distortion.k1), (320, 240, 0.1));
+        let c = CameraConfig::parse_config(
+            "# c\nfx = 500\nfy: 501\ncx=300 # x\ncy = 200\nk1 = 0.1\nwidth = 320\nheight = 240\n",
+            p,
+        )
+        .unwrap();
+        assert_eq!(
+            (c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy),
+            (500.0, 501.0, 300.0, 200.0)
+        );
+        assert_eq!(
+            (c.camera.width, c.camera.height, c.camera.distortion.k1),
+            (320, 240, 0.1)
+        );
         let c = CameraConfig::parse_config("preset = tum_fr2\ndepth_factor = 1000\n", p).unwrap();
         assert_eq!((c.camera.fx, c.depth_factor), (520.9, 1000.0));
-        let e = CameraConfig::parse_config("fx = 1\nfy = x\n", p).unwrap_err().to_string();
-        assert!(e.starts_with("cam.cfg:2:") && e.contains("not a number"), "{e}");
-        let e = CameraConfig::parse_config("fx = 1\nfoo = 2\n", p).unwrap_err().to_string();
+        let e = CameraConfig::parse_config("fx = 1\nfy = x\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("cam.cfg:2:") && e.contains("not a number"),
+            "{e}"
+        );
+        let e = CameraConfig::parse_config("fx = 1\nfoo = 2\n", p)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains(":2:") && e.contains("unknown key"), "{e}");
-        let e = CameraConfig::parse_config("fx = 1\n", p).unwrap_err().to_string();
+        let e = CameraConfig::parse_config("fx = 1\n", p)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("missing key 'fy'"), "{e}");
-        let e = CameraConfig::parse_config("preset=default\nfx = inf\n", p).unwrap_err().to_string();
+        let e = CameraConfig::parse_config("preset=default\nfx = inf\n", p)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains(":2:") && e.contains("not finite"), "{e}");
-        let e = CameraConfig::parse_config("preset=default\nfx = -3\n", p).unwrap_err().to_string();
+        let e = CameraConfig::parse_config("preset=default\nfx = -3\n", p)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("fx"), "{e}");
     }
 }

@@ -10,7 +10,10 @@ pub mod tum;
 pub mod undistort;
 
 pub use config::CameraConfig;
-pub use tum::{load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions, SequenceEntry, TumSequence};
+pub use tum::{
+    load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions,
+    SequenceEntry, TumSequence,
+};
 pub use undistort::UndistortMap;
 
 use std::path::PathBuf;
@@ -159,10 +162,17 @@ pub enum IoError {
 impl IoError {
     /// Wraps an OS error with the path it concerns.
     pub fn file(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        IoError::File { path: path.into(), source }
+        IoError::File {
+            path: path.into(),
+            source,
+        }
     }
     /// A parse error at `path:line`.
     pub fn parse(path: impl Into<PathBuf>, line: usize, message: impl Into<String>) -> Self {
-        IoError::Parse { path: path.into(), line, message: message.into() }
+        IoError::Parse {
+            path: path.into(),
+            line,
+            message: message.into(),
+        }
     }
 }

@@ -58,7 +58,11 @@ pub struct OpenOptions {
 
 impl Default for OpenOptions {
     fn default() -> Self {
-        Self { max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE, camera: None, max_frames: None }
+        Self {
+            max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE,
+            camera: None,
+            max_frames: None,
+        }
     }
 }
 
@@ -132,7 +136,11 @@ impl TumSequence {
             }
             pairs
                 .into_iter()
-                .map(|(i, j)| SequenceEntry { timestamp: rgb[i].0, rgb: rgb[i].1.clone(), depth: depth[j].1.clone() })
+                .map(|(i, j)| SequenceEntry {
+                    timestamp: rgb[i].0,
+                    rgb: rgb[i].1.clone(),
+                    depth: depth[j].1.clone(),
+                })
                 .collect()
         };
         entries.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
@@ -140,10 +148,14 @@ impl TumSequence {
             entries.truncate(n);
         }
         if entries.is_empty() {
-            return Err(IoError::Empty { path: dir.into(), message: "the sequence has no frames".into() });
+            return Err(IoError::Empty {
+                path: dir.into(),
+                message: "the sequence has no frames".into(),
+            });
         }
         let gt = dir.join("groundtruth.txt");
-        let undistort = (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
+        let undistort =
+            (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
         let seq = TumSequence {
             root: dir.into(),
             camera: cfg.camera,
@@ -176,9 +188,22 @@ impl TumSequence {
 
     /// Decodes frame `index` from disk: intensity and inverse depth (1/m), undistorted.
     pub fn load(&self, index: usize) -> Result<RgbdFrame, IoError> {
-        let e = self.entries.get(index).ok_or(IoError::IndexOutOfRange { index, len: self.entries.len() })?;
-        let cam = CameraRef { camera: &self.camera, source: &self.camera_source };
-        decode_frame(&e.rgb, &e.depth, cam, self.depth_factor, self.undistort.as_deref(), e.timestamp)
+        let e = self.entries.get(index).ok_or(IoError::IndexOutOfRange {
+            index,
+            len: self.entries.len(),
+        })?;
+        let cam = CameraRef {
+            camera: &self.camera,
+            source: &self.camera_source,
+        };
+        decode_frame(
+            &e.rgb,
+            &e.depth,
+            cam,
+            self.depth_factor,
+            self.undistort.as_deref(),
+            e.timestamp,
+        )
     }
 }
 
@@ -191,17 +216,34 @@ pub fn load_pair_frame(
     camera: &PinholeCamera,
     depth_factor: f64,
 ) -> Result<RgbdFrame, IoError> {
-    let cfg = CameraConfig { camera: *camera, depth_factor, source: "the given camera".into() };
+    let cfg = CameraConfig {
+        camera: *camera,
+        depth_factor,
+        source: "the given camera".into(),
+    };
     cfg.validate(rgb_path)?;
     let map = (!camera.distortion.is_zero()).then(|| UndistortMap::new(camera));
-    decode_frame(rgb_path, depth_path, CameraRef { camera, source: &cfg.source }, depth_factor, map.as_ref(), 0.0)
+    decode_frame(
+        rgb_path,
+        depth_path,
+        CameraRef {
+            camera,
+            source: &cfg.source,
+        },
+        depth_factor,
+        map.as_ref(),
+        0.0,
+    )
 }
 
 /// Parses `tx ty tz qx qy qz qw` (a `world_from_camera` pose, metres, any-norm quaternion).
 pub fn parse_pose_line(line: &str) -> Result<Se3, String> {
     let v = parse_numbers(line)?;
     if v.len() != 7 {
-        return Err(format!("expected 7 numbers (tx ty tz qx qy qz qw), found {}", v.len()));
+        return Err(format!(
+            "expected 7 numbers (tx ty tz qx qy qz qw), found {}",
+            v.len()
+        ));
     }
     let q = DQuat::from_xyzw(v[3], v[4], v[5], v[6]);
     let n = q.length();
@@ -221,12 +263,19 @@ pub fn read_pose_file(path: &Path) -> Result<Se3, IoError> {
         }
         return parse_pose_line(s).map_err(|m| IoError::parse(path, i + 1, m));
     }
-    Err(IoError::Empty { path: path.into(), message: "no pose line".into() })
+    Err(IoError::Empty {
+        path: path.into(),
+        message: "no pose line".into(),
+    })
 }
 
 /// Reads a 3x3 intrinsic matrix (9 numbers, row-major, any whitespace) into a camera of the
 /// given size without distortion.
-pub fn read_intrinsic_matrix(path: &Path, width: u32, height: u32) -> Result<PinholeCamera, IoError> {
+pub fn read_intrinsic_matrix(
+    path: &Path,
+    width: u32,
+    height: u32,
+) -> Result<PinholeCamera, IoError> {
     let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
     let mut v = Vec::new();
     for (i, line) in text.lines().enumerate() {
@@ -236,10 +285,17 @@ pub fn read_intrinsic_matrix(path: &Path, width: u32, height: u32) -> Result<Pin
         }
     }
     if v.len() != 9 {
-        return Err(IoError::parse(path, text.lines().count().max(1), format!("expected 9 numbers, found {}", v.len())));
+        return Err(IoError::parse(
+            path,
+            text.lines().count().max(1),
+            format!("expected 9 numbers, found {}", v.len()),
+        ));
     }
     let cam = PinholeCamera::new(v[0], v[4], v[2], v[5], width, height);
-    cam.validate().map_err(|source| IoError::InvalidCamera { path: path.into(), source })?;
+    cam.validate().map_err(|source| IoError::InvalidCamera {
+        path: path.into(),
+        source,
+    })?;
     Ok(cam)
 }
 
@@ -281,7 +337,12 @@ fn closest_difference(a: &[f64], b: &[f64]) -> Option<f64> {
     a.iter()
         .filter_map(|&t| {
             let k = s.partition_point(|&x| x < t);
-            [k.checked_sub(1), Some(k)].into_iter().flatten().filter_map(|j| s.get(j)).map(|&x| (x - t).abs()).reduce(f64::min)
+            [k.checked_sub(1), Some(k)]
+                .into_iter()
+                .flatten()
+                .filter_map(|j| s.get(j))
+                .map(|&x| (x - t).abs())
+                .reduce(f64::min)
         })
         .reduce(f64::min)
 }
@@ -297,13 +358,20 @@ fn read_list(root: &Path, list: &Path) -> Result<Vec<(f64, PathBuf)>, IoError> {
         }
         let f: Vec<&str> = s.split_whitespace().collect();
         if f.len() < 2 {
-            return Err(IoError::parse(list, i + 1, format!("expected `timestamp path`, found '{s}'")));
+            return Err(IoError::parse(
+                list,
+                i + 1,
+                format!("expected `timestamp path`, found '{s}'"),
+            ));
         }
         let t = parse_time(f[0]).map_err(|m| IoError::parse(list, i + 1, m))?;
         out.push((t, existing(root, f[1], list, i + 1)?));
     }
     if out.is_empty() {
-        return Err(IoError::Empty { path: list.into(), message: "no entries in image list".into() });
+        return Err(IoError::Empty {
+            path: list.into(),
+            message: "no entries in image list".into(),
+        });
     }
     Ok(out)
 }
@@ -322,7 +390,10 @@ fn read_associations(root: &Path, list: &Path) -> Result<Vec<SequenceEntry>, IoE
             return Err(IoError::parse(
                 list,
                 i + 1,
-                format!("expected `t_rgb rgb_path t_depth depth_path`, found {} fields", f.len()),
+                format!(
+                    "expected `t_rgb rgb_path t_depth depth_path`, found {} fields",
+                    f.len()
+                ),
             ));
         }
         let t = parse_time(f[0]).map_err(|m| IoError::parse(list, i + 1, m))?;
@@ -334,7 +405,10 @@ fn read_associations(root: &Path, list: &Path) -> Result<Vec<SequenceEntry>, IoE
         });
     }
     if out.is_empty() {
-        return Err(IoError::Empty { path: list.into(), message: "no entries in associations file".into() });
+        return Err(IoError::Empty {
+            path: list.into(),
+            message: "no entries in associations file".into(),
+        });
     }
     Ok(out)
 }
@@ -352,7 +426,10 @@ fn existing(root: &Path, rel: &str, list: &Path, line: usize) -> Result<PathBuf,
     if p.is_file() {
         Ok(p)
     } else {
-        Err(IoError::MissingFile { path: p, what: format!("image listed at {}:{line}", list.display()) })
+        Err(IoError::MissingFile {
+            path: p,
+            what: format!("image listed at {}:{line}", list.display()),
+        })
     }
 }
 
@@ -392,8 +469,11 @@ fn decode_frame(
     }
     check_depth_scale(&depth.raw, depth_factor, depth_path)?;
     let factor = depth_factor as f32;
-    let mut inverse_depth: Vec<f32> =
-        depth.raw.iter().map(|&d| if d == 0 { 0.0 } else { factor / f32::from(d) }).collect();
+    let mut inverse_depth: Vec<f32> = depth
+        .raw
+        .iter()
+        .map(|&d| if d == 0 { 0.0 } else { factor / f32::from(d) })
+        .collect();
     let mut intensity = rgb.data;
     if let Some(m) = map {
         let mut out = vec![0.0f32; intensity.len()];
@@ -406,20 +486,34 @@ fn decode_frame(
     let (w, h) = (rgb.width, rgb.height);
     Ok(RgbdFrame {
         timestamp,
-        intensity: ImageF32 { width: w, height: h, data: intensity },
-        inverse_depth: ImageF32 { width: w, height: h, data: inverse_depth },
+        intensity: ImageF32 {
+            width: w,
+            height: h,
+            data: intensity,
+        },
+        inverse_depth: ImageF32 {
+            width: w,
+            height: h,
+            data: inverse_depth,
+        },
     })
 }
 
 fn read_image(path: &Path) -> Result<image::DynamicImage, IoError> {
     if !path.is_file() {
-        return Err(IoError::MissingFile { path: path.into(), what: "image".into() });
+        return Err(IoError::MissingFile {
+            path: path.into(),
+            what: "image".into(),
+        });
     }
     let reader = image::ImageReader::open(path)
         .map_err(|e| IoError::file(path, e))?
         .with_guessed_format()
         .map_err(|e| IoError::file(path, e))?;
-    reader.decode().map_err(|e| IoError::Image { path: path.into(), message: e.to_string() })
+    reader.decode().map_err(|e| IoError::Image {
+        path: path.into(),
+        message: e.to_string(),
+    })
 }
 
 fn decode_intensity(path: &Path) -> Result<ImageF32, IoError> {
@@ -427,12 +521,29 @@ fn decode_intensity(path: &Path) -> Result<ImageF32, IoError> {
     let img = read_image(path)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let data: Vec<f32> = match &img {
-        D::ImageRgb8(b) => b.as_raw().chunks_exact(3).map(|p| rgb_to_intensity(p[0], p[1], p[2])).collect(),
-        D::ImageRgba8(b) => b.as_raw().chunks_exact(4).map(|p| rgb_to_intensity(p[0], p[1], p[2])).collect(),
+        D::ImageRgb8(b) => b
+            .as_raw()
+            .chunks_exact(3)
+            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+            .collect(),
+        D::ImageRgba8(b) => b
+            .as_raw()
+            .chunks_exact(4)
+            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+            .collect(),
         D::ImageLuma8(b) => b.as_raw().iter().map(|&v| f32::from(v)).collect(),
-        other => other.to_rgb8().as_raw().chunks_exact(3).map(|p| rgb_to_intensity(p[0], p[1], p[2])).collect(),
+        other => other
+            .to_rgb8()
+            .as_raw()
+            .chunks_exact(3)
+            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+            .collect(),
     };
-    Ok(ImageF32 { width: w, height: h, data })
+    Ok(ImageF32 {
+        width: w,
+        height: h,
+        data,
+    })
 }
 
 struct RawDepth {
@@ -445,15 +556,27 @@ fn decode_depth(path: &Path) -> Result<RawDepth, IoError> {
     let img = read_image(path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     match img {
-        image::DynamicImage::ImageLuma16(b) => Ok(RawDepth { width, height, raw: b.into_raw() }),
-        other => Err(IoError::DepthNot16Bit { path: path.into(), found: format!("{:?}", other.color()) }),
+        image::DynamicImage::ImageLuma16(b) => Ok(RawDepth {
+            width,
+            height,
+            raw: b.into_raw(),
+        }),
+        other => Err(IoError::DepthNot16Bit {
+            path: path.into(),
+            found: format!("{:?}", other.color()),
+        }),
     }
 }
 
 /// Checks that the median valid depth (on a sample of pixels) is plausible for `factor`.
 fn check_depth_scale(raw: &[u16], factor: f64, path: &Path) -> Result<(), IoError> {
     let stride = (raw.len() / 16384).max(1);
-    let mut sample: Vec<u16> = raw.iter().step_by(stride).copied().filter(|&d| d > 0).collect();
+    let mut sample: Vec<u16> = raw
+        .iter()
+        .step_by(stride)
+        .copied()
+        .filter(|&d| d > 0)
+        .collect();
     if sample.len() < 20 {
         return Ok(()); // too few measurements to judge; not a scale error
     }
@@ -467,8 +590,18 @@ fn check_depth_scale(raw: &[u16], factor: f64, path: &Path) -> Result<(), IoErro
     let suggested = [1000.0, 5000.0, 10000.0, 100.0, 10.0, 1.0]
         .into_iter()
         .filter(|&f: &f64| f != factor && (lo..=hi).contains(&(median_raw / f)))
-        .min_by(|a, b| (median_raw / a / 2.0).ln().abs().total_cmp(&(median_raw / b / 2.0).ln().abs()));
-    Err(IoError::DepthScaleMismatch { path: path.into(), factor, median_m, suggested })
+        .min_by(|a, b| {
+            (median_raw / a / 2.0)
+                .ln()
+                .abs()
+                .total_cmp(&(median_raw / b / 2.0).ln().abs())
+        });
+    Err(IoError::DepthScaleMismatch {
+        path: path.into(),
+        factor,
+        median_m,
+        suggested,
+    })
 }
 
 #[cfg(test)]
@@ -491,8 +624,12 @@ mod tests {
         let p = parse_pose_line("1 2 3 0 0 0 2").unwrap();
         assert_eq!(p.translation, DVec3::new(1.0, 2.0, 3.0));
         assert!((p.rotation.w - 1.0).abs() < 1e-12);
-        assert!(parse_pose_line("1 2 3 0 0 0").unwrap_err().contains("expected 7"));
-        assert!(parse_pose_line("1 2 nan 0 0 0 1").unwrap_err().contains("not finite"));
+        assert!(parse_pose_line("1 2 3 0 0 0")
+            .unwrap_err()
+            .contains("expected 7"));
+        assert!(parse_pose_line("1 2 nan 0 0 0 1")
+            .unwrap_err()
+            .contains("not finite"));
     }
 
     #[test]
@@ -500,7 +637,9 @@ mod tests {
         let raw = vec![2000u16; 1000]; // 2 m at factor 1000
         assert!(check_depth_scale(&raw, 1000.0, Path::new("d.png")).is_ok());
         match check_depth_scale(&raw, 50000.0, Path::new("d.png")) {
-            Err(IoError::DepthScaleMismatch { suggested, .. }) => assert_eq!(suggested, Some(1000.0)),
+            Err(IoError::DepthScaleMismatch { suggested, .. }) => {
+                assert_eq!(suggested, Some(1000.0))
+            }
             other => panic!("{other:?}"),
         }
     }

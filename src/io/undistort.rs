@@ -47,16 +47,28 @@ impl UndistortMap {
         let d = camera.distortion;
         for v in 0..h {
             for u in 0..w {
-                let n = DVec2::new((u as f64 - camera.cx) / camera.fx, (v as f64 - camera.cy) / camera.fy);
+                let n = DVec2::new(
+                    (u as f64 - camera.cx) / camera.fx,
+                    (v as f64 - camera.cy) / camera.fy,
+                );
                 let p = d.distort(n);
                 let (sx, sy) = (camera.fx * p.x + camera.cx, camera.fy * p.y + camera.cy);
                 bilinear.push(bilinear_tap(sx, sy, w, h));
                 let (rx, ry) = (sx.round(), sy.round());
                 let inside = rx >= 0.0 && ry >= 0.0 && rx <= (w - 1) as f64 && ry <= (h - 1) as f64;
-                nearest.push(if inside { (ry as usize * w + rx as usize) as u32 } else { OUTSIDE });
+                nearest.push(if inside {
+                    (ry as usize * w + rx as usize) as u32
+                } else {
+                    OUTSIDE
+                });
             }
         }
-        Self { width: w, height: h, bilinear, nearest }
+        Self {
+            width: w,
+            height: h,
+            bilinear,
+            nearest,
+        }
     }
 
     /// Image width the table was built for, pixels.
@@ -93,7 +105,11 @@ impl UndistortMap {
     /// Nearest-neighbour resampling (for depth); pixels that map outside the raw image get `0`.
     pub fn remap_nearest(&self, raw: &[f32], out: &mut [f32]) {
         for (o, &i) in out.iter_mut().zip(&self.nearest) {
-            *o = if i == OUTSIDE { 0.0 } else { raw.get(i as usize).copied().unwrap_or(0.0) };
+            *o = if i == OUTSIDE {
+                0.0
+            } else {
+                raw.get(i as usize).copied().unwrap_or(0.0)
+            };
         }
     }
 
@@ -131,7 +147,11 @@ fn bilinear_tap(sx: f64, sy: f64, w: usize, h: usize) -> Tap {
     };
     let (x0, wx) = clamp(sx, w);
     let (y0, wy) = clamp(sy, h);
-    Tap { index: (y0 * w + x0) as u32, wx, wy }
+    Tap {
+        index: (y0 * w + x0) as u32,
+        wx,
+        wy,
+    }
 }
 
 #[cfg(test)]
@@ -141,7 +161,13 @@ mod tests {
 
     fn fr1_small() -> PinholeCamera {
         let mut c = PinholeCamera::new(129.3, 129.1, 79.6, 63.8, 160, 120);
-        c.distortion = BrownConrady { k1: 0.2624, k2: -0.9531, p1: -0.0054, p2: 0.0026, k3: 1.1633 };
+        c.distortion = BrownConrady {
+            k1: 0.2624,
+            k2: -0.9531,
+            p1: -0.0054,
+            p2: 0.0026,
+            k3: 1.1633,
+        };
         c
     }
 
@@ -149,7 +175,8 @@ mod tests {
     fn zero_distortion_is_identity() {
         let cam = PinholeCamera::new(100.0, 100.0, 31.5, 23.5, 64, 48);
         let m = UndistortMap::new(&cam);
-        let raw = ImageF32::from_vec(64, 48, (0..64 * 48).map(|i| (i % 251) as f32).collect()).unwrap();
+        let raw =
+            ImageF32::from_vec(64, 48, (0..64 * 48).map(|i| (i % 251) as f32).collect()).unwrap();
         assert_eq!(m.intensity(&raw).unwrap(), raw);
         assert_eq!(m.inverse_depth(&raw).unwrap(), raw);
     }
@@ -177,15 +204,25 @@ mod tests {
         }
         assert!(checked > 200);
         // The distortion is not negligible: some pixel moves by more than one pixel.
-        assert!(out.data.iter().zip(&raw.data).any(|(a, b)| (a - b).abs() > 1.0));
+        assert!(out
+            .data
+            .iter()
+            .zip(&raw.data)
+            .any(|(a, b)| (a - b).abs() > 1.0));
     }
 
     #[test]
     fn depth_is_never_blended() {
         let cam = fr1_small();
         let m = UndistortMap::new(&cam);
-        let raw = ImageF32::from_vec(160, 120, (0..160 * 120).map(|i| if (i % 160) < 80 { 0.5 } else { 2.0 }).collect())
-            .unwrap();
+        let raw = ImageF32::from_vec(
+            160,
+            120,
+            (0..160 * 120)
+                .map(|i| if (i % 160) < 80 { 0.5 } else { 2.0 })
+                .collect(),
+        )
+        .unwrap();
         let out = m.inverse_depth(&raw).unwrap();
         assert!(out.data.iter().all(|&d| d == 0.0 || d == 0.5 || d == 2.0));
     }
