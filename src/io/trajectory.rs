@@ -20,23 +20,34 @@ pub struct TimedPose {
 
 /// Parses one TUM trajectory line (no comment, not blank); the message says what is wrong.
 pub fn parse_tum_line(line: &str) -> Result<TimedPose, String> {
-    let v: Vec<&str> = line.split(|c: char| c.is_whitespace() || c == ',').filter(|s| !s.is_empty()).collect();
+    let v: Vec<&str> = line
+        .split(|c: char| c.is_whitespace() || c == ',')
+        .filter(|s| !s.is_empty())
+        .collect();
     if v.len() < 8 {
-        return Err(format!("expected 8 numbers (timestamp tx ty tz qx qy qz qw), found {}", v.len()));
+        return Err(format!(
+            "expected 8 numbers (timestamp tx ty tz qx qy qz qw), found {}",
+            v.len()
+        ));
     }
     let mut x = [0.0f64; 8];
     for (k, s) in v.iter().take(8).enumerate() {
-        x[k] = s.parse::<f64>().map_err(|_| format!("field {} '{}' is not a number", k + 1, s))?;
+        x[k] = s
+            .parse::<f64>()
+            .map_err(|_| format!("field {} '{}' is not a number", k + 1, s))?;
         if !x[k].is_finite() {
             return Err(format!("field {} is not finite ({})", k + 1, s));
         }
     }
     let q = DQuat::from_xyzw(x[4], x[5], x[6], x[7]);
     let n = q.length();
-    if !(n > 1e-6) {
+    if n.is_nan() || n <= 1e-6 {
         return Err("quaternion has zero length".into());
     }
-    Ok(TimedPose { timestamp: x[0], world_from_camera: Se3::new(q / n, DVec3::new(x[1], x[2], x[3])) })
+    Ok(TimedPose {
+        timestamp: x[0],
+        world_from_camera: Se3::new(q / n, DVec3::new(x[1], x[2], x[3])),
+    })
 }
 
 /// Reads a TUM trajectory, sorted by time stamp. Errors name the file and line.
@@ -51,7 +62,10 @@ pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
         out.push(parse_tum_line(s).map_err(|m| IoError::parse(path, i + 1, m))?);
     }
     if out.is_empty() {
-        return Err(IoError::Empty { path: path.into(), message: "no poses in trajectory file".into() });
+        return Err(IoError::Empty {
+            path: path.into(),
+            message: "no poses in trajectory file".into(),
+        });
     }
     out.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
     Ok(out)
@@ -61,12 +75,16 @@ pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
 pub fn format_tum_line(p: &TimedPose) -> String {
     let t = p.world_from_camera.translation;
     let q = p.world_from_camera.rotation;
-    format!("{:.6} {:.7} {:.7} {:.7} {:.7} {:.7} {:.7} {:.7}", p.timestamp, t.x, t.y, t.z, q.x, q.y, q.z, q.w)
+    format!(
+        "{:.6} {:.7} {:.7} {:.7} {:.7} {:.7} {:.7} {:.7}",
+        p.timestamp, t.x, t.y, t.z, q.x, q.y, q.z, q.w
+    )
 }
 
 /// Writes a TUM trajectory (overwrites `path`).
 pub fn write_tum(path: &Path, poses: &[TimedPose]) -> Result<(), IoError> {
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| IoError::file(path, e))?);
+    let mut f =
+        std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| IoError::file(path, e))?);
     for p in poses {
         writeln!(f, "{}", format_tum_line(p)).map_err(|e| IoError::file(path, e))?;
     }
@@ -88,7 +106,11 @@ mod tests {
         }];
         write_tum(&p, &poses).unwrap();
         let back = read_tum(&p).unwrap();
-        assert!((back[0].world_from_camera.translation - poses[0].world_from_camera.translation).length() < 1e-6);
+        assert!(
+            (back[0].world_from_camera.translation - poses[0].world_from_camera.translation)
+                .length()
+                < 1e-6
+        );
         std::fs::write(&p, "# c\n1 2 3\n").unwrap();
         let e = read_tum(&p).unwrap_err().to_string();
         assert!(e.contains(":2:") && e.contains("expected 8"), "{e}");
