@@ -18,7 +18,7 @@ fn colour(i: usize, x: u32, y: u32) -> [u8; 3] {
 }
 
 fn raw_depth(i: usize, x: u32, y: u32) -> u16 {
-    if (x + y) % 5 == 0 {
+    if (x + y).is_multiple_of(5) {
         0
     } else {
         (5000 + 100 * i as u32 + 20 * x + 10 * y) as u16

@@ -77,7 +77,7 @@ pub fn align_umeyama(
     let s = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 1.0, sign));
     let r = u * s * vt;
     let scale = if with_scale {
-        if !(var_src > 1e-300) {
+        if var_src.is_nan() || var_src <= 1e-300 {
             return Err(EvalError::DegenerateAlignment);
         }
         (svd.singular_values[0] + svd.singular_values[1] + sign * svd.singular_values[2]) / var_src

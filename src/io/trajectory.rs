@@ -41,7 +41,7 @@ pub fn parse_tum_line(line: &str) -> Result<TimedPose, String> {
     }
     let q = DQuat::from_xyzw(x[4], x[5], x[6], x[7]);
     let n = q.length();
-    if !(n > 1e-6) {
+    if n.is_nan() || n <= 1e-6 {
         return Err("quaternion has zero length".into());
     }
     Ok(TimedPose {

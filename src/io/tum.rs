@@ -247,7 +247,7 @@ pub fn parse_pose_line(line: &str) -> Result<Se3, String> {
     }
     let q = DQuat::from_xyzw(v[3], v[4], v[5], v[6]);
     let n = q.length();
-    if !(n > 1e-6) {
+    if n.is_nan() || n <= 1e-6 {
         return Err("quaternion has zero length".into());
     }
     Ok(Se3::new(q / n, DVec3::new(v[0], v[1], v[2])))

@@ -196,7 +196,7 @@ mod tests {
                 let n = DVec2::new((u as f64 - cam.cx) / cam.fx, (v as f64 - cam.cy) / cam.fy);
                 let p = cam.distortion.distort(n);
                 let (sx, sy) = (cam.fx * p.x + cam.cx, cam.fy * p.y + cam.cy);
-                if sx >= 0.0 && sx <= (w - 1) as f64 && sy >= 0.0 && sy <= (h - 1) as f64 {
+                if (0.0..=(w - 1) as f64).contains(&sx) && (0.0..=(h - 1) as f64).contains(&sy) {
                     assert!((f64::from(out.at(u, v)) - sx).abs() < 1e-3, "{u} {v}");
                     checked += 1;
                 }
