@@ -39,7 +39,13 @@ impl World {
     }
 
     fn view(&self, place: usize, rng: &mut rand_pcg::Pcg64) -> Vec<Descriptor> {
-        self.places[place].iter().filter(|_| rng.random_bool(0.7)).map(|d| perturb(d, 6, rng)).collect()
+        let mut out = Vec::new();
+        for d in &self.places[place] {
+            if rng.random_bool(0.7) {
+                out.push(perturb(d, 6, rng));
+            }
+        }
+        out
     }
 }
 
@@ -148,7 +154,10 @@ fn database_returns_the_revisited_keyframe() {
         let c = db.query(id, std::slice::from_ref(&bow), reference, &params);
         assert!(!c.is_empty(), "no candidate for place {revisit}");
         assert_eq!(kf_place[c[0].keyframe_id], revisit, "best candidate {:?}", c[0]);
-        assert!(c[0].score > 2.0 * c.get(2).map_or(0.0, |x| x.score).min(reference));
+        // Both keyframes of the revisited place outrank every other place by a margin.
+        let other = c.iter().find(|x| kf_place[x.keyframe_id] != revisit).map_or(0.0, |x| x.score);
+        assert!(c.len() >= 2 && kf_place[c[1].keyframe_id] == revisit, "{c:?}");
+        assert!(c[0].score > 1.3 * other, "{c:?}");
         // The brute-force score agrees with the inverted-index score.
         let direct = db.score_against(std::slice::from_ref(&bow), c[0].keyframe_id).unwrap();
         assert!((direct - c[0].score).abs() < 1e-12);
@@ -337,9 +346,9 @@ fn loop_detector_closes_a_synthetic_loop_with_the_right_relative_pose() {
             loops.push(l);
         }
     }
-    assert!(loops.len() >= 3, "only {} loops detected", loops.len());
+    assert!(loops.iter().filter(|l| l.query_id >= 12).count() >= 3, "loops: {:?}", loops.iter().map(|l| (l.query_id, l.candidate_id)).collect::<Vec<_>>());
     for l in &loops {
-        assert!(l.query_id >= 12 && l.candidate_id + 8 <= l.query_id);
+        assert!(l.candidate_id + 8 <= l.query_id);
         let truth = poses[l.query_id].inverse() * poses[l.candidate_id];
         let (dt, dr) = pose_error(&l.loop_match.query_from_candidate, &truth);
         assert!(dt < 0.02 && dr < 1f64.to_radians(), "loop {}->{}: {dt} m, {dr} rad", l.query_id, l.candidate_id);
