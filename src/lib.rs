@@ -25,4 +25,5 @@ pub mod graph;
 pub mod image;
 pub mod io;
 pub mod odometry;
+pub mod place;
 pub mod synth;

@@ -34,6 +34,12 @@ enum Command {
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
+    /// Place recognition: loop detection over a sequence, ORB benchmark.
+    #[command(subcommand)]
+    Place(cli::place::Command),
+    /// Bag-of-binary-words vocabularies: train, inspect, convert.
+    #[command(subcommand)]
+    Vocab(cli::vocab::Command),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -62,6 +68,8 @@ fn run(command: Command) -> Result<()> {
         Command::Bench(c) => cli::bench::run(c),
         Command::Synth(a) => cli::synth::run(a),
         Command::Graph(c) => cli::graph::run(c),
+        Command::Place(c) => cli::place::run(c),
+        Command::Vocab(c) => cli::vocab::run(c),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

@@ -5,4 +5,6 @@ pub mod demo;
 pub mod eval;
 pub mod graph;
 pub mod odometry;
+pub mod place;
 pub mod synth;
+pub mod vocab;

@@ -1,0 +1,349 @@
+//! `rgbid place`: loop detection over a TUM-layout sequence, and an ORB speed benchmark.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rgbid::camera::PinholeCamera;
+use rgbid::geometry::Se3;
+use rgbid::image::{rgb_to_intensity, ImageF32};
+use rgbid::place::{extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary};
+
+/// Subcommands of `rgbid place`.
+#[derive(clap::Subcommand)]
+pub enum Command {
+    /// Detect loops in a TUM-layout sequence (associations.txt, rgb/, depth/): lists each
+    /// verified loop with its scores, inliers and relative pose.
+    Loops(LoopsArgs),
+    /// Time ORB extraction (and BoW conversion) on one image; prints ms per image.
+    Bench(BenchArgs),
+}
+
+/// Arguments of `rgbid place loops`.
+#[derive(clap::Args)]
+pub struct LoopsArgs {
+    /// Sequence folder (TUM layout).
+    pub seq: PathBuf,
+    /// Vocabulary file (rgbid binary or DBoW2 text, e.g. ORBvoc.txt); default: the embedded one.
+    #[arg(long)]
+    pub vocab: Option<PathBuf>,
+    /// Ground truth (TUM trajectory, world_from_camera) for precision / recall.
+    #[arg(long)]
+    pub gt: Option<PathBuf>,
+    /// Use every N-th frame as a keyframe.
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    /// Minimum separation between loop keyframes, in keyframes.
+    #[arg(long, default_value_t = 30)]
+    pub min_separation: usize,
+    /// Minimum normalised score of a candidate.
+    #[arg(long, default_value_t = 0.3)]
+    pub min_score: f64,
+    /// Camera intrinsics `fx fy cx cy` (default: calib.txt of the sequence, else TUM 525 525 319.5 239.5).
+    #[arg(long, num_args = 4, value_names = ["FX", "FY", "CX", "CY"])]
+    pub intrinsics: Option<Vec<f64>>,
+    /// Depth PNG units per metre (default: calib.txt, else 5000).
+    #[arg(long)]
+    pub depth_factor: Option<f64>,
+    /// Ground-truth revisit: camera centres closer than this (metres)...
+    #[arg(long, default_value_t = 0.5)]
+    pub gt_distance: f64,
+    /// ...and optical axes closer than this (degrees).
+    #[arg(long, default_value_t = 30.0)]
+    pub gt_angle: f64,
+}
+
+/// Arguments of `rgbid place bench`.
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// Image file (PNG/JPEG).
+    pub image: PathBuf,
+    /// Number of timed runs (after one warm-up).
+    #[arg(long, default_value_t = 20)]
+    pub repeat: usize,
+    /// Target number of keypoints.
+    #[arg(long, default_value_t = 1000)]
+    pub features: usize,
+    /// Write the keypoints to this file: `x y level angle_rad score descriptor_hex` per line.
+    #[arg(long)]
+    pub dump: Option<PathBuf>,
+}
+
+/// Runs the subcommand.
+pub fn run(c: Command) -> Result<()> {
+    match c {
+        Command::Loops(a) => loops(a),
+        Command::Bench(a) => bench(a),
+    }
+}
+
+/// Loads an 8-bit image as intensity in [0, 255].
+pub fn load_intensity(path: &Path) -> Result<ImageF32> {
+    let img = image::open(path).with_context(|| format!("reading {}", path.display()))?.to_rgb8();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let data = img.pixels().map(|p| rgb_to_intensity(p[0], p[1], p[2])).collect();
+    ImageF32::from_vec(w, h, data).context("image buffer size")
+}
+
+fn load_inverse_depth(path: &Path, factor: f64) -> Result<ImageF32> {
+    let img = image::open(path).with_context(|| format!("reading {}", path.display()))?.to_luma16();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let data = img.pixels().map(|p| if p[0] == 0 { 0.0 } else { (factor / f64::from(p[0])) as f32 }).collect();
+    ImageF32::from_vec(w, h, data).context("depth buffer size")
+}
+
+/// The default vocabulary, embedded in the binary (trained on rgbid-rendered images).
+pub fn default_vocabulary() -> Result<Vocabulary> {
+    Ok(Vocabulary::read_binary(include_bytes!("../../assets/vocab_default.rgbvoc"))?)
+}
+
+/// A TUM-layout sequence as listed by associations.txt (`t_rgb rgb_path t_depth depth_path`).
+/// Minimal reader for this command until `io::tum` lands.
+struct Sequence {
+    frames: Vec<(f64, PathBuf, PathBuf)>,
+    camera: PinholeCamera,
+    depth_factor: f64,
+}
+
+fn open_sequence(dir: &Path, intrinsics: Option<&[f64]>, depth_factor: Option<f64>) -> Result<Sequence> {
+    let assoc = dir.join("associations.txt");
+    let text = std::fs::read_to_string(&assoc).with_context(|| format!("reading {}", assoc.display()))?;
+    let mut frames = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        if t.is_empty() || t[0].starts_with('#') {
+            continue;
+        }
+        if t.len() < 4 {
+            bail!("{}:{}: expected `t_rgb rgb t_depth depth`", assoc.display(), i + 1);
+        }
+        let ts: f64 = t[0].parse().with_context(|| format!("{}:{}: bad time stamp", assoc.display(), i + 1))?;
+        frames.push((ts, dir.join(t[1]), dir.join(t[3])));
+    }
+    if frames.is_empty() {
+        bail!("{}: no frames", assoc.display());
+    }
+    let calib: Option<Vec<f64>> = std::fs::read_to_string(dir.join("calib.txt"))
+        .ok()
+        .and_then(|s| s.split_whitespace().map(|v| v.parse().ok()).collect());
+    let (fx, fy, cx, cy) = match (intrinsics, calib.as_deref()) {
+        (Some(k), _) => (k[0], k[1], k[2], k[3]),
+        (None, Some(c)) if c.len() >= 4 => (c[0], c[1], c[2], c[3]),
+        _ => (525.0, 525.0, 319.5, 239.5),
+    };
+    let factor = depth_factor.or(calib.as_deref().and_then(|c| c.get(4).copied())).unwrap_or(5000.0);
+    let first = load_intensity(&frames[0].1)?;
+    let camera = PinholeCamera::new(fx, fy, cx, cy, first.width as u32, first.height as u32);
+    camera.validate()?;
+    Ok(Sequence { frames, camera, depth_factor: factor })
+}
+
+fn progress(n: usize, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(n as u64);
+    if let Ok(style) = ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} {{elapsed}}")) {
+        pb.set_style(style);
+    }
+    pb
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn nearest_pose(gt: &[rgbid::io::trajectory::TimedPose], t: f64) -> Option<Se3> {
+    let p = gt.iter().min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))?;
+    ((p.timestamp - t).abs() < 0.02).then_some(p.world_from_camera)
+}
+
+fn loops(a: LoopsArgs) -> Result<()> {
+    let seq = open_sequence(&a.seq, a.intrinsics.as_deref(), a.depth_factor)?;
+    let vocab = match &a.vocab {
+        Some(p) => Vocabulary::load(p)?,
+        None => default_vocabulary()?,
+    };
+    println!(
+        "vocabulary: k={} L={} {} words; camera fx={} fy={} cx={} cy={}; depth factor {}",
+        vocab.k(),
+        vocab.levels(),
+        vocab.num_words(),
+        seq.camera.fx,
+        seq.camera.fy,
+        seq.camera.cx,
+        seq.camera.cy,
+        seq.depth_factor
+    );
+    let mut params = LoopDetectorParams::default();
+    params.query.min_separation = a.min_separation;
+    params.query.min_normalised_score = a.min_score;
+    params.direct_index_depth = vocab.levels().saturating_sub(3).max(1);
+    let mut det = LoopDetector::new(vocab, params);
+    let idx: Vec<usize> = (0..seq.frames.len()).step_by(a.every.max(1)).collect();
+    let pb = progress(idx.len(), "keyframes");
+    let (mut t_desc, mut t_query) = (Vec::new(), Vec::new());
+    let mut loops: Vec<DetectedLoop> = Vec::new();
+    let mut stamps = Vec::new();
+    for &i in &idx {
+        let (ts, rgb, depth) = &seq.frames[i];
+        let intensity = load_intensity(rgb)?;
+        let inv = load_inverse_depth(depth, seq.depth_factor)?;
+        let t0 = Instant::now();
+        let desc = det.describe(&intensity, &inv, &seq.camera, &[])?;
+        let t1 = Instant::now();
+        let (_, found) = det.insert(desc)?;
+        let t2 = Instant::now();
+        t_desc.push((t1 - t0).as_secs_f64() * 1e3);
+        t_query.push((t2 - t1).as_secs_f64() * 1e3);
+        stamps.push(*ts);
+        if let Some(l) = found {
+            pb.suspend(|| print_loop(&l, &stamps));
+            loops.push(l);
+        }
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    println!(
+        "{} keyframes, {} verified loops; median ms per keyframe: ORB+BoW {:.1}, query+verification {:.2}",
+        idx.len(),
+        loops.len(),
+        median(&mut t_desc),
+        median(&mut t_query)
+    );
+    if let Some(gt_path) = &a.gt {
+        let gt = rgbid::io::trajectory::read_tum(gt_path)?;
+        evaluate(&a, &gt, &stamps, &loops);
+    }
+    Ok(())
+}
+
+fn print_loop(l: &DetectedLoop, stamps: &[f64]) {
+    let t = l.loop_match.query_from_candidate;
+    let q = t.rotation;
+    println!(
+        "loop {} ({:.3} s) -> {} ({:.3} s): score {:.3} (normalised {:.2}), inliers {}/{}, hull {:.0}%, rms {:.1} mm, \
+         query_from_candidate t=[{:.3} {:.3} {:.3}] q=[{:.4} {:.4} {:.4} {:.4}]",
+        l.query_id,
+        stamps[l.query_id],
+        l.candidate_id,
+        stamps[l.candidate_id],
+        l.candidate.score,
+        l.candidate.normalised_score,
+        l.loop_match.inliers.len(),
+        l.loop_match.matches_3d,
+        100.0 * l.loop_match.hull_fraction,
+        1e3 * l.loop_match.rms_residual,
+        t.translation.x,
+        t.translation.y,
+        t.translation.z,
+        q.x,
+        q.y,
+        q.z,
+        q.w
+    );
+}
+
+/// Precision / recall of loop detection against ground-truth revisits, and the relative-pose
+/// error of the verified loops.
+fn evaluate(a: &LoopsArgs, gt: &[rgbid::io::trajectory::TimedPose], stamps: &[f64], loops: &[DetectedLoop]) {
+    let poses: Vec<Option<Se3>> = stamps.iter().map(|&t| nearest_pose(gt, t)).collect();
+    let revisit = |i: usize, j: usize, scale: f64| -> bool {
+        match (poses[i], poses[j]) {
+            (Some(pi), Some(pj)) => {
+                let d = (pi.translation - pj.translation).length();
+                let zi = pi.rotation * glam::DVec3::Z;
+                let zj = pj.rotation * glam::DVec3::Z;
+                let ang = zi.dot(zj).clamp(-1.0, 1.0).acos().to_degrees();
+                d < a.gt_distance * scale && ang < a.gt_angle * scale
+            }
+            _ => false,
+        }
+    };
+    // Queries that have a true revisit among keyframes at least min_separation older.
+    let n = stamps.len();
+    let with_revisit: Vec<usize> =
+        (0..n).filter(|&i| (0..n).any(|j| j + a.min_separation <= i && revisit(i, j, 1.0))).collect();
+    // A detection is correct if its pair is a revisit under a 2x looser criterion (views
+    // that overlap but are slightly outside the strict one are not false positives).
+    let correct: Vec<&DetectedLoop> = loops.iter().filter(|l| revisit(l.query_id, l.candidate_id, 2.0)).collect();
+    let recalled = with_revisit.iter().filter(|&&i| correct.iter().any(|l| l.query_id == i)).count();
+    let (mut et, mut er) = (Vec::new(), Vec::new());
+    for l in loops {
+        if let (Some(pq), Some(pc)) = (poses[l.query_id], poses[l.candidate_id]) {
+            let truth = pq.inverse() * pc;
+            let d = truth.inverse() * l.loop_match.query_from_candidate;
+            et.push(d.translation.length());
+            er.push(d.angle().to_degrees());
+        }
+    }
+    println!(
+        "ground truth ({} poses): {} queries have a revisit (< {} m, < {} deg, >= {} keyframes apart)",
+        gt.len(),
+        with_revisit.len(),
+        a.gt_distance,
+        a.gt_angle,
+        a.min_separation
+    );
+    let precision = if loops.is_empty() { f64::NAN } else { correct.len() as f64 / loops.len() as f64 };
+    let recall = if with_revisit.is_empty() { f64::NAN } else { recalled as f64 / with_revisit.len() as f64 };
+    println!(
+        "precision {:.3} ({} / {} loops), recall {:.3} ({} / {} queries)",
+        precision,
+        correct.len(),
+        loops.len(),
+        recall,
+        recalled,
+        with_revisit.len()
+    );
+    if !et.is_empty() {
+        let max_t = et.iter().copied().fold(0.0, f64::max);
+        let max_r = er.iter().copied().fold(0.0, f64::max);
+        println!(
+            "relative-pose error of verified loops: median {:.1} mm / {:.2} deg, max {:.1} mm / {:.2} deg",
+            1e3 * median(&mut et),
+            median(&mut er),
+            1e3 * max_t,
+            max_r
+        );
+    }
+}
+
+fn bench(a: BenchArgs) -> Result<()> {
+    let img = load_intensity(&a.image)?;
+    let params = OrbParams { n_features: a.features, ..Default::default() };
+    let vocab = default_vocabulary()?;
+    let f = extract_orb(&img, None, &params)?;
+    let mut t_orb = Vec::new();
+    let mut t_bow = Vec::new();
+    for _ in 0..a.repeat.max(1) {
+        let t0 = Instant::now();
+        let f = extract_orb(&img, None, &params)?;
+        let t1 = Instant::now();
+        let _ = vocab.transform(&f.descriptors, 2);
+        t_orb.push((t1 - t0).as_secs_f64() * 1e3);
+        t_bow.push(t1.elapsed().as_secs_f64() * 1e3);
+    }
+    if let Some(path) = &a.dump {
+        let mut text = String::new();
+        for (k, d) in f.keypoints.iter().zip(f.descriptors.iter()) {
+            let hex: String = d.to_bytes().iter().map(|b| format!("{b:02x}")).collect();
+            text.push_str(&format!("{} {} {} {} {} {}\n", k.uv.x, k.uv.y, k.level, k.angle, k.score, hex));
+        }
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+    }
+    println!(
+        "{}x{}: {} keypoints; median ORB {:.2} ms, BoW ({} words) {:.2} ms, over {} runs on {} threads",
+        img.width,
+        img.height,
+        f.len(),
+        median(&mut t_orb),
+        vocab.num_words(),
+        median(&mut t_bow),
+        a.repeat.max(1),
+        rayon::current_num_threads()
+    );
+    Ok(())
+}

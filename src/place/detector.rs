@@ -1,0 +1,171 @@
+//! A loop detector over a stream of keyframes: ORB + BoW per keyframe, database query with
+//! normalised scores, and geometric verification of the best candidates.
+
+use super::database::{Candidate, KeyframeDatabase, QueryParams};
+use super::orb::{extract_orb, OrbFeatures, OrbParams};
+use super::verify::{verify_loop, LoopMatch, VerifyOutcome, VerifyParams};
+use super::vocabulary::{BowVector, FeatureVector, Vocabulary};
+use super::PlaceError;
+use crate::camera::PinholeCamera;
+use crate::image::ImageF32;
+
+/// Parameters of [`LoopDetector`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoopDetectorParams {
+    /// ORB extraction.
+    pub orb: OrbParams,
+    /// Database query.
+    pub query: QueryParams,
+    /// Geometric verification.
+    pub verify: VerifyParams,
+    /// Depth below the root of the direct-index nodes used for matching.
+    pub direct_index_depth: usize,
+    /// How many of the best candidates are verified geometrically.
+    pub max_verified: usize,
+}
+
+impl Default for LoopDetectorParams {
+    fn default() -> Self {
+        Self {
+            orb: OrbParams::default(),
+            query: QueryParams::default(),
+            verify: VerifyParams::default(),
+            direct_index_depth: 2,
+            max_verified: 3,
+        }
+    }
+}
+
+/// A keyframe's place-recognition description.
+#[derive(Clone, Debug)]
+pub struct KeyframeDescription {
+    /// ORB features lifted to 3D.
+    pub features: OrbFeatures,
+    /// BoW histograms: one per mask (all features when no mask was given).
+    pub bows: Vec<BowVector>,
+    /// Direct index of all features.
+    pub feature_vector: FeatureVector,
+}
+
+/// A verified loop.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DetectedLoop {
+    /// The query (newer) keyframe id.
+    pub query_id: usize,
+    /// The matched (older) keyframe id.
+    pub candidate_id: usize,
+    /// Database scores of the candidate.
+    pub candidate: Candidate,
+    /// Relative pose and inliers.
+    pub loop_match: LoopMatch,
+}
+
+/// Keeps the vocabulary, database and keyframe descriptions; keyframe ids are `0, 1, 2, ...`
+/// in insertion order.
+pub struct LoopDetector {
+    vocabulary: Vocabulary,
+    database: KeyframeDatabase,
+    keyframes: Vec<KeyframeDescription>,
+    /// Parameters (may be changed between keyframes).
+    pub params: LoopDetectorParams,
+}
+
+impl LoopDetector {
+    /// A detector with an empty database.
+    pub fn new(vocabulary: Vocabulary, params: LoopDetectorParams) -> Self {
+        let database = KeyframeDatabase::new(vocabulary.num_words(), vocabulary.scoring());
+        Self { vocabulary, database, keyframes: Vec::new(), params }
+    }
+
+    /// The vocabulary.
+    pub fn vocabulary(&self) -> &Vocabulary {
+        &self.vocabulary
+    }
+
+    /// Number of keyframes inserted.
+    pub fn len(&self) -> usize {
+        self.keyframes.len()
+    }
+
+    /// True when no keyframe was inserted.
+    pub fn is_empty(&self) -> bool {
+        self.keyframes.is_empty()
+    }
+
+    /// The description of keyframe `id`.
+    pub fn keyframe(&self, id: usize) -> Option<&KeyframeDescription> {
+        self.keyframes.get(id)
+    }
+
+    /// ORB (lifted with `inverse_depth`, 1/m) and BoW of one keyframe. Each mask (nonzero =
+    /// usable) gives one histogram of the features inside it.
+    pub fn describe(
+        &self,
+        intensity: &ImageF32,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+        masks: &[&ImageF32],
+    ) -> Result<KeyframeDescription, PlaceError> {
+        let mut features = extract_orb(intensity, None, &self.params.orb)?;
+        features.lift(inverse_depth, camera)?;
+        let (bow, feature_vector) = self.vocabulary.transform(&features.descriptors, self.params.direct_index_depth);
+        let mut bows = Vec::new();
+        if masks.is_empty() {
+            bows.push(bow);
+        } else {
+            for m in masks {
+                if m.width != intensity.width || m.height != intensity.height {
+                    return Err(PlaceError::SizeMismatch {
+                        what: "mask",
+                        got_w: m.width,
+                        got_h: m.height,
+                        want_w: intensity.width,
+                        want_h: intensity.height,
+                    });
+                }
+                let inside: Vec<_> = features
+                    .keypoints
+                    .iter()
+                    .zip(features.descriptors.iter())
+                    .filter(|(k, _)| {
+                        let x = (k.uv.x.round() as usize).min(m.width - 1);
+                        let y = (k.uv.y.round() as usize).min(m.height - 1);
+                        m.at(x, y) > 0.0
+                    })
+                    .map(|(_, d)| *d)
+                    .collect();
+                bows.push(self.vocabulary.transform(&inside, self.params.direct_index_depth).0);
+            }
+        }
+        Ok(KeyframeDescription { features, bows, feature_vector })
+    }
+
+    /// Queries the database with `desc`, verifies the best candidates, then inserts `desc`
+    /// as the next keyframe. Returns its id and the verified loop with most inliers, if any.
+    pub fn insert(&mut self, desc: KeyframeDescription) -> Result<(usize, Option<DetectedLoop>), PlaceError> {
+        let id = self.keyframes.len();
+        let mut found: Option<DetectedLoop> = None;
+        if id > 0 {
+            let reference = self.database.score_against(&desc.bows, id - 1)?;
+            let candidates = self.database.query(id, &desc.bows, reference, &self.params.query);
+            for c in candidates.into_iter().take(self.params.max_verified) {
+                let old = &self.keyframes[c.keyframe_id];
+                let outcome = verify_loop(
+                    &desc.features,
+                    &old.features,
+                    Some((&desc.feature_vector, &old.feature_vector)),
+                    &self.params.verify,
+                )?;
+                if let VerifyOutcome::Accepted(m) = outcome {
+                    let better = found.as_ref().is_none_or(|f| m.inliers.len() > f.loop_match.inliers.len());
+                    if better {
+                        found = Some(DetectedLoop { query_id: id, candidate_id: c.keyframe_id, candidate: c, loop_match: m });
+                    }
+                }
+            }
+        }
+        self.database.add(id, desc.bows.clone())?;
+        self.keyframes.push(desc);
+        Ok((id, found))
+    }
+}
