@@ -21,4 +21,5 @@ pub mod graph;
 pub mod image;
 pub mod io;
 pub mod odometry;
+pub mod segment;
 pub mod synth;

@@ -34,6 +34,8 @@ enum Command {
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
+    /// Superjut segmentation: segment images, neg-entropy images, masks and a feature CSV.
+    Segment(cli::segment::Args),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -57,6 +59,7 @@ fn run(command: Command) -> Result<()> {
         Command::Bench(c) => cli::bench::run(c),
         Command::Synth(a) => cli::synth::run(a),
         Command::Graph(c) => cli::graph::run(c),
+        Command::Segment(a) => cli::segment::run(a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

@@ -5,4 +5,5 @@ pub mod demo;
 pub mod eval;
 pub mod graph;
 pub mod odometry;
+pub mod segment;
 pub mod synth;

@@ -8,6 +8,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("common.wgsl", include_str!("../../shaders/common.wgsl")),
     ("pyramid.wgsl", include_str!("../../shaders/pyramid.wgsl")),
     ("odometry.wgsl", include_str!("../../shaders/odometry.wgsl")),
+    ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
 ];
 
 /// Returns the raw source of `name`.
