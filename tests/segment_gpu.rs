@@ -14,7 +14,9 @@ fn gpu() -> Option<std::sync::Arc<rgbid::gpu::GpuContext>> {
         if std::env::var("RGBID_REQUIRE_GPU").as_deref() == Ok("1") {
             panic!("RGBID_REQUIRE_GPU=1 but no GPU adapter was found");
         }
-        eprintln!("\n*** SKIPPED: no GPU adapter (set RGBID_REQUIRE_GPU=1 to make this a failure) ***\n");
+        eprintln!(
+            "\n*** SKIPPED: no GPU adapter (set RGBID_REQUIRE_GPU=1 to make this a failure) ***\n"
+        );
     }
     g
 }
@@ -26,7 +28,11 @@ fn scene(w: usize, h: usize, cam: &PinholeCamera, seed: u64) -> ImageF32 {
     let mut img = ImageF32::filled(w, h, 0.0);
     for v in 0..h {
         for u in 0..w {
-            let d = [(u as f64 - cam.cx) / cam.fx, (v as f64 - cam.cy) / cam.fy, 1.0];
+            let d = [
+                (u as f64 - cam.cx) / cam.fx,
+                (v as f64 - cam.cy) / cam.fy,
+                1.0,
+            ];
             // Wall 0.3 x + z = 3 -> z = 3 / (0.3 dx + 1).
             let mut z = 3.0 / (0.3 * d[0] + 1.0);
             let c = [0.1, -0.05, 1.4];
@@ -52,9 +58,19 @@ fn gpu_normals_match_the_cpu_mirror() {
     let Some(ctx) = gpu() else { return };
     let kernel = GpuNormals::new(ctx).unwrap();
     for (w, h, step) in [(160usize, 120usize, 1u32), (203, 97, 2), (640, 480, 2)] {
-        let cam = PinholeCamera::new(0.8 * w as f64, 0.8 * w as f64, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0, w as u32, h as u32);
+        let cam = PinholeCamera::new(
+            0.8 * w as f64,
+            0.8 * w as f64,
+            (w as f64 - 1.0) / 2.0,
+            (h as f64 - 1.0) / 2.0,
+            w as u32,
+            h as u32,
+        );
         let rho = scene(w, h, &cam, w as u64);
-        let params = NormalParams { step, jump_tolerance: 0.02 };
+        let params = NormalParams {
+            step,
+            jump_tolerance: 0.02,
+        };
         let cpu = normals_cpu(&rho, &cam, &params);
         let gpu = kernel.compute(&rho, &cam, &params).unwrap();
         assert_eq!((gpu.width, gpu.height), (w, h));
@@ -66,7 +82,9 @@ fn gpu_normals_match_the_cpu_mirror() {
                 valid_mismatch += 1;
                 continue;
             }
-            let e = (0..3).map(|k| (cpu.data[i][k] - gpu.data[i][k]).abs()).fold(0.0f32, f32::max);
+            let e = (0..3)
+                .map(|k| (cpu.data[i][k] - gpu.data[i][k]).abs())
+                .fold(0.0f32, f32::max);
             if e > 1e-3 {
                 // A near-tie in the discontinuity test can pick the other one-sided difference.
                 over += 1;
@@ -78,7 +96,10 @@ fn gpu_normals_match_the_cpu_mirror() {
         println!("{w}x{h} step {step}: {valid} valid normals, max |gpu-cpu| {max_err:.2e}, {over} over 1e-3, {valid_mismatch} validity mismatches");
         assert!(valid > w * h / 2);
         assert_eq!(valid_mismatch, 0);
-        assert!(over * 10_000 <= w * h, "{over} pixels differ by more than 1e-3");
+        assert!(
+            over * 10_000 <= w * h,
+            "{over} pixels differ by more than 1e-3"
+        );
         assert!(max_err < 1e-4, "max error {max_err}");
     }
 }

@@ -39,7 +39,9 @@ fn hit(p: &Prim, d: [f64; 3]) -> Option<f64> {
             let b = -2.0 * dot(d, *c);
             let cc = dot(*c, *c) - r * r;
             let disc = b * b - 4.0 * a * cc;
-            (disc >= 0.0).then(|| (-b - disc.sqrt()) / (2.0 * a)).filter(|t| *t > 0.0)
+            (disc >= 0.0)
+                .then(|| (-b - disc.sqrt()) / (2.0 * a))
+                .filter(|t| *t > 0.0)
         }
         Prim::Box(lo, hi) => {
             let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
@@ -66,9 +68,21 @@ fn render(scene: &[Prim], noise: f64, seed: u64) -> ImageF32 {
     let mut img = ImageF32::filled(W, H, 0.0);
     for v in 0..H {
         for u in 0..W {
-            let d = [(u as f64 - cam.cx) / cam.fx, (v as f64 - cam.cy) / cam.fy, 1.0];
-            if let Some(z) = scene.iter().filter_map(|p| hit(p, d)).min_by(f64::total_cmp) {
-                let n: f64 = if noise > 0.0 { rng.random_range(-1.0..1.0) * noise * 1.7320508 } else { 0.0 };
+            let d = [
+                (u as f64 - cam.cx) / cam.fx,
+                (v as f64 - cam.cy) / cam.fy,
+                1.0,
+            ];
+            if let Some(z) = scene
+                .iter()
+                .filter_map(|p| hit(p, d))
+                .min_by(f64::total_cmp)
+            {
+                let n: f64 = if noise > 0.0 {
+                    rng.random_range(-1.0..1.0) * noise * 1.7320508
+                } else {
+                    0.0
+                };
                 img.data[v * W + u] = (1.0 / (z * (1.0 + n))) as f32;
             }
         }
@@ -85,7 +99,13 @@ fn textured() -> ImageF32 {
 }
 
 fn run(scene: &[Prim]) -> Superjuts {
-    segment::segment_keyframe(&textured(), &render(scene, 0.0, 1), &camera(), &SegmentConfig::default()).unwrap()
+    segment::segment_keyframe(
+        &textured(),
+        &render(scene, 0.0, 1),
+        &camera(),
+        &SegmentConfig::default(),
+    )
+    .unwrap()
 }
 
 fn label_at(s: &Superjuts, u: usize, v: usize) -> u32 {
@@ -109,17 +129,26 @@ fn plane_is_one_segment_with_near_zero_entropy() {
     assert!(j.planarity > 0.999, "planarity {}", j.planarity);
     let pn = j.plane_normal;
     let a = 40f64.to_radians();
-    assert!((pn[1] + a.sin()).abs() < 1e-3 && (pn[2] + a.cos()).abs() < 1e-3, "plane normal {pn:?}");
+    assert!(
+        (pn[1] + a.sin()).abs() < 1e-3 && (pn[2] + a.cos()).abs() < 1e-3,
+        "plane normal {pn:?}"
+    );
 }
 
 #[test]
 fn noisy_plane_stays_one_dominant_low_entropy_segment() {
     // 0.3 % depth noise (uniform, std): about what a Kinect gives at 1 m.
     let rho = render(&[tilted_plane()], 0.003, 7);
-    let s = segment::segment_keyframe(&textured(), &rho, &camera(), &SegmentConfig::default()).unwrap();
+    let s =
+        segment::segment_keyframe(&textured(), &rho, &camera(), &SegmentConfig::default()).unwrap();
     let big = s.segments.iter().max_by_key(|j| j.size).unwrap();
     let valid = s.labels.iter().filter(|&&l| l != NO_SEGMENT).count();
-    println!("noisy plane: {} segments, largest {} of {valid}, neg-entropy {:.3}", s.segments.len(), big.size, big.neg_entropy);
+    println!(
+        "noisy plane: {} segments, largest {} of {valid}, neg-entropy {:.3}",
+        s.segments.len(),
+        big.size,
+        big.neg_entropy
+    );
     assert!(big.size as f64 > 0.9 * valid as f64);
     assert!(big.neg_entropy > 0.6, "neg-entropy {}", big.neg_entropy);
 }
@@ -131,9 +160,16 @@ fn sphere_has_high_entropy_and_the_wall_behind_low() {
     let s = run(&[wall, sphere]);
     let sj = &s.segments[label_at(&s, 80, 60) as usize];
     let wj = &s.segments[label_at(&s, 5, 5) as usize];
-    println!("sphere: H = {:.3} neg = {:.3} planarity {:.3}; wall: neg = {:.3}", sj.entropy, sj.neg_entropy, sj.planarity, wj.neg_entropy);
+    println!(
+        "sphere: H = {:.3} neg = {:.3} planarity {:.3}; wall: neg = {:.3}",
+        sj.entropy, sj.neg_entropy, sj.planarity, wj.neg_entropy
+    );
     assert_ne!(sj.label, wj.label);
-    assert!(sj.neg_entropy < 0.45, "sphere neg-entropy {}", sj.neg_entropy);
+    assert!(
+        sj.neg_entropy < 0.45,
+        "sphere neg-entropy {}",
+        sj.neg_entropy
+    );
     assert!(sj.entropy > 2.0, "sphere entropy {}", sj.entropy);
     assert!(wj.neg_entropy > 0.98, "wall neg-entropy {}", wj.neg_entropy);
     assert!(sj.planarity < 0.9 && wj.planarity > 0.999);
@@ -148,14 +184,22 @@ fn clutter_has_higher_entropy_than_the_wall() {
     let mut scene = vec![Prim::Plane([0.0, 0.0, -1.0], -3.0)];
     let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
     for _ in 0..14 {
-        let c = [rng.random_range(-0.4..0.4), rng.random_range(-0.3..0.3), rng.random_range(1.6..2.0)];
+        let c = [
+            rng.random_range(-0.4..0.4),
+            rng.random_range(-0.3..0.3),
+            rng.random_range(1.6..2.0),
+        ];
         scene.push(Prim::Sphere(c, rng.random_range(0.12..0.2)));
     }
     let s = run(&scene);
     let wall = &s.segments[label_at(&s, 2, 2) as usize];
     let clutter: Vec<_> = s.segments.iter().filter(|j| j.centroid[2] < 2.5).collect();
     let pixels: usize = clutter.iter().map(|j| j.size).sum();
-    let mean_neg = clutter.iter().map(|j| j.neg_entropy * j.size as f64).sum::<f64>() / pixels.max(1) as f64;
+    let mean_neg = clutter
+        .iter()
+        .map(|j| j.neg_entropy * j.size as f64)
+        .sum::<f64>()
+        / pixels.max(1) as f64;
     println!("clutter: {} segments over {pixels} px, size-weighted neg-entropy {mean_neg:.3}; wall {:.3}", clutter.len(), wall.neg_entropy);
     assert!(clutter.len() >= 3 && pixels > 2000);
     assert!(wall.neg_entropy > 0.95);
@@ -184,24 +228,46 @@ fn two_boxes_touching_at_a_concave_edge_split() {
     let lf = label_at(&s, front.x.round() as usize, front.y.round() as usize);
     let lt = label_at(&s, top.x.round() as usize, top.y.round() as usize);
     assert!(lf != NO_SEGMENT && lt != NO_SEGMENT);
-    assert_ne!(lf, lt, "small box front face and table top must be different superjuts");
+    assert_ne!(
+        lf, lt,
+        "small box front face and table top must be different superjuts"
+    );
     // Both faces are planar: near-zero entropy.
     for l in [lf, lt] {
-        assert!(s.segments[l as usize].neg_entropy > 0.9, "{:?}", s.segments[l as usize]);
+        assert!(
+            s.segments[l as usize].neg_entropy > 0.9,
+            "{:?}",
+            s.segments[l as usize]
+        );
     }
     // The table top is horizontal, the front face vertical.
-    assert!(s.segments[lt as usize].horizontality > 0.95, "{}", s.segments[lt as usize].horizontality);
-    assert!(s.segments[lf as usize].horizontality < 0.1, "{}", s.segments[lf as usize].horizontality);
+    assert!(
+        s.segments[lt as usize].horizontality > 0.95,
+        "{}",
+        s.segments[lt as usize].horizontality
+    );
+    assert!(
+        s.segments[lf as usize].horizontality < 0.1,
+        "{}",
+        s.segments[lf as usize].horizontality
+    );
 }
 
 #[test]
 fn segmentation_is_deterministic_across_thread_counts() {
     let rho = render(&two_boxes(), 0.003, 11);
     let cfg = SegmentConfig::default();
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-    let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let three = rayon::ThreadPoolBuilder::new()
+        .num_threads(3)
+        .build()
+        .unwrap();
     let a = one.install(|| segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap());
-    let b = three.install(|| segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap());
+    let b =
+        three.install(|| segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap());
     let c = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
     assert!(a.segments.len() > 2);
     assert_eq!(a.labels, b.labels);
@@ -245,12 +311,20 @@ fn mesh_normals_and_segmentation_match_the_image_path() {
     // Vertex normals on the table top point up (-y in the camera frame).
     let top = cam.project(glam::DVec3::new(0.0, 0.6, 1.6)).unwrap();
     let ti = top.y.round() as usize * W + top.x.round() as usize;
-    let v = m.pixel_of_vertex.iter().position(|&p| p as usize == ti).unwrap();
+    let v = m
+        .pixel_of_vertex
+        .iter()
+        .position(|&p| p as usize == ti)
+        .unwrap();
     assert!(m.normals[v][1] < -0.999, "{:?}", m.normals[v]);
     let (labels, segs) = segment::segment_mesh(&m, &SegmentConfig::default()).unwrap();
     let front = cam.project(glam::DVec3::new(0.0, 0.45, 2.0)).unwrap();
     let fi = front.y.round() as usize * W + front.x.round() as usize;
-    let vf = m.pixel_of_vertex.iter().position(|&p| p as usize == fi).unwrap();
+    let vf = m
+        .pixel_of_vertex
+        .iter()
+        .position(|&p| p as usize == fi)
+        .unwrap();
     assert_ne!(labels[v], labels[vf]);
     assert!(segs[labels[v] as usize].neg_entropy > 0.9);
     // Projecting the labelled mesh back into the image reproduces the vertex labels.
@@ -268,7 +342,14 @@ fn mesh_normals_and_segmentation_match_the_image_path() {
 
 #[test]
 fn point_cloud_triangulation_with_spade_segments_a_sphere_on_a_wall() {
-    let rho = render(&[Prim::Plane([0.0, 0.0, -1.0], -3.0), Prim::Sphere([0.0, 0.0, 1.5], 0.4)], 0.0, 1);
+    let rho = render(
+        &[
+            Prim::Plane([0.0, 0.0, -1.0], -3.0),
+            Prim::Sphere([0.0, 0.0, 1.5], 0.4),
+        ],
+        0.0,
+        1,
+    );
     // Subsample the points irregularly, as a point cloud would be.
     let pts: Vec<[f32; 3]> = segment::points_from_inverse_depth(&rho, &camera())
         .into_iter()
@@ -282,13 +363,25 @@ fn point_cloud_triangulation_with_spade_segments_a_sphere_on_a_wall() {
     cfg.min_size = 50;
     let (labels, segs) = segment::segment_mesh(&m, &cfg).unwrap();
     // The vertex nearest the image centre is on the sphere; a corner vertex on the wall.
-    let centre = (0..pts.len()).min_by(|&a, &b| {
-        let f = |p: [f32; 3]| (p[0] / p[2]).powi(2) + (p[1] / p[2]).powi(2);
-        f(pts[a]).total_cmp(&f(pts[b]))
-    }).unwrap();
-    let corner = (0..pts.len()).max_by(|&a, &b| (pts[a][0] + pts[a][1]).total_cmp(&(pts[b][0] + pts[b][1]))).unwrap();
-    let (s, w) = (&segs[labels[centre] as usize], &segs[labels[corner] as usize]);
-    println!("spade mesh: sphere neg {:.3}, wall neg {:.3}, {} segments", s.neg_entropy, w.neg_entropy, segs.len());
+    let centre = (0..pts.len())
+        .min_by(|&a, &b| {
+            let f = |p: [f32; 3]| (p[0] / p[2]).powi(2) + (p[1] / p[2]).powi(2);
+            f(pts[a]).total_cmp(&f(pts[b]))
+        })
+        .unwrap();
+    let corner = (0..pts.len())
+        .max_by(|&a, &b| (pts[a][0] + pts[a][1]).total_cmp(&(pts[b][0] + pts[b][1])))
+        .unwrap();
+    let (s, w) = (
+        &segs[labels[centre] as usize],
+        &segs[labels[corner] as usize],
+    );
+    println!(
+        "spade mesh: sphere neg {:.3}, wall neg {:.3}, {} segments",
+        s.neg_entropy,
+        w.neg_entropy,
+        segs.len()
+    );
     assert_ne!(labels[centre], labels[corner]);
     assert!(s.neg_entropy < 0.5 && w.neg_entropy > 0.9);
 }

@@ -39,7 +39,12 @@ pub struct Args {
     #[arg(long, default_value_t = 2)]
     pub normal_step: u32,
     /// Up direction in the camera frame for horizontality, `x,y,z` (normalised).
-    #[arg(long, value_delimiter = ',', default_value = "0,-1,0", allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0,-1,0",
+        allow_hyphen_values = true
+    )]
     pub up: Vec<f32>,
     /// Where the normal kernel runs.
     #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
@@ -57,17 +62,28 @@ fn parse_frames(spec: &str) -> Result<Vec<usize>> {
     for part in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
         if let Some((a, rest)) = part.split_once("..") {
             let (b, step) = match rest.split_once(':') {
-                Some((b, s)) => (b, s.parse::<usize>().with_context(|| format!("bad step in '{part}'"))?),
+                Some((b, s)) => (
+                    b,
+                    s.parse::<usize>()
+                        .with_context(|| format!("bad step in '{part}'"))?,
+                ),
                 None => (rest, 1),
             };
-            let a: usize = a.parse().with_context(|| format!("bad range start in '{part}'"))?;
-            let b: usize = b.parse().with_context(|| format!("bad range end in '{part}'"))?;
+            let a: usize = a
+                .parse()
+                .with_context(|| format!("bad range start in '{part}'"))?;
+            let b: usize = b
+                .parse()
+                .with_context(|| format!("bad range end in '{part}'"))?;
             if step == 0 {
                 bail!("step 0 in '{part}'");
             }
             out.extend((a..b).step_by(step));
         } else {
-            out.push(part.parse().with_context(|| format!("bad frame index '{part}'"))?);
+            out.push(
+                part.parse()
+                    .with_context(|| format!("bad frame index '{part}'"))?,
+            );
         }
     }
     Ok(out)
@@ -77,7 +93,8 @@ fn parse_frames(spec: &str) -> Result<Vec<usize>> {
 fn read_list(seq: &Path) -> Result<Vec<(f64, PathBuf, PathBuf)>> {
     let assoc = seq.join("associations.txt");
     let lines = |p: &Path| -> Result<Vec<Vec<String>>> {
-        let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        let text =
+            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
         Ok(text
             .lines()
             .map(str::trim)
@@ -89,9 +106,16 @@ fn read_list(seq: &Path) -> Result<Vec<(f64, PathBuf, PathBuf)>> {
         let mut out = Vec::new();
         for (n, f) in lines(&assoc)?.into_iter().enumerate() {
             if f.len() < 4 {
-                bail!("{}: line {} has {} fields, expected 4", assoc.display(), n + 1, f.len());
+                bail!(
+                    "{}: line {} has {} fields, expected 4",
+                    assoc.display(),
+                    n + 1,
+                    f.len()
+                );
             }
-            let t: f64 = f[0].parse().with_context(|| format!("{}: bad timestamp '{}'", assoc.display(), f[0]))?;
+            let t: f64 = f[0]
+                .parse()
+                .with_context(|| format!("{}: bad timestamp '{}'", assoc.display(), f[0]))?;
             out.push((t, seq.join(&f[1]), seq.join(&f[3])));
         }
         return Ok(out);
@@ -103,7 +127,11 @@ fn read_list(seq: &Path) -> Result<Vec<(f64, PathBuf, PathBuf)>> {
                 if f.len() < 2 {
                     bail!("{}: line with fewer than 2 fields", p.display());
                 }
-                Ok((f[0].parse::<f64>().with_context(|| format!("{}: bad timestamp", p.display()))?, f[1].clone()))
+                Ok((
+                    f[0].parse::<f64>()
+                        .with_context(|| format!("{}: bad timestamp", p.display()))?,
+                    f[1].clone(),
+                ))
             })
             .collect()
     };
@@ -115,24 +143,52 @@ fn read_list(seq: &Path) -> Result<Vec<(f64, PathBuf, PathBuf)>> {
     Ok(rgb
         .into_iter()
         .map(|(t, r)| {
-            let d = depth.iter().min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs())).map(|d| d.1.clone()).unwrap_or_default();
+            let d = depth
+                .iter()
+                .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+                .map(|d| d.1.clone())
+                .unwrap_or_default();
             (t, seq.join(r), seq.join(d))
         })
         .collect())
 }
 
 fn load_frame(rgb: &Path, depth: &Path, depth_factor: f64) -> Result<(ImageF32, ImageF32)> {
-    let c = image::open(rgb).with_context(|| format!("reading {}", rgb.display()))?.to_rgb8();
-    let d = image::open(depth).with_context(|| format!("reading {}", depth.display()))?.to_luma16();
+    let c = image::open(rgb)
+        .with_context(|| format!("reading {}", rgb.display()))?
+        .to_rgb8();
+    let d = image::open(depth)
+        .with_context(|| format!("reading {}", depth.display()))?
+        .to_luma16();
     if c.dimensions() != d.dimensions() {
         bail!("{} and {} differ in size", rgb.display(), depth.display());
     }
     let (w, h) = (c.width() as usize, c.height() as usize);
-    let intensity = c.pixels().map(|p| rgb_to_intensity(p[0], p[1], p[2])).collect();
-    let inv = d.pixels().map(|p| if p[0] == 0 { 0.0 } else { (depth_factor / f64::from(p[0])) as f32 }).collect();
+    let intensity = c
+        .pixels()
+        .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+        .collect();
+    let inv = d
+        .pixels()
+        .map(|p| {
+            if p[0] == 0 {
+                0.0
+            } else {
+                (depth_factor / f64::from(p[0])) as f32
+            }
+        })
+        .collect();
     Ok((
-        ImageF32 { width: w, height: h, data: intensity },
-        ImageF32 { width: w, height: h, data: inv },
+        ImageF32 {
+            width: w,
+            height: h,
+            data: intensity,
+        },
+        ImageF32 {
+            width: w,
+            height: h,
+            data: inv,
+        },
     ))
 }
 
@@ -151,11 +207,18 @@ pub fn run(args: Args) -> Result<()> {
         bail!("--frames selects no frame");
     }
     if let Some(&bad) = frames.iter().find(|&&f| f >= list.len()) {
-        bail!("frame {bad} out of range: the sequence has {} frames", list.len());
+        bail!(
+            "frame {bad} out of range: the sequence has {} frames",
+            list.len()
+        );
     }
     let calib: Option<Vec<f64>> = std::fs::read_to_string(args.seq.join("calib.txt"))
         .ok()
-        .map(|t| t.split_whitespace().filter_map(|v| v.parse().ok()).collect());
+        .map(|t| {
+            t.split_whitespace()
+                .filter_map(|v| v.parse().ok())
+                .collect()
+        });
     let (k4, factor) = match (&args.intrinsics, &calib) {
         (Some(k), _) if k.len() == 4 => ([k[0], k[1], k[2], k[3]], None),
         (Some(_), _) => bail!("--intrinsics needs 4 values fx,fy,cx,cy"),
@@ -173,7 +236,11 @@ pub fn run(args: Args) -> Result<()> {
     if !(ul > 0.0) {
         bail!("--up must be non-zero");
     }
-    let mut cfg = SegmentConfig { k: args.k, min_size: args.min_size, ..SegmentConfig::default() };
+    let mut cfg = SegmentConfig {
+        k: args.k,
+        min_size: args.min_size,
+        ..SegmentConfig::default()
+    };
     cfg.normals.step = args.normal_step;
     cfg.up = [args.up[0] / ul, args.up[1] / ul, args.up[2] / ul];
     cfg.validate()?;
@@ -183,9 +250,13 @@ pub fn run(args: Args) -> Result<()> {
         ComputeBackend::Gpu(ctx) => Some(GpuNormals::new(ctx.clone())?),
         ComputeBackend::Cpu => None,
     };
-    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
     let csv_path = args.out.join("superjuts.csv");
-    let mut csv = std::io::BufWriter::new(std::fs::File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?);
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path)
+            .with_context(|| format!("creating {}", csv_path.display()))?,
+    );
     writeln!(
         csv,
         "frame,timestamp,label,size,entropy,neg_entropy,planarity,horizontality,texture,texture_samples,centroid_x,centroid_y,centroid_z,normal_x,normal_y,normal_z"
@@ -195,7 +266,14 @@ pub fn run(args: Args) -> Result<()> {
     for &f in &frames {
         let (t, rgb, depth) = &list[f];
         let (intensity, inv) = load_frame(rgb, depth, depth_factor)?;
-        let cam = PinholeCamera::new(k4[0], k4[1], k4[2], k4[3], inv.width as u32, inv.height as u32);
+        let cam = PinholeCamera::new(
+            k4[0],
+            k4[1],
+            k4[2],
+            k4[3],
+            inv.width as u32,
+            inv.height as u32,
+        );
         let t0 = Instant::now();
         let juts = match &gpu {
             Some(g) => {
@@ -210,11 +288,27 @@ pub fn run(args: Args) -> Result<()> {
         image::RgbImage::from_raw(w as u32, h as u32, juts.colour_image())
             .context("image buffer size")?
             .save(args.out.join(format!("{stem}_segments.png")))?;
-        let ne = juts.neg_entropy_image().data.iter().map(|v| if v.is_nan() { 0 } else { (v * 255.0).round() as u8 }).collect();
+        let ne = juts
+            .neg_entropy_image()
+            .data
+            .iter()
+            .map(|v| {
+                if v.is_nan() {
+                    0
+                } else {
+                    (v * 255.0).round() as u8
+                }
+            })
+            .collect();
         save_gray(&args.out.join(format!("{stem}_negentropy.png")), w, h, ne)?;
         for &th in &args.thresholds {
             let m = juts.mask(th);
-            save_gray(&args.out.join(format!("{stem}_mask_{th:.2}.png")), w, h, m.data)?;
+            save_gray(
+                &args.out.join(format!("{stem}_mask_{th:.2}.png")),
+                w,
+                h,
+                m.data,
+            )?;
         }
         for s in &juts.segments {
             writeln!(
@@ -257,7 +351,10 @@ mod tests {
 
     #[test]
     fn frame_specs() {
-        assert_eq!(parse_frames("0,3,10..16:2").unwrap(), vec![0, 3, 10, 12, 14]);
+        assert_eq!(
+            parse_frames("0,3,10..16:2").unwrap(),
+            vec![0, 3, 10, 12, 14]
+        );
         assert!(parse_frames("1..5:0").is_err());
         assert!(parse_frames("x").is_err());
     }

@@ -50,7 +50,11 @@ impl SphereBins {
             max_radius = max_radius.max(best.clamp(-1.0, 1.0).acos());
         }
         let sorted = points.windows(2).all(|w| w[0][2] >= w[1][2]);
-        let max_radius = if sorted { (max_radius * 1.5 + 0.02).min(std::f32::consts::PI) } else { std::f32::consts::PI };
+        let max_radius = if sorted {
+            (max_radius * 1.5 + 0.02).min(std::f32::consts::PI)
+        } else {
+            std::f32::consts::PI
+        };
         Self { points, max_radius }
     }
 
@@ -83,7 +87,10 @@ impl SphereBins {
         let (k0, k1) = if self.max_radius >= std::f32::consts::PI {
             (0, m)
         } else {
-            ((kf(zhi).floor().max(0.0) as usize).min(m), ((kf(zlo).ceil() + 1.0).max(0.0) as usize).min(m))
+            (
+                (kf(zhi).floor().max(0.0) as usize).min(m),
+                ((kf(zlo).ceil() + 1.0).max(0.0) as usize).min(m),
+            )
         };
         let mut best = 0usize;
         let mut best_d = f32::NEG_INFINITY;
@@ -120,10 +127,13 @@ pub fn entropy(hist: &[u32]) -> f64 {
         return 0.0;
     }
     let t = total as f64;
-    hist.iter().filter(|&&c| c > 0).map(|&c| {
-        let p = f64::from(c) / t;
-        -p * p.ln()
-    }).sum()
+    hist.iter()
+        .filter(|&&c| c > 0)
+        .map(|&c| {
+            let p = f64::from(c) / t;
+            -p * p.ln()
+        })
+        .sum()
 }
 
 /// Normalised neg-entropy `1 - H / ln M` in `[0, 1]`: 1 for all normals in one bin (a
@@ -141,7 +151,12 @@ pub fn neg_entropy(hist: &[u32]) -> f64 {
 /// `stride`-th pixel, the response is the mean of the singular values `sigma_l..sigma_w`
 /// (sorted decreasing, 1-based `l = first`): large on fine texture, near zero on smooth
 /// regions. Returned as `(x, y, response)` samples (intensity units).
-pub fn eigen_transform_samples(intensity: &ImageF32, window: usize, first: usize, stride: usize) -> Vec<(u32, u32, f32)> {
+pub fn eigen_transform_samples(
+    intensity: &ImageF32,
+    window: usize,
+    first: usize,
+    stride: usize,
+) -> Vec<(u32, u32, f32)> {
     const W: usize = 8;
     let (w, h) = (intensity.width, intensity.height);
     let window = window.clamp(2, W);
@@ -171,7 +186,11 @@ pub fn eigen_transform_samples(intensity: &ImageF32, window: usize, first: usize
                 ev.sort_by(|p, q| q.total_cmp(p));
                 let ev = &ev[..window];
                 let s: f64 = ev[first - 1..].iter().map(|&l| l.max(0.0).sqrt()).sum();
-                out.push((x as u32, cy as u32, (s / (window - first + 1) as f64) as f32));
+                out.push((
+                    x as u32,
+                    cy as u32,
+                    (s / (window - first + 1) as f64) as f32,
+                ));
                 x += stride;
             }
             out
@@ -220,7 +239,14 @@ struct Acc {
 
 impl Acc {
     fn new() -> Self {
-        Self { count: 0, sum: [0.0; 3], outer: [0.0; 6], horiz: 0.0, tex: 0.0, tex_n: 0 }
+        Self {
+            count: 0,
+            sum: [0.0; 3],
+            outer: [0.0; 6],
+            horiz: 0.0,
+            tex: 0.0,
+            tex_n: 0,
+        }
     }
     fn merge(&mut self, o: &Acc) {
         self.count += o.count;
@@ -326,7 +352,11 @@ pub fn superjut_features(
             idx.sort_by(|&p, &q| eig.eigenvalues[p].total_cmp(&eig.eigenvalues[q]));
             let l0 = eig.eigenvalues[idx[0]].max(0.0);
             let l1 = eig.eigenvalues[idx[1]].max(0.0);
-            let planarity = if a.count >= 3 && l1 > 0.0 { (1.0 - l0 / l1).clamp(0.0, 1.0) } else { 0.0 };
+            let planarity = if a.count >= 3 && l1 > 0.0 {
+                (1.0 - l0 / l1).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             let mut pn: Vector3<f64> = eig.eigenvectors.column(idx[0]).into_owned();
             if pn.dot(&Vector3::new(c[0], c[1], c[2])) > 0.0 {
                 pn = -pn;
@@ -339,7 +369,11 @@ pub fn superjut_features(
                 histogram,
                 planarity,
                 horizontality: a.horiz / n,
-                texture: if a.tex_n > 0 { a.tex / a.tex_n as f64 } else { 0.0 },
+                texture: if a.tex_n > 0 {
+                    a.tex / a.tex_n as f64
+                } else {
+                    0.0
+                },
                 texture_samples: a.tex_n,
                 centroid: c,
                 plane_normal: [pn.x, pn.y, pn.z],
@@ -357,7 +391,9 @@ mod tests {
         let bins = SphereBins::golden(80);
         let probe = golden_spiral(5000);
         for q in probe {
-            let brute = (0..80).max_by(|&a, &b| dot(bins.points[a], q).total_cmp(&dot(bins.points[b], q))).unwrap();
+            let brute = (0..80)
+                .max_by(|&a, &b| dot(bins.points[a], q).total_cmp(&dot(bins.points[b], q)))
+                .unwrap();
             let got = bins.bin(q);
             let (db, dg) = (dot(bins.points[brute], q), dot(bins.points[got], q));
             assert!((db - dg).abs() < 1e-6, "{q:?}: {brute} vs {got}");
@@ -384,7 +420,10 @@ mod tests {
             s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             *v = (s >> 24) as f32;
         }
-        let f: f32 = eigen_transform_samples(&flat, 8, 5, 4).iter().map(|s| s.2).sum();
+        let f: f32 = eigen_transform_samples(&flat, 8, 5, 4)
+            .iter()
+            .map(|s| s.2)
+            .sum();
         let t = eigen_transform_samples(&tex, 8, 5, 4);
         assert!(!t.is_empty());
         let tm: f32 = t.iter().map(|s| s.2).sum::<f32>() / t.len() as f32;

@@ -32,12 +32,15 @@ pub struct GpuNormals {
 impl GpuNormals {
     /// Compiles `normals.wgsl` on `ctx`.
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, SegmentError> {
-        let src = shaders::assembled("normals.wgsl")
-            .ok_or_else(|| GpuError::Shader { name: "normals.wgsl".into(), message: "not embedded".into() })?;
+        let src = shaders::assembled("normals.wgsl").ok_or_else(|| GpuError::Shader {
+            name: "normals.wgsl".into(),
+            message: "not embedded".into(),
+        })?;
         let mut pipes = ctx.compute_pipelines("normals.wgsl", &src, &["image_normals"])?;
-        let pipeline = pipes
-            .pop()
-            .ok_or_else(|| GpuError::Shader { name: "normals.wgsl".into(), message: "no pipeline".into() })?;
+        let pipeline = pipes.pop().ok_or_else(|| GpuError::Shader {
+            name: "normals.wgsl".into(),
+            message: "no pipeline".into(),
+        })?;
         Ok(Self { ctx, pipeline })
     }
 
@@ -51,7 +54,11 @@ impl GpuNormals {
     ) -> Result<NormalMap, SegmentError> {
         let (w, h) = (inverse_depth.width, inverse_depth.height);
         if w == 0 || h == 0 {
-            return Ok(NormalMap { width: w, height: h, data: Vec::new() });
+            return Ok(NormalMap {
+                width: w,
+                height: h,
+                data: Vec::new(),
+            });
         }
         let ctx = &self.ctx;
         let [fx, fy, cx, cy] = cam_f32(camera);
@@ -76,21 +83,50 @@ impl GpuNormals {
             label: Some("normals"),
             layout: &layout,
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: ubuf.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: input.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: out.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: ubuf.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: input.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: out.as_entire_binding(),
+                },
             ],
         });
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("normals") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("normals"),
+            });
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("normals"), timestamp_writes: None });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("normals"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups((w as u32).div_ceil(16), (h as u32).div_ceil(16), 1);
         }
         ctx.queue.submit([enc.finish()]);
         let raw: Vec<[f32; 4]> = ctx.read_buffer(&out, w * h)?;
-        let data = raw.into_iter().map(|v| if v[3] > 0.0 { [v[0], v[1], v[2]] } else { [0.0; 3] }).collect();
-        Ok(NormalMap { width: w, height: h, data })
+        let data = raw
+            .into_iter()
+            .map(|v| {
+                if v[3] > 0.0 {
+                    [v[0], v[1], v[2]]
+                } else {
+                    [0.0; 3]
+                }
+            })
+            .collect();
+        Ok(NormalMap {
+            width: w,
+            height: h,
+            data,
+        })
     }
 }

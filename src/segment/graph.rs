@@ -46,7 +46,11 @@ struct UnionFind {
 
 impl UnionFind {
     fn new(n: usize, k: f32) -> Self {
-        Self { parent: (0..n as u32).collect(), size: vec![1; n], thresh: vec![k; n] }
+        Self {
+            parent: (0..n as u32).collect(),
+            size: vec![1; n],
+            thresh: vec![k; n],
+        }
     }
     #[inline]
     fn find(&mut self, mut x: u32) -> u32 {
@@ -60,7 +64,11 @@ impl UnionFind {
     }
     #[inline]
     fn union(&mut self, a: u32, b: u32) -> u32 {
-        let (big, small) = if self.size[a as usize] >= self.size[b as usize] { (a, b) } else { (b, a) };
+        let (big, small) = if self.size[a as usize] >= self.size[b as usize] {
+            (a, b)
+        } else {
+            (b, a)
+        };
         self.parent[small as usize] = big;
         self.size[big as usize] += self.size[small as usize];
         big
@@ -82,7 +90,13 @@ pub fn sort_edges(edges: &mut [Edge]) {
 /// marks vertices that belong to no segment (they get [`NO_SEGMENT`]).
 ///
 /// Returns one label per vertex, numbered `0..count` in order of first appearance, and `count`.
-pub fn felzenszwalb(n: usize, edges: &[Edge], k: f32, min_size: usize, active: &[bool]) -> (Vec<u32>, usize) {
+pub fn felzenszwalb(
+    n: usize,
+    edges: &[Edge],
+    k: f32,
+    min_size: usize,
+    active: &[bool],
+) -> (Vec<u32>, usize) {
     let mut uf = UnionFind::new(n, k);
     for e in edges {
         let a = uf.find(e.a);
@@ -96,7 +110,10 @@ pub fn felzenszwalb(n: usize, edges: &[Edge], k: f32, min_size: usize, active: &
         for e in edges {
             let a = uf.find(e.a);
             let b = uf.find(e.b);
-            if a != b && ((uf.size[a as usize] as usize) < min_size || (uf.size[b as usize] as usize) < min_size) {
+            if a != b
+                && ((uf.size[a as usize] as usize) < min_size
+                    || (uf.size[b as usize] as usize) < min_size)
+            {
                 uf.union(a, b);
             }
         }
@@ -152,7 +169,11 @@ pub fn image_edges(
                     } else {
                         convexity_weight(points[i], normals[i], points[j], normals[j])
                     };
-                    out.push(Edge { w, a: i as u32, b: j as u32 });
+                    out.push(Edge {
+                        w,
+                        a: i as u32,
+                        b: j as u32,
+                    });
                 };
                 if x + 1 < width {
                     push(i + 1, 1.0);

@@ -29,7 +29,11 @@ fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 fn norm(a: [f32; 3]) -> f32 {
     (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
@@ -48,7 +52,11 @@ impl TriMesh {
                 continue;
             }
             let to_view = sub(viewpoint, a);
-            let s = if n[0] * to_view[0] + n[1] * to_view[1] + n[2] * to_view[2] < 0.0 { -1.0 / l } else { 1.0 / l };
+            let s = if n[0] * to_view[0] + n[1] * to_view[1] + n[2] * to_view[2] < 0.0 {
+                -1.0 / l
+            } else {
+                1.0 / l
+            };
             n = n.map(|v| v * s);
             for &i in t {
                 let e = &mut acc[i as usize];
@@ -88,8 +96,12 @@ impl TriMesh {
         self.edges()
             .into_iter()
             .filter_map(|(a, b)| {
-                let (na, nb) = (*self.normals.get(a as usize)?, *self.normals.get(b as usize)?);
-                let w = convexity_weight(self.vertices[a as usize], na, self.vertices[b as usize], nb);
+                let (na, nb) = (
+                    *self.normals.get(a as usize)?,
+                    *self.normals.get(b as usize)?,
+                );
+                let w =
+                    convexity_weight(self.vertices[a as usize], na, self.vertices[b as usize], nb);
                 Some(Edge { w, a, b })
             })
             .collect()
@@ -100,7 +112,11 @@ impl TriMesh {
 /// (camera frame), two triangles per 2x2 block whose four pixels are valid and whose inverse
 /// depths differ by at most `max_jump` of the largest (relative), so depth discontinuities
 /// are not bridged. Vertex normals are computed facing the camera.
-pub fn triangulate_depth(inverse_depth: &ImageF32, camera: &PinholeCamera, max_jump: f32) -> TriMesh {
+pub fn triangulate_depth(
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    max_jump: f32,
+) -> TriMesh {
     let (w, h) = (inverse_depth.width, inverse_depth.height);
     let points = super::normals::points_from_inverse_depth(inverse_depth, camera);
     let mut index = vec![u32::MAX; w * h];
@@ -115,12 +131,19 @@ pub fn triangulate_depth(inverse_depth: &ImageF32, camera: &PinholeCamera, max_j
     }
     for y in 0..h.saturating_sub(1) {
         for x in 0..w.saturating_sub(1) {
-            let q = [y * w + x, y * w + x + 1, (y + 1) * w + x, (y + 1) * w + x + 1];
+            let q = [
+                y * w + x,
+                y * w + x + 1,
+                (y + 1) * w + x,
+                (y + 1) * w + x + 1,
+            ];
             if q.iter().any(|&i| index[i] == u32::MAX) {
                 continue;
             }
             let r = q.map(|i| inverse_depth.data[i]);
-            let (lo, hi) = r.iter().fold((f32::MAX, 0.0f32), |(l, hh), &v| (l.min(v), hh.max(v)));
+            let (lo, hi) = r
+                .iter()
+                .fold((f32::MAX, 0.0f32), |(l, hh), &v| (l.min(v), hh.max(v)));
             if hi - lo > max_jump * hi {
                 continue;
             }
@@ -151,7 +174,10 @@ impl HasPosition for Projected {
 /// `max_edge_ratio` times the triangle's mean depth are dropped (they bridge gaps between
 /// surfaces). Vertex normals are computed facing the camera. Points behind the camera stay
 /// in `vertices` without triangles.
-pub fn triangulate_points(points: &[[f32; 3]], max_edge_ratio: f32) -> Result<TriMesh, SegmentError> {
+pub fn triangulate_points(
+    points: &[[f32; 3]],
+    max_edge_ratio: f32,
+) -> Result<TriMesh, SegmentError> {
     let proj: Vec<Projected> = points
         .iter()
         .enumerate()
@@ -161,14 +187,19 @@ pub fn triangulate_points(points: &[[f32; 3]], max_edge_ratio: f32) -> Result<Tr
             idx: i as u32,
         })
         .collect();
-    let tri: DelaunayTriangulation<Projected> =
-        DelaunayTriangulation::bulk_load(proj).map_err(|e| SegmentError::Triangulation(format!("{e:?}")))?;
-    let mut mesh = TriMesh { vertices: points.to_vec(), ..TriMesh::default() };
+    let tri: DelaunayTriangulation<Projected> = DelaunayTriangulation::bulk_load(proj)
+        .map_err(|e| SegmentError::Triangulation(format!("{e:?}")))?;
+    let mut mesh = TriMesh {
+        vertices: points.to_vec(),
+        ..TriMesh::default()
+    };
     for f in tri.inner_faces() {
         let v = f.vertices().map(|v| v.data().idx);
         let p = v.map(|i| points[i as usize]);
         let mean_z = (p[0][2] + p[1][2] + p[2][2]) / 3.0;
-        let longest = norm(sub(p[0], p[1])).max(norm(sub(p[1], p[2]))).max(norm(sub(p[2], p[0])));
+        let longest = norm(sub(p[0], p[1]))
+            .max(norm(sub(p[1], p[2])))
+            .max(norm(sub(p[2], p[0])));
         if longest <= max_edge_ratio * mean_z {
             mesh.triangles.push(v);
         }
@@ -181,7 +212,12 @@ pub fn triangulate_points(points: &[[f32; 3]], max_edge_ratio: f32) -> Result<Tr
 /// by a triangle gets the label of the triangle's vertex with the largest barycentric weight
 /// (`NO_SEGMENT` where nothing is visible). `camera_from_mesh` maps mesh points into the
 /// camera frame.
-pub fn project_labels(mesh: &TriMesh, labels: &[u32], camera: &PinholeCamera, camera_from_mesh: &Se3) -> Vec<u32> {
+pub fn project_labels(
+    mesh: &TriMesh,
+    labels: &[u32],
+    camera: &PinholeCamera,
+    camera_from_mesh: &Se3,
+) -> Vec<u32> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut out = vec![NO_SEGMENT; w * h];
     let mut zbuf = vec![f64::INFINITY; w * h];
@@ -189,12 +225,17 @@ pub fn project_labels(mesh: &TriMesh, labels: &[u32], camera: &PinholeCamera, ca
         .vertices
         .iter()
         .map(|p| {
-            let q = *camera_from_mesh * glam::DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let q = *camera_from_mesh
+                * glam::DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
             camera.project(q).map(|uv| (uv.x, uv.y, q.z))
         })
         .collect();
     for t in &mesh.triangles {
-        let (Some(a), Some(b), Some(c)) = (cam_pts[t[0] as usize], cam_pts[t[1] as usize], cam_pts[t[2] as usize]) else {
+        let (Some(a), Some(b), Some(c)) = (
+            cam_pts[t[0] as usize],
+            cam_pts[t[1] as usize],
+            cam_pts[t[2] as usize],
+        ) else {
             continue;
         };
         let area = (b.0 - a.0) * (c.1 - a.1) - (c.0 - a.0) * (b.1 - a.1);

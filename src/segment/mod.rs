@@ -122,22 +122,40 @@ impl SegmentConfig {
     /// Checks the parameters.
     pub fn validate(&self) -> Result<(), SegmentError> {
         if !(self.k.is_finite() && self.k > 0.0) {
-            return Err(SegmentError::InvalidConfig { name: "k", why: "must be finite and > 0" });
+            return Err(SegmentError::InvalidConfig {
+                name: "k",
+                why: "must be finite and > 0",
+            });
         }
         if self.bins < 2 {
-            return Err(SegmentError::InvalidConfig { name: "bins", why: "must be >= 2" });
+            return Err(SegmentError::InvalidConfig {
+                name: "bins",
+                why: "must be >= 2",
+            });
         }
         if !(self.jump_ratio.is_finite() && self.jump_ratio > 0.0) {
-            return Err(SegmentError::InvalidConfig { name: "jump_ratio", why: "must be finite and > 0" });
+            return Err(SegmentError::InvalidConfig {
+                name: "jump_ratio",
+                why: "must be finite and > 0",
+            });
         }
         if !(self.normals.jump_tolerance.is_finite() && self.normals.jump_tolerance >= 0.0) {
-            return Err(SegmentError::InvalidConfig { name: "normals.jump_tolerance", why: "must be finite and >= 0" });
+            return Err(SegmentError::InvalidConfig {
+                name: "normals.jump_tolerance",
+                why: "must be finite and >= 0",
+            });
         }
         let ul = self.up.iter().map(|v| v * v).sum::<f32>().sqrt();
         if !((ul - 1.0).abs() < 1e-3) {
-            return Err(SegmentError::InvalidConfig { name: "up", why: "must be a unit vector" });
+            return Err(SegmentError::InvalidConfig {
+                name: "up",
+                why: "must be a unit vector",
+            });
         }
-        if !(2..=8).contains(&self.texture_window) || self.texture_first == 0 || self.texture_first > self.texture_window {
+        if !(2..=8).contains(&self.texture_window)
+            || self.texture_first == 0
+            || self.texture_first > self.texture_window
+        {
             return Err(SegmentError::InvalidConfig {
                 name: "texture_window/texture_first",
                 why: "need 2 <= window <= 8 and 1 <= first <= window",
@@ -194,9 +212,17 @@ impl Superjuts {
         let data = self
             .labels
             .iter()
-            .map(|&l| self.segments.get(l as usize).map_or(f32::NAN, |s| s.neg_entropy as f32))
+            .map(|&l| {
+                self.segments
+                    .get(l as usize)
+                    .map_or(f32::NAN, |s| s.neg_entropy as f32)
+            })
             .collect();
-        ImageF32 { width: self.width, height: self.height, data }
+        ImageF32 {
+            width: self.width,
+            height: self.height,
+            data,
+        }
     }
 
     /// Mask keeping pixels whose superjut has neg-entropy `>= threshold`.
@@ -209,7 +235,11 @@ impl Superjuts {
                 _ => 0,
             })
             .collect();
-        Mask { width: self.width, height: self.height, data }
+        Mask {
+            width: self.width,
+            height: self.height,
+            data,
+        }
     }
 
     /// One mask per threshold.
@@ -237,12 +267,22 @@ pub fn label_colour(label: u32) -> [u8; 3] {
     h ^= h >> 15;
     h = h.wrapping_mul(0x2c1b_3c6d);
     h ^= h >> 12;
-    [(64 + (h & 0xbf)) as u8, (64 + ((h >> 8) & 0xbf)) as u8, (64 + ((h >> 16) & 0xbf)) as u8]
+    [
+        (64 + (h & 0xbf)) as u8,
+        (64 + ((h >> 8) & 0xbf)) as u8,
+        (64 + ((h >> 16) & 0xbf)) as u8,
+    ]
 }
 
 fn check_size(what: &'static str, img: &ImageF32, w: usize, h: usize) -> Result<(), SegmentError> {
     if img.width != w || img.height != h || img.data.len() != w * h {
-        return Err(SegmentError::SizeMismatch { what, expected_w: w, expected_h: h, got_w: img.width, got_h: img.height });
+        return Err(SegmentError::SizeMismatch {
+            what,
+            expected_w: w,
+            expected_h: h,
+            got_w: img.width,
+            got_h: img.height,
+        });
     }
     Ok(())
 }
@@ -255,7 +295,12 @@ pub fn segment_keyframe(
     config: &SegmentConfig,
 ) -> Result<Superjuts, SegmentError> {
     camera.validate()?;
-    check_size("inverse depth", inverse_depth, camera.width as usize, camera.height as usize)?;
+    check_size(
+        "inverse depth",
+        inverse_depth,
+        camera.width as usize,
+        camera.height as usize,
+    )?;
     let normals = normals_cpu(inverse_depth, camera, &config.normals);
     segment_with_normals(intensity, inverse_depth, camera, normals, config)
 }
@@ -283,33 +328,79 @@ pub fn segment_with_normals(
         });
     }
     let points = points_from_inverse_depth(inverse_depth, camera);
-    let mut edges = graph::image_edges(w, h, &points, &normals.data, &inverse_depth.data, config.jump_ratio);
+    let mut edges = graph::image_edges(
+        w,
+        h,
+        &points,
+        &normals.data,
+        &inverse_depth.data,
+        config.jump_ratio,
+    );
     graph::sort_edges(&mut edges);
     let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
     let (labels, count) = graph::felzenszwalb(w * h, &edges, config.k, config.min_size, &active);
     let bins = SphereBins::golden(config.bins);
-    let texture: Vec<(usize, f32)> =
-        features::eigen_transform_samples(intensity, config.texture_window, config.texture_first, config.texture_stride)
-            .into_iter()
-            .map(|(x, y, r)| (y as usize * w + x as usize, r))
-            .collect();
-    let segments = features::superjut_features(&labels, &normals.data, &points, count, &bins, config.up, &texture);
-    Ok(Superjuts { width: w, height: h, labels, segments, normals })
+    let texture: Vec<(usize, f32)> = features::eigen_transform_samples(
+        intensity,
+        config.texture_window,
+        config.texture_first,
+        config.texture_stride,
+    )
+    .into_iter()
+    .map(|(x, y, r)| (y as usize * w + x as usize, r))
+    .collect();
+    let segments = features::superjut_features(
+        &labels,
+        &normals.data,
+        &points,
+        count,
+        &bins,
+        config.up,
+        &texture,
+    );
+    Ok(Superjuts {
+        width: w,
+        height: h,
+        labels,
+        segments,
+        normals,
+    })
 }
 
 /// Segments a triangle mesh (with vertex normals) by its edges; returns per-vertex labels and
 /// the features of each segment (no texture: meshes carry no intensity).
-pub fn segment_mesh(mesh: &TriMesh, config: &SegmentConfig) -> Result<(Vec<u32>, Vec<Superjut>), SegmentError> {
+pub fn segment_mesh(
+    mesh: &TriMesh,
+    config: &SegmentConfig,
+) -> Result<(Vec<u32>, Vec<Superjut>), SegmentError> {
     config.validate()?;
     let n = mesh.vertices.len();
     if mesh.normals.len() != n {
-        return Err(SegmentError::SizeMismatch { what: "mesh normals", expected_w: n, expected_h: 1, got_w: mesh.normals.len(), got_h: 1 });
+        return Err(SegmentError::SizeMismatch {
+            what: "mesh normals",
+            expected_w: n,
+            expected_h: 1,
+            got_w: mesh.normals.len(),
+            got_h: 1,
+        });
     }
     let mut edges = mesh.weighted_edges();
     graph::sort_edges(&mut edges);
-    let active: Vec<bool> = mesh.normals.iter().map(|v| v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0).collect();
+    let active: Vec<bool> = mesh
+        .normals
+        .iter()
+        .map(|v| v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0)
+        .collect();
     let (labels, count) = graph::felzenszwalb(n, &edges, config.k, config.min_size, &active);
     let bins = SphereBins::golden(config.bins);
-    let segments = features::superjut_features(&labels, &mesh.normals, &mesh.vertices, count, &bins, config.up, &[]);
+    let segments = features::superjut_features(
+        &labels,
+        &mesh.normals,
+        &mesh.vertices,
+        count,
+        &bins,
+        config.up,
+        &[],
+    );
     Ok((labels, segments))
 }

@@ -29,7 +29,10 @@ pub struct NormalParams {
 
 impl Default for NormalParams {
     fn default() -> Self {
-        Self { step: 2, jump_tolerance: 0.02 }
+        Self {
+            step: 2,
+            jump_tolerance: 0.02,
+        }
     }
 }
 
@@ -85,7 +88,13 @@ fn diff(minus: f32, centre: f32, plus: f32, tol: f32) -> Option<f32> {
 
 /// The normal of pixel `(x, y)`; `[0, 0, 0]` if invalid. Same operations as the WGSL kernel.
 #[inline]
-pub(crate) fn normal_at(rho: &ImageF32, x: usize, y: usize, cam: [f32; 4], p: &NormalParams) -> [f32; 3] {
+pub(crate) fn normal_at(
+    rho: &ImageF32,
+    x: usize,
+    y: usize,
+    cam: [f32; 4],
+    p: &NormalParams,
+) -> [f32; 3] {
     let (w, h) = (rho.width, rho.height);
     let r0 = rho.data[y * w + x];
     if r0.is_nan() || r0 <= 0.0 {
@@ -129,13 +138,22 @@ pub(crate) fn normal_at(rho: &ImageF32, x: usize, y: usize, cam: [f32; 4], p: &N
 
 /// Camera intrinsics as the f32 quadruple the kernels use.
 pub(crate) fn cam_f32(camera: &PinholeCamera) -> [f32; 4] {
-    [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32]
+    [
+        camera.fx as f32,
+        camera.fy as f32,
+        camera.cx as f32,
+        camera.cy as f32,
+    ]
 }
 
 /// Image-domain normals of an inverse-depth map (1/m, 0 = invalid) on the CPU (rayon).
 ///
 /// The camera's `width`/`height` are not checked here; callers that mix images check sizes.
-pub fn normals_cpu(inverse_depth: &ImageF32, camera: &PinholeCamera, params: &NormalParams) -> NormalMap {
+pub fn normals_cpu(
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    params: &NormalParams,
+) -> NormalMap {
     let (w, h) = (inverse_depth.width, inverse_depth.height);
     let cam = cam_f32(camera);
     let mut data = vec![[0.0f32; 3]; w * h];
@@ -146,12 +164,19 @@ pub fn normals_cpu(inverse_depth: &ImageF32, camera: &PinholeCamera, params: &No
             }
         });
     }
-    NormalMap { width: w, height: h, data }
+    NormalMap {
+        width: w,
+        height: h,
+        data,
+    }
 }
 
 /// Back-projects every pixel with inverse depth `rho > 0` to a camera-frame point (metres);
 /// invalid pixels get `[0, 0, 0]`.
-pub fn points_from_inverse_depth(inverse_depth: &ImageF32, camera: &PinholeCamera) -> Vec<[f32; 3]> {
+pub fn points_from_inverse_depth(
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+) -> Vec<[f32; 3]> {
     let (w, h) = (inverse_depth.width, inverse_depth.height);
     let [fx, fy, cx, cy] = cam_f32(camera);
     let mut out = vec![[0.0f32; 3]; w * h];
