@@ -1,10 +1,85 @@
-//! `rgbid eval` (not implemented yet).
+//! `rgbid eval GT EST`: ATE and RPE of an estimated TUM trajectory against ground truth.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use rgbid::eval::{evaluate, EvalOptions, RpeDelta, RpeResult};
+use rgbid::io::trajectory::read_tum;
 
 /// Arguments of `rgbid eval`.
 #[derive(clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// Ground-truth trajectory (TUM format, `world_from_camera`).
+    pub gt: PathBuf,
+    /// Estimated trajectory (TUM format).
+    pub est: PathBuf,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    pub json: bool,
+    /// Largest time difference of a matched pose pair, seconds.
+    #[arg(long, default_value_t = 0.02)]
+    pub max_diff: f64,
+    /// RPE interval, seconds.
+    #[arg(long, default_value_t = 1.0)]
+    pub delta: f64,
+    /// Align with a similarity (estimate scale too), for monocular trajectories.
+    #[arg(long)]
+    pub scale: bool,
+}
 
 /// Runs the subcommand.
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`rgbid eval` is not implemented yet")
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let gt = read_tum(&args.gt).context("reading ground truth")?;
+    let est = read_tum(&args.est).context("reading estimate")?;
+    let opts = EvalOptions {
+        max_time_difference: args.max_diff,
+        delta: RpeDelta::Seconds(args.delta),
+        with_scale: args.scale,
+    };
+    let m = evaluate(&gt, &est, &opts)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&m)?);
+        return Ok(());
+    }
+    let a = &m.ate.translation;
+    println!(
+        "matched poses      {} of {} estimated ({} ground truth)",
+        m.matched, m.est_poses, m.gt_poses
+    );
+    println!(
+        "path length        {:.3} m over {:.2} s",
+        m.path_length_m, m.duration_s
+    );
+    if args.scale {
+        println!("alignment scale    {:.6}", m.ate.alignment.scale);
+    }
+    println!(
+        "{:<18} {:>10} {:>10} {:>10} {:>10} {:>6}",
+        "metric", "rmse", "mean", "median", "max", "n"
+    );
+    println!(
+        "{:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}",
+        "ATE m", a.rmse, a.mean, a.median, a.max, a.count
+    );
+    let rows = |name: &str, r: &Option<RpeResult>| {
+        if let Some(r) = r {
+            for (unit, s) in [
+                ("m", &r.translation_m),
+                ("deg", &r.rotation_deg),
+                ("m/s", &r.translation_m_per_s),
+                ("deg/s", &r.rotation_deg_per_s),
+            ] {
+                let label = format!("{name} {unit}");
+                println!(
+                    "{label:<18} {:>10.6} {:>10.6} {:>10.6} {:>10.6} {:>6}",
+                    s.rmse, s.mean, s.median, s.max, s.count
+                );
+            }
+        } else {
+            println!("{name:<18} no pose pairs span the interval");
+        }
+    };
+    rows(&format!("RPE {}s", args.delta), &m.rpe);
+    rows("RPE 1fr", &m.rpe_frame);
+    Ok(())
 }

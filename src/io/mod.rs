@@ -4,7 +4,17 @@
 //! Every reader reports malformed input as an [`IoError`] naming the file, the line (where
 //! there is one) and the cause; nothing here panics on input.
 
+pub mod config;
 pub mod trajectory;
+pub mod tum;
+pub mod undistort;
+
+pub use config::CameraConfig;
+pub use tum::{
+    load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions,
+    SequenceEntry, TumSequence,
+};
+pub use undistort::UndistortMap;
 
 use std::path::PathBuf;
 
@@ -37,15 +47,132 @@ pub enum IoError {
         /// What was expected.
         message: String,
     },
+    /// The sequence folder does not exist or is not a folder.
+    #[error("{path}: sequence folder not found")]
+    MissingFolder {
+        /// The folder.
+        path: PathBuf,
+    },
+    /// A file the reader needs is missing.
+    #[error("{path}: missing {what}")]
+    MissingFile {
+        /// The file (or, when one of several would do, the first candidate).
+        path: PathBuf,
+        /// What the file is for.
+        what: String,
+    },
+    /// An image file could not be decoded (corrupt, truncated, unsupported format).
+    #[error("{path}: cannot decode image: {message}")]
+    Image {
+        /// The image file.
+        path: PathBuf,
+        /// The decoder's message.
+        message: String,
+    },
+    /// Colour and depth images of one frame differ in size.
+    #[error("colour {rgb} is {rgb_size:?} but depth {depth} is {depth_size:?} (width, height): they must match")]
+    ImageSizeMismatch {
+        /// The colour image.
+        rgb: PathBuf,
+        /// Its (width, height).
+        rgb_size: (u32, u32),
+        /// The depth image.
+        depth: PathBuf,
+        /// Its (width, height).
+        depth_size: (u32, u32),
+    },
+    /// An image's size is not the camera's.
+    #[error("{path}: image is {image_size:?} but the camera ({camera_source}) is {camera_size:?} (width, height)")]
+    CameraSizeMismatch {
+        /// The image.
+        path: PathBuf,
+        /// Its (width, height).
+        image_size: (u32, u32),
+        /// The camera's (width, height).
+        camera_size: (u32, u32),
+        /// Where the camera came from.
+        camera_source: String,
+    },
+    /// A depth image is not single-channel 16-bit.
+    #[error("{path}: depth image must be single-channel 16-bit, found {found}")]
+    DepthNot16Bit {
+        /// The depth image.
+        path: PathBuf,
+        /// What it is instead.
+        found: String,
+    },
+    /// The depth factor does not fit the data: the median valid depth is implausible.
+    #[error("{path}: depth factor {factor} gives a median depth of {median_m:.4} m (plausible: 0.1-20 m); {}",
+        match suggested { Some(s) => format!("factor {s} would fit (median {:.2} m)", median_m * factor / s), None => "no common factor fits".to_string() })]
+    DepthScaleMismatch {
+        /// The depth image.
+        path: PathBuf,
+        /// The depth factor in use (raw units per metre).
+        factor: f64,
+        /// The median valid depth it implies, metres.
+        median_m: f64,
+        /// A common factor (1, 10, 100, 1000, 5000, 10000) that gives a plausible median.
+        suggested: Option<f64>,
+    },
+    /// No colour image has a depth image within the time tolerance.
+    #[error("{path}: no colour/depth pairs within {max_difference} s of each other{}",
+        match closest { Some(c) => format!(" (closest pair is {c:.6} s apart)"), None => String::new() })]
+    NoAssociations {
+        /// The sequence folder.
+        path: PathBuf,
+        /// The tolerance, seconds.
+        max_difference: f64,
+        /// The smallest time difference found, seconds.
+        closest: Option<f64>,
+    },
+    /// A camera name is neither a preset nor an existing file.
+    #[error("camera '{name}' is neither a preset ({presets}) nor an existing config file")]
+    UnknownCamera {
+        /// The name given.
+        name: String,
+        /// The known presets.
+        presets: String,
+    },
+    /// Camera intrinsics are invalid.
+    #[error("{path}: {source}")]
+    InvalidCamera {
+        /// The file (or preset) they came from.
+        path: PathBuf,
+        /// What is wrong.
+        source: crate::camera::CameraError,
+    },
+    /// The depth factor is not finite and positive.
+    #[error("{path}: depth factor {factor} must be finite and > 0")]
+    InvalidDepthFactor {
+        /// Where it came from.
+        path: PathBuf,
+        /// The value.
+        factor: f64,
+    },
+    /// A frame index past the end of the sequence.
+    #[error("frame {index} requested but the sequence has {len} frames")]
+    IndexOutOfRange {
+        /// The index asked for.
+        index: usize,
+        /// The number of frames.
+        len: usize,
+    },
 }
 
 impl IoError {
     /// Wraps an OS error with the path it concerns.
     pub fn file(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        IoError::File { path: path.into(), source }
+        IoError::File {
+            path: path.into(),
+            source,
+        }
     }
     /// A parse error at `path:line`.
     pub fn parse(path: impl Into<PathBuf>, line: usize, message: impl Into<String>) -> Self {
-        IoError::Parse { path: path.into(), line, message: message.into() }
+        IoError::Parse {
+            path: path.into(),
+            line,
+            message: message.into(),
+        }
     }
 }

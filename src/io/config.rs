@@ -1,0 +1,392 @@
+//! Camera configuration: built-in presets, `key = value` config files and TUM-style
+//! `calib.txt` files.
+//!
+//! A config file holds one `key = value` (or `key: value`) pair per line; `#` starts a comment.
+//! Keys: `fx fy cx cy` (pixels, pixel centres at integers), `width height` (pixels, default
+//! 640 x 480), `depth_factor` (raw depth units per metre, default 5000), `k1 k2 p1 p2 k3`
+//! (Brown-Conrady distortion of the raw images, default 0), and optionally `preset = NAME` to
+//! start from a preset and override some of its values. Errors name `file:line`.
+//!
+//! `calib.txt` (beside a sequence) is one line `fx fy cx cy [depth_factor [width height]]`.
+
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use super::IoError;
+use crate::camera::{BrownConrady, PinholeCamera};
+
+/// Names of the built-in camera presets.
+pub const PRESETS: [&str; 4] = ["default", "tum_fr1", "tum_fr2", "tum_fr3"];
+
+/// TUM's depth factor: raw 16-bit depth units per metre.
+pub const TUM_DEPTH_FACTOR: f64 = 5000.0;
+
+/// A camera with its depth scale and a note of where it came from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraConfig {
+    /// Intrinsics (pixels) and the distortion of the raw images.
+    pub camera: PinholeCamera,
+    /// Raw depth units per metre (TUM: 5000, millimetre data: 1000).
+    pub depth_factor: f64,
+    /// Where the values came from (`preset tum_fr1`, a file path...), for logs.
+    pub source: String,
+}
+
+impl CameraConfig {
+    /// A built-in preset (`default`, `tum_fr1`, `tum_fr2`, `tum_fr3`), all 640 x 480 with
+    /// depth factor 5000. `tum_fr1`/`tum_fr2` carry the official TUM RGB-D intrinsics and
+    /// distortion of the Freiburg 1/2 Kinects; `tum_fr3` is the (already undistorted) Freiburg 3
+    /// camera; `default` is the ROS default (525, 525, 319.5, 239.5) without distortion.
+    pub fn preset(name: &str) -> Option<CameraConfig> {
+        let (fx, fy, cx, cy, d) = match name.to_ascii_lowercase().as_str() {
+            "default" => (525.0, 525.0, 319.5, 239.5, BrownConrady::default()),
+            "tum_fr1" | "fr1" | "freiburg1" => (
+                517.3,
+                516.5,
+                318.6,
+                255.3,
+                BrownConrady {
+                    k1: 0.2624,
+                    k2: -0.9531,
+                    p1: -0.0054,
+                    p2: 0.0026,
+                    k3: 1.1633,
+                },
+            ),
+            "tum_fr2" | "fr2" | "freiburg2" => (
+                520.9,
+                521.0,
+                325.1,
+                249.7,
+                BrownConrady {
+                    k1: 0.2312,
+                    k2: -0.7849,
+                    p1: -0.0033,
+                    p2: -0.0001,
+                    k3: 0.9172,
+                },
+            ),
+            "tum_fr3" | "fr3" | "freiburg3" => {
+                (535.4, 539.2, 320.1, 247.6, BrownConrady::default())
+            }
+            _ => return None,
+        };
+        let mut camera = PinholeCamera::new(fx, fy, cx, cy, 640, 480);
+        camera.distortion = d;
+        Some(CameraConfig {
+            camera,
+            depth_factor: TUM_DEPTH_FACTOR,
+            source: format!("preset {name}"),
+        })
+    }
+
+    /// Reads a `key = value` camera config file.
+    pub fn from_file(path: &Path) -> Result<CameraConfig, IoError> {
+        let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+        Self::parse_config(&text, path)
+    }
+
+    /// Parses the text of a `key = value` camera config; `path` is only used in errors.
+    pub fn parse_config(text: &str, path: &Path) -> Result<CameraConfig, IoError> {
+        let mut base: Option<CameraConfig> = None;
+        let mut values: Vec<(&'static str, f64, usize)> = Vec::new();
+        const KEYS: [&str; 12] = [
+            "fx",
+            "fy",
+            "cx",
+            "cy",
+            "depth_factor",
+            "width",
+            "height",
+            "k1",
+            "k2",
+            "p1",
+            "p2",
+            "k3",
+        ];
+        for (i, raw) in text.lines().enumerate() {
+            let line = i + 1;
+            let s = raw.split('#').next().unwrap_or("").trim();
+            if s.is_empty() {
+                continue;
+            }
+            let Some(pos) = s.find(['=', ':']) else {
+                return Err(IoError::parse(
+                    path,
+                    line,
+                    format!("expected `key = value`, found '{s}'"),
+                ));
+            };
+            let key = s[..pos].trim().to_ascii_lowercase();
+            let value = s[pos + 1..].trim();
+            if key == "preset" {
+                if base.is_some() {
+                    return Err(IoError::parse(path, line, "preset given twice"));
+                }
+                base = Some(Self::preset(value).ok_or_else(|| {
+                    IoError::parse(
+                        path,
+                        line,
+                        format!("unknown preset '{value}' (known: {})", PRESETS.join(", ")),
+                    )
+                })?);
+                continue;
+            }
+            let Some(&k) = KEYS.iter().find(|k| **k == key) else {
+                return Err(IoError::parse(
+                    path,
+                    line,
+                    format!("unknown key '{key}' (known: preset, {})", KEYS.join(", ")),
+                ));
+            };
+            if values.iter().any(|(n, _, _)| *n == k) {
+                return Err(IoError::parse(path, line, format!("key '{k}' given twice")));
+            }
+            let v: f64 = value.parse().map_err(|_| {
+                IoError::parse(
+                    path,
+                    line,
+                    format!("value of '{k}' is not a number: '{value}'"),
+                )
+            })?;
+            if !v.is_finite() {
+                return Err(IoError::parse(
+                    path,
+                    line,
+                    format!("value of '{k}' is not finite: '{value}'"),
+                ));
+            }
+            values.push((k, v, line));
+        }
+        let has = |k: &str| values.iter().any(|(n, _, _)| *n == k);
+        if base.is_none() {
+            if let Some(missing) = ["fx", "fy", "cx", "cy"].into_iter().find(|k| !has(k)) {
+                return Err(IoError::parse(
+                    path,
+                    text.lines().count().max(1),
+                    format!("missing key '{missing}' (fx, fy, cx, cy are required unless a preset is given)"),
+                ));
+            }
+        }
+        let mut cfg = base.unwrap_or(CameraConfig {
+            camera: PinholeCamera::new(1.0, 1.0, 0.0, 0.0, 640, 480),
+            depth_factor: TUM_DEPTH_FACTOR,
+            source: String::new(),
+        });
+        for &(k, v, line) in &values {
+            let c = &mut cfg.camera;
+            match k {
+                "fx" => c.fx = v,
+                "fy" => c.fy = v,
+                "cx" => c.cx = v,
+                "cy" => c.cy = v,
+                "depth_factor" => cfg.depth_factor = v,
+                "width" | "height" => {
+                    if !((1.0..=65535.0).contains(&v) && v.fract() == 0.0) {
+                        return Err(IoError::parse(
+                            path,
+                            line,
+                            format!("{k} must be a positive integer, got {v}"),
+                        ));
+                    }
+                    if k == "width" {
+                        c.width = v as u32;
+                    } else {
+                        c.height = v as u32;
+                    }
+                }
+                "k1" => c.distortion.k1 = v,
+                "k2" => c.distortion.k2 = v,
+                "p1" => c.distortion.p1 = v,
+                "p2" => c.distortion.p2 = v,
+                _ => c.distortion.k3 = v,
+            }
+        }
+        cfg.source = path.display().to_string();
+        cfg.validate(path)?;
+        Ok(cfg)
+    }
+
+    /// Reads a TUM-style `calib.txt`: one line `fx fy cx cy [depth_factor [width height]]`
+    /// (defaults 5000, 640 x 480); `#` comments and blank lines are skipped.
+    pub fn from_calib_txt(path: &Path) -> Result<CameraConfig, IoError> {
+        let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+        let mut found = None;
+        for (i, raw) in text.lines().enumerate() {
+            let s = raw.split('#').next().unwrap_or("").trim();
+            if s.is_empty() {
+                continue;
+            }
+            if found.is_some() {
+                return Err(IoError::parse(
+                    path,
+                    i + 1,
+                    "calib.txt holds more than one line of numbers",
+                ));
+            }
+            let v = parse_numbers(s).map_err(|m| IoError::parse(path, i + 1, m))?;
+            if !matches!(v.len(), 4 | 5 | 7) {
+                return Err(IoError::parse(
+                    path,
+                    i + 1,
+                    format!(
+                        "expected `fx fy cx cy [depth_factor [width height]]`, found {} numbers",
+                        v.len()
+                    ),
+                ));
+            }
+            let (w, h) = if v.len() == 7 {
+                (v[5], v[6])
+            } else {
+                (640.0, 480.0)
+            };
+            let size_ok = |x: f64| (1.0..=65535.0).contains(&x) && x.fract() == 0.0;
+            if !(size_ok(w) && size_ok(h)) {
+                return Err(IoError::parse(
+                    path,
+                    i + 1,
+                    format!("image size {w} x {h} is not a positive integer size"),
+                ));
+            }
+            let camera = PinholeCamera::new(v[0], v[1], v[2], v[3], w as u32, h as u32);
+            let depth_factor = v.get(4).copied().unwrap_or(TUM_DEPTH_FACTOR);
+            found = Some(CameraConfig {
+                camera,
+                depth_factor,
+                source: path.display().to_string(),
+            });
+        }
+        let cfg = found.ok_or_else(|| IoError::Empty {
+            path: path.into(),
+            message: "no calibration line".into(),
+        })?;
+        cfg.validate(path)?;
+        Ok(cfg)
+    }
+
+    /// A preset name or, failing that, the path of a config file (for a `--camera` flag).
+    pub fn from_name_or_path(s: &str) -> Result<CameraConfig, IoError> {
+        if let Some(c) = Self::preset(s) {
+            return Ok(c);
+        }
+        let p = PathBuf::from(s);
+        if p.is_file() {
+            if p.file_name().is_some_and(|n| n == "calib.txt") {
+                return Self::from_calib_txt(&p);
+            }
+            return Self::from_file(&p);
+        }
+        Err(IoError::UnknownCamera {
+            name: s.to_string(),
+            presets: PRESETS.join(", "),
+        })
+    }
+
+    /// Checks intrinsics and depth factor; errors name `path`.
+    pub fn validate(&self, path: &Path) -> Result<(), IoError> {
+        self.camera
+            .validate()
+            .map_err(|source| IoError::InvalidCamera {
+                path: path.into(),
+                source,
+            })?;
+        if !(self.depth_factor.is_finite() && self.depth_factor > 0.0) {
+            return Err(IoError::InvalidDepthFactor {
+                path: path.into(),
+                factor: self.depth_factor,
+            });
+        }
+        Ok(())
+    }
+}
+
+impl FromStr for CameraConfig {
+    type Err = IoError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::from_name_or_path(s)
+    }
+}
+
+/// Splits on whitespace and commas and parses finite f64s; the message names the bad field.
+pub(crate) fn parse_numbers(s: &str) -> Result<Vec<f64>, String> {
+    s.split(|c: char| c.is_whitespace() || c == ',')
+        .filter(|t| !t.is_empty())
+        .enumerate()
+        .map(|(k, t)| match t.parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v),
+            Ok(_) => Err(format!("field {} is not finite ({t})", k + 1)),
+            Err(_) => Err(format!("field {} '{t}' is not a number", k + 1)),
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_exist_and_validate() {
+        for p in PRESETS {
+            let c = CameraConfig::preset(p).unwrap();
+            c.validate(Path::new(p)).unwrap();
+            assert_eq!(c.depth_factor, 5000.0);
+        }
+        assert!(
+            CameraConfig::preset("tum_fr1")
+                .unwrap()
+                .camera
+                .distortion
+                .k1
+                > 0.26
+        );
+        assert!(CameraConfig::preset("tum_fr3")
+            .unwrap()
+            .camera
+            .distortion
+            .is_zero());
+        assert!(CameraConfig::preset("nope").is_none());
+    }
+
+    #[test]
+    fn config_text_parses_and_reports_lines() {
+        let p = Path::new("cam.cfg");
+        let c = CameraConfig::parse_config(
+            "# c\nfx = 500\nfy: 501\ncx=300 # x\ncy = 200\nk1 = 0.1\nwidth = 320\nheight = 240\n",
+            p,
+        )
+        .unwrap();
+        assert_eq!(
+            (c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy),
+            (500.0, 501.0, 300.0, 200.0)
+        );
+        assert_eq!(
+            (c.camera.width, c.camera.height, c.camera.distortion.k1),
+            (320, 240, 0.1)
+        );
+        let c = CameraConfig::parse_config("preset = tum_fr2\ndepth_factor = 1000\n", p).unwrap();
+        assert_eq!((c.camera.fx, c.depth_factor), (520.9, 1000.0));
+        let e = CameraConfig::parse_config("fx = 1\nfy = x\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("cam.cfg:2:") && e.contains("not a number"),
+            "{e}"
+        );
+        let e = CameraConfig::parse_config("fx = 1\nfoo = 2\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(":2:") && e.contains("unknown key"), "{e}");
+        let e = CameraConfig::parse_config("fx = 1\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing key 'fy'"), "{e}");
+        let e = CameraConfig::parse_config("preset=default\nfx = inf\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(":2:") && e.contains("not finite"), "{e}");
+        let e = CameraConfig::parse_config("preset=default\nfx = -3\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("fx"), "{e}");
+    }
+}

@@ -1,0 +1,646 @@
+//! TUM RGB-D sequence folders, read one frame at a time.
+//!
+//! Layout: `rgb.txt` and `depth.txt` (`timestamp path` per line, `#` comments) with colour and
+//! 16-bit depth images (raw units = metres x depth factor, 0 = no measurement), or an
+//! `associations.txt` (`t_rgb rgb/x.png t_depth depth/y.png`) which, when present, is used
+//! instead of associating the two lists by time. An optional `groundtruth.txt` holds
+//! `world_from_camera` poses, and an optional `calib.txt` the camera (see [`super::config`]).
+//!
+//! Frames come out as [`RgbdFrame`]s: intensity in `[0, 255]` (BT.601 luma of the colour
+//! image) and inverse depth in 1/m (0 = no measurement), undistorted when the camera has
+//! distortion (intensity bilinear, depth nearest neighbour) so that they fit the pinhole
+//! intrinsics of [`TumSequence::camera`] with zero distortion.
+//!
+//! Also here: helpers for loose frame pairs that are not in TUM layout ([`load_pair_frame`],
+//! [`read_pose_file`], [`read_intrinsic_matrix`]).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use glam::{DQuat, DVec3};
+
+use super::config::{parse_numbers, CameraConfig};
+use super::undistort::UndistortMap;
+use super::IoError;
+use crate::camera::PinholeCamera;
+use crate::geometry::Se3;
+use crate::image::{rgb_to_intensity, ImageF32, RgbdFrame};
+
+/// Default tolerance when associating colour and depth time stamps, seconds.
+pub const DEFAULT_MAX_TIME_DIFFERENCE: f64 = 0.02;
+
+/// Plausible range of the median valid depth of a frame, metres; outside it the depth factor
+/// is taken to be wrong.
+pub const PLAUSIBLE_MEDIAN_DEPTH_M: (f64, f64) = (0.1, 20.0);
+
+/// One frame of a sequence: its time stamp (that of the colour image) and its two images.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SequenceEntry {
+    /// Colour time stamp, seconds.
+    pub timestamp: f64,
+    /// Colour image path (joined to the sequence folder).
+    pub rgb: PathBuf,
+    /// Depth image path (joined to the sequence folder).
+    pub depth: PathBuf,
+}
+
+/// How to open a sequence.
+#[derive(Clone, Debug)]
+pub struct OpenOptions {
+    /// Largest colour/depth time-stamp difference accepted when associating `rgb.txt` with
+    /// `depth.txt`, seconds (default 0.02).
+    pub max_time_difference: f64,
+    /// The camera; `None` uses `calib.txt` beside the sequence, else the `default` preset.
+    pub camera: Option<CameraConfig>,
+    /// Keep only the first this many frames.
+    pub max_frames: Option<usize>,
+}
+
+impl Default for OpenOptions {
+    fn default() -> Self {
+        Self {
+            max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE,
+            camera: None,
+            max_frames: None,
+        }
+    }
+}
+
+/// An opened TUM RGB-D sequence; frames are decoded from disk on demand by [`Self::load`].
+#[derive(Clone, Debug)]
+pub struct TumSequence {
+    /// The sequence folder.
+    pub root: PathBuf,
+    /// The camera of the frames that [`Self::load`] returns (already undistorted: its
+    /// `distortion` is the raw images' one, which `load` removes).
+    pub camera: PinholeCamera,
+    /// Raw depth units per metre.
+    pub depth_factor: f64,
+    /// The frames, in time order.
+    pub entries: Vec<SequenceEntry>,
+    /// `groundtruth.txt` when the folder has one.
+    pub groundtruth: Option<PathBuf>,
+    /// Where the camera came from (preset, config file, calib.txt).
+    pub camera_source: String,
+    undistort: Option<Arc<UndistortMap>>,
+}
+
+impl TumSequence {
+    /// Opens a sequence folder: reads the lists, associates colour and depth, checks that every
+    /// listed image exists, and decodes the first frame to check sizes and the depth scale.
+    pub fn open(dir: &Path, opts: &OpenOptions) -> Result<TumSequence, IoError> {
+        if !dir.is_dir() {
+            return Err(IoError::MissingFolder { path: dir.into() });
+        }
+        let cfg = match &opts.camera {
+            Some(c) => c.clone(),
+            None => {
+                let calib = dir.join("calib.txt");
+                if calib.is_file() {
+                    CameraConfig::from_calib_txt(&calib)?
+                } else {
+                    CameraConfig::preset("default").ok_or_else(|| IoError::UnknownCamera {
+                        name: "default".into(),
+                        presets: super::config::PRESETS.join(", "),
+                    })?
+                }
+            }
+        };
+        cfg.validate(Path::new(&cfg.source))?;
+        log::info!("{}: camera from {}", dir.display(), cfg.source);
+
+        let assoc = dir.join("associations.txt");
+        let mut entries = if assoc.is_file() {
+            read_associations(dir, &assoc)?
+        } else {
+            let (rgb_txt, depth_txt) = (dir.join("rgb.txt"), dir.join("depth.txt"));
+            for p in [&rgb_txt, &depth_txt] {
+                if !p.is_file() {
+                    return Err(IoError::MissingFile {
+                        path: p.clone(),
+                        what: "image list (rgb.txt and depth.txt, or associations.txt)".into(),
+                    });
+                }
+            }
+            let rgb = read_list(dir, &rgb_txt)?;
+            let depth = read_list(dir, &depth_txt)?;
+            let ta: Vec<f64> = rgb.iter().map(|e| e.0).collect();
+            let tb: Vec<f64> = depth.iter().map(|e| e.0).collect();
+            let pairs = associate(&ta, &tb, opts.max_time_difference);
+            if pairs.is_empty() {
+                return Err(IoError::NoAssociations {
+                    path: dir.into(),
+                    max_difference: opts.max_time_difference,
+                    closest: closest_difference(&ta, &tb),
+                });
+            }
+            pairs
+                .into_iter()
+                .map(|(i, j)| SequenceEntry {
+                    timestamp: rgb[i].0,
+                    rgb: rgb[i].1.clone(),
+                    depth: depth[j].1.clone(),
+                })
+                .collect()
+        };
+        entries.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
+        if let Some(n) = opts.max_frames {
+            entries.truncate(n);
+        }
+        if entries.is_empty() {
+            return Err(IoError::Empty {
+                path: dir.into(),
+                message: "the sequence has no frames".into(),
+            });
+        }
+        let gt = dir.join("groundtruth.txt");
+        let undistort =
+            (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
+        let seq = TumSequence {
+            root: dir.into(),
+            camera: cfg.camera,
+            depth_factor: cfg.depth_factor,
+            entries,
+            groundtruth: gt.is_file().then_some(gt),
+            camera_source: cfg.source,
+            undistort,
+        };
+        seq.load(0)?;
+        Ok(seq)
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// True when there are no frames (never after a successful [`Self::open`]).
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// The camera of the loaded (undistorted) frames: [`Self::camera`] without distortion.
+    pub fn undistorted_camera(&self) -> PinholeCamera {
+        let mut c = self.camera;
+        c.distortion = Default::default();
+        c
+    }
+
+    /// Decodes frame `index` from disk: intensity and inverse depth (1/m), undistorted.
+    pub fn load(&self, index: usize) -> Result<RgbdFrame, IoError> {
+        let e = self.entries.get(index).ok_or(IoError::IndexOutOfRange {
+            index,
+            len: self.entries.len(),
+        })?;
+        let cam = CameraRef {
+            camera: &self.camera,
+            source: &self.camera_source,
+        };
+        decode_frame(
+            &e.rgb,
+            &e.depth,
+            cam,
+            self.depth_factor,
+            self.undistort.as_deref(),
+            e.timestamp,
+        )
+    }
+}
+
+/// Loads one colour + 16-bit depth pair that is not part of a TUM folder (time stamp 0),
+/// undistorting it when `camera` has distortion. Checks sizes against `camera` and the depth
+/// scale, as [`TumSequence::load`] does.
+pub fn load_pair_frame(
+    rgb_path: &Path,
+    depth_path: &Path,
+    camera: &PinholeCamera,
+    depth_factor: f64,
+) -> Result<RgbdFrame, IoError> {
+    let cfg = CameraConfig {
+        camera: *camera,
+        depth_factor,
+        source: "the given camera".into(),
+    };
+    cfg.validate(rgb_path)?;
+    let map = (!camera.distortion.is_zero()).then(|| UndistortMap::new(camera));
+    decode_frame(
+        rgb_path,
+        depth_path,
+        CameraRef {
+            camera,
+            source: &cfg.source,
+        },
+        depth_factor,
+        map.as_ref(),
+        0.0,
+    )
+}
+
+/// Parses `tx ty tz qx qy qz qw` (a `world_from_camera` pose, metres, any-norm quaternion).
+pub fn parse_pose_line(line: &str) -> Result<Se3, String> {
+    let v = parse_numbers(line)?;
+    if v.len() != 7 {
+        return Err(format!(
+            "expected 7 numbers (tx ty tz qx qy qz qw), found {}",
+            v.len()
+        ));
+    }
+    let q = DQuat::from_xyzw(v[3], v[4], v[5], v[6]);
+    let n = q.length();
+    if !(n > 1e-6) {
+        return Err("quaternion has zero length".into());
+    }
+    Ok(Se3::new(q / n, DVec3::new(v[0], v[1], v[2])))
+}
+
+/// Reads a pose file holding one `tx ty tz qx qy qz qw` line (e.g. `pose_prev.txt`).
+pub fn read_pose_file(path: &Path) -> Result<Se3, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    for (i, line) in text.lines().enumerate() {
+        let s = line.trim();
+        if s.is_empty() || s.starts_with('#') {
+            continue;
+        }
+        return parse_pose_line(s).map_err(|m| IoError::parse(path, i + 1, m));
+    }
+    Err(IoError::Empty {
+        path: path.into(),
+        message: "no pose line".into(),
+    })
+}
+
+/// Reads a 3x3 intrinsic matrix (9 numbers, row-major, any whitespace) into a camera of the
+/// given size without distortion.
+pub fn read_intrinsic_matrix(
+    path: &Path,
+    width: u32,
+    height: u32,
+) -> Result<PinholeCamera, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let mut v = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let s = line.split('#').next().unwrap_or("").trim();
+        if !s.is_empty() {
+            v.extend(parse_numbers(s).map_err(|m| IoError::parse(path, i + 1, m))?);
+        }
+    }
+    if v.len() != 9 {
+        return Err(IoError::parse(
+            path,
+            text.lines().count().max(1),
+            format!("expected 9 numbers, found {}", v.len()),
+        ));
+    }
+    let cam = PinholeCamera::new(v[0], v[4], v[2], v[5], width, height);
+    cam.validate().map_err(|source| IoError::InvalidCamera {
+        path: path.into(),
+        source,
+    })?;
+    Ok(cam)
+}
+
+/// Associates two time-stamp lists (seconds) one-to-one as TUM's `associate.py` does: all pairs
+/// within `max_difference` are considered, closest first, each stamp used at most once.
+/// Returns `(index_a, index_b)` pairs sorted by `a`'s time stamp.
+pub fn associate(a: &[f64], b: &[f64], max_difference: f64) -> Vec<(usize, usize)> {
+    let mut bi: Vec<usize> = (0..b.len()).collect();
+    bi.sort_by(|&x, &y| b[x].total_cmp(&b[y]));
+    let sorted_b: Vec<f64> = bi.iter().map(|&j| b[j]).collect();
+    let mut candidates = Vec::new();
+    for (i, &ta) in a.iter().enumerate() {
+        let start = sorted_b.partition_point(|&t| t < ta - max_difference);
+        for (k, &tb) in sorted_b.iter().enumerate().skip(start) {
+            if tb > ta + max_difference {
+                break;
+            }
+            candidates.push(((ta - tb).abs(), i, bi[k]));
+        }
+    }
+    candidates.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)).then(x.2.cmp(&y.2)));
+    let (mut used_a, mut used_b) = (vec![false; a.len()], vec![false; b.len()]);
+    let mut out = Vec::new();
+    for (_, i, j) in candidates {
+        if !used_a[i] && !used_b[j] {
+            used_a[i] = true;
+            used_b[j] = true;
+            out.push((i, j));
+        }
+    }
+    out.sort_by(|x, y| a[x.0].total_cmp(&a[y.0]).then(x.0.cmp(&y.0)));
+    out
+}
+
+/// The smallest `|a_i - b_j|`, if both lists are non-empty.
+fn closest_difference(a: &[f64], b: &[f64]) -> Option<f64> {
+    let mut s = b.to_vec();
+    s.sort_by(f64::total_cmp);
+    a.iter()
+        .filter_map(|&t| {
+            let k = s.partition_point(|&x| x < t);
+            [k.checked_sub(1), Some(k)]
+                .into_iter()
+                .flatten()
+                .filter_map(|j| s.get(j))
+                .map(|&x| (x - t).abs())
+                .reduce(f64::min)
+        })
+        .reduce(f64::min)
+}
+
+/// Reads `timestamp path` lines; paths are joined to `root` and must exist.
+fn read_list(root: &Path, list: &Path) -> Result<Vec<(f64, PathBuf)>, IoError> {
+    let text = std::fs::read_to_string(list).map_err(|e| IoError::file(list, e))?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let s = line.trim();
+        if s.is_empty() || s.starts_with('#') {
+            continue;
+        }
+        let f: Vec<&str> = s.split_whitespace().collect();
+        if f.len() < 2 {
+            return Err(IoError::parse(
+                list,
+                i + 1,
+                format!("expected `timestamp path`, found '{s}'"),
+            ));
+        }
+        let t = parse_time(f[0]).map_err(|m| IoError::parse(list, i + 1, m))?;
+        out.push((t, existing(root, f[1], list, i + 1)?));
+    }
+    if out.is_empty() {
+        return Err(IoError::Empty {
+            path: list.into(),
+            message: "no entries in image list".into(),
+        });
+    }
+    Ok(out)
+}
+
+/// Reads `t_rgb rgb_path t_depth depth_path` lines.
+fn read_associations(root: &Path, list: &Path) -> Result<Vec<SequenceEntry>, IoError> {
+    let text = std::fs::read_to_string(list).map_err(|e| IoError::file(list, e))?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let s = line.trim();
+        if s.is_empty() || s.starts_with('#') {
+            continue;
+        }
+        let f: Vec<&str> = s.split_whitespace().collect();
+        if f.len() < 4 {
+            return Err(IoError::parse(
+                list,
+                i + 1,
+                format!(
+                    "expected `t_rgb rgb_path t_depth depth_path`, found {} fields",
+                    f.len()
+                ),
+            ));
+        }
+        let t = parse_time(f[0]).map_err(|m| IoError::parse(list, i + 1, m))?;
+        parse_time(f[2]).map_err(|m| IoError::parse(list, i + 1, m))?;
+        out.push(SequenceEntry {
+            timestamp: t,
+            rgb: existing(root, f[1], list, i + 1)?,
+            depth: existing(root, f[3], list, i + 1)?,
+        });
+    }
+    if out.is_empty() {
+        return Err(IoError::Empty {
+            path: list.into(),
+            message: "no entries in associations file".into(),
+        });
+    }
+    Ok(out)
+}
+
+fn parse_time(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(t) if t.is_finite() => Ok(t),
+        Ok(_) => Err(format!("time stamp is not finite ({s})")),
+        Err(_) => Err(format!("time stamp '{s}' is not a number")),
+    }
+}
+
+fn existing(root: &Path, rel: &str, list: &Path, line: usize) -> Result<PathBuf, IoError> {
+    let p = root.join(rel);
+    if p.is_file() {
+        Ok(p)
+    } else {
+        Err(IoError::MissingFile {
+            path: p,
+            what: format!("image listed at {}:{line}", list.display()),
+        })
+    }
+}
+
+#[derive(Clone, Copy)]
+struct CameraRef<'a> {
+    camera: &'a PinholeCamera,
+    source: &'a str,
+}
+
+/// Decodes, checks, converts and undistorts one frame. Colour and depth decode in parallel.
+fn decode_frame(
+    rgb_path: &Path,
+    depth_path: &Path,
+    cam: CameraRef<'_>,
+    depth_factor: f64,
+    map: Option<&UndistortMap>,
+    timestamp: f64,
+) -> Result<RgbdFrame, IoError> {
+    let (rgb, depth) = rayon::join(|| decode_intensity(rgb_path), || decode_depth(depth_path));
+    let (rgb, depth) = (rgb?, depth?);
+    if (rgb.width, rgb.height) != (depth.width, depth.height) {
+        return Err(IoError::ImageSizeMismatch {
+            rgb: rgb_path.into(),
+            rgb_size: (rgb.width as u32, rgb.height as u32),
+            depth: depth_path.into(),
+            depth_size: (depth.width as u32, depth.height as u32),
+        });
+    }
+    let camera_size = (cam.camera.width, cam.camera.height);
+    if (rgb.width as u32, rgb.height as u32) != camera_size {
+        return Err(IoError::CameraSizeMismatch {
+            path: rgb_path.into(),
+            image_size: (rgb.width as u32, rgb.height as u32),
+            camera_size,
+            camera_source: cam.source.into(),
+        });
+    }
+    check_depth_scale(&depth.raw, depth_factor, depth_path)?;
+    let factor = depth_factor as f32;
+    let mut inverse_depth: Vec<f32> = depth
+        .raw
+        .iter()
+        .map(|&d| if d == 0 { 0.0 } else { factor / f32::from(d) })
+        .collect();
+    let mut intensity = rgb.data;
+    if let Some(m) = map {
+        let mut out = vec![0.0f32; intensity.len()];
+        m.remap_bilinear(&intensity, &mut out);
+        intensity = out;
+        let mut out = vec![0.0f32; inverse_depth.len()];
+        m.remap_nearest(&inverse_depth, &mut out);
+        inverse_depth = out;
+    }
+    let (w, h) = (rgb.width, rgb.height);
+    Ok(RgbdFrame {
+        timestamp,
+        intensity: ImageF32 {
+            width: w,
+            height: h,
+            data: intensity,
+        },
+        inverse_depth: ImageF32 {
+            width: w,
+            height: h,
+            data: inverse_depth,
+        },
+    })
+}
+
+fn read_image(path: &Path) -> Result<image::DynamicImage, IoError> {
+    if !path.is_file() {
+        return Err(IoError::MissingFile {
+            path: path.into(),
+            what: "image".into(),
+        });
+    }
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| IoError::file(path, e))?
+        .with_guessed_format()
+        .map_err(|e| IoError::file(path, e))?;
+    reader.decode().map_err(|e| IoError::Image {
+        path: path.into(),
+        message: e.to_string(),
+    })
+}
+
+fn decode_intensity(path: &Path) -> Result<ImageF32, IoError> {
+    use image::DynamicImage as D;
+    let img = read_image(path)?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let data: Vec<f32> = match &img {
+        D::ImageRgb8(b) => b
+            .as_raw()
+            .chunks_exact(3)
+            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+            .collect(),
+        D::ImageRgba8(b) => b
+            .as_raw()
+            .chunks_exact(4)
+            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+            .collect(),
+        D::ImageLuma8(b) => b.as_raw().iter().map(|&v| f32::from(v)).collect(),
+        other => other
+            .to_rgb8()
+            .as_raw()
+            .chunks_exact(3)
+            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+            .collect(),
+    };
+    Ok(ImageF32 {
+        width: w,
+        height: h,
+        data,
+    })
+}
+
+struct RawDepth {
+    width: usize,
+    height: usize,
+    raw: Vec<u16>,
+}
+
+fn decode_depth(path: &Path) -> Result<RawDepth, IoError> {
+    let img = read_image(path)?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    match img {
+        image::DynamicImage::ImageLuma16(b) => Ok(RawDepth {
+            width,
+            height,
+            raw: b.into_raw(),
+        }),
+        other => Err(IoError::DepthNot16Bit {
+            path: path.into(),
+            found: format!("{:?}", other.color()),
+        }),
+    }
+}
+
+/// Checks that the median valid depth (on a sample of pixels) is plausible for `factor`.
+fn check_depth_scale(raw: &[u16], factor: f64, path: &Path) -> Result<(), IoError> {
+    let stride = (raw.len() / 16384).max(1);
+    let mut sample: Vec<u16> = raw
+        .iter()
+        .step_by(stride)
+        .copied()
+        .filter(|&d| d > 0)
+        .collect();
+    if sample.len() < 20 {
+        return Ok(()); // too few measurements to judge; not a scale error
+    }
+    let mid = sample.len() / 2;
+    let median_raw = f64::from(*sample.select_nth_unstable(mid).1);
+    let median_m = median_raw / factor;
+    let (lo, hi) = PLAUSIBLE_MEDIAN_DEPTH_M;
+    if (lo..=hi).contains(&median_m) {
+        return Ok(());
+    }
+    let suggested = [1000.0, 5000.0, 10000.0, 100.0, 10.0, 1.0]
+        .into_iter()
+        .filter(|&f: &f64| f != factor && (lo..=hi).contains(&(median_raw / f)))
+        .min_by(|a, b| {
+            (median_raw / a / 2.0)
+                .ln()
+                .abs()
+                .total_cmp(&(median_raw / b / 2.0).ln().abs())
+        });
+    Err(IoError::DepthScaleMismatch {
+        path: path.into(),
+        factor,
+        median_m,
+        suggested,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn association_is_one_to_one_and_closest_first() {
+        let a = [0.0, 0.033, 0.066, 1.0];
+        let b = [0.005, 0.030, 0.031, 0.2];
+        let p = associate(&a, &b, 0.02);
+        assert_eq!(p, vec![(0, 0), (1, 2)]);
+        assert!(associate(&a, &b, 1e-4).is_empty());
+        assert!((closest_difference(&a, &b).unwrap() - 0.002).abs() < 1e-12);
+        assert_eq!(closest_difference(&a, &[]), None);
+    }
+
+    #[test]
+    fn pose_line() {
+        let p = parse_pose_line("1 2 3 0 0 0 2").unwrap();
+        assert_eq!(p.translation, DVec3::new(1.0, 2.0, 3.0));
+        assert!((p.rotation.w - 1.0).abs() < 1e-12);
+        assert!(parse_pose_line("1 2 3 0 0 0")
+            .unwrap_err()
+            .contains("expected 7"));
+        assert!(parse_pose_line("1 2 nan 0 0 0 1")
+            .unwrap_err()
+            .contains("not finite"));
+    }
+
+    #[test]
+    fn depth_scale_check_suggests_a_factor() {
+        let raw = vec![2000u16; 1000]; // 2 m at factor 1000
+        assert!(check_depth_scale(&raw, 1000.0, Path::new("d.png")).is_ok());
+        match check_depth_scale(&raw, 50000.0, Path::new("d.png")) {
+            Err(IoError::DepthScaleMismatch { suggested, .. }) => {
+                assert_eq!(suggested, Some(1000.0))
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+}
