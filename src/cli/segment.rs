@@ -8,16 +8,15 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use rgbid::camera::PinholeCamera;
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
-use rgbid::image::{rgb_to_intensity, ImageF32};
+use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::segment::{self, GpuNormals, SegmentConfig};
 
 /// Arguments of `rgbid segment`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Sequence folder in TUM layout (`associations.txt` or `rgb.txt` + `depth.txt`,
-    /// optional `calib.txt` with `fx fy cx cy depth_factor`).
+    /// Sequence folder in TUM layout (`rgb.txt` + `depth.txt`, optional `calib.txt`),
+    /// read with `rgbid::io::tum::TumSequence`.
     pub seq: PathBuf,
     /// Frames to segment: a comma-separated list of indices and ranges `a..b` or `a..b:step`
     /// (end exclusive), e.g. `0,10,20..100:20`.
@@ -49,12 +48,6 @@ pub struct Args {
     /// Where the normal kernel runs.
     #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
     pub backend: BackendChoice,
-    /// Intrinsics `fx,fy,cx,cy` overriding `calib.txt` (default without either: TUM 525,525,319.5,239.5).
-    #[arg(long, value_delimiter = ',')]
-    pub intrinsics: Option<Vec<f64>>,
-    /// Depth PNG units per metre overriding `calib.txt` (TUM: 5000).
-    #[arg(long)]
-    pub depth_factor: Option<f64>,
 }
 
 fn parse_frames(spec: &str) -> Result<Vec<usize>> {
@@ -89,109 +82,6 @@ fn parse_frames(spec: &str) -> Result<Vec<usize>> {
     Ok(out)
 }
 
-/// (timestamp, rgb path, depth path) per frame.
-fn read_list(seq: &Path) -> Result<Vec<(f64, PathBuf, PathBuf)>> {
-    let assoc = seq.join("associations.txt");
-    let lines = |p: &Path| -> Result<Vec<Vec<String>>> {
-        let text =
-            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-        Ok(text
-            .lines()
-            .map(str::trim)
-            .filter(|l| !l.is_empty() && !l.starts_with('#'))
-            .map(|l| l.split_whitespace().map(String::from).collect())
-            .collect())
-    };
-    if assoc.exists() {
-        let mut out = Vec::new();
-        for (n, f) in lines(&assoc)?.into_iter().enumerate() {
-            if f.len() < 4 {
-                bail!(
-                    "{}: line {} has {} fields, expected 4",
-                    assoc.display(),
-                    n + 1,
-                    f.len()
-                );
-            }
-            let t: f64 = f[0]
-                .parse()
-                .with_context(|| format!("{}: bad timestamp '{}'", assoc.display(), f[0]))?;
-            out.push((t, seq.join(&f[1]), seq.join(&f[3])));
-        }
-        return Ok(out);
-    }
-    let parse = |p: &Path| -> Result<Vec<(f64, String)>> {
-        lines(p)?
-            .into_iter()
-            .map(|f| {
-                if f.len() < 2 {
-                    bail!("{}: line with fewer than 2 fields", p.display());
-                }
-                Ok((
-                    f[0].parse::<f64>()
-                        .with_context(|| format!("{}: bad timestamp", p.display()))?,
-                    f[1].clone(),
-                ))
-            })
-            .collect()
-    };
-    let rgb = parse(&seq.join("rgb.txt"))?;
-    let depth = parse(&seq.join("depth.txt"))?;
-    if depth.is_empty() {
-        bail!("{}: no depth images", seq.display());
-    }
-    Ok(rgb
-        .into_iter()
-        .map(|(t, r)| {
-            let d = depth
-                .iter()
-                .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
-                .map(|d| d.1.clone())
-                .unwrap_or_default();
-            (t, seq.join(r), seq.join(d))
-        })
-        .collect())
-}
-
-fn load_frame(rgb: &Path, depth: &Path, depth_factor: f64) -> Result<(ImageF32, ImageF32)> {
-    let c = image::open(rgb)
-        .with_context(|| format!("reading {}", rgb.display()))?
-        .to_rgb8();
-    let d = image::open(depth)
-        .with_context(|| format!("reading {}", depth.display()))?
-        .to_luma16();
-    if c.dimensions() != d.dimensions() {
-        bail!("{} and {} differ in size", rgb.display(), depth.display());
-    }
-    let (w, h) = (c.width() as usize, c.height() as usize);
-    let intensity = c
-        .pixels()
-        .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
-        .collect();
-    let inv = d
-        .pixels()
-        .map(|p| {
-            if p[0] == 0 {
-                0.0
-            } else {
-                (depth_factor / f64::from(p[0])) as f32
-            }
-        })
-        .collect();
-    Ok((
-        ImageF32 {
-            width: w,
-            height: h,
-            data: intensity,
-        },
-        ImageF32 {
-            width: w,
-            height: h,
-            data: inv,
-        },
-    ))
-}
-
 fn save_gray(path: &Path, w: usize, h: usize, data: Vec<u8>) -> Result<()> {
     image::GrayImage::from_raw(w as u32, h as u32, data)
         .context("image buffer size")?
@@ -201,34 +91,24 @@ fn save_gray(path: &Path, w: usize, h: usize, data: Vec<u8>) -> Result<()> {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
-    let list = read_list(&args.seq)?;
+    let seq = TumSequence::open(&args.seq, &OpenOptions::default())?;
+    log::info!(
+        "{}: {} frames, camera from {}",
+        args.seq.display(),
+        seq.len(),
+        seq.camera_source
+    );
     let frames = parse_frames(&args.frames)?;
     if frames.is_empty() {
         bail!("--frames selects no frame");
     }
-    if let Some(&bad) = frames.iter().find(|&&f| f >= list.len()) {
+    if let Some(&bad) = frames.iter().find(|&&f| f >= seq.len()) {
         bail!(
             "frame {bad} out of range: the sequence has {} frames",
-            list.len()
+            seq.len()
         );
     }
-    let calib: Option<Vec<f64>> = std::fs::read_to_string(args.seq.join("calib.txt"))
-        .ok()
-        .map(|t| {
-            t.split_whitespace()
-                .filter_map(|v| v.parse().ok())
-                .collect()
-        });
-    let (k4, factor) = match (&args.intrinsics, &calib) {
-        (Some(k), _) if k.len() == 4 => ([k[0], k[1], k[2], k[3]], None),
-        (Some(_), _) => bail!("--intrinsics needs 4 values fx,fy,cx,cy"),
-        (None, Some(c)) if c.len() >= 4 => ([c[0], c[1], c[2], c[3]], c.get(4).copied()),
-        _ => {
-            log::warn!("no calib.txt and no --intrinsics: using TUM defaults 525,525,319.5,239.5");
-            ([525.0, 525.0, 319.5, 239.5], None)
-        }
-    };
-    let depth_factor = args.depth_factor.or(factor).unwrap_or(5000.0);
+    let cam = seq.undistorted_camera();
     if args.up.len() != 3 {
         bail!("--up needs 3 values");
     }
@@ -264,16 +144,8 @@ pub fn run(args: Args) -> Result<()> {
     let bar = indicatif::ProgressBar::new(frames.len() as u64);
     let mut times = Vec::new();
     for &f in &frames {
-        let (t, rgb, depth) = &list[f];
-        let (intensity, inv) = load_frame(rgb, depth, depth_factor)?;
-        let cam = PinholeCamera::new(
-            k4[0],
-            k4[1],
-            k4[2],
-            k4[3],
-            inv.width as u32,
-            inv.height as u32,
-        );
+        let frame = seq.load(f)?;
+        let (t, intensity, inv) = (frame.timestamp, frame.intensity, frame.inverse_depth);
         let t0 = Instant::now();
         let juts = match &gpu {
             Some(g) => {
