@@ -26,4 +26,5 @@ pub mod image;
 pub mod io;
 pub mod odometry;
 pub mod place;
+pub mod segment;
 pub mod synth;

@@ -40,6 +40,8 @@ enum Command {
     /// Bag-of-binary-words vocabularies: train, inspect, convert.
     #[command(subcommand)]
     Vocab(cli::vocab::Command),
+    /// Superjut segmentation: segment images, neg-entropy images, masks and a feature CSV.
+    Segment(cli::segment::Args),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -70,6 +72,7 @@ fn run(command: Command) -> Result<()> {
         Command::Graph(c) => cli::graph::run(c),
         Command::Place(c) => cli::place::run(c),
         Command::Vocab(c) => cli::vocab::run(c),
+        Command::Segment(a) => cli::segment::run(a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

@@ -20,13 +20,22 @@ impl Scene {
             .map(|_| {
                 let c = DVec2::new(rng.random_range(0.0..1.0), rng.random_range(0.0..1.0));
                 let h = DVec2::new(rng.random_range(0.01..0.07), rng.random_range(0.01..0.07));
-                (c, h, rng.random_range(0.0..1.5), rng.random_range(0.0..255.0))
+                (
+                    c,
+                    h,
+                    rng.random_range(0.0..1.5),
+                    rng.random_range(0.0..255.0),
+                )
             })
             .collect();
         let discs = (0..40)
             .map(|_| {
                 let c = DVec2::new(rng.random_range(0.0..1.0), rng.random_range(0.0..1.0));
-                (c, rng.random_range(0.01..0.04), rng.random_range(0.0..255.0))
+                (
+                    c,
+                    rng.random_range(0.01..0.04),
+                    rng.random_range(0.0..255.0),
+                )
             })
             .collect();
         Self { rects, discs }
@@ -51,14 +60,22 @@ impl Scene {
 
 /// Renders `w x h` pixels where pixel `q` shows scene point `scene_from_pixel(q)`, 3x3
 /// supersampled.
-fn render(scene: &Scene, w: usize, h: usize, scene_from_pixel: impl Fn(DVec2) -> DVec2) -> ImageF32 {
+fn render(
+    scene: &Scene,
+    w: usize,
+    h: usize,
+    scene_from_pixel: impl Fn(DVec2) -> DVec2,
+) -> ImageF32 {
     let mut img = ImageF32::filled(w, h, 0.0);
     for y in 0..h {
         for x in 0..w {
             let mut acc = 0.0;
             for sy in 0..3 {
                 for sx in 0..3 {
-                    let q = DVec2::new(x as f64 + (sx as f64 - 1.0) / 3.0, y as f64 + (sy as f64 - 1.0) / 3.0);
+                    let q = DVec2::new(
+                        x as f64 + (sx as f64 - 1.0) / 3.0,
+                        y as f64 + (sy as f64 - 1.0) / 3.0,
+                    );
                     acc += scene.value(scene_from_pixel(q));
                 }
             }
@@ -79,12 +96,30 @@ fn check_view(angle: f64, scale: f64) -> (usize, f64, f64) {
     // Second view: pixel q shows the reference pixel r = centre + R^-1 (q - centre) / scale.
     let inv = DVec2::from_angle(-angle);
     let ref_from_view = move |q: DVec2| centre + inv.rotate(q - centre) / scale;
-    let view = render(&scene, w, h, |q| (ref_from_view(q) - centre) / size + DVec2::splat(0.5));
-    let params = OrbParams { n_features: 500, ..Default::default() };
+    let view = render(&scene, w, h, |q| {
+        (ref_from_view(q) - centre) / size + DVec2::splat(0.5)
+    });
+    let params = OrbParams {
+        n_features: 500,
+        ..Default::default()
+    };
     let fa = extract_orb(&reference, None, &params).unwrap();
     let fb = extract_orb(&view, None, &params).unwrap();
-    assert!(fa.len() > 300 && fb.len() > 300, "found {} and {} keypoints", fa.len(), fb.len());
-    let m = match_descriptors(&fa.descriptors, &fb.descriptors, &MatchParams { max_distance: 64, ratio: 0.8, mutual: true });
+    assert!(
+        fa.len() > 300 && fb.len() > 300,
+        "found {} and {} keypoints",
+        fa.len(),
+        fb.len()
+    );
+    let m = match_descriptors(
+        &fa.descriptors,
+        &fb.descriptors,
+        &MatchParams {
+            max_distance: 64,
+            ratio: 0.8,
+            mutual: true,
+        },
+    );
     let mut good = 0;
     let mut angle_err = Vec::new();
     for mm in &m {
@@ -92,13 +127,18 @@ fn check_view(angle: f64, scale: f64) -> (usize, f64, f64) {
         let pb_in_ref = ref_from_view(fb.keypoints[mm.train].uv);
         if (pa - pb_in_ref).length() < 3.0 * scale.max(1.0 / scale) {
             good += 1;
-            let mut d = f64::from(fb.keypoints[mm.train].angle - fa.keypoints[mm.query].angle) - angle;
-            d = (d + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI;
+            let mut d =
+                f64::from(fb.keypoints[mm.train].angle - fa.keypoints[mm.query].angle) - angle;
+            d = (d + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
+                - std::f64::consts::PI;
             angle_err.push(d.abs());
         }
     }
     angle_err.sort_by(f64::total_cmp);
-    let median_angle = angle_err.get(angle_err.len() / 2).copied().unwrap_or(f64::INFINITY);
+    let median_angle = angle_err
+        .get(angle_err.len() / 2)
+        .copied()
+        .unwrap_or(f64::INFINITY);
     (good, good as f64 / m.len().max(1) as f64, median_angle)
 }
 
@@ -106,22 +146,38 @@ fn check_view(angle: f64, scale: f64) -> (usize, f64, f64) {
 fn descriptors_of_a_rotated_image_match_the_original() {
     let (good, frac, med_angle) = check_view(35f64.to_radians(), 1.0);
     assert!(good >= 60, "only {good} correct matches");
-    assert!(frac > 0.8, "only {:.0}% of matches are correct", 100.0 * frac);
-    assert!(med_angle < 5f64.to_radians(), "orientation error {:.1} deg", med_angle.to_degrees());
+    assert!(
+        frac > 0.8,
+        "only {:.0}% of matches are correct",
+        100.0 * frac
+    );
+    assert!(
+        med_angle < 5f64.to_radians(),
+        "orientation error {:.1} deg",
+        med_angle.to_degrees()
+    );
 }
 
 #[test]
 fn descriptors_of_a_scaled_image_match_the_original() {
     let (good, frac, _) = check_view(0.0, 1.4);
     assert!(good >= 40, "only {good} correct matches");
-    assert!(frac > 0.8, "only {:.0}% of matches are correct", 100.0 * frac);
+    assert!(
+        frac > 0.8,
+        "only {:.0}% of matches are correct",
+        100.0 * frac
+    );
 }
 
 #[test]
 fn descriptors_of_a_rotated_and_scaled_image_match_the_original() {
     let (good, frac, _) = check_view(-80f64.to_radians(), 0.8);
     assert!(good >= 40, "only {good} correct matches");
-    assert!(frac > 0.8, "only {:.0}% of matches are correct", 100.0 * frac);
+    assert!(
+        frac > 0.8,
+        "only {:.0}% of matches are correct",
+        100.0 * frac
+    );
 }
 
 #[test]
@@ -129,7 +185,10 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
     let scene = Scene::random(5);
     let (w, h) = (320usize, 240usize);
     let img = render(&scene, w, h, |q| q / 300.0);
-    let params = OrbParams { n_features: 400, ..Default::default() };
+    let params = OrbParams {
+        n_features: 400,
+        ..Default::default()
+    };
     let f = extract_orb(&img, None, &params).unwrap();
     assert!(f.len() >= 300 && f.len() <= 400, "{} keypoints", f.len());
     // Every quadrant gets a share.
@@ -137,9 +196,15 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
         let n = f
             .keypoints
             .iter()
-            .filter(|k| (k.uv.x >= (w / 2) as f64) == (qx == 1) && (k.uv.y >= (h / 2) as f64) == (qy == 1))
+            .filter(|k| {
+                (k.uv.x >= (w / 2) as f64) == (qx == 1) && (k.uv.y >= (h / 2) as f64) == (qy == 1)
+            })
             .count();
-        assert!(n > f.len() / 8, "quadrant ({qx},{qy}) has {n} of {}", f.len());
+        assert!(
+            n > f.len() / 8,
+            "quadrant ({qx},{qy}) has {n} of {}",
+            f.len()
+        );
     }
     // Several pyramid levels are used.
     let levels: std::collections::BTreeSet<u8> = f.keypoints.iter().map(|k| k.level).collect();
@@ -153,13 +218,18 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
     }
     let fm = extract_orb(&img, Some(&mask), &params).unwrap();
     assert!(fm.len() > 100);
-    assert!(fm.keypoints.iter().all(|k| k.uv.x.round() < (w / 2) as f64), "a keypoint escaped the mask");
+    assert!(
+        fm.keypoints.iter().all(|k| k.uv.x.round() < (w / 2) as f64),
+        "a keypoint escaped the mask"
+    );
 }
 
 #[test]
 fn hamming_ratio_and_mutual_matching() {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
-    let a: Vec<Descriptor> = (0..200).map(|_| Descriptor([rng.random(), rng.random(), rng.random(), rng.random()])).collect();
+    let a: Vec<Descriptor> = (0..200)
+        .map(|_| Descriptor([rng.random(), rng.random(), rng.random(), rng.random()]))
+        .collect();
     // b = a permuted, with 10 flipped bits each, plus 50 random distractors.
     let perm: Vec<usize> = (0..200).rev().collect();
     let mut b: Vec<Descriptor> = perm
@@ -174,10 +244,21 @@ fn hamming_ratio_and_mutual_matching() {
         })
         .collect();
     for _ in 0..50 {
-        b.push(Descriptor([rng.random(), rng.random(), rng.random(), rng.random()]));
+        b.push(Descriptor([
+            rng.random(),
+            rng.random(),
+            rng.random(),
+            rng.random(),
+        ]));
     }
     assert_eq!(hamming(&a[0], &a[0]), 0);
-    assert_eq!(hamming(&a[0], &Descriptor([!a[0].0[0], !a[0].0[1], !a[0].0[2], !a[0].0[3]])), 256);
+    assert_eq!(
+        hamming(
+            &a[0],
+            &Descriptor([!a[0].0[0], !a[0].0[1], !a[0].0[2], !a[0].0[3]])
+        ),
+        256
+    );
     let m = match_descriptors(&a, &b, &MatchParams::default());
     assert_eq!(m.len(), 200);
     for mm in &m {
@@ -187,16 +268,52 @@ fn hamming_ratio_and_mutual_matching() {
     // A query with two equally good train descriptors fails the ratio test.
     let q = vec![a[0]];
     let t = vec![a[0], a[0]];
-    assert!(match_descriptors(&q, &t, &MatchParams { mutual: false, ..Default::default() }).is_empty());
-    assert_eq!(match_descriptors(&q, &t, &MatchParams { ratio: 1.0, mutual: false, ..Default::default() }).len(), 1);
+    assert!(match_descriptors(
+        &q,
+        &t,
+        &MatchParams {
+            mutual: false,
+            ..Default::default()
+        }
+    )
+    .is_empty());
+    assert_eq!(
+        match_descriptors(
+            &q,
+            &t,
+            &MatchParams {
+                ratio: 1.0,
+                mutual: false,
+                ..Default::default()
+            }
+        )
+        .len(),
+        1
+    );
     // Mutual consistency: two queries share one best train descriptor; only the closer survives.
     let mut near = a[1];
     near.0[0] ^= 1;
     let mut far = a[1];
     far.0[0] ^= 0b111;
-    let m = match_descriptors(&[far, near], &[a[1]], &MatchParams { ratio: 1.0, mutual: true, max_distance: 64 });
+    let m = match_descriptors(
+        &[far, near],
+        &[a[1]],
+        &MatchParams {
+            ratio: 1.0,
+            mutual: true,
+            max_distance: 64,
+        },
+    );
     assert_eq!(m.len(), 1);
     assert_eq!(m[0].query, 1);
-    let m = match_descriptors(&[far, near], &[a[1]], &MatchParams { ratio: 1.0, mutual: false, max_distance: 64 });
+    let m = match_descriptors(
+        &[far, near],
+        &[a[1]],
+        &MatchParams {
+            ratio: 1.0,
+            mutual: false,
+            max_distance: 64,
+        },
+    );
     assert_eq!(m.len(), 2);
 }

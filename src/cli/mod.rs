@@ -6,5 +6,6 @@ pub mod eval;
 pub mod graph;
 pub mod odometry;
 pub mod place;
+pub mod segment;
 pub mod synth;
 pub mod vocab;

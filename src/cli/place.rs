@@ -8,7 +8,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::image::{rgb_to_intensity, ImageF32};
-use rgbid::place::{extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary};
+use rgbid::place::{
+    extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary,
+};
 
 /// Subcommands of `rgbid place`.
 #[derive(clap::Subcommand)]
@@ -80,22 +82,40 @@ pub fn run(c: Command) -> Result<()> {
 
 /// Loads an 8-bit image as intensity in [0, 255].
 pub fn load_intensity(path: &Path) -> Result<ImageF32> {
-    let img = image::open(path).with_context(|| format!("reading {}", path.display()))?.to_rgb8();
+    let img = image::open(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .to_rgb8();
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let data = img.pixels().map(|p| rgb_to_intensity(p[0], p[1], p[2])).collect();
+    let data = img
+        .pixels()
+        .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
+        .collect();
     ImageF32::from_vec(w, h, data).context("image buffer size")
 }
 
 fn load_inverse_depth(path: &Path, factor: f64) -> Result<ImageF32> {
-    let img = image::open(path).with_context(|| format!("reading {}", path.display()))?.to_luma16();
+    let img = image::open(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .to_luma16();
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let data = img.pixels().map(|p| if p[0] == 0 { 0.0 } else { (factor / f64::from(p[0])) as f32 }).collect();
+    let data = img
+        .pixels()
+        .map(|p| {
+            if p[0] == 0 {
+                0.0
+            } else {
+                (factor / f64::from(p[0])) as f32
+            }
+        })
+        .collect();
     ImageF32::from_vec(w, h, data).context("depth buffer size")
 }
 
 /// The default vocabulary, embedded in the binary (trained on rgbid-rendered images).
 pub fn default_vocabulary() -> Result<Vocabulary> {
-    Ok(Vocabulary::read_binary(include_bytes!("../../assets/vocab_default.rgbvoc"))?)
+    Ok(Vocabulary::read_binary(include_bytes!(
+        "../../assets/vocab_default.rgbvoc"
+    ))?)
 }
 
 /// A TUM-layout sequence as listed by associations.txt (`t_rgb rgb_path t_depth depth_path`).
@@ -106,9 +126,14 @@ struct Sequence {
     depth_factor: f64,
 }
 
-fn open_sequence(dir: &Path, intrinsics: Option<&[f64]>, depth_factor: Option<f64>) -> Result<Sequence> {
+fn open_sequence(
+    dir: &Path,
+    intrinsics: Option<&[f64]>,
+    depth_factor: Option<f64>,
+) -> Result<Sequence> {
     let assoc = dir.join("associations.txt");
-    let text = std::fs::read_to_string(&assoc).with_context(|| format!("reading {}", assoc.display()))?;
+    let text =
+        std::fs::read_to_string(&assoc).with_context(|| format!("reading {}", assoc.display()))?;
     let mut frames = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let t: Vec<&str> = line.split_whitespace().collect();
@@ -116,9 +141,15 @@ fn open_sequence(dir: &Path, intrinsics: Option<&[f64]>, depth_factor: Option<f6
             continue;
         }
         if t.len() < 4 {
-            bail!("{}:{}: expected `t_rgb rgb t_depth depth`", assoc.display(), i + 1);
+            bail!(
+                "{}:{}: expected `t_rgb rgb t_depth depth`",
+                assoc.display(),
+                i + 1
+            );
         }
-        let ts: f64 = t[0].parse().with_context(|| format!("{}:{}: bad time stamp", assoc.display(), i + 1))?;
+        let ts: f64 = t[0]
+            .parse()
+            .with_context(|| format!("{}:{}: bad time stamp", assoc.display(), i + 1))?;
         frames.push((ts, dir.join(t[1]), dir.join(t[3])));
     }
     if frames.is_empty() {
@@ -132,16 +163,24 @@ fn open_sequence(dir: &Path, intrinsics: Option<&[f64]>, depth_factor: Option<f6
         (None, Some(c)) if c.len() >= 4 => (c[0], c[1], c[2], c[3]),
         _ => (525.0, 525.0, 319.5, 239.5),
     };
-    let factor = depth_factor.or(calib.as_deref().and_then(|c| c.get(4).copied())).unwrap_or(5000.0);
+    let factor = depth_factor
+        .or(calib.as_deref().and_then(|c| c.get(4).copied()))
+        .unwrap_or(5000.0);
     let first = load_intensity(&frames[0].1)?;
     let camera = PinholeCamera::new(fx, fy, cx, cy, first.width as u32, first.height as u32);
     camera.validate()?;
-    Ok(Sequence { frames, camera, depth_factor: factor })
+    Ok(Sequence {
+        frames,
+        camera,
+        depth_factor: factor,
+    })
 }
 
 fn progress(n: usize, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(n as u64);
-    if let Ok(style) = ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} {{elapsed}}")) {
+    if let Ok(style) =
+        ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} {{elapsed}}"))
+    {
         pb.set_style(style);
     }
     pb
@@ -156,7 +195,9 @@ fn median(v: &mut [f64]) -> f64 {
 }
 
 fn nearest_pose(gt: &[rgbid::io::trajectory::TimedPose], t: f64) -> Option<Se3> {
-    let p = gt.iter().min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))?;
+    let p = gt
+        .iter()
+        .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))?;
     ((p.timestamp - t).abs() < 0.02).then_some(p.world_from_camera)
 }
 
@@ -248,7 +289,12 @@ fn print_loop(l: &DetectedLoop, stamps: &[f64]) {
 
 /// Precision / recall of loop detection against ground-truth revisits, and the relative-pose
 /// error of the verified loops.
-fn evaluate(a: &LoopsArgs, gt: &[rgbid::io::trajectory::TimedPose], stamps: &[f64], loops: &[DetectedLoop]) {
+fn evaluate(
+    a: &LoopsArgs,
+    gt: &[rgbid::io::trajectory::TimedPose],
+    stamps: &[f64],
+    loops: &[DetectedLoop],
+) {
     let poses: Vec<Option<Se3>> = stamps.iter().map(|&t| nearest_pose(gt, t)).collect();
     let revisit = |i: usize, j: usize, scale: f64| -> bool {
         match (poses[i], poses[j]) {
@@ -264,12 +310,19 @@ fn evaluate(a: &LoopsArgs, gt: &[rgbid::io::trajectory::TimedPose], stamps: &[f6
     };
     // Queries that have a true revisit among keyframes at least min_separation older.
     let n = stamps.len();
-    let with_revisit: Vec<usize> =
-        (0..n).filter(|&i| (0..n).any(|j| j + a.min_separation <= i && revisit(i, j, 1.0))).collect();
+    let with_revisit: Vec<usize> = (0..n)
+        .filter(|&i| (0..n).any(|j| j + a.min_separation <= i && revisit(i, j, 1.0)))
+        .collect();
     // A detection is correct if its pair is a revisit under a 2x looser criterion (views
     // that overlap but are slightly outside the strict one are not false positives).
-    let correct: Vec<&DetectedLoop> = loops.iter().filter(|l| revisit(l.query_id, l.candidate_id, 2.0)).collect();
-    let recalled = with_revisit.iter().filter(|&&i| correct.iter().any(|l| l.query_id == i)).count();
+    let correct: Vec<&DetectedLoop> = loops
+        .iter()
+        .filter(|l| revisit(l.query_id, l.candidate_id, 2.0))
+        .collect();
+    let recalled = with_revisit
+        .iter()
+        .filter(|&&i| correct.iter().any(|l| l.query_id == i))
+        .count();
     let (mut et, mut er) = (Vec::new(), Vec::new());
     for l in loops {
         if let (Some(pq), Some(pc)) = (poses[l.query_id], poses[l.candidate_id]) {
@@ -287,8 +340,16 @@ fn evaluate(a: &LoopsArgs, gt: &[rgbid::io::trajectory::TimedPose], stamps: &[f6
         a.gt_angle,
         a.min_separation
     );
-    let precision = if loops.is_empty() { f64::NAN } else { correct.len() as f64 / loops.len() as f64 };
-    let recall = if with_revisit.is_empty() { f64::NAN } else { recalled as f64 / with_revisit.len() as f64 };
+    let precision = if loops.is_empty() {
+        f64::NAN
+    } else {
+        correct.len() as f64 / loops.len() as f64
+    };
+    let recall = if with_revisit.is_empty() {
+        f64::NAN
+    } else {
+        recalled as f64 / with_revisit.len() as f64
+    };
     println!(
         "precision {:.3} ({} / {} loops), recall {:.3} ({} / {} queries)",
         precision,
@@ -313,7 +374,10 @@ fn evaluate(a: &LoopsArgs, gt: &[rgbid::io::trajectory::TimedPose], stamps: &[f6
 
 fn bench(a: BenchArgs) -> Result<()> {
     let img = load_intensity(&a.image)?;
-    let params = OrbParams { n_features: a.features, ..Default::default() };
+    let params = OrbParams {
+        n_features: a.features,
+        ..Default::default()
+    };
     let vocab = default_vocabulary()?;
     let f = extract_orb(&img, None, &params)?;
     let mut t_orb = Vec::new();
@@ -330,7 +394,10 @@ fn bench(a: BenchArgs) -> Result<()> {
         let mut text = String::new();
         for (k, d) in f.keypoints.iter().zip(f.descriptors.iter()) {
             let hex: String = d.to_bytes().iter().map(|b| format!("{b:02x}")).collect();
-            text.push_str(&format!("{} {} {} {} {} {}\n", k.uv.x, k.uv.y, k.level, k.angle, k.score, hex));
+            text.push_str(&format!(
+                "{} {} {} {} {} {}\n",
+                k.uv.x, k.uv.y, k.level, k.angle, k.score, hex
+            ));
         }
         std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
     }

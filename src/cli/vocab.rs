@@ -64,7 +64,9 @@ pub fn run(c: Command) -> Result<()> {
         Command::Train(a) => train(a),
         Command::Info { vocab } => {
             let v = Vocabulary::load(&vocab)?;
-            let ws: Vec<f64> = (0..v.num_words() as u32).filter_map(|w| v.word_weight(w)).collect();
+            let ws: Vec<f64> = (0..v.num_words() as u32)
+                .filter_map(|w| v.word_weight(w))
+                .collect();
             let mean = ws.iter().sum::<f64>() / ws.len().max(1) as f64;
             println!(
                 "k={} L={} nodes={} words={} weighting={:?} scoring={:?} mean weight {:.3}",
@@ -87,7 +89,8 @@ pub fn run(c: Command) -> Result<()> {
 
 fn save(v: &Vocabulary, out: &Path) -> Result<()> {
     if out.extension().is_some_and(|e| e == "txt") {
-        let f = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+        let f =
+            std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
         v.write_dbow2_text(std::io::BufWriter::new(f))?;
     } else {
         v.save(out)?;
@@ -96,7 +99,9 @@ fn save(v: &Vocabulary, out: &Path) -> Result<()> {
 }
 
 fn is_image(p: &Path) -> bool {
-    p.extension().and_then(|e| e.to_str()).is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
 }
 
 /// Image files of the inputs: files as given; folders' images (a TUM folder's rgb/), sorted.
@@ -107,7 +112,11 @@ fn collect_images(inputs: &[PathBuf], every: usize) -> Result<Vec<PathBuf>> {
             out.push(p.clone());
             continue;
         }
-        let dir = if p.join("rgb").is_dir() { p.join("rgb") } else { p.clone() };
+        let dir = if p.join("rgb").is_dir() {
+            p.join("rgb")
+        } else {
+            p.clone()
+        };
         let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
             .with_context(|| format!("reading {}", dir.display()))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -138,7 +147,11 @@ pub fn procedural_image(w: usize, h: usize, seed: u64) -> ImageF32 {
             (kind, p, rng.random_range(0.0..255.0))
         })
         .collect();
-    let g = [rng.random_range(40.0..160.0), rng.random_range(-0.2..0.2), rng.random_range(-0.2..0.2)];
+    let g = [
+        rng.random_range(40.0..160.0),
+        rng.random_range(-0.2..0.2),
+        rng.random_range(-0.2..0.2),
+    ];
     let value = |x: f64, y: f64| -> f32 {
         let mut v = (g[0] + g[1] * x + g[2] * y) as f32;
         for (kind, p, val) in &shapes {
@@ -160,11 +173,18 @@ pub fn procedural_image(w: usize, h: usize, seed: u64) -> ImageF32 {
         .into_par_iter()
         .map(|i| {
             let (x, y) = ((i % w) as f64, (i / w) as f64);
-            (value(x - 0.25, y - 0.25) + value(x + 0.25, y - 0.25) + value(x - 0.25, y + 0.25) + value(x + 0.25, y + 0.25))
+            (value(x - 0.25, y - 0.25)
+                + value(x + 0.25, y - 0.25)
+                + value(x - 0.25, y + 0.25)
+                + value(x + 0.25, y + 0.25))
                 / 4.0
         })
         .collect();
-    ImageF32 { width: w, height: h, data }
+    ImageF32 {
+        width: w,
+        height: h,
+        data,
+    }
 }
 
 fn train(a: TrainArgs) -> Result<()> {
@@ -172,7 +192,10 @@ fn train(a: TrainArgs) -> Result<()> {
     if files.is_empty() && a.procedural == 0 {
         bail!("no training images: give image files / folders or --procedural N");
     }
-    let orb = OrbParams { n_features: a.features, ..Default::default() };
+    let orb = OrbParams {
+        n_features: a.features,
+        ..Default::default()
+    };
     let n = files.len() + a.procedural;
     let pb = ProgressBar::new(n as u64);
     if let Ok(s) = ProgressStyle::with_template("ORB {bar:40} {pos}/{len} {elapsed}") {
@@ -185,17 +208,37 @@ fn train(a: TrainArgs) -> Result<()> {
         pb.inc(1);
     }
     for i in 0..a.procedural {
-        let img = procedural_image(640, 480, a.seed.wrapping_mul(1_000_003).wrapping_add(i as u64));
+        let img = procedural_image(
+            640,
+            480,
+            a.seed.wrapping_mul(1_000_003).wrapping_add(i as u64),
+        );
         sets.push(extract_orb(&img, None, &orb)?.descriptors);
         pb.inc(1);
     }
     pb.finish_and_clear();
     let total: usize = sets.iter().map(Vec::len).sum();
-    println!("{} images, {} descriptors; clustering k={} L={}", sets.len(), total, a.k, a.levels);
+    println!(
+        "{} images, {} descriptors; clustering k={} L={}",
+        sets.len(),
+        total,
+        a.k,
+        a.levels
+    );
     let t0 = std::time::Instant::now();
-    let params = TrainParams { k: a.k, levels: a.levels, seed: a.seed, ..Default::default() };
+    let params = TrainParams {
+        k: a.k,
+        levels: a.levels,
+        seed: a.seed,
+        ..Default::default()
+    };
     let v = Vocabulary::train(&sets, &params)?;
-    println!("{} words, {} nodes in {:.1} s", v.num_words(), v.num_nodes(), t0.elapsed().as_secs_f64());
+    println!(
+        "{} words, {} nodes in {:.1} s",
+        v.num_words(),
+        v.num_nodes(),
+        t0.elapsed().as_secs_f64()
+    );
     save(&v, &a.out)?;
     println!("wrote {}", a.out.display());
     Ok(())

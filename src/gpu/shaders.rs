@@ -9,6 +9,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("pyramid.wgsl", include_str!("../../shaders/pyramid.wgsl")),
     ("odometry.wgsl", include_str!("../../shaders/odometry.wgsl")),
     ("raycast.wgsl", include_str!("../../shaders/raycast.wgsl")),
+    ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
 ];
 
 /// Returns the raw source of `name`.

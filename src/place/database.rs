@@ -25,7 +25,12 @@ pub struct QueryParams {
 
 impl Default for QueryParams {
     fn default() -> Self {
-        Self { max_results: 5, min_separation: 30, min_normalised_score: 0.3, min_reference_score: 0.005 }
+        Self {
+            max_results: 5,
+            min_separation: 30,
+            min_normalised_score: 0.3,
+            min_reference_score: 0.005,
+        }
     }
 }
 
@@ -79,7 +84,10 @@ impl KeyframeDatabase {
             if let Some(&(w, _)) = b.0.iter().find(|(w, _)| *w as usize >= self.inverted.len()) {
                 return Err(PlaceError::InvalidParameter {
                     name: "bow",
-                    why: format!("word {w} outside a vocabulary of {} words", self.inverted.len()),
+                    why: format!(
+                        "word {w} outside a vocabulary of {} words",
+                        self.inverted.len()
+                    ),
                 });
             }
         }
@@ -96,7 +104,10 @@ impl KeyframeDatabase {
 
     /// Best similarity between any of `bows` and any histogram of keyframe `keyframe_id`.
     pub fn score_against(&self, bows: &[BowVector], keyframe_id: usize) -> Result<f64, PlaceError> {
-        let hs = self.histograms.get(&keyframe_id).ok_or(PlaceError::UnknownKeyframe(keyframe_id))?;
+        let hs = self
+            .histograms
+            .get(&keyframe_id)
+            .ok_or(PlaceError::UnknownKeyframe(keyframe_id))?;
         let mut best: f64 = 0.0;
         for q in bows {
             for h in hs {
@@ -109,8 +120,17 @@ impl KeyframeDatabase {
     /// Candidates for query keyframe `query_id` with histograms `bows`. `reference_score` is
     /// the score between the query and its previous keyframe (see [`Self::score_against`]).
     /// Sorted by score, best first.
-    pub fn query(&self, query_id: usize, bows: &[BowVector], reference_score: f64, params: &QueryParams) -> Vec<Candidate> {
-        if reference_score.is_nan() || reference_score < params.min_reference_score || self.entry_keyframe.is_empty() {
+    pub fn query(
+        &self,
+        query_id: usize,
+        bows: &[BowVector],
+        reference_score: f64,
+        params: &QueryParams,
+    ) -> Vec<Candidate> {
+        if reference_score.is_nan()
+            || reference_score < params.min_reference_score
+            || self.entry_keyframe.is_empty()
+        {
             return Vec::new();
         }
         let mut best_per_entry = vec![0.0f64; self.entry_keyframe.len()];
@@ -118,7 +138,9 @@ impl KeyframeDatabase {
         for q in bows {
             acc.iter_mut().for_each(|a| *a = 0.0);
             for &(w, qv) in &q.0 {
-                let Some(list) = self.inverted.get(w as usize) else { continue };
+                let Some(list) = self.inverted.get(w as usize) else {
+                    continue;
+                };
                 for &(e, ev) in list {
                     acc[e as usize] += match self.scoring {
                         Scoring::L1 => qv.abs() + ev.abs() - (qv - ev).abs(),
@@ -153,10 +175,18 @@ impl KeyframeDatabase {
         }
         let mut out: Vec<Candidate> = per_kf
             .into_iter()
-            .map(|(keyframe_id, score)| Candidate { keyframe_id, score, normalised_score: score / reference_score })
+            .map(|(keyframe_id, score)| Candidate {
+                keyframe_id,
+                score,
+                normalised_score: score / reference_score,
+            })
             .filter(|c| c.normalised_score >= params.min_normalised_score)
             .collect();
-        out.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.keyframe_id.cmp(&b.keyframe_id)));
+        out.sort_by(|a, b| {
+            b.score
+                .total_cmp(&a.score)
+                .then(a.keyframe_id.cmp(&b.keyframe_id))
+        });
         out.truncate(params.max_results);
         out
     }

@@ -74,7 +74,12 @@ impl LoopDetector {
     /// A detector with an empty database.
     pub fn new(vocabulary: Vocabulary, params: LoopDetectorParams) -> Self {
         let database = KeyframeDatabase::new(vocabulary.num_words(), vocabulary.scoring());
-        Self { vocabulary, database, keyframes: Vec::new(), params }
+        Self {
+            vocabulary,
+            database,
+            keyframes: Vec::new(),
+            params,
+        }
     }
 
     /// The vocabulary.
@@ -108,7 +113,9 @@ impl LoopDetector {
     ) -> Result<KeyframeDescription, PlaceError> {
         let mut features = extract_orb(intensity, None, &self.params.orb)?;
         features.lift(inverse_depth, camera)?;
-        let (bow, feature_vector) = self.vocabulary.transform(&features.descriptors, self.params.direct_index_depth);
+        let (bow, feature_vector) = self
+            .vocabulary
+            .transform(&features.descriptors, self.params.direct_index_depth);
         let mut bows = Vec::new();
         if masks.is_empty() {
             bows.push(bow);
@@ -134,20 +141,33 @@ impl LoopDetector {
                     })
                     .map(|(_, d)| *d)
                     .collect();
-                bows.push(self.vocabulary.transform(&inside, self.params.direct_index_depth).0);
+                bows.push(
+                    self.vocabulary
+                        .transform(&inside, self.params.direct_index_depth)
+                        .0,
+                );
             }
         }
-        Ok(KeyframeDescription { features, bows, feature_vector })
+        Ok(KeyframeDescription {
+            features,
+            bows,
+            feature_vector,
+        })
     }
 
     /// Queries the database with `desc`, verifies the best candidates, then inserts `desc`
     /// as the next keyframe. Returns its id and the verified loop with most inliers, if any.
-    pub fn insert(&mut self, desc: KeyframeDescription) -> Result<(usize, Option<DetectedLoop>), PlaceError> {
+    pub fn insert(
+        &mut self,
+        desc: KeyframeDescription,
+    ) -> Result<(usize, Option<DetectedLoop>), PlaceError> {
         let id = self.keyframes.len();
         let mut found: Option<DetectedLoop> = None;
         if id > 0 {
             let reference = self.database.score_against(&desc.bows, id - 1)?;
-            let candidates = self.database.query(id, &desc.bows, reference, &self.params.query);
+            let candidates = self
+                .database
+                .query(id, &desc.bows, reference, &self.params.query);
             for c in candidates.into_iter().take(self.params.max_verified) {
                 let old = &self.keyframes[c.keyframe_id];
                 let outcome = verify_loop(
@@ -157,9 +177,16 @@ impl LoopDetector {
                     &self.params.verify,
                 )?;
                 if let VerifyOutcome::Accepted(m) = outcome {
-                    let better = found.as_ref().is_none_or(|f| m.inliers.len() > f.loop_match.inliers.len());
+                    let better = found
+                        .as_ref()
+                        .is_none_or(|f| m.inliers.len() > f.loop_match.inliers.len());
                     if better {
-                        found = Some(DetectedLoop { query_id: id, candidate_id: c.keyframe_id, candidate: c, loop_match: m });
+                        found = Some(DetectedLoop {
+                            query_id: id,
+                            candidate_id: c.keyframe_id,
+                            candidate: c,
+                            loop_match: m,
+                        });
                     }
                 }
             }

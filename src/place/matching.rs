@@ -25,7 +25,11 @@ pub struct MatchParams {
 
 impl Default for MatchParams {
     fn default() -> Self {
-        Self { max_distance: 64, ratio: 0.8, mutual: true }
+        Self {
+            max_distance: 64,
+            ratio: 0.8,
+            mutual: true,
+        }
     }
 }
 
@@ -42,7 +46,11 @@ pub struct DescriptorMatch {
 
 /// Best and second-best distances and the best index of `d` among `candidates` of `set`.
 #[inline]
-fn best_two(d: &Descriptor, set: &[Descriptor], candidates: impl Iterator<Item = usize>) -> (usize, u32, u32) {
+fn best_two(
+    d: &Descriptor,
+    set: &[Descriptor],
+    candidates: impl Iterator<Item = usize>,
+) -> (usize, u32, u32) {
     let (mut bi, mut b1, mut b2) = (usize::MAX, u32::MAX, u32::MAX);
     for j in candidates {
         let dist = d.distance(&set[j]);
@@ -64,11 +72,20 @@ fn passes(b1: u32, b2: u32, p: &MatchParams) -> bool {
 
 /// Brute-force matching of `query` against `train` with the ratio test and, if asked, mutual
 /// consistency. Each query descriptor gives at most one match; sorted by query index.
-pub fn match_descriptors(query: &[Descriptor], train: &[Descriptor], params: &MatchParams) -> Vec<DescriptorMatch> {
-    let forward: Vec<(usize, u32, u32)> =
-        query.par_iter().map(|d| best_two(d, train, 0..train.len())).collect();
+pub fn match_descriptors(
+    query: &[Descriptor],
+    train: &[Descriptor],
+    params: &MatchParams,
+) -> Vec<DescriptorMatch> {
+    let forward: Vec<(usize, u32, u32)> = query
+        .par_iter()
+        .map(|d| best_two(d, train, 0..train.len()))
+        .collect();
     let backward: Vec<usize> = if params.mutual {
-        train.par_iter().map(|d| best_two(d, query, 0..query.len()).0).collect()
+        train
+            .par_iter()
+            .map(|d| best_two(d, query, 0..query.len()).0)
+            .collect()
     } else {
         Vec::new()
     };
@@ -82,7 +99,11 @@ pub fn match_descriptors(query: &[Descriptor], train: &[Descriptor], params: &Ma
             if params.mutual && backward[j] != i {
                 return None;
             }
-            Some(DescriptorMatch { query: i, train: j, distance: b1 })
+            Some(DescriptorMatch {
+                query: i,
+                train: j,
+                distance: b1,
+            })
         })
         .collect()
 }
@@ -99,20 +120,32 @@ pub fn match_with_vocabulary(
 ) -> Vec<DescriptorMatch> {
     let mut best_for_train: Vec<Option<DescriptorMatch>> = vec![None; train.len()];
     for (node, qidx) in query_fv.iter() {
-        let Some(tidx) = train_fv.get(node) else { continue };
+        let Some(tidx) = train_fv.get(node) else {
+            continue;
+        };
         for &qi in qidx {
             let Some(qd) = query.get(qi) else { continue };
-            let (tj, b1, b2) = best_two(qd, train, tidx.iter().copied().filter(|&t| t < train.len()));
+            let (tj, b1, b2) =
+                best_two(qd, train, tidx.iter().copied().filter(|&t| t < train.len()));
             if tj == usize::MAX || !passes(b1, b2, params) {
                 continue;
             }
             if params.mutual {
-                let back = best_two(&train[tj], query, qidx.iter().copied().filter(|&q| q < query.len())).0;
+                let back = best_two(
+                    &train[tj],
+                    query,
+                    qidx.iter().copied().filter(|&q| q < query.len()),
+                )
+                .0;
                 if back != qi {
                     continue;
                 }
             }
-            let m = DescriptorMatch { query: qi, train: tj, distance: b1 };
+            let m = DescriptorMatch {
+                query: qi,
+                train: tj,
+                distance: b1,
+            };
             match &best_for_train[tj] {
                 Some(prev) if prev.distance <= b1 => {}
                 _ => best_for_train[tj] = Some(m),

@@ -22,7 +22,9 @@ pub mod vocabulary;
 
 pub use database::{Candidate, KeyframeDatabase, QueryParams};
 pub use detector::{DetectedLoop, LoopDetector, LoopDetectorParams};
-pub use matching::{hamming, match_descriptors, match_with_vocabulary, DescriptorMatch, MatchParams};
+pub use matching::{
+    hamming, match_descriptors, match_with_vocabulary, DescriptorMatch, MatchParams,
+};
 pub use orb::{extract_orb, Descriptor, KeyPoint, OrbFeatures, OrbParams};
 pub use ransac::{horn_absolute_orientation, ransac_rigid, RansacParams, RansacResult};
 pub use verify::{convex_hull_area, verify_loop, LoopMatch, VerifyOutcome, VerifyParams};
@@ -48,7 +50,9 @@ pub enum PlaceError {
         want_h: usize,
     },
     /// The image is too small for even one pyramid level with a descriptor border.
-    #[error("image {width}x{height} is too small for ORB (needs at least 2 x 19 + 1 pixels per side)")]
+    #[error(
+        "image {width}x{height} is too small for ORB (needs at least 2 x 19 + 1 pixels per side)"
+    )]
     ImageTooSmall {
         /// Width in pixels.
         width: usize,

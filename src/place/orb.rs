@@ -136,7 +136,11 @@ impl OrbFeatures {
 
     /// Lifts every keypoint to 3D with the inverse depth (1/m, 0 = invalid) at its nearest
     /// pixel, unprojected with `camera`. Fills [`Self::points`].
-    pub fn lift(&mut self, inverse_depth: &ImageF32, camera: &PinholeCamera) -> Result<(), PlaceError> {
+    pub fn lift(
+        &mut self,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+    ) -> Result<(), PlaceError> {
         if inverse_depth.width != self.width || inverse_depth.height != self.height {
             return Err(PlaceError::SizeMismatch {
                 what: "inverse depth",
@@ -209,7 +213,11 @@ fn resize_bilinear(src: &ImageF32, w: usize, h: usize) -> ImageF32 {
             *o = a + (b - a) * ty;
         }
     });
-    ImageF32 { width: w, height: h, data: out }
+    ImageF32 {
+        width: w,
+        height: h,
+        data: out,
+    }
 }
 
 /// 7x7 Gaussian blur with sigma 2 (as OpenCV's ORB before BRIEF), reflected borders.
@@ -261,7 +269,11 @@ fn gaussian_blur7(img: &ImageF32) -> ImageF32 {
             *o = acc;
         }
     });
-    ImageF32 { width: w, height: h, data: out }
+    ImageF32 {
+        width: w,
+        height: h,
+        data: out,
+    }
 }
 
 /// FAST-9 score of pixel `(x, y)` (needs a 3-pixel border): the largest threshold `t` such that
@@ -367,23 +379,31 @@ fn detect_level(
     if w < 2 * e + 1 || h < 2 * e + 1 || budget == 0 {
         return Vec::new();
     }
-    let offs: [isize; 16] = std::array::from_fn(|k| CIRCLE[k].1 as isize * w as isize + CIRCLE[k].0 as isize);
+    let offs: [isize; 16] =
+        std::array::from_fn(|k| CIRCLE[k].1 as isize * w as isize + CIRCLE[k].0 as isize);
     let min_t = params.min_threshold;
     // Score map over the keypoint region (plus one pixel for non-maximum suppression).
     let (x0, x1, y0, y1) = (e - 1, w - e + 1, e - 1, h - e + 1);
     let mut score = vec![0.0f32; w * h];
-    score[y0 * w..y1 * w].par_chunks_mut(w).enumerate().for_each(|(r, row)| {
-        let y = y0 + r;
-        for x in x0..x1 {
-            row[x] = fast_score(&img.data, w, &offs, x, y, min_t);
-        }
-    });
+    score[y0 * w..y1 * w]
+        .par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(r, row)| {
+            let y = y0 + r;
+            for x in x0..x1 {
+                row[x] = fast_score(&img.data, w, &offs, x, y, min_t);
+            }
+        });
     let mask_ok = |x: usize, y: usize| -> bool {
         match mask {
             None => true,
             Some(m) => {
-                let u = ((x as f64 + 0.5) * scale - 0.5).round().clamp(0.0, (m.width - 1) as f64) as usize;
-                let v = ((y as f64 + 0.5) * scale - 0.5).round().clamp(0.0, (m.height - 1) as f64) as usize;
+                let u = ((x as f64 + 0.5) * scale - 0.5)
+                    .round()
+                    .clamp(0.0, (m.width - 1) as f64) as usize;
+                let v = ((y as f64 + 0.5) * scale - 0.5)
+                    .round()
+                    .clamp(0.0, (m.height - 1) as f64) as usize;
                 m.at(u, v) > 0.0
             }
         }
@@ -440,7 +460,11 @@ fn detect_level(
         for c in cells.iter() {
             if rank < c.len() {
                 let cand = &c[rank];
-                tier.push(Candidate { x: cand.x, y: cand.y, score: cand.score });
+                tier.push(Candidate {
+                    x: cand.x,
+                    y: cand.y,
+                    score: cand.score,
+                });
             }
         }
         if out.len() + tier.len() > budget {
@@ -477,15 +501,28 @@ pub fn build_pyramid(image: &ImageF32, params: &OrbParams) -> Vec<ImageF32> {
 /// `mask`, if given, has the image's size; keypoints whose level-0 pixel has mask value `<= 0`
 /// are discarded before the per-level budgets are filled. The result has no 3D points; call
 /// [`OrbFeatures::lift`] for them.
-pub fn extract_orb(image: &ImageF32, mask: Option<&ImageF32>, params: &OrbParams) -> Result<OrbFeatures, PlaceError> {
+pub fn extract_orb(
+    image: &ImageF32,
+    mask: Option<&ImageF32>,
+    params: &OrbParams,
+) -> Result<OrbFeatures, PlaceError> {
     if params.n_levels == 0 || params.n_levels > 32 {
-        return Err(PlaceError::InvalidParameter { name: "n_levels", why: "must be in 1..=32".into() });
+        return Err(PlaceError::InvalidParameter {
+            name: "n_levels",
+            why: "must be in 1..=32".into(),
+        });
     }
     if !(params.scale_factor > 1.0 && params.scale_factor.is_finite()) {
-        return Err(PlaceError::InvalidParameter { name: "scale_factor", why: "must be finite and > 1".into() });
+        return Err(PlaceError::InvalidParameter {
+            name: "scale_factor",
+            why: "must be finite and > 1".into(),
+        });
     }
     if image.width < 2 * EDGE_THRESHOLD + 1 || image.height < 2 * EDGE_THRESHOLD + 1 {
-        return Err(PlaceError::ImageTooSmall { width: image.width, height: image.height });
+        return Err(PlaceError::ImageTooSmall {
+            width: image.width,
+            height: image.height,
+        });
     }
     if image.data.len() != image.width * image.height {
         return Err(PlaceError::SizeMismatch {
@@ -497,7 +534,8 @@ pub fn extract_orb(image: &ImageF32, mask: Option<&ImageF32>, params: &OrbParams
         });
     }
     if let Some(m) = mask {
-        if m.width != image.width || m.height != image.height || m.data.len() != m.width * m.height {
+        if m.width != image.width || m.height != image.height || m.data.len() != m.width * m.height
+        {
             return Err(PlaceError::SizeMismatch {
                 what: "mask",
                 got_w: m.width,
@@ -539,7 +577,10 @@ pub fn extract_orb(image: &ImageF32, mask: Option<&ImageF32>, params: &OrbParams
                 let angle = ic_angle(img, c.x, c.y, &umax);
                 descs.push(brief(&blurred, c.x, c.y, angle));
                 kps.push(KeyPoint {
-                    uv: DVec2::new((c.x as f64 + 0.5) * scale - 0.5, (c.y as f64 + 0.5) * scale - 0.5),
+                    uv: DVec2::new(
+                        (c.x as f64 + 0.5) * scale - 0.5,
+                        (c.y as f64 + 0.5) * scale - 0.5,
+                    ),
                     level: l as u8,
                     angle,
                     score: c.score,
@@ -549,7 +590,11 @@ pub fn extract_orb(image: &ImageF32, mask: Option<&ImageF32>, params: &OrbParams
             (kps, descs)
         })
         .collect();
-    let mut out = OrbFeatures { width: image.width, height: image.height, ..Default::default() };
+    let mut out = OrbFeatures {
+        width: image.width,
+        height: image.height,
+        ..Default::default()
+    };
     for (k, d) in per_level {
         out.keypoints.extend(k);
         out.descriptors.extend(d);
@@ -583,10 +628,15 @@ mod tests {
                 img.data[y * w + x] = 200.0;
             }
         }
-        let offs: [isize; 16] = std::array::from_fn(|k| CIRCLE[k].1 as isize * w as isize + CIRCLE[k].0 as isize);
+        let offs: [isize; 16] =
+            std::array::from_fn(|k| CIRCLE[k].1 as isize * w as isize + CIRCLE[k].0 as isize);
         assert!(fast_score(&img.data, w, &offs, 32, 32, 7.0) > 100.0);
         assert_eq!(fast_score(&img.data, w, &offs, 10, 10, 7.0), 0.0);
-        assert_eq!(fast_score(&img.data, w, &offs, 45, 32, 7.0), 0.0, "straight edge is not a corner");
+        assert_eq!(
+            fast_score(&img.data, w, &offs, 45, 32, 7.0),
+            0.0,
+            "straight edge is not a corner"
+        );
     }
 
     #[test]

@@ -13,10 +13,17 @@ use crate::geometry::Se3;
 /// Needs at least 3 non-collinear pairs; points in metres.
 pub fn horn_absolute_orientation(a: &[DVec3], b: &[DVec3]) -> Result<Se3, PlaceError> {
     if a.len() != b.len() {
-        return Err(PlaceError::BadPointSets(format!("{} vs {} points", a.len(), b.len())));
+        return Err(PlaceError::BadPointSets(format!(
+            "{} vs {} points",
+            a.len(),
+            b.len()
+        )));
     }
     if a.len() < 3 {
-        return Err(PlaceError::BadPointSets(format!("{} points, need at least 3", a.len())));
+        return Err(PlaceError::BadPointSets(format!(
+            "{} points, need at least 3",
+            a.len()
+        )));
     }
     let n = a.len() as f64;
     let ca = a.iter().copied().sum::<DVec3>() / n;
@@ -53,9 +60,16 @@ pub fn horn_absolute_orientation(a: &[DVec3], b: &[DVec3]) -> Result<Se3, PlaceE
     let mut order: Vec<usize> = (0..4).collect();
     order.sort_by(|&i, &j| eig.eigenvalues[j].total_cmp(&eig.eigenvalues[i]));
     // Collinear points leave the top eigenvalue (near-)double: rotation about the line is free.
-    let scale = eig.eigenvalues.iter().map(|v| v.abs()).fold(0.0, f64::max).max(1e-300);
+    let scale = eig
+        .eigenvalues
+        .iter()
+        .map(|v| v.abs())
+        .fold(0.0, f64::max)
+        .max(1e-300);
     if (eig.eigenvalues[order[0]] - eig.eigenvalues[order[1]]) < 1e-9 * scale {
-        return Err(PlaceError::Degenerate("collinear points: rotation about their line is free"));
+        return Err(PlaceError::Degenerate(
+            "collinear points: rotation about their line is free",
+        ));
     }
     let v = eig.eigenvectors.column(order[0]);
     let q = DQuat::from_xyzw(v[1], v[2], v[3], v[0]).normalize();
@@ -79,7 +93,12 @@ pub struct RansacParams {
 
 impl Default for RansacParams {
     fn default() -> Self {
-        Self { threshold: 0.03, max_iterations: 500, confidence: 0.999, seed: 0x5eed }
+        Self {
+            threshold: 0.03,
+            max_iterations: 500,
+            confidence: 0.999,
+            seed: 0x5eed,
+        }
     }
 }
 
@@ -106,13 +125,23 @@ fn inliers_of(a: &[DVec3], b: &[DVec3], a_from_b: &Se3, threshold: f64) -> Vec<u
 /// 3-point RANSAC for the rigid transform `a_from_b` between paired 3D points, with Horn's
 /// method for each minimal sample and a final least-squares refit on the inliers (repeated
 /// while the inlier set grows).
-pub fn ransac_rigid(a: &[DVec3], b: &[DVec3], params: &RansacParams) -> Result<RansacResult, PlaceError> {
+pub fn ransac_rigid(
+    a: &[DVec3],
+    b: &[DVec3],
+    params: &RansacParams,
+) -> Result<RansacResult, PlaceError> {
     if a.len() != b.len() {
-        return Err(PlaceError::BadPointSets(format!("{} vs {} points", a.len(), b.len())));
+        return Err(PlaceError::BadPointSets(format!(
+            "{} vs {} points",
+            a.len(),
+            b.len()
+        )));
     }
     let n = a.len();
     if n < 3 {
-        return Err(PlaceError::BadPointSets(format!("{n} pairs, need at least 3")));
+        return Err(PlaceError::BadPointSets(format!(
+            "{n} pairs, need at least 3"
+        )));
     }
     let mut rng = rand_pcg::Pcg64::seed_from_u64(params.seed);
     let mut best: Vec<usize> = Vec::new();
@@ -131,7 +160,9 @@ pub fn ransac_rigid(a: &[DVec3], b: &[DVec3], params: &RansacParams) -> Result<R
                 k += 1;
             }
         }
-        let Ok(h) = horn_absolute_orientation(&[a[i], a[j], a[k]], &[b[i], b[j], b[k]]) else { continue };
+        let Ok(h) = horn_absolute_orientation(&[a[i], a[j], a[k]], &[b[i], b[j], b[k]]) else {
+            continue;
+        };
         let inl = inliers_of(a, b, &h, params.threshold);
         if inl.len() > best.len() {
             best = inl;
@@ -163,7 +194,11 @@ pub fn ransac_rigid(a: &[DVec3], b: &[DVec3], params: &RansacParams) -> Result<R
         best = inl;
         a_from_b = refit;
     }
-    Ok(RansacResult { a_from_b, inliers: best, iterations: it })
+    Ok(RansacResult {
+        a_from_b,
+        inliers: best,
+        iterations: it,
+    })
 }
 
 fn fit(a: &[DVec3], b: &[DVec3], idx: &[usize]) -> Result<Se3, PlaceError> {

@@ -27,7 +27,12 @@ pub struct VerifyParams {
 
 impl Default for VerifyParams {
     fn default() -> Self {
-        Self { matching: MatchParams::default(), ransac: RansacParams::default(), min_inliers: 10, min_hull_fraction: 0.05 }
+        Self {
+            matching: MatchParams::default(),
+            ransac: RansacParams::default(),
+            min_inliers: 10,
+            min_hull_fraction: 0.05,
+        }
     }
 }
 
@@ -101,7 +106,10 @@ pub fn convex_hull_area(points: &[DVec2]) -> f64 {
     if n < 3 {
         return 0.0;
     }
-    0.5 * (0..n).map(|i| hull[i].perp_dot(hull[(i + 1) % n])).sum::<f64>().abs()
+    0.5 * (0..n)
+        .map(|i| hull[i].perp_dot(hull[(i + 1) % n]))
+        .sum::<f64>()
+        .abs()
 }
 
 /// Verifies `candidate` against `query`. Both must be lifted ([`OrbFeatures::lift`]). With
@@ -122,7 +130,13 @@ pub fn verify_loop(
         }
     }
     let matches: Vec<DescriptorMatch> = match feature_vectors {
-        Some((qf, cf)) => match_with_vocabulary(&query.descriptors, qf, &candidate.descriptors, cf, &params.matching),
+        Some((qf, cf)) => match_with_vocabulary(
+            &query.descriptors,
+            qf,
+            &candidate.descriptors,
+            cf,
+            &params.matching,
+        ),
         None => match_descriptors(&query.descriptors, &candidate.descriptors, &params.matching),
     };
     let mut pairs = Vec::new();
@@ -136,25 +150,47 @@ pub fn verify_loop(
     }
     let needed = params.min_inliers.max(3);
     if pairs.len() < needed {
-        return Ok(VerifyOutcome::Rejected { reason: Rejection::TooFewMatches, inliers: pairs.len() });
+        return Ok(VerifyOutcome::Rejected {
+            reason: Rejection::TooFewMatches,
+            inliers: pairs.len(),
+        });
     }
     let r = match ransac_rigid(&pa, &pb, &params.ransac) {
         Ok(r) => r,
         Err(PlaceError::Degenerate(_)) => {
-            return Ok(VerifyOutcome::Rejected { reason: Rejection::TooFewInliers, inliers: 0 });
+            return Ok(VerifyOutcome::Rejected {
+                reason: Rejection::TooFewInliers,
+                inliers: 0,
+            });
         }
         Err(e) => return Err(e),
     };
     if r.inliers.len() < params.min_inliers {
-        return Ok(VerifyOutcome::Rejected { reason: Rejection::TooFewInliers, inliers: r.inliers.len() });
+        return Ok(VerifyOutcome::Rejected {
+            reason: Rejection::TooFewInliers,
+            inliers: r.inliers.len(),
+        });
     }
-    let hull_q = convex_hull_area(&r.inliers.iter().map(|&i| query.keypoints[pairs[i].0].uv).collect::<Vec<_>>());
-    let hull_c = convex_hull_area(&r.inliers.iter().map(|&i| candidate.keypoints[pairs[i].1].uv).collect::<Vec<_>>());
+    let hull_q = convex_hull_area(
+        &r.inliers
+            .iter()
+            .map(|&i| query.keypoints[pairs[i].0].uv)
+            .collect::<Vec<_>>(),
+    );
+    let hull_c = convex_hull_area(
+        &r.inliers
+            .iter()
+            .map(|&i| candidate.keypoints[pairs[i].1].uv)
+            .collect::<Vec<_>>(),
+    );
     let area_q = (query.width * query.height).max(1) as f64;
     let area_c = (candidate.width * candidate.height).max(1) as f64;
     let hull_fraction = (hull_q / area_q).min(hull_c / area_c);
     if hull_fraction < params.min_hull_fraction {
-        return Ok(VerifyOutcome::Rejected { reason: Rejection::HullTooSmall, inliers: r.inliers.len() });
+        return Ok(VerifyOutcome::Rejected {
+            reason: Rejection::HullTooSmall,
+            inliers: r.inliers.len(),
+        });
     }
     let rms = (r
         .inliers

@@ -49,7 +49,12 @@ impl Weighting {
             1 => Weighting::Tf,
             2 => Weighting::Idf,
             3 => Weighting::Binary,
-            _ => return Err(PlaceError::Unsupported { what: "weighting", code: c }),
+            _ => {
+                return Err(PlaceError::Unsupported {
+                    what: "weighting",
+                    code: c,
+                })
+            }
         })
     }
 }
@@ -76,7 +81,10 @@ impl Scoring {
         match c {
             0 => Ok(Scoring::L1),
             1 => Ok(Scoring::L2),
-            _ => Err(PlaceError::Unsupported { what: "scoring", code: c }),
+            _ => Err(PlaceError::Unsupported {
+                what: "scoring",
+                code: c,
+            }),
         }
     }
 }
@@ -119,7 +127,14 @@ pub struct TrainParams {
 
 impl Default for TrainParams {
     fn default() -> Self {
-        Self { k: 10, levels: 5, max_iterations: 15, seed: 7, weighting: Weighting::TfIdf, scoring: Scoring::L1 }
+        Self {
+            k: 10,
+            levels: 5,
+            max_iterations: 15,
+            seed: 7,
+            weighting: Weighting::TfIdf,
+            scoring: Scoring::L1,
+        }
     }
 }
 
@@ -162,13 +177,24 @@ fn majority(set: &[&Descriptor]) -> Descriptor {
 }
 
 /// k-medians clustering with k-means++ seeding; returns (centres, assignment).
-fn kmedians(data: &[&Descriptor], k: usize, iters: usize, rng: &mut rand_pcg::Pcg64) -> (Vec<Descriptor>, Vec<usize>) {
+fn kmedians(
+    data: &[&Descriptor],
+    k: usize,
+    iters: usize,
+    rng: &mut rand_pcg::Pcg64,
+) -> (Vec<Descriptor>, Vec<usize>) {
     if data.len() <= k {
-        return (data.iter().map(|d| **d).collect(), (0..data.len()).collect());
+        return (
+            data.iter().map(|d| **d).collect(),
+            (0..data.len()).collect(),
+        );
     }
     // k-means++ seeding.
     let mut centres = vec![*data[rng.random_range(0..data.len())]];
-    let mut dmin: Vec<f64> = data.iter().map(|d| f64::from(d.distance(&centres[0]))).collect();
+    let mut dmin: Vec<f64> = data
+        .iter()
+        .map(|d| f64::from(d.distance(&centres[0])))
+        .collect();
     while centres.len() < k {
         let total: f64 = dmin.iter().map(|d| d * d).sum();
         let next = if total <= 0.0 {
@@ -212,8 +238,12 @@ fn kmedians(data: &[&Descriptor], k: usize, iters: usize, rng: &mut rand_pcg::Pc
             break;
         }
         for (ci, c) in centres.iter_mut().enumerate() {
-            let members: Vec<&Descriptor> =
-                data.iter().zip(assign.iter()).filter(|(_, &a)| a == ci).map(|(d, _)| *d).collect();
+            let members: Vec<&Descriptor> = data
+                .iter()
+                .zip(assign.iter())
+                .filter(|(_, &a)| a == ci)
+                .map(|(d, _)| *d)
+                .collect();
             if !members.is_empty() {
                 *c = majority(&members);
             }
@@ -249,21 +279,32 @@ impl Vocabulary {
     }
     /// The weight (IDF for TF-IDF) of word `w`, `None` if out of range.
     pub fn word_weight(&self, w: u32) -> Option<f64> {
-        self.words.get(w as usize).map(|&n| self.nodes[n as usize].weight)
+        self.words
+            .get(w as usize)
+            .map(|&n| self.nodes[n as usize].weight)
     }
 
     /// Trains a vocabulary from per-image descriptor sets (the images are the "documents"
     /// of the IDF weights).
     pub fn train(images: &[Vec<Descriptor>], params: &TrainParams) -> Result<Self, PlaceError> {
         if params.k < 2 || params.k > 255 {
-            return Err(PlaceError::InvalidParameter { name: "k", why: "branching factor must be in 2..=255".into() });
+            return Err(PlaceError::InvalidParameter {
+                name: "k",
+                why: "branching factor must be in 2..=255".into(),
+            });
         }
         if params.levels == 0 || params.levels > 10 {
-            return Err(PlaceError::InvalidParameter { name: "levels", why: "must be in 1..=10".into() });
+            return Err(PlaceError::InvalidParameter {
+                name: "levels",
+                why: "must be in 1..=10".into(),
+            });
         }
         let all: Vec<&Descriptor> = images.iter().flatten().collect();
         if all.len() < params.k {
-            return Err(PlaceError::NotEnoughTrainingData { got: all.len(), need: params.k });
+            return Err(PlaceError::NotEnoughTrainingData {
+                got: all.len(),
+                need: params.k,
+            });
         }
         let mut rng = rand_pcg::Pcg64::seed_from_u64(params.seed);
         let mut nodes = vec![Node {
@@ -291,18 +332,37 @@ impl Vocabulary {
                     continue;
                 }
                 let id = nodes.len() as u32;
-                nodes.push(Node { parent: nid, children: Vec::new(), descriptor: c, weight: 0.0, word: None, depth: depth as u8 + 1 });
+                nodes.push(Node {
+                    parent: nid,
+                    children: Vec::new(),
+                    descriptor: c,
+                    weight: 0.0,
+                    word: None,
+                    depth: depth as u8 + 1,
+                });
                 nodes[nid as usize].children.push(id);
                 queue.push_back((id, g));
             }
         }
-        let mut voc = Self::from_nodes(params.k, params.levels, params.weighting, params.scoring, nodes);
+        let mut voc = Self::from_nodes(
+            params.k,
+            params.levels,
+            params.weighting,
+            params.scoring,
+            nodes,
+        );
         voc.set_weights(images);
         Ok(voc)
     }
 
     /// Marks leaves as words (in node order) and fixes depths.
-    fn from_nodes(k: usize, levels: usize, weighting: Weighting, scoring: Scoring, mut nodes: Vec<Node>) -> Self {
+    fn from_nodes(
+        k: usize,
+        levels: usize,
+        weighting: Weighting,
+        scoring: Scoring,
+        mut nodes: Vec<Node>,
+    ) -> Self {
         let mut words = Vec::new();
         for i in 0..nodes.len() {
             if i > 0 {
@@ -316,7 +376,14 @@ impl Vocabulary {
                 nodes[i].word = None;
             }
         }
-        Self { k, levels, weighting, scoring, nodes, words }
+        Self {
+            k,
+            levels,
+            weighting,
+            scoring,
+            nodes,
+            words,
+        }
     }
 
     /// Sets word weights from training documents (IDF = ln(N / n_i); 1 for TF and binary).
@@ -327,7 +394,8 @@ impl Vocabulary {
             let per_image: Vec<Vec<u32>> = images
                 .par_iter()
                 .map(|img| {
-                    let mut ws: Vec<u32> = img.iter().map(|d| self.descend(d, usize::MAX).0).collect();
+                    let mut ws: Vec<u32> =
+                        img.iter().map(|d| self.descend(d, usize::MAX).0).collect();
                     ws.sort_unstable();
                     ws.dedup();
                     ws
@@ -384,13 +452,20 @@ impl Vocabulary {
 
     /// Bag-of-words vector of a descriptor set and its direct index at depth `fv_depth` below
     /// the root (ORB-SLAM uses depth `levels - 4`, e.g. 2 for a 6-level tree).
-    pub fn transform(&self, descriptors: &[Descriptor], fv_depth: usize) -> (BowVector, FeatureVector) {
+    pub fn transform(
+        &self,
+        descriptors: &[Descriptor],
+        fv_depth: usize,
+    ) -> (BowVector, FeatureVector) {
         let mut acc: BTreeMap<u32, f64> = BTreeMap::new();
         let mut fv: FeatureVector = BTreeMap::new();
         if self.words.is_empty() {
             return (BowVector::default(), fv);
         }
-        let hits: Vec<(u32, u32)> = descriptors.par_iter().map(|d| self.descend(d, fv_depth)).collect();
+        let hits: Vec<(u32, u32)> = descriptors
+            .par_iter()
+            .map(|d| self.descend(d, fv_depth))
+            .collect();
         for (i, (w, node)) in hits.into_iter().enumerate() {
             let weight = self.nodes[self.words[w as usize] as usize].weight;
             if weight > 0.0 {
@@ -440,7 +515,9 @@ impl Vocabulary {
         let bad = |m: &str| PlaceError::BadBinaryVocabulary(m.to_string());
         let mut pos = 0usize;
         let mut take = |n: usize| -> Result<&[u8], PlaceError> {
-            let s = bytes.get(pos..pos + n).ok_or_else(|| bad("truncated file"))?;
+            let s = bytes
+                .get(pos..pos + n)
+                .ok_or_else(|| bad("truncated file"))?;
             pos += n;
             Ok(s)
         };
@@ -463,10 +540,20 @@ impl Vocabulary {
         }
         const REC: usize = 4 + 1 + 32 + 8;
         if bytes.len() != 28 + (n - 1) * REC {
-            return Err(bad(&format!("size {} does not match {n} nodes", bytes.len())));
+            return Err(bad(&format!(
+                "size {} does not match {n} nodes",
+                bytes.len()
+            )));
         }
         let mut nodes = Vec::with_capacity(n);
-        nodes.push(Node { parent: 0, children: Vec::new(), descriptor: Descriptor::default(), weight: 0.0, word: None, depth: 0 });
+        nodes.push(Node {
+            parent: 0,
+            children: Vec::new(),
+            descriptor: Descriptor::default(),
+            weight: 0.0,
+            word: None,
+            depth: 0,
+        });
         let mut leaf_flags = vec![false; n];
         for i in 1..n {
             let rec = take(REC)?;
@@ -478,7 +565,9 @@ impl Vocabulary {
             wb.copy_from_slice(&rec[37..45]);
             let weight = f64::from_le_bytes(wb);
             if parent as usize >= i {
-                return Err(bad(&format!("node {i} has parent {parent}, which does not precede it")));
+                return Err(bad(&format!(
+                    "node {i} has parent {parent}, which does not precede it"
+                )));
             }
             if leaf_flags[parent as usize] {
                 return Err(bad(&format!("node {i} has a leaf as parent")));
@@ -499,7 +588,9 @@ impl Vocabulary {
         }
         for (i, node) in nodes.iter().enumerate().skip(1) {
             if leaf_flags[i] != node.children.is_empty() {
-                return Err(bad(&format!("node {i}: leaf flag disagrees with its children")));
+                return Err(bad(&format!(
+                    "node {i}: leaf flag disagrees with its children"
+                )));
             }
         }
         Ok(Self::from_nodes(k, levels, weighting, scoring, nodes))
@@ -507,7 +598,10 @@ impl Vocabulary {
 
     /// Saves to a binary file.
     pub fn save(&self, path: &Path) -> Result<(), PlaceError> {
-        let ioerr = |source| PlaceError::File { path: path.to_path_buf(), source };
+        let ioerr = |source| PlaceError::File {
+            path: path.to_path_buf(),
+            source,
+        };
         let f = std::fs::File::create(path).map_err(ioerr)?;
         let mut bw = std::io::BufWriter::new(f);
         self.write_binary(&mut bw).map_err(ioerr)?;
@@ -517,7 +611,10 @@ impl Vocabulary {
     /// Loads a vocabulary file: the binary format, or (if it does not start with the magic)
     /// the DBoW2 text format.
     pub fn load(path: &Path) -> Result<Self, PlaceError> {
-        let bytes = std::fs::read(path).map_err(|source| PlaceError::File { path: path.to_path_buf(), source })?;
+        let bytes = std::fs::read(path).map_err(|source| PlaceError::File {
+            path: path.to_path_buf(),
+            source,
+        })?;
         if bytes.starts_with(MAGIC) {
             Self::read_binary(&bytes)
         } else {
@@ -535,21 +632,36 @@ impl Vocabulary {
         let header = header.map_err(|e| err(1, e.to_string()))?;
         let h: Vec<&str> = header.split_whitespace().collect();
         if h.len() < 4 {
-            return Err(err(1, format!("header needs `k L scoring weighting`, got {header:?}")));
+            return Err(err(
+                1,
+                format!("header needs `k L scoring weighting`, got {header:?}"),
+            ));
         }
         let num = |s: &str, line: usize, what: &str| -> Result<i64, PlaceError> {
-            s.parse::<i64>().map_err(|_| err(line, format!("{what} {s:?} is not an integer")))
+            s.parse::<i64>()
+                .map_err(|_| err(line, format!("{what} {s:?} is not an integer")))
         };
         let k = num(h[0], 1, "k")?;
         let levels = num(h[1], 1, "L")?;
         let sc = num(h[2], 1, "scoring")?;
         let wt = num(h[3], 1, "weighting")?;
-        if !(2..=255).contains(&k) || !(1..=10).contains(&levels) || !(0..=5).contains(&sc) || !(0..=3).contains(&wt) {
+        if !(2..=255).contains(&k)
+            || !(1..=10).contains(&levels)
+            || !(0..=5).contains(&sc)
+            || !(0..=3).contains(&wt)
+        {
             return Err(err(1, format!("header values out of range: {header:?}")));
         }
         let scoring = Scoring::from_code(sc as u32)?;
         let weighting = Weighting::from_code(wt as u32)?;
-        let mut nodes = vec![Node { parent: 0, children: Vec::new(), descriptor: Descriptor::default(), weight: 0.0, word: None, depth: 0 }];
+        let mut nodes = vec![Node {
+            parent: 0,
+            children: Vec::new(),
+            descriptor: Descriptor::default(),
+            weight: 0.0,
+            word: None,
+            depth: 0,
+        }];
         let mut leaf = vec![false];
         for (i, l) in lines {
             let ln = i + 1;
@@ -559,11 +671,20 @@ impl Vocabulary {
                 continue;
             }
             if t.len() != 2 + 32 + 1 {
-                return Err(err(ln, format!("expected 35 fields (parent, leaf flag, 32 bytes, weight), got {}", t.len())));
+                return Err(err(
+                    ln,
+                    format!(
+                        "expected 35 fields (parent, leaf flag, 32 bytes, weight), got {}",
+                        t.len()
+                    ),
+                ));
             }
             let parent = num(t[0], ln, "parent")?;
             if parent < 0 || parent as usize >= nodes.len() {
-                return Err(err(ln, format!("parent {parent} does not precede this node")));
+                return Err(err(
+                    ln,
+                    format!("parent {parent} does not precede this node"),
+                ));
             }
             if leaf[parent as usize] {
                 return Err(err(ln, format!("parent {parent} is a leaf")));
@@ -572,15 +693,25 @@ impl Vocabulary {
             let mut db = [0u8; 32];
             for (j, b) in db.iter_mut().enumerate() {
                 let v = num(t[2 + j], ln, "descriptor byte")?;
-                *b = u8::try_from(v).map_err(|_| err(ln, format!("descriptor byte {v} out of 0..=255")))?;
+                *b = u8::try_from(v)
+                    .map_err(|_| err(ln, format!("descriptor byte {v} out of 0..=255")))?;
             }
-            let weight: f64 = t[34].parse().map_err(|_| err(ln, format!("weight {:?} is not a number", t[34])))?;
+            let weight: f64 = t[34]
+                .parse()
+                .map_err(|_| err(ln, format!("weight {:?} is not a number", t[34])))?;
             if !weight.is_finite() {
                 return Err(err(ln, "non-finite weight".into()));
             }
             let id = nodes.len() as u32;
             nodes[parent as usize].children.push(id);
-            nodes.push(Node { parent: parent as u32, children: Vec::new(), descriptor: Descriptor::from_bytes(&db), weight, word: None, depth: 0 });
+            nodes.push(Node {
+                parent: parent as u32,
+                children: Vec::new(),
+                descriptor: Descriptor::from_bytes(&db),
+                weight,
+                word: None,
+                depth: 0,
+            });
             leaf.push(is_leaf);
         }
         if nodes.len() == 1 {
@@ -588,15 +719,31 @@ impl Vocabulary {
         }
         for (i, n) in nodes.iter().enumerate().skip(1) {
             if leaf[i] != n.children.is_empty() {
-                return Err(err(i + 1, format!("node {i}: leaf flag disagrees with its children")));
+                return Err(err(
+                    i + 1,
+                    format!("node {i}: leaf flag disagrees with its children"),
+                ));
             }
         }
-        Ok(Self::from_nodes(k as usize, levels as usize, weighting, scoring, nodes))
+        Ok(Self::from_nodes(
+            k as usize,
+            levels as usize,
+            weighting,
+            scoring,
+            nodes,
+        ))
     }
 
     /// Writes the DBoW2 text format (readable by DBoW2 / ORB-SLAM's `loadFromTextFile`).
     pub fn write_dbow2_text<W: Write>(&self, mut w: W) -> std::io::Result<()> {
-        writeln!(w, "{} {} {} {}", self.k, self.levels, self.scoring.code(), self.weighting.code())?;
+        writeln!(
+            w,
+            "{} {} {} {}",
+            self.k,
+            self.levels,
+            self.scoring.code(),
+            self.weighting.code()
+        )?;
         for n in &self.nodes[1..] {
             write!(w, "{} {}", n.parent, u8::from(n.children.is_empty()))?;
             for b in n.descriptor.to_bytes() {
@@ -687,10 +834,15 @@ mod tests {
             }
             images.push(img);
         }
-        let p = TrainParams { k: 4, levels: 1, ..Default::default() };
+        let p = TrainParams {
+            k: 4,
+            levels: 1,
+            ..Default::default()
+        };
         let voc = Vocabulary::train(&images, &p).unwrap();
         assert_eq!(voc.num_words(), 4);
-        let words: std::collections::BTreeSet<u32> = centres.iter().map(|c| voc.word_of(c)).collect();
+        let words: std::collections::BTreeSet<u32> =
+            centres.iter().map(|c| voc.word_of(c)).collect();
         assert_eq!(words.len(), 4, "each planted centre gets its own word");
     }
 }

@@ -1,0 +1,233 @@
+//! `rgbid segment`: superjut segmentation of frames of a TUM-layout sequence.
+//!
+//! Writes per frame a colour-coded segment image, a neg-entropy image, one mask per
+//! threshold, and one CSV (`superjuts.csv`) with the features of every superjut.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::segment::{self, GpuNormals, SegmentConfig};
+
+/// Arguments of `rgbid segment`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Sequence folder in TUM layout (`rgb.txt` + `depth.txt`, optional `calib.txt`),
+    /// read with `rgbid::io::tum::TumSequence`.
+    pub seq: PathBuf,
+    /// Frames to segment: a comma-separated list of indices and ranges `a..b` or `a..b:step`
+    /// (end exclusive), e.g. `0,10,20..100:20`.
+    #[arg(long, default_value = "0")]
+    pub frames: String,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Neg-entropy thresholds of the masks.
+    #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.7")]
+    pub thresholds: Vec<f64>,
+    /// Felzenszwalb-Huttenlocher scale k.
+    #[arg(long, default_value_t = 0.6)]
+    pub k: f32,
+    /// Minimum superjut size in pixels.
+    #[arg(long, default_value_t = 200)]
+    pub min_size: usize,
+    /// Finite-difference step of the normals, pixels.
+    #[arg(long, default_value_t = 2)]
+    pub normal_step: u32,
+    /// Up direction in the camera frame for horizontality, `x,y,z` (normalised).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0,-1,0",
+        allow_hyphen_values = true
+    )]
+    pub up: Vec<f32>,
+    /// Where the normal kernel runs.
+    #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
+    pub backend: BackendChoice,
+}
+
+fn parse_frames(spec: &str) -> Result<Vec<usize>> {
+    let mut out = Vec::new();
+    for part in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        if let Some((a, rest)) = part.split_once("..") {
+            let (b, step) = match rest.split_once(':') {
+                Some((b, s)) => (
+                    b,
+                    s.parse::<usize>()
+                        .with_context(|| format!("bad step in '{part}'"))?,
+                ),
+                None => (rest, 1),
+            };
+            let a: usize = a
+                .parse()
+                .with_context(|| format!("bad range start in '{part}'"))?;
+            let b: usize = b
+                .parse()
+                .with_context(|| format!("bad range end in '{part}'"))?;
+            if step == 0 {
+                bail!("step 0 in '{part}'");
+            }
+            out.extend((a..b).step_by(step));
+        } else {
+            out.push(
+                part.parse()
+                    .with_context(|| format!("bad frame index '{part}'"))?,
+            );
+        }
+    }
+    Ok(out)
+}
+
+fn save_gray(path: &Path, w: usize, h: usize, data: Vec<u8>) -> Result<()> {
+    image::GrayImage::from_raw(w as u32, h as u32, data)
+        .context("image buffer size")?
+        .save(path)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// Runs the subcommand.
+pub fn run(args: Args) -> Result<()> {
+    let seq = TumSequence::open(&args.seq, &OpenOptions::default())?;
+    log::info!(
+        "{}: {} frames, camera from {}",
+        args.seq.display(),
+        seq.len(),
+        seq.camera_source
+    );
+    let frames = parse_frames(&args.frames)?;
+    if frames.is_empty() {
+        bail!("--frames selects no frame");
+    }
+    if let Some(&bad) = frames.iter().find(|&&f| f >= seq.len()) {
+        bail!(
+            "frame {bad} out of range: the sequence has {} frames",
+            seq.len()
+        );
+    }
+    let cam = seq.undistorted_camera();
+    if args.up.len() != 3 {
+        bail!("--up needs 3 values");
+    }
+    let ul = args.up.iter().map(|v| v * v).sum::<f32>().sqrt();
+    if !(ul > 0.0) {
+        bail!("--up must be non-zero");
+    }
+    let mut cfg = SegmentConfig {
+        k: args.k,
+        min_size: args.min_size,
+        ..SegmentConfig::default()
+    };
+    cfg.normals.step = args.normal_step;
+    cfg.up = [args.up[0] / ul, args.up[1] / ul, args.up[2] / ul];
+    cfg.validate()?;
+    let backend = select_backend(args.backend, None)?;
+    log::info!("normals on {}", backend.name());
+    let gpu = match &backend {
+        ComputeBackend::Gpu(ctx) => Some(GpuNormals::new(ctx.clone())?),
+        ComputeBackend::Cpu => None,
+    };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let csv_path = args.out.join("superjuts.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path)
+            .with_context(|| format!("creating {}", csv_path.display()))?,
+    );
+    writeln!(
+        csv,
+        "frame,timestamp,label,size,entropy,neg_entropy,planarity,horizontality,texture,texture_samples,centroid_x,centroid_y,centroid_z,normal_x,normal_y,normal_z"
+    )?;
+    let bar = indicatif::ProgressBar::new(frames.len() as u64);
+    let mut times = Vec::new();
+    for &f in &frames {
+        let frame = seq.load(f)?;
+        let (t, intensity, inv) = (frame.timestamp, frame.intensity, frame.inverse_depth);
+        let t0 = Instant::now();
+        let juts = match &gpu {
+            Some(g) => {
+                let n = g.compute(&inv, &cam, &cfg.normals)?;
+                segment::segment_with_normals(&intensity, &inv, &cam, n, &cfg)?
+            }
+            None => segment::segment_keyframe(&intensity, &inv, &cam, &cfg)?,
+        };
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+        let (w, h) = (juts.width, juts.height);
+        let stem = format!("frame_{f:05}");
+        image::RgbImage::from_raw(w as u32, h as u32, juts.colour_image())
+            .context("image buffer size")?
+            .save(args.out.join(format!("{stem}_segments.png")))?;
+        let ne = juts
+            .neg_entropy_image()
+            .data
+            .iter()
+            .map(|v| {
+                if v.is_nan() {
+                    0
+                } else {
+                    (v * 255.0).round() as u8
+                }
+            })
+            .collect();
+        save_gray(&args.out.join(format!("{stem}_negentropy.png")), w, h, ne)?;
+        for &th in &args.thresholds {
+            let m = juts.mask(th);
+            save_gray(
+                &args.out.join(format!("{stem}_mask_{th:.2}.png")),
+                w,
+                h,
+                m.data,
+            )?;
+        }
+        for s in &juts.segments {
+            writeln!(
+                csv,
+                "{f},{t:.6},{},{},{:.5},{:.5},{:.5},{:.5},{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}",
+                s.label,
+                s.size,
+                s.entropy,
+                s.neg_entropy,
+                s.planarity,
+                s.horizontality,
+                s.texture,
+                s.texture_samples,
+                s.centroid[0],
+                s.centroid[1],
+                s.centroid[2],
+                s.plane_normal[0],
+                s.plane_normal[1],
+                s.plane_normal[2]
+            )?;
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    csv.flush()?;
+    times.sort_by(f64::total_cmp);
+    println!(
+        "segmented {} frames into {}: median {:.1} ms per frame (normals + segmentation + features, {})",
+        frames.len(),
+        args.out.display(),
+        times[times.len() / 2],
+        backend.name()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_frames;
+
+    #[test]
+    fn frame_specs() {
+        assert_eq!(
+            parse_frames("0,3,10..16:2").unwrap(),
+            vec![0, 3, 10, 12, 14]
+        );
+        assert!(parse_frames("1..5:0").is_err());
+        assert!(parse_frames("x").is_err());
+    }
+}

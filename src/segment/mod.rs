@@ -1,0 +1,406 @@
+//! Superjut segmentation and the entropy of normals (thesis ch. 5, 6.4.3): which parts of a
+//! scene to trust for place recognition.
+//!
+//! A keyframe (intensity in `[0, 255]`, inverse depth in 1/m with 0 = no measurement, pinhole
+//! camera with x right, y down, z forward) is segmented by 3D structure into *superjuts*:
+//!
+//! 1. normals from the inverse-depth image ([`normals_cpu`], WGSL kernel [`GpuNormals`];
+//!    thesis eq. 5.2) or from a triangle mesh ([`mesh`]; thesis 5.3.1);
+//! 2. an 8-connected pixel graph (or the mesh edges) weighted by the convex/concave
+//!    criterion ([`graph::convexity_weight`], eq. 5.1 / 6.26) and Felzenszwalb-Huttenlocher
+//!    merging with `k = 0.6` and a minimum segment size ([`graph::felzenszwalb`]);
+//! 3. per superjut ([`Superjut`]): histogram of normals over `M = 80` golden-section-spiral
+//!    bins, Shannon entropy, neg-entropy `1 - H / ln M` (5.4), planarity, horizontality with
+//!    respect to a configurable up axis, and the eigen-transform texture response;
+//! 4. masks that keep pixels on superjuts whose neg-entropy is at least a threshold: stable,
+//!    large-scale structure (walls, floors), where landmarks survive changes of the scene
+//!    better than on cluttered, movable objects.
+//!
+//! ```no_run
+//! # use rgbid::{camera::PinholeCamera, image::ImageF32, segment::*};
+//! # let (intensity, inverse_depth) = (ImageF32::filled(640, 480, 0.0), ImageF32::filled(640, 480, 0.5));
+//! let camera = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
+//! let juts = segment_keyframe(&intensity, &inverse_depth, &camera, &SegmentConfig::default())?;
+//! let mask = juts.mask(0.5); // keep pixels on superjuts with neg-entropy >= 0.5
+//! # Ok::<(), SegmentError>(())
+//! ```
+
+pub mod features;
+mod gpu;
+pub mod graph;
+pub mod mesh;
+mod normals;
+
+pub use features::{golden_spiral, SphereBins, Superjut};
+pub use gpu::GpuNormals;
+pub use graph::NO_SEGMENT;
+pub use mesh::TriMesh;
+pub use normals::{normals_cpu, points_from_inverse_depth, NormalMap, NormalParams};
+
+use crate::camera::{CameraError, PinholeCamera};
+use crate::gpu::GpuError;
+use crate::image::ImageF32;
+
+/// Errors of superjut segmentation.
+#[derive(Debug, thiserror::Error)]
+pub enum SegmentError {
+    /// Two inputs that must share a pixel grid do not.
+    #[error("{what} is {got_w}x{got_h} but {expected_w}x{expected_h} was expected")]
+    SizeMismatch {
+        /// Which input.
+        what: &'static str,
+        /// Expected width.
+        expected_w: usize,
+        /// Expected height.
+        expected_h: usize,
+        /// Actual width.
+        got_w: usize,
+        /// Actual height.
+        got_h: usize,
+    },
+    /// The camera parameters are invalid.
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    /// A configuration value is out of range.
+    #[error("invalid segmentation parameter {name}: {why}")]
+    InvalidConfig {
+        /// Parameter name.
+        name: &'static str,
+        /// What is required.
+        why: &'static str,
+    },
+    /// The GPU failed.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    /// The Delaunay triangulation of a point cloud failed (non-finite coordinates).
+    #[error("point-cloud triangulation failed: {0}")]
+    Triangulation(String),
+}
+
+/// Parameters of superjut segmentation. Defaults are the thesis' (k = 0.6, M = 80).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SegmentConfig {
+    /// Image-domain normal estimation.
+    pub normals: NormalParams,
+    /// Felzenszwalb-Huttenlocher scale `k` (dimensionless; larger = bigger segments).
+    pub k: f32,
+    /// Minimum segment size in pixels (or mesh vertices); smaller ones are merged.
+    pub min_size: usize,
+    /// Relative inverse-depth difference between neighbouring pixels (per pixel of distance)
+    /// above which they are treated as lying on different surfaces.
+    pub jump_ratio: f32,
+    /// Number of golden-spiral histogram bins `M`.
+    pub bins: usize,
+    /// Unit up direction in the camera frame for horizontality (`[0, -1, 0]`: camera upright,
+    /// its y axis points down).
+    pub up: [f32; 3],
+    /// Eigen-transform window size in pixels (2..=8).
+    pub texture_window: usize,
+    /// First (1-based) singular value averaged by the eigen-transform.
+    pub texture_first: usize,
+    /// Spacing in pixels of the eigen-transform samples.
+    pub texture_stride: usize,
+}
+
+impl Default for SegmentConfig {
+    fn default() -> Self {
+        Self {
+            normals: NormalParams::default(),
+            k: 0.6,
+            min_size: 200,
+            jump_ratio: 0.03,
+            bins: 80,
+            up: [0.0, -1.0, 0.0],
+            texture_window: 8,
+            texture_first: 5,
+            texture_stride: 8,
+        }
+    }
+}
+
+impl SegmentConfig {
+    /// Checks the parameters.
+    pub fn validate(&self) -> Result<(), SegmentError> {
+        if !(self.k.is_finite() && self.k > 0.0) {
+            return Err(SegmentError::InvalidConfig {
+                name: "k",
+                why: "must be finite and > 0",
+            });
+        }
+        if self.bins < 2 {
+            return Err(SegmentError::InvalidConfig {
+                name: "bins",
+                why: "must be >= 2",
+            });
+        }
+        if !(self.jump_ratio.is_finite() && self.jump_ratio > 0.0) {
+            return Err(SegmentError::InvalidConfig {
+                name: "jump_ratio",
+                why: "must be finite and > 0",
+            });
+        }
+        if !(self.normals.jump_tolerance.is_finite() && self.normals.jump_tolerance >= 0.0) {
+            return Err(SegmentError::InvalidConfig {
+                name: "normals.jump_tolerance",
+                why: "must be finite and >= 0",
+            });
+        }
+        let ul = self.up.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if !((ul - 1.0).abs() < 1e-3) {
+            return Err(SegmentError::InvalidConfig {
+                name: "up",
+                why: "must be a unit vector",
+            });
+        }
+        if !(2..=8).contains(&self.texture_window)
+            || self.texture_first == 0
+            || self.texture_first > self.texture_window
+        {
+            return Err(SegmentError::InvalidConfig {
+                name: "texture_window/texture_first",
+                why: "need 2 <= window <= 8 and 1 <= first <= window",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The superjuts of one keyframe: label image, per-segment features, and the normals used.
+#[derive(Clone, Debug)]
+pub struct Superjuts {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Row-major segment label per pixel, [`NO_SEGMENT`] where there is no depth/normal.
+    pub labels: Vec<u32>,
+    /// Features of segment `i` at index `i`.
+    pub segments: Vec<Superjut>,
+    /// The normals the segmentation used.
+    pub normals: NormalMap,
+}
+
+/// A binary image mask: 255 = keep (features may be extracted there), 0 = drop.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mask {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Row-major 0/255 values.
+    pub data: Vec<u8>,
+}
+
+impl Mask {
+    /// True if pixel `(x, y)` is kept; false outside the image.
+    pub fn keep(&self, x: usize, y: usize) -> bool {
+        x < self.width && y < self.height && self.data[y * self.width + x] != 0
+    }
+
+    /// Fraction of kept pixels.
+    pub fn kept_fraction(&self) -> f64 {
+        if self.data.is_empty() {
+            return 0.0;
+        }
+        self.data.iter().filter(|&&v| v != 0).count() as f64 / self.data.len() as f64
+    }
+}
+
+impl Superjuts {
+    /// Per-pixel neg-entropy of the pixel's superjut (`NaN` where there is none).
+    pub fn neg_entropy_image(&self) -> ImageF32 {
+        let data = self
+            .labels
+            .iter()
+            .map(|&l| {
+                self.segments
+                    .get(l as usize)
+                    .map_or(f32::NAN, |s| s.neg_entropy as f32)
+            })
+            .collect();
+        ImageF32 {
+            width: self.width,
+            height: self.height,
+            data,
+        }
+    }
+
+    /// Mask keeping pixels whose superjut has neg-entropy `>= threshold`.
+    pub fn mask(&self, threshold: f64) -> Mask {
+        let data = self
+            .labels
+            .iter()
+            .map(|&l| match self.segments.get(l as usize) {
+                Some(s) if s.neg_entropy >= threshold => 255,
+                _ => 0,
+            })
+            .collect();
+        Mask {
+            width: self.width,
+            height: self.height,
+            data,
+        }
+    }
+
+    /// One mask per threshold.
+    pub fn masks(&self, thresholds: &[f64]) -> Vec<Mask> {
+        thresholds.iter().map(|&t| self.mask(t)).collect()
+    }
+
+    /// An RGB8 image (row-major, 3 bytes per pixel) with one pseudo-random colour per segment
+    /// (stable across runs: a hash of the label) and black where there is no segment.
+    pub fn colour_image(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.labels.len() * 3);
+        for &l in &self.labels {
+            out.extend_from_slice(&label_colour(l));
+        }
+        out
+    }
+}
+
+/// A deterministic, well-spread colour for a segment label (black for [`NO_SEGMENT`]).
+pub fn label_colour(label: u32) -> [u8; 3] {
+    if label == NO_SEGMENT {
+        return [0, 0, 0];
+    }
+    let mut h = label.wrapping_mul(0x9E37_79B9) ^ 0x5bd1_e995;
+    h ^= h >> 15;
+    h = h.wrapping_mul(0x2c1b_3c6d);
+    h ^= h >> 12;
+    [
+        (64 + (h & 0xbf)) as u8,
+        (64 + ((h >> 8) & 0xbf)) as u8,
+        (64 + ((h >> 16) & 0xbf)) as u8,
+    ]
+}
+
+fn check_size(what: &'static str, img: &ImageF32, w: usize, h: usize) -> Result<(), SegmentError> {
+    if img.width != w || img.height != h || img.data.len() != w * h {
+        return Err(SegmentError::SizeMismatch {
+            what,
+            expected_w: w,
+            expected_h: h,
+            got_w: img.width,
+            got_h: img.height,
+        });
+    }
+    Ok(())
+}
+
+/// Segments a keyframe into superjuts with CPU normals (see the module docs).
+pub fn segment_keyframe(
+    intensity: &ImageF32,
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    config: &SegmentConfig,
+) -> Result<Superjuts, SegmentError> {
+    camera.validate()?;
+    check_size(
+        "inverse depth",
+        inverse_depth,
+        camera.width as usize,
+        camera.height as usize,
+    )?;
+    let normals = normals_cpu(inverse_depth, camera, &config.normals);
+    segment_with_normals(intensity, inverse_depth, camera, normals, config)
+}
+
+/// Segments a keyframe whose normals were already computed (e.g. by [`GpuNormals`]).
+pub fn segment_with_normals(
+    intensity: &ImageF32,
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    normals: NormalMap,
+    config: &SegmentConfig,
+) -> Result<Superjuts, SegmentError> {
+    config.validate()?;
+    camera.validate()?;
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    check_size("inverse depth", inverse_depth, w, h)?;
+    check_size("intensity", intensity, w, h)?;
+    if normals.width != w || normals.height != h || normals.data.len() != w * h {
+        return Err(SegmentError::SizeMismatch {
+            what: "normal map",
+            expected_w: w,
+            expected_h: h,
+            got_w: normals.width,
+            got_h: normals.height,
+        });
+    }
+    let points = points_from_inverse_depth(inverse_depth, camera);
+    let mut edges = graph::image_edges(
+        w,
+        h,
+        &points,
+        &normals.data,
+        &inverse_depth.data,
+        config.jump_ratio,
+    );
+    graph::sort_edges(&mut edges);
+    let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
+    let (labels, count) = graph::felzenszwalb(w * h, &edges, config.k, config.min_size, &active);
+    let bins = SphereBins::golden(config.bins);
+    let texture: Vec<(usize, f32)> = features::eigen_transform_samples(
+        intensity,
+        config.texture_window,
+        config.texture_first,
+        config.texture_stride,
+    )
+    .into_iter()
+    .map(|(x, y, r)| (y as usize * w + x as usize, r))
+    .collect();
+    let segments = features::superjut_features(
+        &labels,
+        &normals.data,
+        &points,
+        count,
+        &bins,
+        config.up,
+        &texture,
+    );
+    Ok(Superjuts {
+        width: w,
+        height: h,
+        labels,
+        segments,
+        normals,
+    })
+}
+
+/// Segments a triangle mesh (with vertex normals) by its edges; returns per-vertex labels and
+/// the features of each segment (no texture: meshes carry no intensity).
+pub fn segment_mesh(
+    mesh: &TriMesh,
+    config: &SegmentConfig,
+) -> Result<(Vec<u32>, Vec<Superjut>), SegmentError> {
+    config.validate()?;
+    let n = mesh.vertices.len();
+    if mesh.normals.len() != n {
+        return Err(SegmentError::SizeMismatch {
+            what: "mesh normals",
+            expected_w: n,
+            expected_h: 1,
+            got_w: mesh.normals.len(),
+            got_h: 1,
+        });
+    }
+    let mut edges = mesh.weighted_edges();
+    graph::sort_edges(&mut edges);
+    let active: Vec<bool> = mesh
+        .normals
+        .iter()
+        .map(|v| v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0)
+        .collect();
+    let (labels, count) = graph::felzenszwalb(n, &edges, config.k, config.min_size, &active);
+    let bins = SphereBins::golden(config.bins);
+    let segments = features::superjut_features(
+        &labels,
+        &mesh.normals,
+        &mesh.vertices,
+        count,
+        &bins,
+        config.up,
+        &[],
+    );
+    Ok((labels, segments))
+}
