@@ -1,4 +1,6 @@
 //! The `rgbid` command-line interface: one subcommand per job.
+// `!(x > 0.0)` is used on purpose: it also rejects NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

@@ -359,8 +359,10 @@ fn point_cloud_triangulation_with_spade_segments_a_sphere_on_a_wall() {
         .collect();
     let m = mesh::triangulate_points(&pts, 0.1).unwrap();
     assert!(m.triangles.len() > pts.len());
-    let mut cfg = SegmentConfig::default();
-    cfg.min_size = 50;
+    let cfg = SegmentConfig {
+        min_size: 50,
+        ..Default::default()
+    };
     let (labels, segs) = segment::segment_mesh(&m, &cfg).unwrap();
     // The vertex nearest the image centre is on the sphere; a corner vertex on the wall.
     let centre = (0..pts.len())

@@ -24,10 +24,10 @@ use super::odometry::OdometryOptions;
 pub enum Command {
     /// Odometry kernels on generated frames (no data needed): pyramid, scale estimation,
     /// normal equations, solve, per backend and image size.
-    Kernels(KernelBench),
+    Kernels(Box<KernelBench>),
     /// Odometry speed and accuracy per backend on a TUM sequence, against OpenCV / Open3D run
     /// on the same data by `../shared/eval/peer_odometry.py`.
-    Odometry(OdometryBench),
+    Odometry(Box<OdometryBench>),
 }
 
 /// Arguments of `rgbid bench kernels`.
@@ -59,8 +59,8 @@ pub fn median(v: &mut [f64]) -> f64 {
 /// Runs the subcommand.
 pub fn run(c: Command) -> Result<()> {
     match c {
-        Command::Kernels(a) => kernels(a),
-        Command::Odometry(a) => odometry(a),
+        Command::Kernels(a) => kernels(*a),
+        Command::Odometry(a) => odometry(*a),
     }
 }
 

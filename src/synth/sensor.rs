@@ -199,7 +199,7 @@ pub(crate) fn apply(
                     continue;
                 }
                 let zq = (fb / disparity * DEPTH_FACTOR).round();
-                if zq < 1.0 || zq > 65535.0 {
+                if !(1.0..=65535.0).contains(&zq) {
                     continue;
                 }
                 inv_row[x] = (DEPTH_FACTOR / zq) as f32;
