@@ -33,9 +33,6 @@ enum Command {
     Bench(cli::bench::Command),
     /// Render synthetic RGB-D / omnidirectional sequences with exact ground truth.
     Synth(cli::synth::Args),
-    /// Pose-graph and curve-graph optimisation.
-    #[command(subcommand)]
-    Graph(cli::graph::Command),
     /// Place recognition: loop detection over a sequence, ORB benchmark.
     #[command(subcommand)]
     Place(cli::place::Command),
@@ -71,7 +68,6 @@ fn run(command: Command) -> Result<()> {
         Command::Eval(a) => cli::eval::run(a),
         Command::Bench(c) => cli::bench::run(c),
         Command::Synth(a) => cli::synth::run(a),
-        Command::Graph(c) => cli::graph::run(c),
         Command::Place(c) => cli::place::run(c),
         Command::Vocab(c) => cli::vocab::run(c),
         Command::Segment(a) => cli::segment::run(a),
