@@ -51,6 +51,24 @@ fn robust_weight(est: u32, z: f32, nu: f32) -> f32 {
     return 1.0;
 }
 
+// Reference pixel i back-projected with its inverse depth and moved by cur_from_ref;
+// .w = 0 where it has no depth. Mirror of `warp_point` in kernel.rs.
+fn warp_point(i: u32) -> vec4<f32> {
+    let w = P.dims.x;
+    let rho = ref_geo[P.dims.z + i].x;
+    if (rho <= 0.0) { return vec4<f32>(0.0); }
+    let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
+    let x = f32(i % w);
+    let y = f32(i / w);
+    let z = 1.0 / rho;
+    let pr = vec3<f32>((x - cx) / fx * z, (y - cy) / fy * z, z);
+    return vec4<f32>(
+        P.rot0.x * pr.x + P.rot0.y * pr.y + P.rot0.z * pr.z + P.rot0.w,
+        P.rot1.x * pr.x + P.rot1.y * pr.y + P.rot1.z * pr.z + P.rot1.w,
+        P.rot2.x * pr.x + P.rot2.y * pr.y + P.rot2.z * pr.z + P.rot2.w,
+        1.0);
+}
+
 fn pixel_terms(i: u32, want_j: bool) -> Terms {
     var t: Terms;
     t.photo_ok = false;
@@ -58,17 +76,10 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
     let w = P.dims.x;
     let h = P.dims.y;
     let o = P.dims.z;
-    let rho = ref_geo[o + i].x;
-    if (rho <= 0.0) { return t; }
+    let wq = warp_point(i);
+    if (wq.w == 0.0) { return t; }
+    let q = wq.xyz;
     let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
-    let x = f32(i % w);
-    let y = f32(i / w);
-    let z = 1.0 / rho;
-    let pr = vec3<f32>((x - cx) / fx * z, (y - cy) / fy * z, z);
-    let q = vec3<f32>(
-        P.rot0.x * pr.x + P.rot0.y * pr.y + P.rot0.z * pr.z + P.rot0.w,
-        P.rot1.x * pr.x + P.rot1.y * pr.y + P.rot1.z * pr.z + P.rot1.w,
-        P.rot2.x * pr.x + P.rot2.y * pr.y + P.rot2.z * pr.z + P.rot2.w);
     if (q.z < MIN_DEPTH) { return t; }
     let iz = 1.0 / q.z;
     let u = fx * q.x * iz + cx;
@@ -210,17 +221,10 @@ fn covisible(i: u32) -> u32 {
     let w = P.dims.x;
     let h = P.dims.y;
     let o = P.dims.z;
-    let rho = ref_geo[o + i].x;
-    if (rho <= 0.0) { return 0u; }
+    let wq = warp_point(i);
+    if (wq.w == 0.0) { return 0u; }
+    let q = wq.xyz;
     let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
-    let x = f32(i % w);
-    let y = f32(i / w);
-    let z = 1.0 / rho;
-    let pr = vec3<f32>((x - cx) / fx * z, (y - cy) / fy * z, z);
-    let q = vec3<f32>(
-        P.rot0.x * pr.x + P.rot0.y * pr.y + P.rot0.z * pr.z + P.rot0.w,
-        P.rot1.x * pr.x + P.rot1.y * pr.y + P.rot1.z * pr.z + P.rot1.w,
-        P.rot2.x * pr.x + P.rot2.y * pr.y + P.rot2.z * pr.z + P.rot2.w);
     if (q.z < MIN_DEPTH) { return 1u; }
     let u = fx * q.x / q.z + cx;
     let v = fy * q.y / q.z + cy;

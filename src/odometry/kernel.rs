@@ -163,6 +163,29 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     ]
 }
 
+/// Reference pixel `i` back-projected with its inverse depth and moved into the current
+/// camera by `cur_from_ref` (metres); `None` where it has no depth. Mirror of `warp_point`
+/// in the WGSL.
+#[inline]
+fn warp_point(p: &WarpParams, ref_geo: &[[f32; 4]], i: usize) -> Option<[f32; 3]> {
+    let w = p.dims[0] as usize;
+    let rho = ref_geo[i][0];
+    if rho <= 0.0 {
+        return None;
+    }
+    let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
+    let x = (i % w) as f32;
+    let y = (i / w) as f32;
+    let z = 1.0 / rho;
+    let pr = [(x - cx) / fx * z, (y - cy) / fy * z, z];
+    let r = &p.rot;
+    Some([
+        r[0][0] * pr[0] + r[0][1] * pr[1] + r[0][2] * pr[2] + r[0][3],
+        r[1][0] * pr[0] + r[1][1] * pr[1] + r[1][2] * pr[2] + r[1][3],
+        r[2][0] * pr[0] + r[2][1] * pr[1] + r[2][2] * pr[2] + r[2][3],
+    ])
+}
+
 /// Warps reference pixel `i` of the level into the current frame and evaluates the residuals
 /// and Jacobians (thesis eq. 6.5-6.13; bilinear intensity, nearest inverse depth).
 /// Mirror of `pixel_terms` in `odometry.wgsl`.
@@ -179,21 +202,10 @@ pub fn pixel_terms(
     let mut out = PixelTerms::default();
     let w = p.dims[0] as usize;
     let h = p.dims[1] as usize;
-    let rho = ref_geo[i][0];
-    if rho <= 0.0 {
+    let Some(q) = warp_point(p, ref_geo, i) else {
         return out;
-    }
+    };
     let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
-    let x = (i % w) as f32;
-    let y = (i / w) as f32;
-    let z = 1.0 / rho;
-    let pr = [(x - cx) / fx * z, (y - cy) / fy * z, z];
-    let r = &p.rot;
-    let q = [
-        r[0][0] * pr[0] + r[0][1] * pr[1] + r[0][2] * pr[2] + r[0][3],
-        r[1][0] * pr[0] + r[1][1] * pr[1] + r[1][2] * pr[2] + r[1][3],
-        r[2][0] * pr[0] + r[2][1] * pr[1] + r[2][2] * pr[2] + r[2][3],
-    ];
     if q[2] < MIN_DEPTH {
         return out;
     }
@@ -318,21 +330,10 @@ pub fn sample_index(k: u32, count: u32, n: u32) -> u32 {
 pub fn covisible(p: &WarpParams, ref_geo: &[[f32; 4]], cur_geo: &[[f32; 4]], i: usize) -> u32 {
     let w = p.dims[0] as usize;
     let h = p.dims[1] as usize;
-    let rho = ref_geo[i][0];
-    if rho <= 0.0 {
+    let Some(q) = warp_point(p, ref_geo, i) else {
         return 0;
-    }
+    };
     let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
-    let x = (i % w) as f32;
-    let y = (i / w) as f32;
-    let z = 1.0 / rho;
-    let pr = [(x - cx) / fx * z, (y - cy) / fy * z, z];
-    let r = &p.rot;
-    let q = [
-        r[0][0] * pr[0] + r[0][1] * pr[1] + r[0][2] * pr[2] + r[0][3],
-        r[1][0] * pr[0] + r[1][1] * pr[1] + r[1][2] * pr[2] + r[1][3],
-        r[2][0] * pr[0] + r[2][1] * pr[1] + r[2][2] * pr[2] + r[2][3],
-    ];
     if q[2] < MIN_DEPTH {
         return 1;
     }
