@@ -241,9 +241,12 @@ fn perturbed(gt: &[TimedPose], seed: u64) -> Vec<TimedPose> {
     out
 }
 
+/// Python with numpy and scipy: `$RGBID_PYTHON` (set by `.ci/run`), else `../.venv-peers`.
 fn python() -> Option<(PathBuf, PathBuf)> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let py = root.join(".venv-peers/bin/python");
+    let py = std::env::var_os("RGBID_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root.join(".venv-peers/bin/python"));
     let script = root.join("shared/eval/traj_metrics.py");
     (py.is_file() && script.is_file()).then_some((py, script))
 }
@@ -258,7 +261,7 @@ fn cross_check_against_python_reference_on_redkitchen() {
     let gt_path = data.join("groundtruth.txt");
     let gt = read_tum(&gt_path).unwrap();
     let Some((py, script)) = python() else {
-        panic!("needs ../.venv-peers and ../shared/eval/traj_metrics.py")
+        panic!("needs a Python with numpy+scipy ($RGBID_PYTHON or ../.venv-peers) and ../shared/eval/traj_metrics.py")
     };
     let tmp = tempfile::tempdir().unwrap();
     for (seed, scale, delta) in [(1u64, false, 1.0), (2, false, 0.5), (3, true, 1.0)] {
