@@ -21,6 +21,7 @@ pub mod camera;
 pub mod eval;
 pub mod geometry;
 pub mod gpu;
+pub mod graph;
 pub mod image;
 pub mod io;
 pub mod odometry;

@@ -41,6 +41,9 @@ enum Command {
     Vocab(cli::vocab::Command),
     /// Superjut segmentation: segment images, neg-entropy images, masks and a feature CSV.
     Segment(cli::segment::Args),
+    /// Pose-graph and curve-graph optimisation.
+    #[command(subcommand)]
+    Graph(cli::graph::Command),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -71,6 +74,7 @@ fn run(command: Command) -> Result<()> {
         Command::Place(c) => cli::place::run(c),
         Command::Vocab(c) => cli::vocab::run(c),
         Command::Segment(a) => cli::segment::run(a),
+        Command::Graph(c) => cli::graph::run(c),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod demo;
 pub mod eval;
+pub mod graph;
 pub mod odometry;
 pub mod place;
 pub mod segment;
