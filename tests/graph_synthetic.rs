@@ -237,7 +237,8 @@ fn sim3_graph_corrects_scale_drift() {
 }
 
 #[test]
-fn curve_graph_2d_improves_on_odometry() {
+#[ignore = "known gap: curve-graph RMSE is 0.57x odometry, not yet below 0.5x"]
+fn known_gap_curve_graph_2d_matches_se2_accuracy_order() {
     let (g0, gt) = square_2d(true);
     let gt_pos: Vec<DVec3> = gt.iter().map(|p| DVec3::new(p.x, p.y, 0.0)).collect();
     let odo = position_rmse(&g0.positions(), &gt_pos).unwrap();
@@ -247,12 +248,8 @@ fn curve_graph_2d_improves_on_odometry() {
     let poses = cg.poses();
     let pos: Vec<DVec3> = poses.iter().map(|p| DVec3::new(p.x, p.y, 0.0)).collect();
     let rmse = position_rmse(&pos, &gt_pos).unwrap();
-    // The thesis reports curve-graph accuracy on par with SE(2) optimisation; this
-    // implementation is not there yet (rmse 0.160 vs odometry 0.280 when written, a 43 %
-    // reduction; the SE(2) graph on the same data does better). The bound states what it does
-    // now, not the goal.
     assert!(
-        rmse < 0.75 * odo && rmse < 0.4,
+        rmse < 0.5 * odo && rmse < 0.4,
         "curve rmse {rmse}, odometry {odo}"
     );
     let _ = DVec2::ZERO;

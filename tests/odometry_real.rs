@@ -2,60 +2,30 @@
 
 mod common;
 
-use glam::{DQuat, DVec3};
 use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
-use rgbid::image::{rgb_to_intensity, ImageF32, RgbdFrame};
+use rgbid::image::RgbdFrame;
 use rgbid::odometry::{Odometry, OdometryConfig};
 
-fn load(rgb: &std::path::Path, depth: &std::path::Path, factor: f32) -> RgbdFrame {
-    let c = image::open(rgb).unwrap().to_rgb8();
-    let d = image::open(depth).unwrap().to_luma16();
-    let (w, h) = (c.width() as usize, c.height() as usize);
-    let intensity = c
-        .pixels()
-        .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
-        .collect();
-    let inv = d
-        .pixels()
-        .map(|p| {
-            if p[0] == 0 {
-                0.0
-            } else {
-                factor / f32::from(p[0])
-            }
-        })
-        .collect();
-    RgbdFrame {
-        timestamp: 0.0,
-        intensity: ImageF32::from_vec(w, h, intensity).unwrap(),
-        inverse_depth: ImageF32::from_vec(w, h, inv).unwrap(),
-    }
+fn load(rgb: &std::path::Path, depth: &std::path::Path, cam: &PinholeCamera) -> RgbdFrame {
+    rgbid::io::load_pair_frame(rgb, depth, cam, 5000.0).expect("tum pair frame")
 }
 
 fn pose(path: &std::path::Path) -> Se3 {
-    let v: Vec<f64> = std::fs::read_to_string(path)
-        .unwrap()
-        .split_whitespace()
-        .map(|s| s.parse().unwrap())
-        .collect();
-    Se3::new(
-        DQuat::from_xyzw(v[3], v[4], v[5], v[6]),
-        DVec3::new(v[0], v[1], v[2]),
-    )
+    rgbid::io::read_pose_file(path).expect("pose file")
 }
 
 #[test]
-#[ignore = "needs ../shared/data"]
-fn real_data_tum_pairs_cpu() {
+#[ignore = "known gap: rotation ~10 % behind OpenCV; needs ../shared/data"]
+fn known_gap_real_data_tum_pairs_match_opencv() {
     let _ = env_logger::builder().is_test(true).try_init();
     let cam = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
     let mut failures = 0;
     for case in ["case_1", "case_2"] {
         let dir = common::shared_data().join("rgbd/tum_pairs").join(case);
-        let prev = load(&dir.join("img_prev.png"), &dir.join("dep_prev.png"), 5000.0);
-        let cur = load(&dir.join("img_curr.png"), &dir.join("dep_curr.png"), 5000.0);
+        let prev = load(&dir.join("img_prev.png"), &dir.join("dep_prev.png"), &cam);
+        let cur = load(&dir.join("img_curr.png"), &dir.join("dep_curr.png"), &cam);
         let world_from_prev = pose(&dir.join("pose_prev.txt"));
         let world_from_cur = pose(&dir.join("pose_curr.txt"));
         let truth_prev_from_cur = world_from_prev.inverse() * world_from_cur;
@@ -151,17 +121,13 @@ fn real_data_tum_pairs_cpu() {
             a.levels
         );
         println!("  times {:?}", a.times);
-        // OpenCV 5 RGB_DEPTH reaches 5.7 / 5.2 mm and 0.158 / 0.158 deg on these pairs (data
-        // README). rgbid's translation is better; its rotation error is still ~10 % above
-        // OpenCV's (0.177 / 0.164 deg when these bounds were set). The bounds are what rgbid
-        // achieves now, not the goal (OpenCV's figures); see the issue notes.
-        let (t_max, r_max) = if case == "case_1" {
-            (0.0057, 0.19)
-        } else {
-            (0.0052, 0.18)
-        };
+        // The issue's bar: no worse than OpenCV 5 RGB_DEPTH (5.7 / 5.2 mm, 0.158 / 0.158 deg,
+        // data README). Known gap: rgbid's rotation error is ~10 % higher (0.177 / 0.164 deg).
         failures +=
-            usize::from(!(err.translation.length() < t_max && err.angle().to_degrees() < r_max));
+            usize::from(!(err.translation.length() < 0.0057 && err.angle().to_degrees() < 0.158));
     }
-    assert_eq!(failures, 0, "pairs outside the bounds");
+    assert_eq!(
+        failures, 0,
+        "pairs where OpenCV RGB_DEPTH was more accurate"
+    );
 }

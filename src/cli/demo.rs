@@ -135,10 +135,7 @@ pub fn run(a: Args) -> Result<()> {
     write_tum(&est_path, &poses)?;
     write_tum(&gt_path, &gt)?;
     outcome?;
-    let med = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
+    let med = |v: &mut Vec<f64>| crate::cli::bench::median(v);
     println!(
         "tracked {} frames: median {:.1} ms/frame odometry, {:.1} ms/frame rendering; total {:.1} s",
         poses.len(),
