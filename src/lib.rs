@@ -27,4 +27,5 @@ pub mod io;
 pub mod odometry;
 pub mod place;
 pub mod segment;
+pub mod slam;
 pub mod synth;

@@ -44,6 +44,9 @@ enum Command {
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
+    /// RGB-ID SLAM: tracking, keyframe fusion, loop closure, pose graph, maps across
+    /// sessions; writes trajectories, loops, a PLY model and timings.
+    Slam(cli::slam::Args),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -75,6 +78,7 @@ fn run(command: Command) -> Result<()> {
         Command::Vocab(c) => cli::vocab::run(c),
         Command::Segment(a) => cli::segment::run(a),
         Command::Graph(c) => cli::graph::run(c),
+        Command::Slam(a) => cli::slam::run(a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

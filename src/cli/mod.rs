@@ -7,5 +7,6 @@ pub mod graph;
 pub mod odometry;
 pub mod place;
 pub mod segment;
+pub mod slam;
 pub mod synth;
 pub mod vocab;

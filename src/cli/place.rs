@@ -113,9 +113,7 @@ fn load_inverse_depth(path: &Path, factor: f64) -> Result<ImageF32> {
 
 /// The default vocabulary, embedded in the binary (trained on rgbid-rendered images).
 pub fn default_vocabulary() -> Result<Vocabulary> {
-    Ok(Vocabulary::read_binary(include_bytes!(
-        "../../assets/vocab_default.rgbvoc"
-    ))?)
+    Ok(Vocabulary::embedded_default()?)
 }
 
 /// A TUM-layout sequence as listed by associations.txt (`t_rgb rgb_path t_depth depth_path`).

@@ -10,6 +10,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("odometry.wgsl", include_str!("../../shaders/odometry.wgsl")),
     ("raycast.wgsl", include_str!("../../shaders/raycast.wgsl")),
     ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
+    ("fuse.wgsl", include_str!("../../shaders/fuse.wgsl")),
 ];
 
 /// Returns the raw source of `name`.

@@ -193,6 +193,16 @@ impl Odometry {
         self.initial_pose = world_from_camera;
     }
 
+    /// Forgets the reference and the motion: the next [`Self::track`] starts again at
+    /// `world_from_camera` (used after relocalisation).
+    pub fn reset(&mut self, world_from_camera: Se3) {
+        if let Some(r) = self.reference.take() {
+            self.spare = Some(r.pyramid);
+        }
+        self.last = None;
+        self.initial_pose = world_from_camera;
+    }
+
     fn check_frame(&self, f: &RgbdFrame) -> Result<(), OdometryError> {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let ok = f.width() == w

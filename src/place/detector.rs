@@ -113,46 +113,118 @@ impl LoopDetector {
     ) -> Result<KeyframeDescription, PlaceError> {
         let mut features = extract_orb(intensity, None, &self.params.orb)?;
         features.lift(inverse_depth, camera)?;
+        let mut inside = Vec::with_capacity(masks.len());
+        for m in masks {
+            if m.width != intensity.width || m.height != intensity.height {
+                return Err(PlaceError::SizeMismatch {
+                    what: "mask",
+                    got_w: m.width,
+                    got_h: m.height,
+                    want_w: intensity.width,
+                    want_h: intensity.height,
+                });
+            }
+            inside.push(
+                features
+                    .keypoints
+                    .iter()
+                    .map(|k| {
+                        let x = (k.uv.x.round().max(0.0) as usize).min(m.width - 1);
+                        let y = (k.uv.y.round().max(0.0) as usize).min(m.height - 1);
+                        m.at(x, y) > 0.0
+                    })
+                    .collect(),
+            );
+        }
+        Ok(self.describe_features(features, &inside))
+    }
+
+    /// The description of already extracted (and lifted) features: one BoW histogram of all
+    /// features when `inside` is empty, else one per entry of `inside` (a flag per feature:
+    /// inside that mask).
+    pub fn describe_features(
+        &self,
+        features: OrbFeatures,
+        inside: &[Vec<bool>],
+    ) -> KeyframeDescription {
         let (bow, feature_vector) = self
             .vocabulary
             .transform(&features.descriptors, self.params.direct_index_depth);
         let mut bows = Vec::new();
-        if masks.is_empty() {
+        if inside.is_empty() {
             bows.push(bow);
         } else {
-            for m in masks {
-                if m.width != intensity.width || m.height != intensity.height {
-                    return Err(PlaceError::SizeMismatch {
-                        what: "mask",
-                        got_w: m.width,
-                        got_h: m.height,
-                        want_w: intensity.width,
-                        want_h: intensity.height,
-                    });
-                }
-                let inside: Vec<_> = features
-                    .keypoints
+            for flags in inside {
+                let subset: Vec<_> = features
+                    .descriptors
                     .iter()
-                    .zip(features.descriptors.iter())
-                    .filter(|(k, _)| {
-                        let x = (k.uv.x.round() as usize).min(m.width - 1);
-                        let y = (k.uv.y.round() as usize).min(m.height - 1);
-                        m.at(x, y) > 0.0
-                    })
-                    .map(|(_, d)| *d)
+                    .zip(flags.iter())
+                    .filter(|(_, &f)| f)
+                    .map(|(d, _)| *d)
                     .collect();
                 bows.push(
                     self.vocabulary
-                        .transform(&inside, self.params.direct_index_depth)
+                        .transform(&subset, self.params.direct_index_depth)
                         .0,
                 );
             }
         }
-        Ok(KeyframeDescription {
+        KeyframeDescription {
             features,
             bows,
             feature_vector,
-        })
+        }
+    }
+
+    /// Adds `desc` as the next keyframe without querying (e.g. keyframes of a loaded map).
+    /// Returns its id.
+    pub fn add(&mut self, desc: KeyframeDescription) -> Result<usize, PlaceError> {
+        let id = self.keyframes.len();
+        self.database.add(id, desc.bows.clone())?;
+        self.keyframes.push(desc);
+        Ok(id)
+    }
+
+    /// Relocalisation query: the verified keyframe among the `max_candidates` best-scoring
+    /// ones (no separation or normalisation limits) with most inliers, if any. The database
+    /// is not changed; `query_id` of the answer is the number of keyframes.
+    pub fn relocalise(
+        &self,
+        desc: &KeyframeDescription,
+        max_candidates: usize,
+    ) -> Result<Option<DetectedLoop>, PlaceError> {
+        let id = self.keyframes.len();
+        let params = QueryParams {
+            max_results: max_candidates,
+            min_separation: 0,
+            min_normalised_score: 0.0,
+            min_reference_score: 0.0,
+        };
+        let candidates = self.database.query(id, &desc.bows, 1.0, &params);
+        let mut found: Option<DetectedLoop> = None;
+        for c in candidates {
+            let old = &self.keyframes[c.keyframe_id];
+            let outcome = verify_loop(
+                &desc.features,
+                &old.features,
+                Some((&desc.feature_vector, &old.feature_vector)),
+                &self.params.verify,
+            )?;
+            if let VerifyOutcome::Accepted(m) = outcome {
+                if found
+                    .as_ref()
+                    .is_none_or(|f| m.inliers.len() > f.loop_match.inliers.len())
+                {
+                    found = Some(DetectedLoop {
+                        query_id: id,
+                        candidate_id: c.keyframe_id,
+                        candidate: c,
+                        loop_match: m,
+                    });
+                }
+            }
+        }
+        Ok(found)
     }
 
     /// Queries the database with `desc`, verifies the best candidates, then inserts `desc`

@@ -21,7 +21,7 @@ pub mod verify;
 pub mod vocabulary;
 
 pub use database::{Candidate, KeyframeDatabase, QueryParams};
-pub use detector::{DetectedLoop, LoopDetector, LoopDetectorParams};
+pub use detector::{DetectedLoop, KeyframeDescription, LoopDetector, LoopDetectorParams};
 pub use matching::{
     hamming, match_descriptors, match_with_vocabulary, DescriptorMatch, MatchParams,
 };

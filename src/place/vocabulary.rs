@@ -608,6 +608,12 @@ impl Vocabulary {
         bw.flush().map_err(ioerr)
     }
 
+    /// The default vocabulary embedded in the library (`assets/vocab_default.rgbvoc`, trained
+    /// on rgbid-rendered images).
+    pub fn embedded_default() -> Result<Self, PlaceError> {
+        Self::read_binary(include_bytes!("../../assets/vocab_default.rgbvoc"))
+    }
+
     /// Loads a vocabulary file: the binary format, or (if it does not start with the magic)
     /// the DBoW2 text format.
     pub fn load(path: &Path) -> Result<Self, PlaceError> {

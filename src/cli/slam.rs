@@ -1,0 +1,516 @@
+//! `rgbid slam`: the full RGB-ID SLAM system on a TUM folder or a generated sequence.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rgbid::camera::PinholeCamera;
+use rgbid::eval::{evaluate, EvalOptions};
+use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::image::RgbdFrame;
+use rgbid::io::trajectory::{read_tum, write_tum, TimedPose};
+use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::place::Vocabulary;
+use rgbid::slam::{
+    build_model, voxel_filter, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig,
+    SlamResult,
+};
+use rgbid::synth::{
+    CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
+};
+
+/// Arguments of `rgbid slam`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// TUM RGB-D folder (rgb.txt + depth.txt or associations.txt). Not needed with --synth.
+    pub sequence: Option<PathBuf>,
+    /// Generate the sequence instead: `SCENE:TRAJECTORY` (e.g. `office:loop`), see
+    /// `rgbid synth --help` for the names.
+    #[arg(long)]
+    pub synth: Option<String>,
+    /// Frames of a generated sequence (30 per second).
+    #[arg(long, default_value_t = 600)]
+    pub frames: usize,
+    /// Image width of a generated sequence (height is 3/4 of it).
+    #[arg(long, default_value_t = 320)]
+    pub width: u32,
+    /// Seed of a generated sequence.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Session of a generated scene (0 = reference arrangement; others move objects).
+    #[arg(long, default_value_t = 0)]
+    pub session: u32,
+    /// Output folder: trajectory.txt (every frame), keyframes.txt, odometry.txt, loops.csv,
+    /// model.ply, timing.csv, keyframe_timing.csv, summary.json.
+    #[arg(long, default_value = "slam-out")]
+    pub out: PathBuf,
+    /// Camera preset or calibration file for a TUM folder (see `rgbid odometry --help`).
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Only the first N frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Load this map first: the session relocalises in it and extends it.
+    #[arg(long)]
+    pub map_in: Option<PathBuf>,
+    /// Save the map here at the end.
+    #[arg(long)]
+    pub map_out: Option<PathBuf>,
+    /// Feed frames at this rate (frames per second) as a live camera would: frames that
+    /// arrive while the system is busy are dropped and counted.
+    #[arg(long)]
+    pub realtime: Option<f64>,
+    /// Disable the superjut / neg-entropy masks in place recognition.
+    #[arg(long)]
+    pub no_masks: bool,
+    /// Keyframe covisibility threshold.
+    #[arg(long, default_value_t = 0.7)]
+    pub keyframe_covisibility: f64,
+    /// Do not write model.ply.
+    #[arg(long)]
+    pub no_model: bool,
+    /// Voxel size of the model filter, metres.
+    #[arg(long, default_value_t = 0.01)]
+    pub voxel: f64,
+    /// Vocabulary file (default: the embedded one).
+    #[arg(long)]
+    pub vocabulary: Option<PathBuf>,
+    /// Compute backend.
+    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
+    pub backend: BackendChoice,
+    /// GPU adapter name filter.
+    #[arg(long)]
+    pub adapter: Option<String>,
+}
+
+/// Where the frames come from.
+pub enum Source {
+    /// A TUM folder.
+    Tum(TumSequence),
+    /// A generated sequence.
+    Synth(Box<Sequence>, PinholeCamera),
+}
+
+impl Source {
+    /// Opens the source the arguments name.
+    #[allow(clippy::too_many_arguments)]
+    pub fn open(
+        sequence: Option<&Path>,
+        synth: Option<&str>,
+        camera: Option<&str>,
+        max_frames: Option<usize>,
+        frames: usize,
+        width: u32,
+        seed: u64,
+        session: u32,
+        backend: &ComputeBackend,
+    ) -> Result<Source> {
+        if let Some(spec) = synth {
+            let (scene_name, traj) = spec.split_once(':').unwrap_or((spec, "loop"));
+            let (w, h) = (width, width * 3 / 4);
+            let f = 525.0 * f64::from(w) / 640.0;
+            let cam = PinholeCamera::new(
+                f,
+                f,
+                (f64::from(w) - 1.0) / 2.0,
+                (f64::from(h) - 1.0) / 2.0,
+                w,
+                h,
+            );
+            let base = Scene::preset(scene_name, seed)?;
+            let scene = Arc::new(if session > 0 {
+                base.session(session)
+            } else {
+                base
+            });
+            let kind = TrajectoryKind::from_name(traj)?;
+            let config = SequenceConfig {
+                frames: max_frames.unwrap_or(frames).min(frames),
+                seed: seed + u64::from(session) * 1000,
+                ..Default::default()
+            };
+            let trajectory = Trajectory::new(kind, &scene, config.duration(), seed)?;
+            let rb = match backend {
+                ComputeBackend::Cpu => RenderBackend::Cpu,
+                ComputeBackend::Gpu(g) => RenderBackend::Gpu(g.clone()),
+            };
+            let seq = Sequence::new(scene, CameraModel::Pinhole(cam), trajectory, config, &rb)?;
+            return Ok(Source::Synth(Box::new(seq), cam));
+        }
+        let Some(dir) = sequence else {
+            bail!("give a TUM folder or --synth SCENE:TRAJECTORY");
+        };
+        let mut opts = OpenOptions {
+            max_frames,
+            ..Default::default()
+        };
+        if let Some(c) = camera {
+            opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
+        }
+        Ok(Source::Tum(TumSequence::open(dir, &opts)?))
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        match self {
+            Source::Tum(s) => s.len(),
+            Source::Synth(s, _) => s.len(),
+        }
+    }
+
+    /// The camera.
+    pub fn camera(&self) -> PinholeCamera {
+        match self {
+            Source::Tum(s) => s.camera,
+            Source::Synth(_, c) => *c,
+        }
+    }
+
+    /// Frame `i`.
+    pub fn load(&mut self, i: usize) -> Result<RgbdFrame> {
+        match self {
+            Source::Tum(s) => Ok(s.load(i)?),
+            Source::Synth(s, _) => {
+                let f = s.render_frame(i)?;
+                Ok(f.frame.to_rgbd_frame(f.timestamp))
+            }
+        }
+    }
+
+    /// Ground truth, if any.
+    pub fn groundtruth(&self) -> Option<Vec<TimedPose>> {
+        match self {
+            Source::Tum(s) => s.groundtruth.as_ref().and_then(|p| read_tum(p).ok()),
+            Source::Synth(s, _) => Some(s.ground_truth()),
+        }
+    }
+}
+
+fn peak_rss_mb() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    crate::cli::bench::median(v)
+}
+
+/// Runs the subcommand.
+pub fn run(a: Args) -> Result<()> {
+    let backend = select_backend(a.backend, a.adapter.as_deref())?;
+    let mut source = Source::open(
+        a.sequence.as_deref(),
+        a.synth.as_deref(),
+        a.camera.as_deref(),
+        a.max_frames,
+        a.frames,
+        a.width,
+        a.seed,
+        a.session,
+        &backend,
+    )?;
+    if source.len() == 0 {
+        bail!("the sequence has no frames");
+    }
+    let vocabulary = match &a.vocabulary {
+        Some(p) => Vocabulary::load(p)?,
+        None => Vocabulary::embedded_default()?,
+    };
+    let map = match &a.map_in {
+        Some(p) => Some(Map::load(p)?),
+        None => None,
+    };
+    let mut config = SlamConfig {
+        masks: !a.no_masks,
+        keyframe_covisibility: a.keyframe_covisibility,
+        ..Default::default()
+    };
+    if a.realtime.is_some() {
+        config.queue = 2;
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
+    let outcome = run_slam(&a, &mut source, config, &backend, vocabulary, map);
+    match outcome {
+        Ok(()) => Ok(()),
+        Err(e) => Err(e.context(format!(
+            "(whatever was computed before the error is in {})",
+            a.out.display()
+        ))),
+    }
+}
+
+fn run_slam(
+    a: &Args,
+    source: &mut Source,
+    config: SlamConfig,
+    backend: &ComputeBackend,
+    vocabulary: Vocabulary,
+    map: Option<Map>,
+) -> Result<()> {
+    let camera = source.camera();
+    let n = source.len();
+    println!(
+        "slam: {n} frames {}x{}, backend {}, masks {}{}",
+        camera.width,
+        camera.height,
+        backend.name(),
+        if config.masks { "on" } else { "off" },
+        match &map {
+            Some(m) => format!(", map with {} keyframes", m.keyframes.len()),
+            None => String::new(),
+        }
+    );
+    let t0 = Instant::now();
+    let mut slam = Slam::new(config, camera, backend, vocabulary, map)?;
+    let bar = ProgressBar::new(n as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut error: Option<anyhow::Error> = None;
+    let mut dropped = 0usize;
+    let mut lost = 0usize;
+    let mut load_ms = Vec::new();
+    let mut i = 0usize;
+    let start = Instant::now();
+    while i < n {
+        if let Some(fps) = a.realtime {
+            // The newest frame a live camera would have delivered by now.
+            let available = (start.elapsed().as_secs_f64() * fps).floor() as usize;
+            if available > i {
+                let newest = available.min(n - 1);
+                dropped += newest - i;
+                bar.inc((newest - i) as u64);
+                i = newest;
+            }
+        }
+        let tl = Instant::now();
+        let frame = match source.load(i) {
+            Ok(f) => f,
+            Err(e) => {
+                error = Some(e.context(format!("frame {i}")));
+                break;
+            }
+        };
+        load_ms.push(tl.elapsed().as_secs_f64() * 1e3);
+        match slam.process(&frame) {
+            Ok(r) => {
+                if r.status == FrameStatus::Lost {
+                    lost += 1;
+                }
+                bar.set_message(format!(
+                    "kf {} loops {} lost {lost}{}",
+                    r.keyframes,
+                    r.loops,
+                    if a.realtime.is_some() {
+                        format!(" dropped {dropped}")
+                    } else {
+                        String::new()
+                    }
+                ));
+            }
+            Err(e) => {
+                error = Some(anyhow::Error::new(e).context(format!("frame {i}")));
+                break;
+            }
+        }
+        bar.inc(1);
+        i += 1;
+        if let Some(fps) = a.realtime {
+            // Wait for the next frame to arrive.
+            let due = i as f64 / fps;
+            let now = start.elapsed().as_secs_f64();
+            if due > now {
+                std::thread::sleep(std::time::Duration::from_secs_f64(due - now));
+            }
+        }
+    }
+    bar.finish_and_clear();
+    let processed = slam.frames();
+    let result = slam.finish()?;
+    let wall = t0.elapsed().as_secs_f64();
+    write_outputs(a, source, &camera, &result, &mut load_ms, dropped, processed, wall)?;
+    if let Some(e) = error {
+        return Err(e);
+    }
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn write_outputs(
+    a: &Args,
+    source: &Source,
+    camera: &PinholeCamera,
+    r: &SlamResult,
+    load_ms: &mut [f64],
+    dropped: usize,
+    processed: usize,
+    wall: f64,
+) -> Result<()> {
+    let out = &a.out;
+    write_tum(&out.join("trajectory.txt"), &r.trajectory)?;
+    write_tum(&out.join("odometry.txt"), &r.odometry)?;
+    let kf_traj: Vec<TimedPose> = r
+        .keyframes
+        .iter()
+        .zip(r.keyframe_poses.iter())
+        .map(|(k, p)| TimedPose {
+            timestamp: k.timestamp,
+            world_from_camera: *p,
+        })
+        .collect();
+    write_tum(&out.join("keyframes.txt"), &kf_traj)?;
+    let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("loops.csv"))?);
+    writeln!(f, "query,candidate,inliers,refine_translation_m,refine_rotation_rad,covisibility,accepted,relocalisation,reason")?;
+    for l in &r.loops {
+        writeln!(
+            f,
+            "{},{},{},{:.4},{:.4},{:.3},{},{},\"{}\"",
+            l.query,
+            l.candidate,
+            l.inliers,
+            l.refine_translation,
+            l.refine_rotation,
+            l.covisibility,
+            l.accepted,
+            l.relocalisation,
+            l.reason
+        )?;
+    }
+    f.flush()?;
+    let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("timing.csv"))?);
+    writeln!(f, "index,timestamp,status,frontend_ms,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,fusion_ms,covisibility,keyframe_covisibility")?;
+    for fr in &r.frames {
+        let t = &fr.times;
+        writeln!(
+            f,
+            "{},{:.6},{:?},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.4},{:.4}",
+            fr.index,
+            fr.timestamp,
+            fr.status,
+            fr.frontend_ms,
+            t.pyramid_ms,
+            t.scale_ms,
+            t.reduce_ms,
+            t.solve_ms,
+            t.covisibility_ms,
+            fr.fusion_ms,
+            fr.covisibility,
+            fr.keyframe_covisibility
+        )?;
+    }
+    f.flush()?;
+    let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("keyframe_timing.csv"))?);
+    writeln!(
+        f,
+        "id,segment_ms,describe_ms,query_ms,align_ms,optimise_ms,total_ms"
+    )?;
+    for t in &r.timings {
+        writeln!(
+            f,
+            "{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3}",
+            t.id, t.segment_ms, t.describe_ms, t.query_ms, t.align_ms, t.optimise_ms, t.total_ms
+        )?;
+    }
+    f.flush()?;
+    let mut model_points = 0;
+    if !a.no_model {
+        let pts = build_model(&r.keyframes, &r.keyframe_poses, camera, &ModelParams::default());
+        let filtered = voxel_filter(&pts, a.voxel);
+        model_points = filtered.len();
+        write_ply(&out.join("model.ply"), &filtered)?;
+    }
+    if let Some(p) = &a.map_out {
+        r.map.save(p)?;
+        println!(
+            "map: {} keyframes, {:.2} MB per keyframe, saved to {}",
+            r.map.keyframes.len(),
+            r.map.bytes_per_keyframe() / 1e6,
+            p.display()
+        );
+    }
+    // Tables 6.2 / 6.3 analogues.
+    let col = |g: &dyn Fn(&rgbid::slam::FrameRecord) -> f64| {
+        let mut v: Vec<f64> = r
+            .frames
+            .iter()
+            .filter(|f| f.frontworld_from_camera.is_some())
+            .map(g)
+            .collect();
+        median(&mut v)
+    };
+    let tracked = r.frames.iter().filter(|f| f.frontworld_from_camera.is_some()).count();
+    let lost = r.frames.iter().filter(|f| f.status == FrameStatus::Lost).count();
+    let reloc = r.frames.iter().filter(|f| f.status == FrameStatus::Relocalised).count();
+    let accepted = r.loops.iter().filter(|l| l.accepted && !l.relocalisation).count();
+    println!(
+        "frames {processed} (dropped {dropped}), tracked {tracked}, lost {lost}, relocalised {reloc}; \
+         keyframes {} ({} new), loops {accepted} accepted of {} detected; wall {wall:.1} s",
+        r.keyframes.len(),
+        r.timings.len(),
+        r.loops.iter().filter(|l| !l.relocalisation).count()
+    );
+    println!("front-end per frame (median ms): load {:.1} | pyramid {:.1} | scale {:.1} | reduce {:.1} | solve {:.2} | covisibility {:.1} | fusion {:.1} | total {:.1}",
+        median(load_ms),
+        col(&|f| f.times.pyramid_ms),
+        col(&|f| f.times.scale_ms),
+        col(&|f| f.times.reduce_ms),
+        col(&|f| f.times.solve_ms),
+        col(&|f| f.times.covisibility_ms),
+        col(&|f| f.fusion_ms),
+        col(&|f| f.frontend_ms));
+    let kcol = |g: &dyn Fn(&rgbid::slam::KeyframeTiming) -> f64| {
+        let mut v: Vec<f64> = r.timings.iter().map(g).collect();
+        median(&mut v)
+    };
+    let mut loop_align: Vec<f64> = r.timings.iter().filter(|t| t.align_ms > 0.0).map(|t| t.align_ms).collect();
+    let mut opt: Vec<f64> = r.timings.iter().filter(|t| t.optimise_ms > 0.0).map(|t| t.optimise_ms).collect();
+    println!("back-end per keyframe (median ms): segment {:.1} | ORB+BoW {:.1} | query+verify {:.1} | total {:.1}; per loop: dense align {:.1}; per optimisation {:.1} ({}); final {:.1}",
+        kcol(&|t| t.segment_ms),
+        kcol(&|t| t.describe_ms),
+        kcol(&|t| t.query_ms),
+        kcol(&|t| t.total_ms),
+        median(&mut loop_align),
+        median(&mut opt),
+        opt.len(),
+        r.final_optimise_ms);
+    let rss = peak_rss_mb();
+    if let Some(m) = rss {
+        println!("peak resident memory {m:.0} MB; map {:.2} MB per keyframe", r.map.bytes_per_keyframe() / 1e6);
+    }
+    let mut summary = serde_json::json!({
+        "frames": processed, "dropped": dropped, "tracked": tracked, "lost": lost,
+        "relocalised": reloc, "keyframes": r.keyframes.len(), "loops_accepted": accepted,
+        "wall_s": wall, "model_points": model_points, "peak_rss_mb": rss,
+    });
+    if let Some(gt) = source.groundtruth() {
+        let gt_path = out.join("groundtruth.txt");
+        write_tum(&gt_path, &gt)?;
+        let opts = EvalOptions::default();
+        for (name, est) in [("slam", &r.trajectory), ("odometry", &r.odometry)] {
+            if est.len() < 2 {
+                continue;
+            }
+            match evaluate(&gt, est, &opts) {
+                Ok(m) => {
+                    let rpe = m.rpe.as_ref().map(|x| x.translation_m.rmse).unwrap_or(f64::NAN);
+                    println!(
+                        "{name:<9} ATE rmse {:.4} m (max {:.4}), RPE {:.4} m/s over {} poses",
+                        m.ate.translation.rmse, m.ate.translation.max, rpe, m.matched
+                    );
+                    summary[format!("{name}_ate_rmse")] = serde_json::json!(m.ate.translation.rmse);
+                    summary[format!("{name}_rpe_rmse")] = serde_json::json!(rpe);
+                }
+                Err(e) => println!("{name}: evaluation failed: {e}"),
+            }
+        }
+    }
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    println!("wrote {}", out.display());
+    Ok(())
+}

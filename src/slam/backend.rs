@@ -1,0 +1,414 @@
+//! The back-end (CPU, its own thread): per keyframe segmentation and masks, ORB + BoW,
+//! loop detection and verification, dense loop refinement, keyframe pose graph.
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use super::keyframe::{Keyframe, KeyframeLink};
+use super::{information_from, SlamConfig, SlamError};
+use crate::camera::PinholeCamera;
+use crate::geometry::Se3;
+use crate::gpu::ComputeBackend;
+use crate::graph::{PoseGraph3, SolverOptions};
+use crate::image::{ImageF32, RgbdFrame};
+use crate::odometry::Odometry;
+use crate::place::{KeyframeDescription, LoopDetector, Vocabulary};
+use crate::segment::segment_keyframe;
+
+/// A loop the back-end found (accepted or rejected after verification).
+#[derive(Clone, Debug)]
+pub struct LoopRecord {
+    /// Query keyframe id (the newer one).
+    pub query: usize,
+    /// Matched keyframe id (the older one).
+    pub candidate: usize,
+    /// RANSAC inliers of the verification.
+    pub inliers: usize,
+    /// `candidate_from_query` after dense refinement (the RANSAC pose if rejected before it).
+    pub candidate_from_query: Se3,
+    /// Translation change of the dense refinement over the RANSAC pose, metres.
+    pub refine_translation: f64,
+    /// Rotation change of the dense refinement, radians.
+    pub refine_rotation: f64,
+    /// Dense covisibility of the two keyframes at the refined pose.
+    pub covisibility: f64,
+    /// Whether it became a graph edge.
+    pub accepted: bool,
+    /// Why it was rejected (empty when accepted).
+    pub reason: String,
+    /// True when it came from relocalisation rather than loop detection.
+    pub relocalisation: bool,
+}
+
+/// Back-end cost of one keyframe, milliseconds (table 6.3).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct KeyframeTiming {
+    /// Keyframe id.
+    pub id: usize,
+    /// Superjut segmentation and masks.
+    pub segment_ms: f64,
+    /// ORB extraction and BoW.
+    pub describe_ms: f64,
+    /// Database query and geometric verification.
+    pub query_ms: f64,
+    /// Dense refinement of a loop (0 without loop).
+    pub align_ms: f64,
+    /// Pose-graph optimisation triggered at this keyframe (0 if none).
+    pub optimise_ms: f64,
+    /// Everything for this keyframe.
+    pub total_ms: f64,
+}
+
+/// What the back-end shares with the front-end while running.
+#[derive(Debug, Default)]
+pub(crate) struct Shared {
+    /// `world_from_frontworld` of the newest keyframe: maps front-end poses to corrected ones.
+    pub correction: Se3,
+    pub keyframes: usize,
+    pub loops: usize,
+    pub optimisations: usize,
+}
+
+/// Answer to a relocalisation request.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Relocalisation {
+    pub keyframe: usize,
+    pub keyframe_from_frame: Se3,
+    pub covariance: Option<[[f64; 6]; 6]>,
+    /// `world_from_keyframe` as the front-end knows it (front-end world).
+    pub frontworld_from_keyframe: Se3,
+}
+
+pub(crate) struct Backend {
+    pub camera: PinholeCamera,
+    pub config: SlamConfig,
+    pub keyframes: Vec<Keyframe>,
+    /// Per keyframe: flags of its features for each mask (for the map file).
+    pub mask_flags: Vec<Vec<Vec<bool>>>,
+    pub detector: LoopDetector,
+    pub graph: PoseGraph3,
+    odometry: Odometry,
+    pub loops: Vec<LoopRecord>,
+    cluster_last: Option<usize>,
+    pub timings: Vec<KeyframeTiming>,
+    pub shared: Arc<Mutex<Shared>>,
+    /// Keyframes before this id come from a loaded map (fixed in the graph).
+    pub map_keyframes: usize,
+}
+
+fn mask_image(m: &crate::segment::Mask) -> ImageF32 {
+    ImageF32 {
+        width: m.width,
+        height: m.height,
+        data: m.data.iter().map(|&v| f32::from(v)).collect(),
+    }
+}
+
+impl Backend {
+    pub fn new(
+        camera: PinholeCamera,
+        config: SlamConfig,
+        backend: &ComputeBackend,
+        vocabulary: Vocabulary,
+        shared: Arc<Mutex<Shared>>,
+    ) -> Result<Self, SlamError> {
+        let mut ocfg = config.odometry.clone();
+        ocfg.reference_switch = None;
+        ocfg.constant_velocity = false;
+        let odometry = Odometry::new(ocfg, camera, backend)?;
+        Ok(Backend {
+            camera,
+            detector: LoopDetector::new(vocabulary, config.detector.clone()),
+            config,
+            keyframes: Vec::new(),
+            mask_flags: Vec::new(),
+            graph: PoseGraph3::new(),
+            odometry,
+            loops: Vec::new(),
+            cluster_last: None,
+            timings: Vec::new(),
+            shared,
+            map_keyframes: 0,
+        })
+    }
+
+    /// Masks (as images) of a keyframe: empty without masks, else the full image first and
+    /// one per threshold.
+    fn masks(&self, frame: &RgbdFrame) -> Result<Vec<ImageF32>, SlamError> {
+        if !self.config.masks {
+            return Ok(Vec::new());
+        }
+        let sj = segment_keyframe(
+            &frame.intensity,
+            &frame.inverse_depth,
+            &self.camera,
+            &self.config.segment,
+        )?;
+        let mut out = vec![ImageF32::filled(frame.width(), frame.height(), 1.0)];
+        for m in sj.masks(&self.config.mask_thresholds) {
+            out.push(mask_image(&m));
+        }
+        Ok(out)
+    }
+
+    pub fn describe(
+        &self,
+        frame: &RgbdFrame,
+    ) -> Result<(KeyframeDescription, Vec<Vec<bool>>, f64, f64), SlamError> {
+        let t = Instant::now();
+        let masks = self.masks(frame)?;
+        let segment_ms = t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        let refs: Vec<&ImageF32> = masks.iter().collect();
+        let desc =
+            self.detector
+                .describe(&frame.intensity, &frame.inverse_depth, &self.camera, &refs)?;
+        let flags = masks
+            .iter()
+            .map(|m| {
+                desc.features
+                    .keypoints
+                    .iter()
+                    .map(|k| {
+                        let x = (k.uv.x.round().max(0.0) as usize).min(m.width - 1);
+                        let y = (k.uv.y.round().max(0.0) as usize).min(m.height - 1);
+                        m.at(x, y) > 0.0
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok((desc, flags, segment_ms, t.elapsed().as_secs_f64() * 1e3))
+    }
+
+    /// Dense refinement of `candidate_from_query_guess` between keyframe `candidate` and
+    /// `query`: `(candidate_from_query, covariance, covisibility)`.
+    fn refine(
+        &mut self,
+        candidate: usize,
+        query: &RgbdFrame,
+        candidate_from_query_guess: Se3,
+    ) -> Result<(Se3, Option<[[f64; 6]; 6]>, f64), SlamError> {
+        let reference = self.keyframes[candidate].frame();
+        let a = self
+            .odometry
+            .align(&reference, query, candidate_from_query_guess.inverse())?;
+        let cov = self
+            .odometry
+            .covisibility_of(&reference, query, &a.cur_from_ref)?;
+        Ok((a.cur_from_ref.inverse(), a.covariance, cov))
+    }
+
+    fn pose_of(&self, id: usize) -> Result<Se3, SlamError> {
+        let idx = self
+            .graph
+            .index_of(id as i64)
+            .ok_or_else(|| SlamError::Internal(format!("keyframe {id} not in the graph")))?;
+        Ok(self.graph.poses[idx])
+    }
+
+    /// Adds a keyframe of a loaded map (already described; its pose is final and fixed).
+    pub fn add_map_keyframe(
+        &mut self,
+        kf: Keyframe,
+        desc: KeyframeDescription,
+        flags: Vec<Vec<bool>>,
+        world_from_keyframe: Se3,
+    ) -> Result<(), SlamError> {
+        let id = self.detector.add(desc)?;
+        if id != kf.id {
+            return Err(SlamError::Internal(format!(
+                "map keyframe {} loaded as {id}",
+                kf.id
+            )));
+        }
+        let idx = self.graph.add_vertex(id as i64, world_from_keyframe)?;
+        self.graph.fixed[idx] = true;
+        self.keyframes.push(kf);
+        self.mask_flags.push(flags);
+        self.map_keyframes = self.keyframes.len();
+        Ok(())
+    }
+
+    /// Processes one keyframe from the front-end.
+    pub fn process(&mut self, kf: Keyframe) -> Result<(), SlamError> {
+        let t0 = Instant::now();
+        let mut timing = KeyframeTiming {
+            id: kf.id,
+            ..Default::default()
+        };
+        if kf.id != self.keyframes.len() {
+            return Err(SlamError::Internal(format!(
+                "keyframe {} arrived, expected {}",
+                kf.id,
+                self.keyframes.len()
+            )));
+        }
+        let frame = kf.frame();
+        let (desc, flags, seg_ms, desc_ms) = self.describe(&frame)?;
+        timing.segment_ms = seg_ms;
+        timing.describe_ms = desc_ms;
+        let t = Instant::now();
+        let (id, detected) = self.detector.insert(desc)?;
+        timing.query_ms = t.elapsed().as_secs_f64() * 1e3;
+        if id != kf.id {
+            return Err(SlamError::Internal(format!(
+                "detector id {id} for keyframe {}",
+                kf.id
+            )));
+        }
+        // Vertex and its sequential / relocalisation edge.
+        let (initial, edge) = match kf.link {
+            KeyframeLink::First => (kf.world_from_keyframe, None),
+            KeyframeLink::Odometry {
+                from,
+                from_from_this,
+                covariance,
+            }
+            | KeyframeLink::Relocalised {
+                from,
+                from_from_this,
+                covariance,
+            } => (
+                self.pose_of(from)? * from_from_this,
+                Some((from, from_from_this, covariance)),
+            ),
+        };
+        let idx = self.graph.add_vertex(id as i64, initial)?;
+        if self.graph.poses.len() == 1 {
+            self.graph.fixed[idx] = true;
+        }
+        if let Some((from, z, cov)) = edge {
+            let info = information_from(Some(&cov), 0.01, 0.01);
+            self.graph.add_edge(from as i64, id as i64, z, info)?;
+        }
+        let world_from_frontworld = initial * kf.world_from_keyframe.inverse();
+        self.keyframes.push(kf);
+        self.mask_flags.push(flags);
+
+        // Loop: dense refinement seeded by the RANSAC pose.
+        if let Some(d) = detected {
+            let t = Instant::now();
+            let guess = d.loop_match.query_from_candidate.inverse();
+            let (refined, cov, covis) = self.refine(d.candidate_id, &frame, guess)?;
+            timing.align_ms = t.elapsed().as_secs_f64() * 1e3;
+            let delta = guess.inverse() * refined;
+            let dt = delta.translation.length();
+            let dr = delta.rotation.to_axis_angle().1.abs();
+            let mut reason = String::new();
+            if covis < self.config.loop_min_covisibility {
+                reason = format!("covisibility {covis:.2}");
+            } else if dt > self.config.loop_max_refine_translation
+                || dr > self.config.loop_max_refine_rotation
+            {
+                reason = format!("dense refinement moved {dt:.3} m / {dr:.3} rad");
+            }
+            let accepted = reason.is_empty();
+            if accepted {
+                let info = information_from(cov.as_ref(), 0.01, 0.01);
+                self.graph
+                    .add_edge(d.candidate_id as i64, id as i64, refined, info)?;
+                self.cluster_last = Some(id);
+            }
+            self.loops.push(LoopRecord {
+                query: id,
+                candidate: d.candidate_id,
+                inliers: d.loop_match.inliers.len(),
+                candidate_from_query: refined,
+                refine_translation: dt,
+                refine_rotation: dr,
+                covisibility: covis,
+                accepted,
+                reason,
+                relocalisation: false,
+            });
+        }
+        // Optimise when the loop cluster closes.
+        if let Some(last) = self.cluster_last {
+            if id >= last + self.config.loop_cluster_gap {
+                timing.optimise_ms = self.optimise()?;
+            }
+        }
+        let correction = match self.pose_of(id) {
+            Ok(p) if timing.optimise_ms > 0.0 => p * self.keyframes[id].world_from_keyframe.inverse(),
+            _ => world_from_frontworld,
+        };
+        if let Ok(mut s) = self.shared.lock() {
+            s.correction = correction;
+            s.keyframes = self.keyframes.len();
+            s.loops = self.loops.iter().filter(|l| l.accepted).count();
+        }
+        timing.total_ms = t0.elapsed().as_secs_f64() * 1e3;
+        self.timings.push(timing);
+        Ok(())
+    }
+
+    /// Optimises the keyframe graph (if a loop cluster is pending); returns milliseconds.
+    pub fn optimise(&mut self) -> Result<f64, SlamError> {
+        if self.cluster_last.take().is_none() {
+            return Ok(0.0);
+        }
+        let t = Instant::now();
+        let opts = SolverOptions {
+            max_iterations: 50,
+            ..Default::default()
+        };
+        self.graph.optimize(&opts)?;
+        if let Ok(mut s) = self.shared.lock() {
+            s.optimisations += 1;
+        }
+        Ok(t.elapsed().as_secs_f64() * 1e3)
+    }
+
+    /// Relocalises `frame` against the keyframes: ORB + BoW query, verification, dense
+    /// refinement. `None` when nothing verified.
+    pub fn relocalise(&mut self, frame: &RgbdFrame) -> Result<Option<Relocalisation>, SlamError> {
+        if self.keyframes.is_empty() {
+            return Ok(None);
+        }
+        let (desc, _, _, _) = self.describe(frame)?;
+        let Some(d) = self.detector.relocalise(&desc, 5)? else {
+            return Ok(None);
+        };
+        let guess = d.loop_match.query_from_candidate.inverse();
+        let (refined, cov, covis) = self.refine(d.candidate_id, frame, guess)?;
+        let delta = guess.inverse() * refined;
+        let dt = delta.translation.length();
+        let dr = delta.rotation.to_axis_angle().1.abs();
+        let ok = covis >= self.config.loop_min_covisibility
+            && dt <= self.config.loop_max_refine_translation
+            && dr <= self.config.loop_max_refine_rotation;
+        self.loops.push(LoopRecord {
+            query: self.keyframes.len(),
+            candidate: d.candidate_id,
+            inliers: d.loop_match.inliers.len(),
+            candidate_from_query: refined,
+            refine_translation: dt,
+            refine_rotation: dr,
+            covisibility: covis,
+            accepted: ok,
+            reason: if ok {
+                String::new()
+            } else {
+                format!("relocalisation rejected: covisibility {covis:.2}, moved {dt:.3} m / {dr:.3} rad")
+            },
+            relocalisation: true,
+        });
+        if !ok {
+            return Ok(None);
+        }
+        Ok(Some(Relocalisation {
+            keyframe: d.candidate_id,
+            keyframe_from_frame: refined,
+            covariance: cov,
+            frontworld_from_keyframe: self.keyframes[d.candidate_id].world_from_keyframe,
+        }))
+    }
+
+    /// Optimised `world_from_keyframe` of every keyframe.
+    pub fn keyframe_poses(&self) -> Vec<Se3> {
+        self.keyframes
+            .iter()
+            .map(|k| self.pose_of(k.id).unwrap_or(k.world_from_keyframe))
+            .collect()
+    }
+}

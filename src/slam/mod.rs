@@ -1,0 +1,205 @@
+//! RGB-ID SLAM (thesis ch. 6): a front-end that tracks every frame with the dense odometry
+//! and fuses frames into keyframes (GPU or CPU), and a back-end thread that, per keyframe,
+//! segments superjuts, describes the keyframe with ORB + masked bags of words, detects and
+//! verifies loops, refines them by dense alignment and optimises the keyframe pose graph
+//! when a loop cluster closes. At the end all frames are optimised with the keyframes fixed.
+//!
+//! ```no_run
+//! # use rgbid::{slam::*, camera::PinholeCamera, gpu::*, place::Vocabulary};
+//! # fn f(frames: Vec<rgbid::image::RgbdFrame>) -> Result<(), SlamError> {
+//! let backend = select_backend(BackendChoice::Auto, None)?;
+//! let camera = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
+//! let mut slam = Slam::new(SlamConfig::default(), camera, &backend, Vocabulary::embedded_default()?, None)?;
+//! for f in &frames {
+//!     let report = slam.process(f)?;
+//!     println!("{:?} {:?}", report.status, report.world_from_camera);
+//! }
+//! let result = slam.finish()?;
+//! println!("{} keyframes, {} loops", result.keyframes.len(), result.loops.len());
+//! # Ok(()) }
+//! ```
+
+mod backend;
+pub mod fusion;
+pub mod keyframe;
+pub mod map;
+pub mod model;
+mod system;
+
+pub use backend::{KeyframeTiming, LoopRecord};
+pub use fusion::{fuse_cpu, FusionCounts, FusionParams, KeyframeFuser};
+pub use keyframe::{Keyframe, KeyframeLink};
+pub use map::{Map, MapError, MAP_VERSION};
+pub use model::{build_model, voxel_filter, write_ply, ModelParams};
+pub use system::{FrameRecord, FrameReport, FrameStatus, Slam, SlamResult};
+
+use crate::odometry::OdometryConfig;
+use crate::place::LoopDetectorParams;
+use crate::segment::SegmentConfig;
+
+/// Errors of the SLAM system.
+#[derive(Debug, thiserror::Error)]
+pub enum SlamError {
+    /// The odometry failed in a way that is not a tracking loss (configuration, device).
+    #[error("odometry: {0}")]
+    Odometry(#[from] crate::odometry::OdometryError),
+    /// GPU failure (device lost, shader, timeout).
+    #[error("gpu: {0}")]
+    Gpu(#[from] crate::gpu::GpuError),
+    /// Place recognition failed.
+    #[error("place recognition: {0}")]
+    Place(#[from] crate::place::PlaceError),
+    /// Segmentation failed.
+    #[error("segmentation: {0}")]
+    Segment(#[from] crate::segment::SegmentError),
+    /// Pose-graph optimisation failed.
+    #[error("pose graph: {0}")]
+    Graph(#[from] crate::graph::GraphError),
+    /// Map file problem.
+    #[error("map: {0}")]
+    Map(#[from] MapError),
+    /// A frame does not match the camera.
+    #[error("frame {index}: size {got_w}x{got_h}, the camera is {want_w}x{want_h}")]
+    FrameSize {
+        /// Frame index.
+        index: usize,
+        /// Frame width.
+        got_w: usize,
+        /// Frame height.
+        got_h: usize,
+        /// Camera width.
+        want_w: usize,
+        /// Camera height.
+        want_h: usize,
+    },
+    /// An invalid configuration value.
+    #[error("invalid configuration: {0}")]
+    InvalidConfig(String),
+    /// The back-end thread stopped (it panicked or returned an error earlier).
+    #[error("back-end thread stopped: {0}")]
+    BackendStopped(String),
+    /// An internal inconsistency (a bug): please report it.
+    #[error("internal: {0}")]
+    Internal(String),
+}
+
+/// Configuration of the SLAM system (defaults as the thesis where it gives a value).
+#[derive(Clone, Debug)]
+pub struct SlamConfig {
+    /// Dense odometry (frame-to-reference tracking, reference switch at covisibility 0.9).
+    pub odometry: OdometryConfig,
+    /// A new keyframe is made when the current keyframe's covisibility with the frame drops
+    /// below this (0.7).
+    pub keyframe_covisibility: f64,
+    /// Keyframe inverse-depth fusion.
+    pub fusion: FusionParams,
+    /// Most frames buffered since the last keyframe and fused into the next one.
+    pub buffer_frames: usize,
+    /// Tracking is declared lost when the covisibility with the reference falls below this.
+    pub lost_covisibility: f64,
+    /// Tracking is declared lost when the Hessian condition number exceeds this.
+    pub lost_condition: f64,
+    /// Bounded queue of finished keyframes between front-end and back-end.
+    pub queue: usize,
+    /// Superjut segmentation and neg-entropy masks in the back-end.
+    pub masks: bool,
+    /// Neg-entropy thresholds of the masks (one BoW histogram each, plus the unmasked one).
+    pub mask_thresholds: Vec<f64>,
+    /// Segmentation parameters.
+    pub segment: SegmentConfig,
+    /// Place recognition (ORB, database query, verification).
+    pub detector: LoopDetectorParams,
+    /// Loops whose query keyframes are within this many keyframes form one cluster; the graph
+    /// is optimised when the cluster closes.
+    pub loop_cluster_gap: usize,
+    /// A loop is rejected when the dense refinement moves the RANSAC pose by more than this
+    /// (metres) ...
+    pub loop_max_refine_translation: f64,
+    /// ... or this (radians).
+    pub loop_max_refine_rotation: f64,
+    /// A loop is rejected when the dense covisibility of the two keyframes is below this.
+    pub loop_min_covisibility: f64,
+    /// While lost, relocalisation is tried on every n-th frame.
+    pub relocalise_every: usize,
+}
+
+impl Default for SlamConfig {
+    fn default() -> Self {
+        let mut detector = LoopDetectorParams::default();
+        detector.query.min_separation = 8;
+        SlamConfig {
+            odometry: OdometryConfig::default(),
+            keyframe_covisibility: 0.7,
+            fusion: FusionParams::default(),
+            buffer_frames: 30,
+            lost_covisibility: 0.25,
+            lost_condition: 1e9,
+            queue: 8,
+            masks: true,
+            mask_thresholds: vec![0.5],
+            segment: SegmentConfig::default(),
+            detector,
+            loop_cluster_gap: 10,
+            loop_max_refine_translation: 0.15,
+            loop_max_refine_rotation: 0.15,
+            loop_min_covisibility: 0.3,
+            relocalise_every: 1,
+        }
+    }
+}
+
+impl SlamConfig {
+    /// Checks the values.
+    pub fn validate(&self) -> Result<(), SlamError> {
+        self.odometry.validate()?;
+        let in01 = |v: f64| (0.0..=1.0).contains(&v);
+        if !in01(self.keyframe_covisibility) || !in01(self.lost_covisibility) {
+            return Err(SlamError::InvalidConfig(
+                "covisibility thresholds must be in [0, 1]".into(),
+            ));
+        }
+        if self.queue == 0 {
+            return Err(SlamError::InvalidConfig("queue must be >= 1".into()));
+        }
+        if self.masks {
+            self.segment.validate()?;
+        }
+        Ok(())
+    }
+}
+
+/// Inverse of a 6x6 covariance as a row-major information matrix; a fallback diagonal
+/// (`sigma_t` metres, `sigma_r` radians) when it is missing or not positive definite.
+pub(crate) fn information_from(
+    covariance: Option<&[[f64; 6]; 6]>,
+    sigma_t: f64,
+    sigma_r: f64,
+) -> Vec<f64> {
+    let fallback = || {
+        let mut m = vec![0.0; 36];
+        for i in 0..6 {
+            let s = if i < 3 { sigma_t } else { sigma_r };
+            m[i * 6 + i] = 1.0 / (s * s);
+        }
+        m
+    };
+    let Some(c) = covariance else {
+        return fallback();
+    };
+    let m = nalgebra::Matrix6::from_fn(|i, j| 0.5 * (c[i][j] + c[j][i]));
+    if !m.iter().all(|v| v.is_finite()) {
+        return fallback();
+    }
+    match m.cholesky() {
+        Some(ch) => {
+            let inv = ch.inverse();
+            let out: Vec<f64> = (0..36).map(|k| inv[(k / 6, k % 6)]).collect();
+            if out.iter().all(|v| v.is_finite()) {
+                out
+            } else {
+                fallback()
+            }
+        }
+        None => fallback(),
+    }
+}

@@ -1,0 +1,130 @@
+//! The 3D model: keyframe point clouds placed by the optimised poses, each keyframe adding
+//! only what the previous keyframe did not already see, voxel-grid filtered, as PLY.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::Path;
+
+use glam::DVec3;
+
+use super::keyframe::Keyframe;
+use super::map::MapError;
+use crate::camera::PinholeCamera;
+use crate::geometry::Se3;
+
+/// Model parameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ModelParams {
+    /// Take every `step`-th pixel in x and y.
+    pub step: usize,
+    /// Least fusion weight of a pixel to be used.
+    pub min_weight: u8,
+    /// Voxel size of the final filter, metres (0 = no filter).
+    pub voxel: f64,
+    /// Inverse-depth tolerance (1/m) under which a point counts as already seen by the
+    /// previous keyframe.
+    pub seen_tolerance: f64,
+}
+
+impl Default for ModelParams {
+    fn default() -> Self {
+        ModelParams {
+            step: 2,
+            min_weight: 2,
+            voxel: 0.01,
+            seen_tolerance: 0.02,
+        }
+    }
+}
+
+/// Points of the model in the world frame (metres) with their intensity: every keyframe's
+/// points, minus those the previous keyframe already had, placed with `world_from_keyframe`.
+pub fn build_model(
+    keyframes: &[Keyframe],
+    world_from_keyframe: &[Se3],
+    camera: &PinholeCamera,
+    params: &ModelParams,
+) -> Vec<(DVec3, u8)> {
+    let mut out = Vec::new();
+    for (k, (kf, pose)) in keyframes.iter().zip(world_from_keyframe.iter()).enumerate() {
+        let prev = if k > 0 && keyframes[k - 1].session == kf.session {
+            Some((&keyframes[k - 1], world_from_keyframe[k - 1].inverse() * *pose))
+        } else {
+            None
+        };
+        for (p, i) in kf.points(camera, params.step, params.min_weight) {
+            if let Some((pk, prev_from_this)) = &prev {
+                let q = prev_from_this.transform_point(p);
+                if q.z > 0.0 {
+                    let u = (camera.fx * q.x / q.z + camera.cx).round();
+                    let v = (camera.fy * q.y / q.z + camera.cy).round();
+                    if u >= 0.0 && v >= 0.0 && (u as usize) < pk.width && (v as usize) < pk.height {
+                        let r = f64::from(pk.inverse_depth[v as usize * pk.width + u as usize].to_f32());
+                        if r > 0.0 && (r - 1.0 / q.z).abs() < params.seen_tolerance {
+                            continue;
+                        }
+                    }
+                }
+            }
+            out.push((pose.transform_point(p), i));
+        }
+    }
+    out
+}
+
+/// Voxel-grid filter: one point per occupied voxel of `size` metres (the mean of its points
+/// and intensities). `size <= 0` returns the input.
+pub fn voxel_filter(points: &[(DVec3, u8)], size: f64) -> Vec<(DVec3, u8)> {
+    if size <= 0.0 {
+        return points.to_vec();
+    }
+    let mut cells: HashMap<(i64, i64, i64), (DVec3, u32, usize)> = HashMap::new();
+    let mut order = Vec::new();
+    for (p, i) in points {
+        if !p.is_finite() {
+            continue;
+        }
+        let key = (
+            (p.x / size).floor() as i64,
+            (p.y / size).floor() as i64,
+            (p.z / size).floor() as i64,
+        );
+        let e = cells.entry(key).or_insert_with(|| {
+            order.push(key);
+            (DVec3::ZERO, 0, 0)
+        });
+        e.0 += *p;
+        e.1 += u32::from(*i);
+        e.2 += 1;
+    }
+    order
+        .iter()
+        .filter_map(|k| cells.get(k))
+        .map(|(s, i, n)| (*s / *n as f64, (*i / *n as u32) as u8))
+        .collect()
+}
+
+/// Writes points as a binary little-endian PLY with grey colour.
+pub fn write_ply(path: &Path, points: &[(DVec3, u8)]) -> Result<(), MapError> {
+    let io = |source| MapError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let f = std::fs::File::create(path).map_err(io)?;
+    let mut w = std::io::BufWriter::new(f);
+    write!(
+        w,
+        "ply\nformat binary_little_endian 1.0\ncomment rgbid model\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+        points.len()
+    )
+    .map_err(io)?;
+    for (p, i) in points {
+        for v in [p.x as f32, p.y as f32, p.z as f32] {
+            w.write_all(&v.to_le_bytes()).map_err(io)?;
+        }
+        w.write_all(&[*i, *i, *i]).map_err(io)?;
+    }
+    w.flush().map_err(io)
+}

@@ -1,0 +1,612 @@
+//! The SLAM system: the front-end on the caller's thread, the back-end on its own thread
+//! behind a bounded keyframe queue.
+
+use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use super::backend::{Backend, KeyframeTiming, LoopRecord, Relocalisation, Shared};
+use super::fusion::KeyframeFuser;
+use super::keyframe::{Keyframe, KeyframeLink};
+use super::map::Map;
+use super::{information_from, SlamConfig, SlamError};
+use crate::camera::PinholeCamera;
+use crate::geometry::Se3;
+use crate::gpu::ComputeBackend;
+use crate::graph::{PoseGraph3, SolverOptions};
+use crate::image::{ImageF32, RgbdFrame};
+use crate::io::trajectory::TimedPose;
+use crate::odometry::{Odometry, StageTimes};
+use crate::place::Vocabulary;
+
+/// Tracking state of a frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameStatus {
+    /// Tracked against the reference.
+    Tracking,
+    /// Tracked, and it started a new keyframe.
+    NewKeyframe,
+    /// Not tracked: tracking was lost and relocalisation has not succeeded (no pose).
+    Lost,
+    /// Relocalised against the keyframe database on this frame.
+    Relocalised,
+}
+
+/// Per-frame record kept for the final optimisation and outputs.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameRecord {
+    /// Frame index in the session.
+    pub index: usize,
+    /// Time stamp, seconds.
+    pub timestamp: f64,
+    /// Status.
+    pub status: FrameStatus,
+    /// Front-end (odometric) `world_from_camera`; `None` while lost.
+    pub frontworld_from_camera: Option<Se3>,
+    /// Keyframe the frame was tracked under and `keyframe_from_camera`.
+    pub keyframe: Option<(usize, Se3)>,
+    /// Front-end time of the frame, milliseconds.
+    pub frontend_ms: f64,
+    /// Odometry stage times.
+    pub times: StageTimes,
+    /// Fusion time, milliseconds.
+    pub fusion_ms: f64,
+    /// Covisibility with the odometry reference.
+    pub covisibility: f64,
+    /// Covisibility of the current keyframe with the frame.
+    pub keyframe_covisibility: f64,
+}
+
+/// What [`Slam::process`] returns for one frame.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameReport {
+    /// The frame's record.
+    pub record: FrameRecord,
+    /// Status.
+    pub status: FrameStatus,
+    /// `world_from_camera` corrected by the latest loop closures; `None` while lost.
+    pub world_from_camera: Option<Se3>,
+    /// Keyframes so far.
+    pub keyframes: usize,
+    /// Accepted loops so far.
+    pub loops: usize,
+}
+
+/// Everything a finished run produced.
+pub struct SlamResult {
+    /// Per-frame records (front-end).
+    pub frames: Vec<FrameRecord>,
+    /// Final `world_from_camera` of every tracked frame (after the all-frames optimisation).
+    pub trajectory: Vec<TimedPose>,
+    /// Front-end (odometry-only) trajectory of the tracked frames.
+    pub odometry: Vec<TimedPose>,
+    /// Keyframes (all, including those of a loaded map) with their optimised poses.
+    pub keyframes: Vec<Keyframe>,
+    /// Optimised `world_from_keyframe`, one per keyframe.
+    pub keyframe_poses: Vec<Se3>,
+    /// Loops found (accepted and rejected).
+    pub loops: Vec<LoopRecord>,
+    /// Back-end cost per keyframe of this session.
+    pub timings: Vec<KeyframeTiming>,
+    /// The map to save (keyframes, descriptors, graph).
+    pub map: Map,
+    /// Milliseconds of the final keyframe and all-frames optimisations.
+    pub final_optimise_ms: f64,
+}
+
+enum ToBackend {
+    Keyframe(Box<Keyframe>),
+    Relocalise(Box<RgbdFrame>, Sender<Result<Option<Relocalisation>, SlamError>>),
+}
+
+struct CurrentKeyframe {
+    id: usize,
+    frame_index: usize,
+    timestamp: f64,
+    intensity: ImageF32,
+    frontworld_from_keyframe: Se3,
+    link: KeyframeLink,
+}
+
+/// The RGB-ID SLAM system (see the module docs).
+pub struct Slam {
+    config: SlamConfig,
+    camera: PinholeCamera,
+    odometry: Odometry,
+    fuser: KeyframeFuser,
+    current: Option<CurrentKeyframe>,
+    next_keyframe_id: usize,
+    /// Frames since the last keyframe: inverse depth and front-end pose.
+    buffer: Vec<(ImageF32, Se3)>,
+    /// Accumulated covariance of the current reference relative to the keyframe.
+    chain_covariance: [[f64; 6]; 6],
+    lost: bool,
+    frames: Vec<FrameRecord>,
+    tx: Option<SyncSender<ToBackend>>,
+    handle: Option<JoinHandle<Result<Backend, SlamError>>>,
+    shared: Arc<Mutex<Shared>>,
+    session: u32,
+    map_keyframes: usize,
+}
+
+fn add_cov(a: &mut [[f64; 6]; 6], b: &[[f64; 6]; 6]) {
+    for i in 0..6 {
+        for j in 0..6 {
+            a[i][j] += b[i][j];
+        }
+    }
+}
+
+fn default_cov() -> [[f64; 6]; 6] {
+    let mut c = [[0.0; 6]; 6];
+    for (i, row) in c.iter_mut().enumerate() {
+        row[i] = if i < 3 { 1e-6 } else { 1e-6 };
+    }
+    c
+}
+
+impl Slam {
+    /// Starts the system for frames of `camera` (undistorted pinhole) on `backend`. With a
+    /// loaded `map`, the first frames relocalise in it and the map is extended.
+    pub fn new(
+        config: SlamConfig,
+        camera: PinholeCamera,
+        backend: &ComputeBackend,
+        vocabulary: Vocabulary,
+        map: Option<Map>,
+    ) -> Result<Self, SlamError> {
+        config.validate()?;
+        let odometry = Odometry::new(config.odometry.clone(), camera, backend)?;
+        let fuser = KeyframeFuser::new(camera, config.fusion, backend)?;
+        let shared = Arc::new(Mutex::new(Shared::default()));
+        let mut back = Backend::new(camera, config.clone(), backend, vocabulary, shared.clone())?;
+        let mut session = 0;
+        if let Some(map) = map {
+            if map.camera != camera {
+                return Err(SlamError::InvalidConfig(format!(
+                    "the map was made with camera {:?}, this sequence has {:?}",
+                    map.camera, camera
+                )));
+            }
+            session = map.sessions;
+            map.load_into(&mut back)?;
+        }
+        let map_keyframes = back.keyframes.len();
+        let (tx, rx) = sync_channel::<ToBackend>(config.queue);
+        let handle = std::thread::Builder::new()
+            .name("rgbid-backend".into())
+            .spawn(move || backend_loop(back, rx))
+            .map_err(|e| SlamError::BackendStopped(e.to_string()))?;
+        Ok(Slam {
+            config,
+            camera,
+            odometry,
+            fuser,
+            current: None,
+            next_keyframe_id: map_keyframes,
+            buffer: Vec::new(),
+            chain_covariance: [[0.0; 6]; 6],
+            lost: map_keyframes > 0,
+            frames: Vec::new(),
+            tx: Some(tx),
+            handle: Some(handle),
+            shared,
+            session,
+            map_keyframes,
+        })
+    }
+
+    /// Number of frames processed.
+    pub fn frames(&self) -> usize {
+        self.frames.len()
+    }
+
+    fn send(&mut self, msg: ToBackend) -> Result<(), SlamError> {
+        let Some(tx) = &self.tx else {
+            return Err(SlamError::BackendStopped("already finished".into()));
+        };
+        if tx.send(msg).is_err() {
+            return Err(self.backend_failure());
+        }
+        Ok(())
+    }
+
+    /// The error the back-end thread stopped with.
+    fn backend_failure(&mut self) -> SlamError {
+        self.tx = None;
+        match self.handle.take().map(|h| h.join()) {
+            Some(Ok(Err(e))) => e,
+            Some(Err(_)) => SlamError::BackendStopped("the back-end thread panicked".into()),
+            _ => SlamError::BackendStopped("the back-end stopped".into()),
+        }
+    }
+
+    fn finish_keyframe(&mut self) -> Result<(), SlamError> {
+        let Some(cur) = self.current.take() else {
+            return Ok(());
+        };
+        let (rho, weight) = self.fuser.finish()?;
+        let kf = Keyframe::pack(
+            cur.id,
+            cur.frame_index,
+            self.session,
+            cur.timestamp,
+            &cur.intensity,
+            &rho,
+            &weight,
+            cur.frontworld_from_keyframe,
+            cur.link,
+        );
+        self.send(ToBackend::Keyframe(Box::new(kf)))
+    }
+
+    /// Starts a keyframe from `frame` and fuses the buffered frames into it.
+    fn start_keyframe(
+        &mut self,
+        index: usize,
+        frame: &RgbdFrame,
+        frontworld_from_camera: Se3,
+        link: KeyframeLink,
+    ) -> Result<usize, SlamError> {
+        let id = self.next_keyframe_id;
+        self.next_keyframe_id += 1;
+        self.fuser.start(&frame.inverse_depth);
+        let buffered = std::mem::take(&mut self.buffer);
+        for (rho, frontworld_from_b) in &buffered {
+            let b_from_kf = frontworld_from_b.inverse() * frontworld_from_camera;
+            self.fuser.fuse(rho, &b_from_kf)?;
+        }
+        self.current = Some(CurrentKeyframe {
+            id,
+            frame_index: index,
+            timestamp: frame.timestamp,
+            intensity: frame.intensity.clone(),
+            frontworld_from_keyframe: frontworld_from_camera,
+            link,
+        });
+        self.chain_covariance = [[0.0; 6]; 6];
+        Ok(id)
+    }
+
+    fn check_frame(&self, index: usize, frame: &RgbdFrame) -> Result<(), SlamError> {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        if frame.width() != w
+            || frame.height() != h
+            || frame.intensity.data.len() != w * h
+            || frame.inverse_depth.data.len() != w * h
+        {
+            return Err(SlamError::FrameSize {
+                index,
+                got_w: frame.width(),
+                got_h: frame.height(),
+                want_w: w,
+                want_h: h,
+            });
+        }
+        Ok(())
+    }
+
+    fn correction(&self) -> Se3 {
+        self.shared
+            .lock()
+            .map(|s| s.correction)
+            .unwrap_or(Se3::IDENTITY)
+    }
+
+    fn counts(&self) -> (usize, usize) {
+        self.shared
+            .lock()
+            .map(|s| (s.keyframes, s.loops))
+            .unwrap_or((0, 0))
+    }
+
+    fn report(&mut self, record: FrameRecord) -> FrameReport {
+        self.frames.push(record);
+        let (keyframes, loops) = self.counts();
+        FrameReport {
+            record,
+            status: record.status,
+            world_from_camera: record
+                .frontworld_from_camera
+                .map(|p| self.correction() * p),
+            keyframes,
+            loops,
+        }
+    }
+
+    /// Tries to relocalise `frame`; on success the odometry restarts there.
+    fn try_relocalise(&mut self, index: usize, frame: &RgbdFrame) -> Result<Option<Se3>, SlamError> {
+        let (rtx, rrx) = channel();
+        self.send(ToBackend::Relocalise(Box::new(frame.clone()), rtx))?;
+        let answer = match rrx.recv() {
+            Ok(a) => a?,
+            Err(_) => return Err(self.backend_failure()),
+        };
+        let Some(r) = answer else {
+            return Ok(None);
+        };
+        let frontworld_from_camera = r.frontworld_from_keyframe * r.keyframe_from_frame;
+        self.odometry.reset(frontworld_from_camera);
+        // The first tracked frame builds the odometry reference.
+        self.odometry.track(frame)?;
+        self.buffer.clear();
+        let link = KeyframeLink::Relocalised {
+            from: r.keyframe,
+            from_from_this: r.keyframe_from_frame,
+            covariance: r.covariance.unwrap_or_else(default_cov),
+        };
+        self.start_keyframe(index, frame, frontworld_from_camera, link)?;
+        Ok(Some(frontworld_from_camera))
+    }
+
+    /// Processes the next frame (front-end; keyframes go to the back-end thread).
+    pub fn process(&mut self, frame: &RgbdFrame) -> Result<FrameReport, SlamError> {
+        let index = self.frames.len();
+        self.check_frame(index, frame)?;
+        let t0 = Instant::now();
+        let mut record = FrameRecord {
+            index,
+            timestamp: frame.timestamp,
+            status: FrameStatus::Lost,
+            frontworld_from_camera: None,
+            keyframe: None,
+            frontend_ms: 0.0,
+            times: StageTimes::default(),
+            fusion_ms: 0.0,
+            covisibility: 0.0,
+            keyframe_covisibility: 0.0,
+        };
+        // Start of the first session: this frame is the origin.
+        if self.current.is_none() && !self.lost {
+            self.odometry.reset(Se3::IDENTITY);
+            let r = self.odometry.track(frame)?;
+            let id = self.start_keyframe(index, frame, r.world_from_camera, KeyframeLink::First)?;
+            record.status = FrameStatus::NewKeyframe;
+            record.frontworld_from_camera = Some(r.world_from_camera);
+            record.keyframe = Some((id, Se3::IDENTITY));
+            record.covisibility = 1.0;
+            record.keyframe_covisibility = 1.0;
+            record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
+            return Ok(self.report(record));
+        }
+        if self.lost {
+            let every = self.config.relocalise_every.max(1);
+            if index % every == 0 {
+                if let Some(p) = self.try_relocalise(index, frame)? {
+                    self.lost = false;
+                    record.status = FrameStatus::Relocalised;
+                    record.frontworld_from_camera = Some(p);
+                    record.keyframe = self.current.as_ref().map(|c| (c.id, Se3::IDENTITY));
+                    record.covisibility = 1.0;
+                    record.keyframe_covisibility = 1.0;
+                }
+            }
+            record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
+            return Ok(self.report(record));
+        }
+        // Tracking.
+        let tracked = match self.odometry.track(frame) {
+            Ok(r) => Some(r),
+            Err(crate::odometry::OdometryError::Gpu(e)) => return Err(SlamError::Gpu(e)),
+            Err(e) => {
+                log::warn!("frame {index}: tracking failed ({e}); relocalising");
+                None
+            }
+        };
+        let ok = tracked.as_ref().is_some_and(|r| {
+            r.stats.covisibility >= self.config.lost_covisibility
+                && r.stats.condition_number <= self.config.lost_condition
+                && r.world_from_camera.is_finite()
+        });
+        let Some(r) = tracked.filter(|_| ok) else {
+            // Lost: the current keyframe is finished and the frame gets no pose.
+            self.finish_keyframe()?;
+            self.buffer.clear();
+            self.lost = true;
+            record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
+            return Ok(self.report(record));
+        };
+        record.times = r.stats.times;
+        record.covisibility = r.stats.covisibility;
+        record.status = FrameStatus::Tracking;
+        if r.stats.new_reference {
+            if let Some(c) = &r.covariance {
+                add_cov(&mut self.chain_covariance, c);
+            }
+        }
+        let frontworld_from_camera = r.world_from_camera;
+        record.frontworld_from_camera = Some(frontworld_from_camera);
+        let cur = self
+            .current
+            .as_ref()
+            .ok_or_else(|| SlamError::Internal("tracking without keyframe".into()))?;
+        let (kf_id, frontworld_from_kf) = (cur.id, cur.frontworld_from_keyframe);
+        let kf_from_camera = frontworld_from_kf.inverse() * frontworld_from_camera;
+        let tf = Instant::now();
+        let counts = self.fuser.fuse(&frame.inverse_depth, &kf_from_camera.inverse())?;
+        record.fusion_ms = tf.elapsed().as_secs_f64() * 1e3;
+        record.keyframe_covisibility = counts.covisibility();
+        record.keyframe = Some((kf_id, kf_from_camera));
+        if counts.covisibility() < self.config.keyframe_covisibility {
+            let mut covariance = self.chain_covariance;
+            if !r.stats.new_reference {
+                if let Some(c) = &r.covariance {
+                    add_cov(&mut covariance, c);
+                }
+            }
+            if covariance.iter().flatten().all(|v| *v == 0.0) {
+                covariance = default_cov();
+            }
+            self.finish_keyframe()?;
+            let tf = Instant::now();
+            let link = KeyframeLink::Odometry {
+                from: kf_id,
+                from_from_this: kf_from_camera,
+                covariance,
+            };
+            let id = self.start_keyframe(index, frame, frontworld_from_camera, link)?;
+            record.fusion_ms += tf.elapsed().as_secs_f64() * 1e3;
+            record.status = FrameStatus::NewKeyframe;
+            record.keyframe = Some((id, Se3::IDENTITY));
+        } else {
+            self.buffer
+                .push((frame.inverse_depth.clone(), frontworld_from_camera));
+            if self.buffer.len() > self.config.buffer_frames {
+                self.buffer.remove(0);
+            }
+        }
+        record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
+        Ok(self.report(record))
+    }
+
+    /// Finishes the run: sends the last keyframe, waits for the back-end, optimises the
+    /// keyframe graph once more (if loops are pending) and then every frame with the keyframes
+    /// fixed, and returns the results.
+    pub fn finish(mut self) -> Result<SlamResult, SlamError> {
+        self.finish_keyframe()?;
+        self.tx = None;
+        let mut back = match self.handle.take().map(|h| h.join()) {
+            Some(Ok(Ok(b))) => b,
+            Some(Ok(Err(e))) => return Err(e),
+            Some(Err(_)) => {
+                return Err(SlamError::BackendStopped(
+                    "the back-end thread panicked".into(),
+                ))
+            }
+            None => return Err(SlamError::BackendStopped("no back-end".into())),
+        };
+        let t = Instant::now();
+        back.optimise()?;
+        let keyframe_poses = back.keyframe_poses();
+        let trajectory = optimise_frames(&self.frames, &keyframe_poses)?;
+        let final_optimise_ms = t.elapsed().as_secs_f64() * 1e3;
+        let odometry = self
+            .frames
+            .iter()
+            .filter_map(|f| {
+                f.frontworld_from_camera.map(|p| TimedPose {
+                    timestamp: f.timestamp,
+                    world_from_camera: p,
+                })
+            })
+            .collect();
+        let map = Map::from_backend(&back, self.session + 1);
+        let timings = back.timings.clone();
+        Ok(SlamResult {
+            frames: std::mem::take(&mut self.frames),
+            trajectory,
+            odometry,
+            keyframes: std::mem::take(&mut back.keyframes),
+            keyframe_poses,
+            loops: std::mem::take(&mut back.loops),
+            timings,
+            map,
+            final_optimise_ms,
+        })
+    }
+
+    /// Keyframes of a loaded map.
+    pub fn map_keyframes(&self) -> usize {
+        self.map_keyframes
+    }
+}
+
+impl Drop for Slam {
+    fn drop(&mut self) {
+        self.tx = None;
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+fn backend_loop(mut back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
+    while let Ok(msg) = rx.recv() {
+        match msg {
+            ToBackend::Keyframe(kf) => back.process(*kf)?,
+            ToBackend::Relocalise(frame, reply) => {
+                let answer = back.relocalise(&frame);
+                let failed = answer.is_err();
+                let _ = reply.send(answer);
+                if failed {
+                    return Err(SlamError::BackendStopped(
+                        "relocalisation failed (see the error returned for it)".into(),
+                    ));
+                }
+            }
+        }
+    }
+    Ok(back)
+}
+
+/// All frames with the keyframes fixed: one vertex per tracked frame, an edge to its
+/// keyframe (`keyframe_from_camera`) and one to the previous tracked frame of the same
+/// tracking run; sigmas grow with the distance in frames to the keyframe.
+fn optimise_frames(
+    frames: &[FrameRecord],
+    keyframe_poses: &[Se3],
+) -> Result<Vec<TimedPose>, SlamError> {
+    let mut g = PoseGraph3::new();
+    let kf_offset = frames.len() as i64;
+    for (k, p) in keyframe_poses.iter().enumerate() {
+        let idx = g.add_vertex(kf_offset + k as i64, *p)?;
+        g.fixed[idx] = true;
+    }
+    let mut prev: Option<(usize, Se3)> = None;
+    let mut since_kf = 0usize;
+    for f in frames {
+        let (Some(p), Some((kf, kf_from_cam))) = (f.frontworld_from_camera, f.keyframe) else {
+            prev = None;
+            continue;
+        };
+        let Some(world_from_kf) = keyframe_poses.get(kf) else {
+            return Err(SlamError::Internal(format!(
+                "frame {} refers to keyframe {kf} of {}",
+                f.index,
+                keyframe_poses.len()
+            )));
+        };
+        g.add_vertex(f.index as i64, *world_from_kf * kf_from_cam)?;
+        since_kf = if f.status == FrameStatus::NewKeyframe || f.status == FrameStatus::Relocalised {
+            0
+        } else {
+            since_kf + 1
+        };
+        let s = 0.002 * (1.0 + since_kf as f64).sqrt();
+        g.add_edge(
+            kf_offset + kf as i64,
+            f.index as i64,
+            kf_from_cam,
+            information_from(None, s, s),
+        )?;
+        if let Some((pi, p_prev)) = prev {
+            if f.status != FrameStatus::Relocalised {
+                g.add_edge(
+                    pi as i64,
+                    f.index as i64,
+                    p_prev.inverse() * p,
+                    information_from(None, 0.002, 0.002),
+                )?;
+            }
+        }
+        prev = Some((f.index, p));
+    }
+    if g.edges.is_empty() {
+        // Nothing to optimise (a single frame).
+    } else {
+        g.optimize(&SolverOptions {
+            max_iterations: 20,
+            ..Default::default()
+        })?;
+    }
+    Ok(frames
+        .iter()
+        .filter_map(|f| {
+            g.index_of(f.index as i64).map(|i| TimedPose {
+                timestamp: f.timestamp,
+                world_from_camera: g.poses[i],
+            })
+        })
+        .collect())
+}
