@@ -40,6 +40,10 @@ pub struct Args {
     /// Seed of a generated sequence.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Laps of a generated `loop` trajectory over the sequence (the same closed path again,
+    /// so that the second lap revisits every place of the first).
+    #[arg(long, default_value_t = 1.0)]
+    pub laps: f64,
     /// Session of a generated scene (0 = reference arrangement; others move objects).
     #[arg(long, default_value_t = 0)]
     pub session: u32,
@@ -106,6 +110,7 @@ impl Source {
         width: u32,
         seed: u64,
         session: u32,
+        laps: f64,
         backend: &ComputeBackend,
     ) -> Result<Source> {
         if let Some(spec) = synth {
@@ -132,7 +137,10 @@ impl Source {
                 seed: seed + u64::from(session) * 1000,
                 ..Default::default()
             };
-            let trajectory = Trajectory::new(kind, &scene, config.duration(), seed)?;
+            if !(laps.is_finite() && laps > 0.0) {
+                bail!("--laps must be > 0");
+            }
+            let trajectory = Trajectory::new(kind, &scene, config.duration() / laps, seed)?;
             let rb = match backend {
                 ComputeBackend::Cpu => RenderBackend::Cpu,
                 ComputeBackend::Gpu(g) => RenderBackend::Gpu(g.clone()),
@@ -212,6 +220,7 @@ pub fn run(a: Args) -> Result<()> {
         a.width,
         a.seed,
         a.session,
+        a.laps,
         &backend,
     )?;
     if source.len() == 0 {

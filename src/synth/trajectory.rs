@@ -592,9 +592,15 @@ impl Trajectory {
         }
     }
 
-    /// `world_from_camera` at time `t` seconds (clamped to `[0, duration]`).
+    /// `world_from_camera` at time `t` seconds (clamped to `[0, duration]`; a `loop` repeats its
+    /// lap after `duration`).
     pub fn pose_at(&self, t: f64) -> Se3 {
-        let t = t.clamp(0.0, self.duration);
+        // A closed loop goes on lap after lap past its duration (one lap); the others stop.
+        let t = if matches!(self.motion, Motion::Loop { .. }) {
+            t.max(0.0)
+        } else {
+            t.clamp(0.0, self.duration)
+        };
         match &self.motion {
             Motion::Handheld {
                 spline,

@@ -1,0 +1,150 @@
+//! The SLAM system end to end on generated sequences (CPU backend): tracking and keyframes,
+//! map files (round trip, truncated, foreign), relocalisation of a second session in a saved
+//! map of a changed scene.
+
+use std::sync::Arc;
+
+use rgbid::camera::PinholeCamera;
+use rgbid::eval::{evaluate, EvalOptions};
+use rgbid::geometry::Se3;
+use rgbid::gpu::ComputeBackend;
+use rgbid::io::trajectory::TimedPose;
+use rgbid::place::Vocabulary;
+use rgbid::slam::{FrameStatus, Map, MapError, Slam, SlamConfig, SlamError, SlamResult};
+use rgbid::synth::{
+    CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
+};
+
+fn camera(w: u32) -> PinholeCamera {
+    let h = w * 3 / 4;
+    let f = 525.0 * f64::from(w) / 640.0;
+    PinholeCamera::new(f, f, (f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0, w, h)
+}
+
+fn sequence(scene: Scene, kind: TrajectoryKind, frames: usize, seed: u64, cam: PinholeCamera) -> Sequence {
+    sequence_with_noise(scene, kind, frames, frames, seed, seed, cam)
+}
+
+/// `frames` frames at 30 fps of a trajectory lasting `trajectory_frames / 30` seconds.
+fn sequence_with_noise(scene: Scene, kind: TrajectoryKind, frames: usize, trajectory_frames: usize, seed: u64, noise_seed: u64, cam: PinholeCamera) -> Sequence {
+    let config = SequenceConfig {
+        frames,
+        seed: noise_seed,
+        ..Default::default()
+    };
+    let traj = Trajectory::new(kind, &scene, trajectory_frames as f64 / 30.0, seed).unwrap();
+    Sequence::new(Arc::new(scene), CameraModel::Pinhole(cam), traj, config, &RenderBackend::Cpu).unwrap()
+}
+
+fn run(seq: &mut Sequence, cam: PinholeCamera, config: SlamConfig, map: Option<Map>) -> (SlamResult, Vec<FrameStatus>) {
+    let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), map).unwrap();
+    let mut status = Vec::new();
+    for i in 0..seq.len() {
+        let f = seq.render_frame(i).unwrap();
+        let r = slam.process(&f.frame.to_rgbd_frame(f.timestamp)).unwrap();
+        status.push(r.status);
+    }
+    (slam.finish().unwrap(), status)
+}
+
+#[test]
+fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
+    let cam = camera(192);
+    let scene = Scene::preset("office", 3).unwrap();
+    let mut seq = sequence(scene, TrajectoryKind::Handheld, 90, 3, cam);
+    let gt = seq.ground_truth();
+    let (r, status) = run(&mut seq, cam, SlamConfig::default(), None);
+    assert!(status.iter().all(|s| *s != FrameStatus::Lost), "{status:?}");
+    assert_eq!(r.trajectory.len(), 90);
+    assert!(r.keyframes.len() >= 2, "{} keyframes", r.keyframes.len());
+    assert_eq!(r.timings.len(), r.keyframes.len());
+    let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
+    assert!(m.ate.translation.rmse < 0.03, "ATE {}", m.ate.translation.rmse);
+    // Keyframe fusion keeps most of the depth and raises the weights above 1.
+    let kf = &r.keyframes[0];
+    assert!(kf.weight.iter().filter(|&&w| w >= 2).count() > kf.weight.len() / 3);
+
+    // Map round trip.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("a.rgbmap");
+    r.map.save(&path).unwrap();
+    let back = Map::load(&path).unwrap();
+    assert_eq!(back.keyframes.len(), r.map.keyframes.len());
+    assert_eq!(back.keyframes[1].intensity, r.map.keyframes[1].intensity);
+    assert_eq!(back.keyframes[1].inverse_depth, r.map.keyframes[1].inverse_depth);
+    assert_eq!(back.features[1].descriptors, r.map.features[1].descriptors);
+    assert_eq!(back.mask_flags, r.map.mask_flags);
+    assert_eq!(back.edges.len(), r.map.edges.len());
+    let d = back.keyframes[1].world_from_keyframe.inverse() * r.map.keyframes[1].world_from_keyframe;
+    assert!(d.translation.length() < 1e-12);
+
+    // Truncated, foreign and future files are clear errors.
+    let bytes = std::fs::read(&path).unwrap();
+    let cut = dir.path().join("cut.rgbmap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    assert!(matches!(Map::load(&cut), Err(MapError::Corrupt { .. })));
+    let foreign = dir.path().join("f.rgbmap");
+    std::fs::write(&foreign, b"PK\x03\x04 not a map").unwrap();
+    assert!(matches!(Map::load(&foreign), Err(MapError::Foreign(_))));
+    let mut future = bytes.clone();
+    future[8] = 99;
+    let fut = dir.path().join("v.rgbmap");
+    std::fs::write(&fut, &future).unwrap();
+    let e = Map::load(&fut).unwrap_err();
+    assert!(matches!(e, MapError::Version { found: 99, .. }), "{e}");
+    assert!(e.to_string().contains("v.rgbmap"));
+}
+
+#[test]
+fn wrong_frame_size_is_an_error_not_a_panic() {
+    let cam = camera(160);
+    let mut slam = Slam::new(SlamConfig::default(), cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), None).unwrap();
+    let f = rgbid::image::test_pattern(64, 48, 1);
+    let e = slam.process(&f).unwrap_err();
+    assert!(matches!(e, SlamError::FrameSize { got_w: 64, .. }), "{e}");
+}
+
+/// Second session of a changed scene (objects moved) starts lost in the saved map of the
+/// first session and must relocalise; its poses are then in the map's frame.
+#[test]
+fn second_session_relocalises_in_the_saved_map() {
+    let cam = camera(192);
+    let scene = Scene::preset("office", 5).unwrap();
+    let session1 = scene.session(1);
+    // One lap takes 300 frames (10 s); session 0 maps the first 120 frames of it.
+    let mut s0 = sequence_with_noise(scene, TrajectoryKind::Loop, 120, 300, 5, 5, cam);
+    let gt0 = s0.ground_truth();
+    let (r0, _) = run(&mut s0, cam, SlamConfig::default(), None);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("office.rgbmap");
+    r0.map.save(&path).unwrap();
+    let map = Map::load(&path).unwrap();
+    let n_map = map.keyframes.len();
+
+    // Same path, other session (moved objects), other sensor noise; only the first 40 frames.
+    let mut s1 = sequence_with_noise(session1, TrajectoryKind::Loop, 40, 300, 5, 77, cam);
+    let gt1 = s1.ground_truth();
+    let mut slam = Slam::new(SlamConfig::default(), cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), Some(map)).unwrap();
+    let mut first_reloc = None;
+    for i in 0..s1.len() {
+        let f = s1.render_frame(i).unwrap();
+        let r = slam.process(&f.frame.to_rgbd_frame(f.timestamp)).unwrap();
+        if r.status == FrameStatus::Relocalised && first_reloc.is_none() {
+            first_reloc = Some(i);
+        }
+    }
+    let r1 = slam.finish().unwrap();
+    let i = first_reloc.expect("the second session never relocalised in the map");
+    assert!(i < 10, "relocalised only at frame {i}");
+    assert!(r1.keyframes.len() > n_map);
+    // Map frame = first camera of session 0: map_from_world = inv(gt0[0]).
+    let map_from_world = gt0[0].world_from_camera.inverse();
+    let est: Vec<TimedPose> = r1.trajectory.clone();
+    let mut worst: f64 = 0.0;
+    for e in &est {
+        let g = gt1.iter().min_by(|a, b| (a.timestamp - e.timestamp).abs().total_cmp(&(b.timestamp - e.timestamp).abs())).unwrap();
+        let want: Se3 = map_from_world * g.world_from_camera;
+        worst = worst.max((want.translation - e.world_from_camera.translation).length());
+    }
+    assert!(worst < 0.08, "worst position error in the map frame {worst} m");
+}
