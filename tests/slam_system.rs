@@ -148,3 +148,37 @@ fn second_session_relocalises_in_the_saved_map() {
     }
     assert!(worst < 0.08, "worst position error in the map frame {worst} m");
 }
+
+/// The sensor is covered for a few frames: those frames are reported lost (no pose), then
+/// the system relocalises against its own keyframes and goes on in the same map.
+#[test]
+fn lost_tracking_is_reported_and_relocalised() {
+    let cam = camera(192);
+    let scene = Scene::preset("office", 9).unwrap();
+    let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 60, 300, 9, 9, cam);
+    let gt = seq.ground_truth();
+    let mut slam = Slam::new(SlamConfig::default(), cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), None).unwrap();
+    let mut statuses = Vec::new();
+    for i in 0..seq.len() {
+        let f = seq.render_frame(i).unwrap();
+        let mut frame = f.frame.to_rgbd_frame(f.timestamp);
+        if (30..34).contains(&i) {
+            // Covered sensor: black image, no depth.
+            frame.intensity.data.iter_mut().for_each(|v| *v = 0.0);
+            frame.inverse_depth.data.iter_mut().for_each(|v| *v = 0.0);
+        }
+        let r = slam.process(&frame).unwrap();
+        if (30..34).contains(&i) {
+            assert!(r.world_from_camera.is_none(), "frame {i} kept a pose while covered");
+        }
+        statuses.push(r.status);
+    }
+    assert!(statuses[30..34].iter().all(|s| *s == FrameStatus::Lost), "{statuses:?}");
+    let back = statuses[34..].iter().position(|s| *s == FrameStatus::Relocalised);
+    assert!(back.is_some_and(|k| k < 5), "no relocalisation soon after: {statuses:?}");
+    let r = slam.finish().unwrap();
+    assert_eq!(r.trajectory.len(), 60 - 4 - back.unwrap());
+    // Same map frame before and after the loss.
+    let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
+    assert!(m.ate.translation.rmse < 0.03, "ATE {}", m.ate.translation.rmse);
+}

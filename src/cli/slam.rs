@@ -140,6 +140,11 @@ impl Source {
             if !(laps.is_finite() && laps > 0.0) {
                 bail!("--laps must be > 0");
             }
+            let laps = if kind == TrajectoryKind::Loop {
+                laps
+            } else {
+                1.0
+            };
             let trajectory = Trajectory::new(kind, &scene, config.duration() / laps, seed)?;
             let rb = match backend {
                 ComputeBackend::Cpu => RenderBackend::Cpu,
