@@ -26,5 +26,6 @@ pub mod image;
 pub mod io;
 pub mod odometry;
 pub mod place;
+pub mod scale;
 pub mod segment;
 pub mod synth;
