@@ -4,8 +4,10 @@
 //! seconds (once `t_DFT` seconds are available) the last `t_DFT` seconds of the vertical signal
 //! (projection of the camera position on the up axis) are analysed ([`StepAnalysis`]). While
 //! walking, the unscaled horizontal speed `V_SLAM` is measured over whole strides (two steps,
-//! `2 / f` seconds: chords between positions one stride apart, which cancels the lateral sway
-//! and the vertical bob), the walking speed is `V_walk = alpha f^beta H`, and the particle
+//! `2 / f` seconds) as the horizontal arc length of the positions sampled every <= 0.1 s (the
+//! vertical bob is projected out; the lateral sway adds well under 1 %); a window whose stride
+//! speeds differ by more than `max_speed_ratio` (a start, stop or pace change) does not update
+//! the filter. The walking speed is `V_walk = alpha f^beta H`, and the particle
 //! filter updates the scale. Each section (the `t_upd` seconds ending at an update; the first
 //! one is the first `t_DFT` seconds) gets the filter's estimate `s_k` at its end; sections
 //! before the first estimate get the first estimate (offline; a live system would wait), and
@@ -135,6 +137,9 @@ pub struct DynScaleConfig {
     pub filter: ParticleConfig,
     /// Up axis in the trajectory's world frame.
     pub up: UpAxis,
+    /// Largest ratio between the fastest and slowest stride speed in a window for it to count
+    /// as steady walking (pace changes, starts and stops fail it and do not update the filter).
+    pub max_speed_ratio: f64,
     /// Seed of the particle filter.
     pub seed: u64,
 }
@@ -151,6 +156,7 @@ impl DynScaleConfig {
             model: WalkingModel::grieve(height),
             filter: ParticleConfig::default(),
             up: UpAxis::Fixed([0.0, -1.0, 0.0]),
+            max_speed_ratio: 1.25,
             seed: 0x5ca1e,
         }
     }
@@ -167,6 +173,9 @@ impl DynScaleConfig {
             self.update.is_finite() && self.update > 0.0 && self.update <= self.window,
             || format!("{} s must be in (0, window]", self.update),
         )?;
+        check_param("max_speed_ratio", self.max_speed_ratio >= 1.0, || {
+            format!("{} must be >= 1", self.max_speed_ratio)
+        })?;
         self.spectrum.validate()?;
         self.model.validate()?;
         self.filter.validate()
@@ -186,6 +195,9 @@ pub struct Section {
     pub analysis: StepAnalysis,
     /// Whether the window was detected as walking.
     pub walking: bool,
+    /// Whether the per-stride speeds in the window agree within `max_speed_ratio` (only steady
+    /// walking windows update the filter).
+    pub steady: bool,
     /// Unscaled horizontal speed, SLAM units/s (0 when not walking).
     pub v_slam: f64,
     /// Walking speed `alpha f^beta H`, m/s (0 when not walking).
@@ -338,23 +350,35 @@ impl DynScale {
             let analysis = StepAnalysis::analyze(&hp[s..=e], c.fps, &c.spectrum)?;
             let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
             let (mut v_slam, mut v_walk, mut consistent, mut log10_std) = (0.0, 0.0, false, f64::NAN);
+            let mut steady = false;
             if walking {
                 let f = analysis.frequency;
                 let stride = 2.0 / f;
                 let k = ((c.window / stride).floor() as usize).max(1);
-                let mut d = 0.0;
+                let sub = ((stride / 0.1).ceil() as usize).max(1);
+                let mut stride_speeds = Vec::with_capacity(k);
                 for m in 0..k {
-                    d += (horizontal(t_end - m as f64 * stride) - horizontal(t_end - (m + 1) as f64 * stride)).length();
+                    let mut d = 0.0;
+                    let t_hi = t_end - m as f64 * stride;
+                    for q in 0..sub {
+                        let ta = t_hi - stride * (q + 1) as f64 / sub as f64;
+                        let tb = t_hi - stride * q as f64 / sub as f64;
+                        d += (horizontal(tb) - horizontal(ta)).length();
+                    }
+                    stride_speeds.push(d / stride);
                 }
-                v_slam = d / (k as f64 * stride);
+                v_slam = stride_speeds.iter().sum::<f64>() / k as f64;
+                let vmin = stride_speeds.iter().cloned().fold(f64::INFINITY, f64::min);
+                let vmax = stride_speeds.iter().cloned().fold(0.0, f64::max);
+                steady = vmin > 0.0 && vmax <= c.max_speed_ratio * vmin;
                 v_walk = c.model.speed(f);
-                if v_slam > 0.0 && v_walk > 0.0 {
+                if v_slam > 0.0 && v_walk > 0.0 && steady {
                     let dt = last_update.map_or(0.0, |t| t_end - t);
                     let u = filter.update(v_slam, v_walk, dt)?;
                     last_update = Some(t_end);
                     consistent = u.consistent;
                     log10_std = u.log10_std;
-                } else {
+                } else if !(v_slam > 0.0) {
                     walking = false;
                     v_slam = 0.0;
                     v_walk = 0.0;
@@ -367,6 +391,7 @@ impl DynScale {
                 window_start: t0 + s as f64 / c.fps,
                 analysis,
                 walking,
+                steady,
                 v_slam,
                 v_walk,
                 consistent,
@@ -389,6 +414,7 @@ impl DynScale {
                     t_start: t_prev,
                     t_end: t_last,
                     walking: false,
+                    steady: false,
                     consistent: false,
                     v_slam: 0.0,
                     v_walk: 0.0,
