@@ -44,6 +44,8 @@ enum Command {
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
+    /// True metric scale of a walking person's monocular trajectory (step frequency).
+    Scale(cli::scale::Args),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -75,6 +77,7 @@ fn run(command: Command) -> Result<()> {
         Command::Vocab(c) => cli::vocab::run(c),
         Command::Segment(a) => cli::segment::run(a),
         Command::Graph(c) => cli::graph::run(c),
+        Command::Scale(a) => cli::scale::run(a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {
