@@ -122,7 +122,8 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 fn run_calibrate(file: &Path, height: f64) -> Result<()> {
-    let text = std::fs::read_to_string(file).with_context(|| format!("reading {}", file.display()))?;
+    let text =
+        std::fs::read_to_string(file).with_context(|| format!("reading {}", file.display()))?;
     let mut samples = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let s = line.trim();
@@ -136,23 +137,55 @@ fn run_calibrate(file: &Path, height: f64) -> Result<()> {
             .collect::<Result<_, _>>()
             .with_context(|| format!("{}:{}: expected numbers", file.display(), i + 1))?;
         if v.len() != 3 {
-            bail!("{}:{}: expected step_period distance time, found {} values", file.display(), i + 1, v.len());
+            bail!(
+                "{}:{}: expected step_period distance time, found {} values",
+                file.display(),
+                i + 1,
+                v.len()
+            );
         }
-        samples.push(CalibrationSample { step_period: v[0], distance: v[1], time: v[2] });
+        samples.push(CalibrationSample {
+            step_period: v[0],
+            distance: v[1],
+            time: v[2],
+        });
     }
     let m = calibrate(height, &samples)?;
-    println!("alpha {:.4}  beta {:.4}  (height {:.2} m, {} walks)", m.alpha, m.beta, height, samples.len());
-    println!("{:>10} {:>10} {:>12} {:>12} {:>8}", "f (Hz)", "V (m/s)", "model (m/s)", "Grieve (m/s)", "err %");
+    println!(
+        "alpha {:.4}  beta {:.4}  (height {:.2} m, {} walks)",
+        m.alpha,
+        m.beta,
+        height,
+        samples.len()
+    );
+    println!(
+        "{:>10} {:>10} {:>12} {:>12} {:>8}",
+        "f (Hz)", "V (m/s)", "model (m/s)", "Grieve (m/s)", "err %"
+    );
     for s in &samples {
         let f = 1.0 / s.step_period;
         let v = s.distance / s.time;
         let g = GRIEVE_ALPHA * f.powf(GRIEVE_BETA) * height;
-        println!("{:10.3} {:10.3} {:12.3} {:12.3} {:8.2}", f, v, m.speed(f), g, 100.0 * (m.speed(f) / v - 1.0));
+        println!(
+            "{:10.3} {:10.3} {:12.3} {:12.3} {:8.2}",
+            f,
+            v,
+            m.speed(f),
+            g,
+            100.0 * (m.speed(f) / v - 1.0)
+        );
     }
     Ok(())
 }
 
-fn section_plot(path: &Path, r: &DynScaleResult, truth: Option<(&[(f64, f64)], &[(f64, f64)])>) -> Result<()> {
+/// An `(x, y)` plot point.
+type Point = (f64, f64);
+
+fn section_plot(
+    path: &Path,
+    r: &DynScaleResult,
+    truth: Option<(&[Point], &[Point])>,
+) -> Result<()> {
     let mid = |s: &rgbid::scale::Section| 0.5 * (s.t_start + s.t_end);
     let blue = [30, 80, 200];
     let red = [200, 40, 40];
@@ -163,13 +196,39 @@ fn section_plot(path: &Path, r: &DynScaleResult, truth: Option<(&[(f64, f64)], &
         .collect();
     let scale: Vec<(f64, f64)> = r.sections.iter().map(|s| (mid(s), s.scale)).collect();
     let speed: Vec<(f64, f64)> = r.sections.iter().map(|s| (mid(s), s.speed())).collect();
-    let mut p1 = vec![Series { points: freq, color: blue, dots: true }];
-    let mut p2 = vec![Series { points: scale, color: blue, dots: false }];
+    let mut p1 = vec![Series {
+        points: freq,
+        color: blue,
+        dots: true,
+    }];
+    let mut p2 = vec![Series {
+        points: scale,
+        color: blue,
+        dots: false,
+    }];
     if let Some((f, s)) = truth {
-        p1.insert(0, Series { points: f.to_vec(), color: red, dots: false });
-        p2.insert(0, Series { points: s.to_vec(), color: red, dots: false });
+        p1.insert(
+            0,
+            Series {
+                points: f.to_vec(),
+                color: red,
+                dots: false,
+            },
+        );
+        p2.insert(
+            0,
+            Series {
+                points: s.to_vec(),
+                color: red,
+                dots: false,
+            },
+        );
     }
-    let p3 = vec![Series { points: speed, color: blue, dots: false }];
+    let p3 = vec![Series {
+        points: speed,
+        color: blue,
+        dots: false,
+    }];
     plot_panels(path, &[p1, p2, p3], 1200, 900)?;
     Ok(())
 }
@@ -221,7 +280,11 @@ fn run_scale(a: &RunArgs) -> Result<()> {
         );
     }
     let walking = r.sections.iter().filter(|s| s.walking).count();
-    println!("walking in {walking}/{} sections; final scale {:.4} m/unit", r.sections.len(), r.sections[r.sections.len() - 1].scale);
+    println!(
+        "walking in {walking}/{} sections; final scale {:.4} m/unit",
+        r.sections.len(),
+        r.sections[r.sections.len() - 1].scale
+    );
     if let Some(gt_path) = &a.gt {
         let gt = read_tum(gt_path)?;
         for (name, est) in [("input", &traj), ("scaled", &r.scaled)] {
@@ -246,7 +309,10 @@ fn run_scale(a: &RunArgs) -> Result<()> {
     }
     if let Some(p) = &a.plot {
         section_plot(p, &r, None)?;
-        println!("wrote {} (panels: step frequency Hz, scale m/unit, speed m/s vs time)", p.display());
+        println!(
+            "wrote {} (panels: step frequency Hz, scale m/unit, speed m/s vs time)",
+            p.display()
+        );
     }
     Ok(())
 }
@@ -269,10 +335,12 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     cfg.drift.drift = a.drift;
     let alpha_factors = [0.8, 0.9, 1.1, 1.2];
     let beta_deltas = [-0.2, -0.1, 0.1, 0.2];
-    let total = seqs.len() as u64 * a.seeds + 2 * (alpha_factors.len() + beta_deltas.len()) as u64 * a.seeds;
+    let total = seqs.len() as u64 * a.seeds
+        + 2 * (alpha_factors.len() + beta_deltas.len()) as u64 * a.seeds;
     let bar = ProgressBar::new(total);
     bar.set_style(
-        ProgressStyle::with_template("{msg} {bar:30} {pos}/{len}").unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template("{msg} {bar:30} {pos}/{len}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     if let Some(d) = &a.out_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
@@ -281,7 +349,8 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     for spec in &seqs {
         for seed in 0..a.seeds {
             bar.set_message(format!("{} seed {seed}", spec.name));
-            let r = run_sequence(spec, seed, &cfg).with_context(|| format!("{} seed {seed}", spec.name))?;
+            let r = run_sequence(spec, seed, &cfg)
+                .with_context(|| format!("{} seed {seed}", spec.name))?;
             if let (Some(d), 0) = (&a.out_dir, seed) {
                 let true_scale: Vec<(f64, f64)> = r
                     .run
@@ -291,7 +360,11 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
                     .step_by(10)
                     .map(|(p, s)| (p.timestamp, *s))
                     .collect();
-                section_plot(&d.join(format!("{}.png", spec.name)), &r.dynscale, Some((&r.true_frequency, &true_scale)))?;
+                section_plot(
+                    &d.join(format!("{}.png", spec.name)),
+                    &r.dynscale,
+                    Some((&r.true_frequency, &true_scale)),
+                )?;
             }
             reports.push(r);
             bar.inc(1);
@@ -302,7 +375,11 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     let variants: Vec<(String, f64, f64)> = alpha_factors
         .iter()
         .map(|f| (format!("alpha x{f:.1}"), *f, 0.0))
-        .chain(beta_deltas.iter().map(|d| (format!("beta {d:+.1}"), 1.0, *d)))
+        .chain(
+            beta_deltas
+                .iter()
+                .map(|d| (format!("beta {d:+.1}"), 1.0, *d)),
+        )
         .collect();
     for (label, fa, db) in &variants {
         let (mut ratios, mut rel) = (Vec::new(), Vec::new());
@@ -315,8 +392,14 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
                 c.dynscale.model.alpha = spec.params.alpha * fa;
                 c.dynscale.model.beta = spec.params.beta + db;
                 let r = run_sequence(spec, seed, &c)?;
-                for s in r.dynscale.sections.iter().filter(|s| s.walking && s.consistent) {
-                    let i = (((s.t_end - r.run.est[0].timestamp) * c.fps).round() as usize).min(r.run.true_scale.len() - 1);
+                for s in r
+                    .dynscale
+                    .sections
+                    .iter()
+                    .filter(|s| s.walking && s.consistent)
+                {
+                    let i = (((s.t_end - r.run.est[0].timestamp) * c.fps).round() as usize)
+                        .min(r.run.true_scale.len() - 1);
                     ratios.push(s.scale / r.run.true_scale[i]);
                 }
                 rel.push(r.metric[2].relative);
@@ -328,33 +411,56 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     bar.finish_and_clear();
 
     println!("Walking sequences: {} s each, {} seeds, 30 fps, emulated monocular drift (ln-scale random walk {:.3}/sqrt(s), unknown global scale in [0.2, 5] m/unit), keyframes every 3 frames", a.duration, a.seeds, a.drift);
-    println!("\nPosition error by normalised arc length, rigid alignment (metric), mean over seeds");
-    println!("{:<8} {:<20} {:>10} {:>10} {:>10} {:>14}", "seq", "method", "mean (m)", "max (m)", "rel (%)", "shape rel (%)");
+    println!(
+        "\nPosition error by normalised arc length, rigid alignment (metric), mean over seeds;"
+    );
+    println!(
+        "shape rel: after a similarity alignment; len ratio: estimated / true path length (median)"
+    );
+    println!(
+        "{:<8} {:<20} {:>10} {:>10} {:>10} {:>14} {:>10}",
+        "seq", "method", "mean (m)", "max (m)", "rel (%)", "shape rel (%)", "len ratio"
+    );
     for spec in &seqs {
         let rs: Vec<&RunReport> = reports.iter().filter(|r| r.sequence == spec.name).collect();
         let n = rs.len().max(1) as f64;
         for (k, m) in METHODS.iter().enumerate() {
             let avg = |f: &dyn Fn(&RunReport) -> f64| rs.iter().map(|r| f(r)).sum::<f64>() / n;
             println!(
-                "{:<8} {:<20} {:10.3} {:10.3} {:10.2} {:14.2}",
+                "{:<8} {:<20} {:10.3} {:10.3} {:10.2} {:14.2} {:10.3}",
                 spec.name,
                 m,
                 avg(&|r| r.metric[k].mean),
                 avg(&|r| r.metric[k].max),
                 100.0 * avg(&|r| r.metric[k].relative),
-                100.0 * avg(&|r| r.shape[k].relative)
+                100.0 * avg(&|r| r.shape[k].relative),
+                median(
+                    &rs.iter()
+                        .map(|r| r.metric[k].est_length / r.metric[k].gt_length)
+                        .collect::<Vec<_>>()
+                )
             );
         }
         let loops: usize = rs.iter().map(|r| r.loops).sum();
         let len = rs.iter().map(|r| r.metric[0].gt_length).sum::<f64>() / n;
-        println!("{:<8} ({} loop closures in all, path {:.0} m on average)", "", loops, len);
+        println!(
+            "{:<8} ({} loop closures in all, path {:.0} m on average)",
+            "", loops, len
+        );
     }
     println!("\nStep frequency error in steady-walking windows (Hz)");
     for spec in &seqs {
-        let v: Vec<f64> = reports.iter().filter(|r| r.sequence == spec.name).flat_map(|r| r.frequency_errors.clone()).collect();
+        let v: Vec<f64> = reports
+            .iter()
+            .filter(|r| r.sequence == spec.name)
+            .flat_map(|r| r.frequency_errors.clone())
+            .collect();
         println!("{}", stats_line(&spec.name, &v));
     }
-    let all: Vec<f64> = reports.iter().flat_map(|r| r.frequency_errors.clone()).collect();
+    let all: Vec<f64> = reports
+        .iter()
+        .flat_map(|r| r.frequency_errors.clone())
+        .collect();
     println!("{}", stats_line("all", &all));
     println!("\nStop detection (windows >= 75 % standing detected as not walking; fully walking windows called standing)");
     for spec in &seqs {
@@ -366,12 +472,25 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
             w.0 += r.walk_windows.0;
             w.1 += r.walk_windows.1;
         }
-        println!("{:<8} stops detected {:3}/{:<3}  false stops {:3}/{:<3}", spec.name, s.1, s.0, w.1, w.0);
+        println!(
+            "{:<8} stops detected {:3}/{:<3}  false stops {:3}/{:<3}",
+            spec.name, s.1, s.0, w.1, w.0
+        );
     }
     println!("\nScale error per updated walking section |s/s_true - 1| (%)");
     for spec in &seqs {
-        let v: Vec<f64> = reports.iter().filter(|r| r.sequence == spec.name).flat_map(|r| r.scale_errors.clone()).collect();
-        println!("{:<8} n {:4}  median {:6.2}  p90 {:6.2}", spec.name, v.len(), 100.0 * median(&v), 100.0 * percentile(&v, 0.9));
+        let v: Vec<f64> = reports
+            .iter()
+            .filter(|r| r.sequence == spec.name)
+            .flat_map(|r| r.scale_errors.clone())
+            .collect();
+        println!(
+            "{:<8} n {:4}  median {:6.2}  p90 {:6.2}",
+            spec.name,
+            v.len(),
+            100.0 * median(&v),
+            100.0 * percentile(&v, 0.9)
+        );
     }
     println!("\nSensitivity to walking-model errors (head + chest): s/s_true per section, dynScale relative error");
     let expected = |fa: f64, db: f64| fa * 1.6f64.powf(db);

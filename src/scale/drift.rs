@@ -80,8 +80,15 @@ pub fn emulate_monocular(gt: &[TimedPose], model: &DriftModel) -> EmulatedRun {
             let dt = (g.timestamp - prev.timestamp).max(0.0);
             ln_s += model.drift * dt.sqrt() * standard_normal(&mut rng);
         }
-        est.push(TimedPose { timestamp: g.timestamp, world_from_camera: cur });
+        est.push(TimedPose {
+            timestamp: g.timestamp,
+            world_from_camera: cur,
+        });
         true_scale.push(ln_s.exp());
     }
-    EmulatedRun { gt: gt.to_vec(), est, true_scale }
+    EmulatedRun {
+        gt: gt.to_vec(),
+        est,
+        true_scale,
+    }
 }

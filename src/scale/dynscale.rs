@@ -89,7 +89,9 @@ impl UpAxis {
             UpAxis::Fixed(v) => {
                 let v = DVec3::from_array(v);
                 if !(v.length() > 1e-9) || !v.is_finite() {
-                    return Err(ScaleError::UpAxis(format!("fixed axis {v:?} has no direction")));
+                    return Err(ScaleError::UpAxis(format!(
+                        "fixed axis {v:?} has no direction"
+                    )));
                 }
                 Ok(v.normalize())
             }
@@ -162,12 +164,16 @@ impl DynScaleConfig {
     }
     /// Checks every setting.
     pub fn validate(&self) -> Result<(), ScaleError> {
-        check_param("fps", self.fps.is_finite() && self.fps > 2.0 * self.spectrum.band.1, || {
-            format!("{} must exceed twice the band's top frequency", self.fps)
-        })?;
-        check_param("window", self.window.is_finite() && self.window >= 1.0, || {
-            format!("{} s must be >= 1 s", self.window)
-        })?;
+        check_param(
+            "fps",
+            self.fps.is_finite() && self.fps > 2.0 * self.spectrum.band.1,
+            || format!("{} must exceed twice the band's top frequency", self.fps),
+        )?;
+        check_param(
+            "window",
+            self.window.is_finite() && self.window >= 1.0,
+            || format!("{} s must be >= 1 s", self.window),
+        )?;
         check_param(
             "update",
             self.update.is_finite() && self.update > 0.0 && self.update <= self.window,
@@ -274,13 +280,19 @@ pub fn interpolate_position(traj: &[TimedPose], t: f64) -> DVec3 {
     }
     let (a, b) = (&traj[k - 1], &traj[k]);
     let u = ((t - a.timestamp) / (b.timestamp - a.timestamp)).clamp(0.0, 1.0);
-    a.world_from_camera.translation.lerp(b.world_from_camera.translation, u)
+    a.world_from_camera
+        .translation
+        .lerp(b.world_from_camera.translation, u)
 }
 
 /// Checks that a trajectory is non-empty, finite and strictly increasing in time.
 pub fn check_trajectory(traj: &[TimedPose]) -> Result<(), ScaleError> {
     if traj.len() < 2 {
-        return Err(ScaleError::TooShort { have: traj.len(), seconds: 0.0, need: "2 poses at least".into() });
+        return Err(ScaleError::TooShort {
+            have: traj.len(),
+            seconds: 0.0,
+            need: "2 poses at least".into(),
+        });
     }
     for (i, p) in traj.iter().enumerate() {
         if !p.timestamp.is_finite() || !p.world_from_camera.is_finite() {
@@ -323,7 +335,9 @@ impl DynScale {
             });
         }
         let n = (span * c.fps).floor() as usize + 1;
-        let grid: Vec<DVec3> = (0..n).map(|k| interpolate_position(traj, t0 + k as f64 / c.fps)).collect();
+        let grid: Vec<DVec3> = (0..n)
+            .map(|k| interpolate_position(traj, t0 + k as f64 / c.fps))
+            .collect();
         let up = c.up.resolve(&grid)?;
         let vertical: Vec<f64> = grid.iter().map(|p| p.dot(up)).collect();
         let hp = HighPass::filter_signal(c.spectrum.highpass_hz, c.fps, &vertical)?;
@@ -349,7 +363,8 @@ impl DynScale {
             let s = (e + 1).saturating_sub(nw);
             let analysis = StepAnalysis::analyze(&hp[s..=e], c.fps, &c.spectrum)?;
             let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
-            let (mut v_slam, mut v_walk, mut consistent, mut log10_std) = (0.0, 0.0, false, f64::NAN);
+            let (mut v_slam, mut v_walk, mut consistent, mut log10_std) =
+                (0.0, 0.0, false, f64::NAN);
             let mut steady = false;
             if walking {
                 let f = analysis.frequency;
@@ -405,7 +420,12 @@ impl DynScale {
             j += 1;
         }
         let windows = sections.len();
-        let first = scales.iter().flatten().next().copied().ok_or(ScaleError::NoWalking { windows })?;
+        let first = scales
+            .iter()
+            .flatten()
+            .next()
+            .copied()
+            .ok_or(ScaleError::NoWalking { windows })?;
         // The tail after the last update keeps the last scale.
         let t_last = t0 + span;
         if t_last > t_prev + 1e-9 {
@@ -441,7 +461,11 @@ impl DynScale {
             sec.origin_scaled = o_scaled.to_array();
             prev_scale = current;
         }
-        let mut result = DynScaleResult { sections, up: up.to_array(), scaled: Vec::new() };
+        let mut result = DynScaleResult {
+            sections,
+            up: up.to_array(),
+            scaled: Vec::new(),
+        };
         result.scaled = traj
             .iter()
             .map(|p| TimedPose {

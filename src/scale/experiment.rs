@@ -6,7 +6,8 @@
 //! log-uniformly in [0.2, 5] metres per unit, log-scale random walk); then four variants are
 //! evaluated on keyframes (every `keyframe_stride`-th frame) by normalised arc length:
 //! `unscaled` (the estimate), `optimSim3` (loop closure only), `dynScale` (Algorithm 1) and
-//! `dynScale+optimSim3` (loop closure on the rescaled estimate). Also measured: step
+//! `dynScale+optimSim3` (loop closure on the rescaled estimate, keeping its metric scale by
+//! weak per-second scale priors). Also measured: step
 //! frequency error in windows of steady walking, stop detection, and the scale error of each
 //! walking section against the true local scale (geometric mean over its window).
 
@@ -34,7 +35,13 @@ pub struct SequenceSpec {
 }
 
 fn pace(schedule: &[(f64, f64)]) -> Vec<PaceSegment> {
-    schedule.iter().map(|&(duration, frequency)| PaceSegment { duration, frequency }).collect()
+    schedule
+        .iter()
+        .map(|&(duration, frequency)| PaceSegment {
+            duration,
+            frequency,
+        })
+        .collect()
 }
 
 /// The standard set: `head` and `chest` (paces 1.6, 2.0, stop, 1.3, 1.8 steps/s, 8 s each),
@@ -47,11 +54,25 @@ pub fn standard_sequences(duration: f64) -> Vec<SequenceSpec> {
         ..WalkingParams::default()
     };
     vec![
-        SequenceSpec { name: "head".into(), params: base.clone(), duration },
-        SequenceSpec { name: "chest".into(), params: WalkingParams { mount: Mount::Chest, ..base.clone() }, duration },
+        SequenceSpec {
+            name: "head".into(),
+            params: base.clone(),
+            duration,
+        },
+        SequenceSpec {
+            name: "chest".into(),
+            params: WalkingParams {
+                mount: Mount::Chest,
+                ..base.clone()
+            },
+            duration,
+        },
         SequenceSpec {
             name: "stops".into(),
-            params: WalkingParams { schedule: pace(&[(8.0, 1.7), (6.0, 0.0)]), ..base.clone() },
+            params: WalkingParams {
+                schedule: pace(&[(8.0, 1.7), (6.0, 0.0)]),
+                ..base.clone()
+            },
             duration,
         },
         SequenceSpec {
@@ -138,14 +159,25 @@ pub struct RunReport {
 }
 
 /// Runs one sequence with one seed.
-pub fn run_sequence(spec: &SequenceSpec, seed: u64, cfg: &ExperimentConfig) -> Result<RunReport, ScaleError> {
-    let scene = Scene::preset(&cfg.scene, seed).map_err(|e| ScaleError::InvalidParameter { name: "scene", why: e.to_string() })?;
+pub fn run_sequence(
+    spec: &SequenceSpec,
+    seed: u64,
+    cfg: &ExperimentConfig,
+) -> Result<RunReport, ScaleError> {
+    let scene = Scene::preset(&cfg.scene, seed).map_err(|e| ScaleError::InvalidParameter {
+        name: "scene",
+        why: e.to_string(),
+    })?;
     let traj = Trajectory::walking(&scene, spec.params.clone(), spec.duration, seed);
     let frames = (spec.duration * cfg.fps).floor() as usize;
     let gt = traj.sample(frames, cfg.fps, 0.0);
     let mut rng = Pcg64::seed_from_u64(seed ^ 0x51ca);
     let initial_scale = 10f64.powf(rng.random_range(-0.7..0.7));
-    let drift = DriftModel { initial_scale, seed, ..cfg.drift.clone() };
+    let drift = DriftModel {
+        initial_scale,
+        seed,
+        ..cfg.drift.clone()
+    };
     let run = emulate_monocular(&gt, &drift);
     let mut dcfg = cfg.dynscale.clone();
     dcfg.fps = cfg.fps;
@@ -156,7 +188,9 @@ pub fn run_sequence(spec: &SequenceSpec, seed: u64, cfg: &ExperimentConfig) -> R
     let dyn_result = DynScale::new(dcfg.clone())?.run(&run.est)?;
 
     // Keyframes of every variant.
-    let kf: Vec<usize> = (0..run.est.len()).step_by(cfg.keyframe_stride.max(1)).collect();
+    let kf: Vec<usize> = (0..run.est.len())
+        .step_by(cfg.keyframe_stride.max(1))
+        .collect();
     let pick = |v: &[TimedPose]| -> Vec<TimedPose> { kf.iter().map(|&k| v[k]).collect() };
     let gt_kf = pick(&run.gt);
     let est_kf = pick(&run.est);
@@ -167,8 +201,15 @@ pub fn run_sequence(spec: &SequenceSpec, seed: u64, cfg: &ExperimentConfig) -> R
         .map(|&k| run.true_scale[k] / dyn_result.scale_at(run.est[k].timestamp))
         .collect();
     let loops = detect_loops_from_ground_truth(&gt_kf, &cfg.loops);
-    let sim3 = optim_sim3(&est_kf, &gt_kf, &scale_kf, &loops, &cfg.loops)?;
-    let dyn_sim3 = optim_sim3(&dyn_kf, &gt_kf, &dyn_scale_kf, &loops, &cfg.loops)?;
+    let sim3 = optim_sim3(&est_kf, &gt_kf, &scale_kf, &loops, &cfg.loops, None)?;
+    let dyn_sim3 = optim_sim3(
+        &dyn_kf,
+        &gt_kf,
+        &dyn_scale_kf,
+        &loops,
+        &cfg.loops,
+        Some(0.05),
+    )?;
     let variants = [&est_kf, &sim3, &dyn_kf, &dyn_sim3];
     let mut metric = Vec::new();
     let mut shape = Vec::new();
@@ -179,13 +220,16 @@ pub fn run_sequence(spec: &SequenceSpec, seed: u64, cfg: &ExperimentConfig) -> R
 
     // Frequency, stops and scale per section (windows of full length only).
     let p = &spec.params;
-    let (mut freq_err, mut stops, mut walks, mut scale_err) = (Vec::new(), (0, 0), (0, 0), Vec::new());
+    let (mut freq_err, mut stops, mut walks, mut scale_err) =
+        (Vec::new(), (0, 0), (0, 0), Vec::new());
     for s in &dyn_result.sections {
         if s.t_end - s.window_start < dcfg.window * 0.95 {
             continue;
         }
         let n = ((s.t_end - s.window_start) * cfg.fps).round() as usize + 1;
-        let f: Vec<f64> = (0..n).map(|i| p.frequency_at(s.window_start + i as f64 / cfg.fps)).collect();
+        let f: Vec<f64> = (0..n)
+            .map(|i| p.frequency_at(s.window_start + i as f64 / cfg.fps))
+            .collect();
         let fmin = f.iter().cloned().fold(f64::INFINITY, f64::min);
         let fmax = f.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         let standing = f.iter().filter(|&&x| x <= 0.0).count() as f64 / n as f64;
@@ -203,8 +247,10 @@ pub fn run_sequence(spec: &SequenceSpec, seed: u64, cfg: &ExperimentConfig) -> R
         }
         if s.walking && s.consistent {
             let i0 = ((s.window_start - run.est[0].timestamp) * cfg.fps).round() as usize;
-            let i1 = (((s.t_end - run.est[0].timestamp) * cfg.fps).round() as usize).min(run.true_scale.len() - 1);
-            let ln_mean = run.true_scale[i0..=i1].iter().map(|v| v.ln()).sum::<f64>() / (i1 + 1 - i0) as f64;
+            let i1 = (((s.t_end - run.est[0].timestamp) * cfg.fps).round() as usize)
+                .min(run.true_scale.len() - 1);
+            let ln_mean =
+                run.true_scale[i0..=i1].iter().map(|v| v.ln()).sum::<f64>() / (i1 + 1 - i0) as f64;
             scale_err.push((s.scale / ln_mean.exp() - 1.0).abs());
         }
     }

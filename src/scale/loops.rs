@@ -99,27 +99,57 @@ fn diag(v: &[f64]) -> Vec<f64> {
 
 /// `optimSim3`: corrects `est` (keyframes, estimate units) with the loop closures `loops`
 /// (indices into `est`), measured from `gt` with the estimate's true local scale `local_scale`
-/// (metres per estimate unit, one per keyframe). Returns the corrected keyframes (in the units
-/// of keyframe 0, which stays fixed) and the number of closures used.
+/// (metres per estimate unit, one per keyframe). Returns the corrected keyframes.
+///
+/// Without `metric_prior`, keyframe 0 is fixed (pose and scale: the result is in its units, as
+/// plain monocular `optimSim3`). With `Some(sigma)` (for an already metric, dynScale'd input)
+/// a fixed anchor vertex holds the metric frame: every keyframe about one second apart gets a
+/// prior `ln s_k = 0 +- sigma` (keep dynScale's scale), the rotation and translation parts of
+/// those priors being negligible (1e-8) except for keyframe 0, which they pin in place.
 pub fn optim_sim3(
     est: &[TimedPose],
     gt: &[TimedPose],
     local_scale: &[f64],
     loops: &[(usize, usize)],
     cfg: &LoopConfig,
+    metric_prior: Option<f64>,
 ) -> Result<Vec<TimedPose>, ScaleError> {
     let n = est.len();
     if n < 2 || gt.len() != n || local_scale.len() != n {
         return Err(ScaleError::InvalidParameter {
             name: "keyframes",
-            why: format!("need >= 2 keyframes and equal lengths (est {n}, gt {}, scales {})", gt.len(), local_scale.len()),
+            why: format!(
+                "need >= 2 keyframes and equal lengths (est {n}, gt {}, scales {})",
+                gt.len(),
+                local_scale.len()
+            ),
         });
     }
     let mut g = PoseGraphSim3::new();
     for (k, p) in est.iter().enumerate() {
         g.add_vertex(k as i64, Sim3::from_se3(&p.world_from_camera))?;
     }
-    g.fixed[0] = true;
+    if let Some(sigma) = metric_prior {
+        let anchor = g.add_vertex(-1, Sim3::IDENTITY)?;
+        g.fixed[anchor] = true;
+        let sigma = sigma.max(1e-6);
+        let mut last = f64::NEG_INFINITY;
+        for (k, p) in est.iter().enumerate() {
+            if k > 0 && p.timestamp - last < 1.0 {
+                continue;
+            }
+            last = p.timestamp;
+            let w = if k == 0 { 1e-4 } else { 1e4 };
+            g.add_edge_by_index(
+                anchor,
+                k,
+                Sim3::from_se3(&p.world_from_camera),
+                diag(&[w, w, w, w, w, w, sigma]),
+            )?;
+        }
+    } else {
+        g.fixed[0] = true;
+    }
     for k in 1..n {
         let z = est[k - 1].world_from_camera.inverse() * est[k].world_from_camera;
         let st = 0.05 * z.translation.length() + 1e-6;
@@ -147,13 +177,27 @@ pub fn optim_sim3(
             i,
             j,
             z,
-            diag(&[st, st, st, cfg.rotation_noise, cfg.rotation_noise, cfg.rotation_noise, cfg.log_scale_noise.max(1e-4)]),
+            diag(&[
+                st,
+                st,
+                st,
+                cfg.rotation_noise,
+                cfg.rotation_noise,
+                cfg.rotation_noise,
+                cfg.log_scale_noise.max(1e-4),
+            ]),
         )?;
     }
-    g.optimize(&SolverOptions { max_iterations: 50, ..SolverOptions::default() })?;
+    g.optimize(&SolverOptions {
+        max_iterations: 50,
+        ..SolverOptions::default()
+    })?;
     Ok(est
         .iter()
         .zip(&g.poses)
-        .map(|(p, v)| TimedPose { timestamp: p.timestamp, world_from_camera: v.to_se3() })
+        .map(|(p, v)| TimedPose {
+            timestamp: p.timestamp,
+            world_from_camera: v.to_se3(),
+        })
         .collect())
 }

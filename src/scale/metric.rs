@@ -44,7 +44,11 @@ fn resample_by_arc_length(p: &[DVec3], samples: usize) -> (f64, Vec<DVec3>) {
             let target = l * k as f64 / (samples - 1) as f64;
             let i = cum.partition_point(|&c| c < target).clamp(1, p.len() - 1);
             let seg = cum[i] - cum[i - 1];
-            let a = if seg > 0.0 { ((target - cum[i - 1]) / seg).clamp(0.0, 1.0) } else { 0.0 };
+            let a = if seg > 0.0 {
+                ((target - cum[i - 1]) / seg).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             p[i - 1].lerp(p[i], a)
         })
         .collect();
@@ -68,17 +72,25 @@ pub fn arc_length_error(
     }
     let samples = samples.max(3);
     let pg: Vec<DVec3> = gt.iter().map(|p| p.world_from_camera.translation).collect();
-    let pe: Vec<DVec3> = est.iter().map(|p| p.world_from_camera.translation).collect();
+    let pe: Vec<DVec3> = est
+        .iter()
+        .map(|p| p.world_from_camera.translation)
+        .collect();
     if pg.iter().chain(&pe).any(|p| !p.is_finite()) {
         return Err(ScaleError::NonFinite("trajectory positions".into()));
     }
     let (lg, rg) = resample_by_arc_length(&pg, samples);
     let (le, re) = resample_by_arc_length(&pe, samples);
     if !(lg > 0.0 && le > 0.0) {
-        return Err(ScaleError::InvalidParameter { name: "trajectory", why: "zero path length".into() });
+        return Err(ScaleError::InvalidParameter {
+            name: "trajectory",
+            why: "zero path length".into(),
+        });
     }
-    let a = align_umeyama(&re, &rg, with_scale)
-        .map_err(|e| ScaleError::InvalidParameter { name: "alignment", why: e.to_string() })?;
+    let a = align_umeyama(&re, &rg, with_scale).map_err(|e| ScaleError::InvalidParameter {
+        name: "alignment",
+        why: e.to_string(),
+    })?;
     let curve: Vec<(f64, f64)> = rg
         .iter()
         .zip(&re)
@@ -87,5 +99,12 @@ pub fn arc_length_error(
         .collect();
     let mean = curve.iter().map(|c| c.1).sum::<f64>() / samples as f64;
     let max = curve.iter().fold(0.0f64, |m, c| m.max(c.1));
-    Ok(ArcLengthError { mean, max, relative: mean / lg, gt_length: lg, est_length: le * a.scale, curve })
+    Ok(ArcLengthError {
+        mean,
+        max,
+        relative: mean / lg,
+        gt_length: lg,
+        est_length: le * a.scale,
+        curve,
+    })
 }

@@ -96,7 +96,11 @@ pub enum ScaleError {
     },
 }
 
-pub(crate) fn check_param(name: &'static str, ok: bool, why: impl FnOnce() -> String) -> Result<(), ScaleError> {
+pub(crate) fn check_param(
+    name: &'static str,
+    ok: bool,
+    why: impl FnOnce() -> String,
+) -> Result<(), ScaleError> {
     if ok {
         Ok(())
     } else {

@@ -5,10 +5,13 @@
 //! - prediction: `l_i += N(0, sigma_drift^2 dt)` (scale drift, `dt` seconds since the last
 //!   update, `sigma_drift` in decades per sqrt(s)); `V_SLAM,i = V_SLAM (1 + N(0, r^2))` around
 //!   the measured SLAM speed with relative spread `r = sigma_vslam_rel`;
-//! - likelihood of the walking speed `V_walk = alpha f^beta H`:
-//!   `w_i ~ exp(-(V_walk - 10^l_i V_SLAM,i)^2 / (2 sigma_Vwalk^2))`;
+//! - likelihood of the walking speed `V_walk = alpha f^beta H`, evaluated in log space so that
+//!   the geometric mean is unbiased: `w_i ~ exp(-(log10 V_walk - l_i - log10 V_SLAM,i)^2 /
+//!   (2 sigma_l^2))` with `sigma_l = sigma_Vwalk / (V_walk ln 10)` (the first-order image of
+//!   `sigma_Vwalk` at the measured speed; a Gaussian in `V` with a prior uniform in `log s`
+//!   biases the geometric mean low by about `(sigma_Vwalk / V)^2`, ~3 % here);
 //! - consistency test: if no particle predicts `V_walk` within `consistency_sigmas`
-//!   `sigma_Vwalk`, the measurement is rejected (no update); after `max_inconsistent`
+//!   `sigma_l`, the measurement is rejected (no update); after `max_inconsistent`
 //!   rejections in a row the filter re-initialises around the measured ratio;
 //! - 95 % tail trimming: particles outside the central 95 % of the weighted distribution of
 //!   `l` get weight 0;
@@ -64,21 +67,34 @@ impl Default for ParticleConfig {
 impl ParticleConfig {
     /// Checks the ranges of the settings.
     pub fn validate(&self) -> Result<(), ScaleError> {
-        check_param("particles", self.particles >= 10, || format!("{} must be >= 10", self.particles))?;
+        check_param("particles", self.particles >= 10, || {
+            format!("{} must be >= 10", self.particles)
+        })?;
         for (name, v) in [
             ("sigma0", self.sigma0),
             ("sigma_vwalk", self.sigma_vwalk),
             ("consistency_sigmas", self.consistency_sigmas),
         ] {
-            check_param(name, v.is_finite() && v > 0.0, || format!("{v} must be > 0"))?;
+            check_param(name, v.is_finite() && v > 0.0, || {
+                format!("{v} must be > 0")
+            })?;
         }
-        for (name, v) in [("sigma_drift", self.sigma_drift), ("sigma_vslam_rel", self.sigma_vslam_rel)] {
-            check_param(name, v.is_finite() && v >= 0.0, || format!("{v} must be >= 0"))?;
+        for (name, v) in [
+            ("sigma_drift", self.sigma_drift),
+            ("sigma_vslam_rel", self.sigma_vslam_rel),
+        ] {
+            check_param(name, v.is_finite() && v >= 0.0, || {
+                format!("{v} must be >= 0")
+            })?;
         }
-        check_param("prior_log10", self.prior_log10.is_finite(), || "must be finite".into())?;
-        check_param("keep_mass", self.keep_mass > 0.0 && self.keep_mass <= 1.0, || {
-            format!("{} must be in (0, 1]", self.keep_mass)
-        })
+        check_param("prior_log10", self.prior_log10.is_finite(), || {
+            "must be finite".into()
+        })?;
+        check_param(
+            "keep_mass",
+            self.keep_mass > 0.0 && self.keep_mass <= 1.0,
+            || format!("{} must be in (0, 1]", self.keep_mass),
+        )
     }
 }
 
@@ -153,7 +169,9 @@ impl ScaleFilter {
 
     fn initialise(&mut self, center: f64) {
         let n = self.cfg.particles;
-        self.log_scale = (0..n).map(|_| center + self.cfg.sigma0 * normal(&mut self.rng)).collect();
+        self.log_scale = (0..n)
+            .map(|_| center + self.cfg.sigma0 * normal(&mut self.rng))
+            .collect();
         self.v_slam = vec![0.0; n];
         self.initialised = true;
         self.inconsistent_run = 0;
@@ -161,7 +179,12 @@ impl ScaleFilter {
 
     /// One update with the measured SLAM speed `v_slam` (SLAM units/s, > 0), the walking speed
     /// `v_walk` (m/s, from the step frequency) and the time `dt` (s) since the last update.
-    pub fn update(&mut self, v_slam: f64, v_walk: f64, dt: f64) -> Result<FilterUpdate, ScaleError> {
+    pub fn update(
+        &mut self,
+        v_slam: f64,
+        v_walk: f64,
+        dt: f64,
+    ) -> Result<FilterUpdate, ScaleError> {
         if !(v_slam.is_finite() && v_slam > 0.0 && v_walk.is_finite() && v_walk > 0.0) {
             return Err(ScaleError::InvalidParameter {
                 name: "speeds",
@@ -178,14 +201,18 @@ impl ScaleFilter {
         let drift = self.cfg.sigma_drift * dt.sqrt();
         for i in 0..n {
             self.log_scale[i] += drift * normal(&mut self.rng);
-            self.v_slam[i] = (v_slam * (1.0 + self.cfg.sigma_vslam_rel * normal(&mut self.rng))).max(1e-12);
+            self.v_slam[i] =
+                (v_slam * (1.0 + self.cfg.sigma_vslam_rel * normal(&mut self.rng))).max(1e-12);
         }
-        let inv2 = 0.5 / self.cfg.sigma_vwalk.powi(2);
+        let sigma_l = self.cfg.sigma_vwalk / (v_walk * std::f64::consts::LN_10);
+        let inv2 = 0.5 / sigma_l.powi(2);
+        let lw = v_walk.log10();
+        let loglik = |l: f64, v: f64| -> f64 {
+            let e = lw - l - v.log10();
+            -e * e * inv2
+        };
         let mut w: Vec<f64> = (0..n)
-            .map(|i| {
-                let e = v_walk - 10f64.powf(self.log_scale[i]) * self.v_slam[i];
-                -e * e * inv2
-            })
+            .map(|i| loglik(self.log_scale[i], self.v_slam[i]))
             .collect();
         let best = w.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         let gate = -0.5 * self.cfg.consistency_sigmas.powi(2);
@@ -227,7 +254,7 @@ impl ScaleFilter {
         if !(kept > 0.0) {
             // Everything trimmed (a degenerate, single-particle posterior): keep weights as is.
             for (i, v) in w.iter_mut().enumerate() {
-                *v = (-(v_walk - 10f64.powf(self.log_scale[i]) * self.v_slam[i]).powi(2) * inv2 - best).exp();
+                *v = (loglik(self.log_scale[i], self.v_slam[i]) - best).exp();
             }
         }
         // Multinomial resampling (sorted uniforms against the cumulative weights).

@@ -45,10 +45,21 @@ fn line(img: &mut RgbImage, (x0, y0): (i64, i64), (x1, y1): (i64, i64), c: Rgb<u
 }
 
 /// Writes `panels` stacked vertically into a `width x height` PNG at `path`.
-pub fn plot_panels(path: &Path, panels: &[Vec<Series>], width: u32, height: u32) -> Result<(), ScaleError> {
-    let err = |m: String| ScaleError::Plot { path: path.into(), message: m };
+pub fn plot_panels(
+    path: &Path,
+    panels: &[Vec<Series>],
+    width: u32,
+    height: u32,
+) -> Result<(), ScaleError> {
+    let err = |m: String| ScaleError::Plot {
+        path: path.into(),
+        message: m,
+    };
     if panels.is_empty() || width < 50 || height < 50 * panels.len() as u32 {
-        return Err(err(format!("{} panels do not fit {width}x{height}", panels.len())));
+        return Err(err(format!(
+            "{} panels do not fit {width}x{height}",
+            panels.len()
+        )));
     }
     let mut img = RgbImage::from_pixel(width, height, Rgb([255, 255, 255]));
     let all = panels.iter().flatten().flat_map(|s| s.points.iter());
@@ -67,7 +78,11 @@ pub fn plot_panels(path: &Path, panels: &[Vec<Series>], width: u32, height: u32)
         let bottom = ((k as u32 + 1) * ph) as i64 - margin;
         let (left, right) = (margin * 3, width as i64 - margin);
         let (mut ymin, mut ymax) = (f64::INFINITY, f64::NEG_INFINITY);
-        for p in panel.iter().flat_map(|s| s.points.iter()).filter(|p| p.1.is_finite()) {
+        for p in panel
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|p| p.1.is_finite())
+        {
             ymin = ymin.min(p.1);
             ymax = ymax.max(p.1);
         }
@@ -88,7 +103,12 @@ pub fn plot_panels(path: &Path, panels: &[Vec<Series>], width: u32, height: u32)
             line(&mut img, to_px(x, ymin), to_px(x, ymax), grid);
         }
         if ymin < 0.0 && ymax > 0.0 {
-            line(&mut img, to_px(xmin, 0.0), to_px(xmax, 0.0), Rgb([170, 170, 170]));
+            line(
+                &mut img,
+                to_px(xmin, 0.0),
+                to_px(xmax, 0.0),
+                Rgb([170, 170, 170]),
+            );
         }
         let axis = Rgb([0, 0, 0]);
         line(&mut img, (left, top), (left, bottom), axis);

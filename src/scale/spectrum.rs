@@ -49,9 +49,11 @@ impl Default for SpectrumConfig {
 impl SpectrumConfig {
     /// Checks the ranges of the settings.
     pub fn validate(&self) -> Result<(), ScaleError> {
-        check_param("highpass_hz", self.highpass_hz > 0.0 && self.highpass_hz.is_finite(), || {
-            format!("{} Hz must be > 0", self.highpass_hz)
-        })?;
+        check_param(
+            "highpass_hz",
+            self.highpass_hz > 0.0 && self.highpass_hz.is_finite(),
+            || format!("{} Hz must be > 0", self.highpass_hz),
+        )?;
         check_param(
             "band",
             self.band.0 > 0.0 && self.band.1 > self.band.0 && self.band.1.is_finite(),
@@ -62,9 +64,11 @@ impl SpectrumConfig {
             self.amplitude_bounds.0 >= 0.0 && self.amplitude_bounds.1 > self.amplitude_bounds.0,
             || format!("{:?} must be 0 <= low < high", self.amplitude_bounds),
         )?;
-        check_param("min_concentration", (0.0..=1.0).contains(&self.min_concentration), || {
-            format!("{} must be in [0, 1]", self.min_concentration)
-        })
+        check_param(
+            "min_concentration",
+            (0.0..=1.0).contains(&self.min_concentration),
+            || format!("{} must be in [0, 1]", self.min_concentration),
+        )
     }
 }
 
@@ -89,7 +93,10 @@ impl HighPass {
         let norm = 1.0 / (1.0 + SQRT_2 * k + k * k);
         Ok(HighPass {
             b: [norm, -2.0 * norm, norm],
-            a: [2.0 * (k * k - 1.0) * norm, (1.0 - SQRT_2 * k + k * k) * norm],
+            a: [
+                2.0 * (k * k - 1.0) * norm,
+                (1.0 - SQRT_2 * k + k * k) * norm,
+            ],
             x: [0.0; 2],
             y: [0.0; 2],
         })
@@ -104,7 +111,11 @@ impl HighPass {
         y
     }
     /// Removes the offset (the first sample) and filters a whole signal from rest.
-    pub fn filter_signal(cutoff_hz: f64, sample_rate_hz: f64, signal: &[f64]) -> Result<Vec<f64>, ScaleError> {
+    pub fn filter_signal(
+        cutoff_hz: f64,
+        sample_rate_hz: f64,
+        signal: &[f64],
+    ) -> Result<Vec<f64>, ScaleError> {
         let mut f = HighPass::new(cutoff_hz, sample_rate_hz)?;
         let x0 = signal.first().copied().unwrap_or(0.0);
         Ok(signal.iter().map(|&x| f.step(x - x0)).collect())
@@ -114,7 +125,11 @@ impl HighPass {
 /// One-sided power spectral density of `signal` (Hann window, mean removed, zero-padded to
 /// `n_fft >= len`, a power of two): returns `(df Hz, psd)` with `psd[k]` at `k df` in
 /// units^2 / Hz, normalised so that `sum psd df` is the window's mean square.
-pub fn power_spectral_density(signal: &[f64], sample_rate_hz: f64, min_fft_len: usize) -> (f64, Vec<f64>) {
+pub fn power_spectral_density(
+    signal: &[f64],
+    sample_rate_hz: f64,
+    min_fft_len: usize,
+) -> (f64, Vec<f64>) {
     let n = signal.len();
     let n_fft = n.max(min_fft_len).max(2).next_power_of_two();
     if n == 0 {
@@ -129,7 +144,9 @@ pub fn power_spectral_density(signal: &[f64], sample_rate_hz: f64, min_fft_len: 
     for i in 0..n {
         buf[i] = Complex::new((signal[i] - mean) * w[i], 0.0);
     }
-    FftPlanner::<f64>::new().plan_fft_forward(n_fft).process(&mut buf);
+    FftPlanner::<f64>::new()
+        .plan_fft_forward(n_fft)
+        .process(&mut buf);
     let norm = 1.0 / (sample_rate_hz * w2);
     let half = n_fft / 2;
     let psd = (0..=half)
@@ -164,11 +181,22 @@ pub struct StepAnalysis {
 
 impl StepAnalysis {
     /// Analyses one window (`signal`, already high-passed) sampled at `sample_rate_hz`.
-    pub fn analyze(signal: &[f64], sample_rate_hz: f64, cfg: &SpectrumConfig) -> Result<StepAnalysis, ScaleError> {
+    pub fn analyze(
+        signal: &[f64],
+        sample_rate_hz: f64,
+        cfg: &SpectrumConfig,
+    ) -> Result<StepAnalysis, ScaleError> {
         cfg.validate()?;
-        check_param("sample_rate_hz", sample_rate_hz.is_finite() && sample_rate_hz > 2.0 * cfg.band.1, || {
-            format!("{sample_rate_hz} Hz must exceed twice the band's top {} Hz", cfg.band.1)
-        })?;
+        check_param(
+            "sample_rate_hz",
+            sample_rate_hz.is_finite() && sample_rate_hz > 2.0 * cfg.band.1,
+            || {
+                format!(
+                    "{sample_rate_hz} Hz must exceed twice the band's top {} Hz",
+                    cfg.band.1
+                )
+            },
+        )?;
         if signal.len() < 8 {
             return Err(ScaleError::TooShort {
                 have: signal.len(),
@@ -203,7 +231,8 @@ impl StepAnalysis {
             }
         }
         let t = signal.len() as f64 / sample_rate_hz;
-        let sum = |f0: f64, f1: f64| -> f64 { (bin(f0)..=bin(f1)).map(|k| psd[k]).sum::<f64>() * df };
+        let sum =
+            |f0: f64, f1: f64| -> f64 { (bin(f0)..=bin(f1)).map(|k| psd[k]).sum::<f64>() * df };
         let lobe = 2.0 / t;
         let peak_power = sum((frequency - lobe).max(0.0), frequency + lobe);
         let band_power = sum(cfg.band.0, cfg.band.1);
@@ -255,7 +284,10 @@ mod tests {
         let y = HighPass::filter_signal(0.7, fs, &x).unwrap();
         let tail = &y[300..];
         let max = tail.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        assert!(max > 0.017 && max < 0.023, "2 Hz amplitude after high-pass: {max}");
+        assert!(
+            max > 0.017 && max < 0.023,
+            "2 Hz amplitude after high-pass: {max}"
+        );
         let mean = tail.iter().sum::<f64>() / tail.len() as f64;
         assert!(mean.abs() < 1e-3, "ramp left a DC offset {mean}");
     }
@@ -263,9 +295,14 @@ mod tests {
     #[test]
     fn parseval_holds() {
         let fs = 30.0;
-        let x: Vec<f64> = (0..240).map(|i| 0.03 * (2.0 * PI * 1.7 * i as f64 / fs).sin()).collect();
+        let x: Vec<f64> = (0..240)
+            .map(|i| 0.03 * (2.0 * PI * 1.7 * i as f64 / fs).sin())
+            .collect();
         let (df, psd) = power_spectral_density(&x, fs, 4096);
         let p = psd.iter().sum::<f64>() * df;
-        assert!((p - 0.03f64.powi(2) / 2.0).abs() < 0.05 * 0.00045, "power {p}");
+        assert!(
+            (p - 0.03f64.powi(2) / 2.0).abs() < 0.05 * 0.00045,
+            "power {p}"
+        );
     }
 }

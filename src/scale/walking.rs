@@ -32,8 +32,14 @@ impl WalkingModel {
     }
     /// Checks that height, alpha and beta are positive and finite.
     pub fn validate(&self) -> Result<(), ScaleError> {
-        for (name, v) in [("height", self.height), ("alpha", self.alpha), ("beta", self.beta)] {
-            check_param(name, v.is_finite() && v > 0.0, || format!("{v} must be > 0"))?;
+        for (name, v) in [
+            ("height", self.height),
+            ("alpha", self.alpha),
+            ("beta", self.beta),
+        ] {
+            check_param(name, v.is_finite() && v > 0.0, || {
+                format!("{v} must be > 0")
+            })?;
         }
         Ok(())
     }
@@ -62,7 +68,9 @@ pub struct CalibrationSample {
 /// least squares of `ln(V / H) = ln alpha + beta ln f`, `f = 1 / step_period`,
 /// `V = distance / time`). Needs two walks at different paces at least.
 pub fn calibrate(height: f64, samples: &[CalibrationSample]) -> Result<WalkingModel, ScaleError> {
-    check_param("height", height.is_finite() && height > 0.0, || format!("{height} m must be > 0"))?;
+    check_param("height", height.is_finite() && height > 0.0, || {
+        format!("{height} m must be > 0")
+    })?;
     if samples.len() < 2 {
         return Err(ScaleError::Calibration(format!(
             "need at least 2 walks at different paces, got {}",
@@ -72,9 +80,10 @@ pub fn calibrate(height: f64, samples: &[CalibrationSample]) -> Result<WalkingMo
     let mut xs = Vec::with_capacity(samples.len());
     let mut ys = Vec::with_capacity(samples.len());
     for (i, s) in samples.iter().enumerate() {
-        if !(s.step_period > 0.0 && s.distance > 0.0 && s.time > 0.0)
-            || !(s.step_period.is_finite() && s.distance.is_finite() && s.time.is_finite())
-        {
+        let ok = [s.step_period, s.distance, s.time]
+            .iter()
+            .all(|v| v.is_finite() && *v > 0.0);
+        if !ok {
             return Err(ScaleError::Calibration(format!(
                 "walk {}: step period, distance and time must be finite and > 0 ({:?})",
                 i + 1,
@@ -96,8 +105,13 @@ pub fn calibrate(height: f64, samples: &[CalibrationSample]) -> Result<WalkingMo
     }
     let beta = sxy / sxx;
     let alpha = (my - beta * mx).exp();
-    let m = WalkingModel { height, alpha, beta };
-    m.validate().map_err(|e| ScaleError::Calibration(format!("fit gave {e}")))?;
+    let m = WalkingModel {
+        height,
+        alpha,
+        beta,
+    };
+    m.validate()
+        .map_err(|e| ScaleError::Calibration(format!("fit gave {e}")))?;
     Ok(m)
 }
 
@@ -107,15 +121,29 @@ mod tests {
 
     #[test]
     fn calibration_recovers_model() {
-        let truth = WalkingModel { height: 1.7, alpha: 0.31, beta: 1.6 };
+        let truth = WalkingModel {
+            height: 1.7,
+            alpha: 0.31,
+            beta: 1.6,
+        };
         let samples: Vec<CalibrationSample> = [1.2, 1.5, 1.8, 2.1, 2.4]
             .iter()
-            .map(|&f| CalibrationSample { step_period: 1.0 / f, distance: 30.0, time: 30.0 / truth.speed(f) })
+            .map(|&f| CalibrationSample {
+                step_period: 1.0 / f,
+                distance: 30.0,
+                time: 30.0 / truth.speed(f),
+            })
             .collect();
         let m = calibrate(1.7, &samples).unwrap();
-        assert!((m.alpha - 0.31).abs() < 1e-9 && (m.beta - 1.6).abs() < 1e-9, "{m:?}");
+        assert!(
+            (m.alpha - 0.31).abs() < 1e-9 && (m.beta - 1.6).abs() < 1e-9,
+            "{m:?}"
+        );
         assert!(calibrate(1.7, &samples[..1]).is_err());
         let same = vec![samples[0]; 3];
-        assert!(matches!(calibrate(1.7, &same), Err(ScaleError::Calibration(_))));
+        assert!(matches!(
+            calibrate(1.7, &same),
+            Err(ScaleError::Calibration(_))
+        ));
     }
 }
