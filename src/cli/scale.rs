@@ -107,7 +107,8 @@ pub struct ExperimentArgs {
     /// Scale drift of the emulated monocular SLAM, std of ln s per sqrt(s).
     #[arg(long, default_value_t = 0.04)]
     drift: f64,
-    /// Folder for plots of the first seed of every sequence.
+    /// Folder for plots and TUM files (estimate, ground truth) of the first seed of every
+    /// sequence.
     #[arg(long)]
     out_dir: Option<PathBuf>,
 }
@@ -360,6 +361,8 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
                     .step_by(10)
                     .map(|(p, s)| (p.timestamp, *s))
                     .collect();
+                write_tum(&d.join(format!("{}_est.txt", spec.name)), &r.run.est)?;
+                write_tum(&d.join(format!("{}_gt.txt", spec.name)), &r.run.gt)?;
                 section_plot(
                     &d.join(format!("{}.png", spec.name)),
                     &r.dynscale,

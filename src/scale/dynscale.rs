@@ -4,7 +4,7 @@
 //! seconds (once `t_DFT` seconds are available) the last `t_DFT` seconds of the vertical signal
 //! (projection of the camera position on the up axis) are analysed ([`StepAnalysis`]). While
 //! walking, the unscaled horizontal speed `V_SLAM` is measured over whole strides (two steps,
-//! `2 / f` seconds) as the horizontal arc length of the positions sampled every <= 0.1 s (the
+//! `2 / f` seconds, as many whole strides as fit in the window) as the horizontal arc length of the positions sampled every <= 0.1 s (the
 //! vertical bob is projected out; the lateral sway adds well under 1 %); a window whose stride
 //! speeds differ by more than `max_speed_ratio` (a start, stop or pace change) does not update
 //! the filter. The walking speed is `V_walk = alpha f^beta H`, and the particle
