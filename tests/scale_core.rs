@@ -199,3 +199,42 @@ fn bad_inputs_give_clear_errors() {
     .is_err());
     assert!(rgbid::scale::UpAxis::parse("w").is_err());
 }
+
+#[test]
+fn recursive_scaling_is_continuous_and_landmarks_follow_their_anchor() {
+    let (gt, params) = walk(6, 30.0);
+    let run = emulate_monocular(
+        &gt,
+        &DriftModel {
+            initial_scale: 2.0,
+            drift: 0.05,
+            ..DriftModel::default()
+        },
+    );
+    let mut cfg = DynScaleConfig::new(params.height, 30.0);
+    cfg.filter.particles = 1000;
+    cfg.up = rgbid::scale::UpAxis::parse("auto").unwrap();
+    let r = DynScale::new(cfg).unwrap().run(&run.est).unwrap();
+    // The plane-fit up axis is close to the first camera's -y (pitch ~0.1 rad).
+    let up = DVec3::from_array(r.up);
+    assert!(up.dot(DVec3::NEG_Y).abs() > 0.97, "up {up:?}");
+    for w in r.sections.windows(2) {
+        let t = w[1].t_start;
+        let p = rgbid::scale::dynscale::interpolate_position(&run.est, t);
+        let before = DVec3::from_array(w[0].origin_scaled)
+            + w[0].scale * (p - DVec3::from_array(w[0].origin_raw));
+        let after = r.scale_position(t + 1e-9, p);
+        assert!(
+            (before - after).length() < 1e-6,
+            "jump at {t}: {before:?} vs {after:?}"
+        );
+    }
+    let t = 12.3;
+    let s = r.scale_at(t);
+    let v = r.scale_velocity(t, DVec3::new(0.5, 0.0, 0.0));
+    assert!((v.x - 0.5 * s).abs() < 1e-12);
+    let x = DVec3::new(1.0, 2.0, 3.0);
+    let a = r.scale_landmark(t, x);
+    let b = r.scale_position(t, x);
+    assert_eq!(a, b);
+}
