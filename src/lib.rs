@@ -26,6 +26,7 @@ pub mod image;
 pub mod io;
 pub mod odometry;
 pub mod place;
+pub mod scale;
 pub mod segment;
 pub mod slam;
 pub mod synth;

@@ -47,6 +47,8 @@ enum Command {
     /// RGB-ID SLAM: tracking, keyframe fusion, loop closure, pose graph, maps across
     /// sessions; writes trajectories, loops, a PLY model and timings.
     Slam(cli::slam::Args),
+    /// True metric scale of a walking person's monocular trajectory (step frequency).
+    Scale(cli::scale::Args),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -79,6 +81,7 @@ fn run(command: Command) -> Result<()> {
         Command::Segment(a) => cli::segment::run(a),
         Command::Graph(c) => cli::graph::run(c),
         Command::Slam(a) => cli::slam::run(a),
+        Command::Scale(a) => cli::scale::run(a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

@@ -6,6 +6,7 @@ pub mod eval;
 pub mod graph;
 pub mod odometry;
 pub mod place;
+pub mod scale;
 pub mod segment;
 pub mod slam;
 pub mod synth;

@@ -1,0 +1,510 @@
+//! `rgbid scale`: true metric scale of a walking person's monocular trajectory (thesis ch. 3).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rgbid::io::trajectory::{read_tum, write_tum};
+use rgbid::scale::experiment::{
+    median, percentile, run_sequence, standard_sequences, ExperimentConfig, RunReport, METHODS,
+};
+use rgbid::scale::plot::{plot_panels, Series};
+use rgbid::scale::walking::{GRIEVE_ALPHA, GRIEVE_BETA};
+use rgbid::scale::{
+    arc_length_error, calibrate, CalibrationSample, DynScale, DynScaleConfig, DynScaleResult,
+    UpAxis,
+};
+
+/// `rgbid scale TRAJ ...` scales a trajectory; `calibrate` and `experiment` are subcommands.
+#[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct Args {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+/// Subcommands of `rgbid scale`.
+#[derive(clap::Subcommand)]
+pub enum Command {
+    /// Fit alpha, beta of V = alpha f^beta H to walks of known length (power fit). The file
+    /// has one walk per line: `step_period_s distance_m time_s` (spaces or commas, # comments).
+    Calibrate {
+        /// Calibration file.
+        file: PathBuf,
+        /// Height of the walker, metres.
+        #[arg(long)]
+        height: f64,
+    },
+    /// Generated walking sequences (head, chest, stops, stairs; several seeds) with emulated
+    /// monocular drift: tables of unscaled / optimSim3 / dynScale / dynScale+optimSim3, step
+    /// frequency error, stop detection and alpha/beta sensitivity.
+    Experiment(ExperimentArgs),
+}
+
+/// Options of scaling one trajectory.
+#[derive(clap::Args)]
+pub struct RunArgs {
+    /// Unscaled TUM trajectory (`world_from_camera`, any units).
+    traj: Option<PathBuf>,
+    /// Rate the trajectory is resampled at, frames per second.
+    #[arg(long, default_value_t = 30.0)]
+    fps: f64,
+    /// Height of the walker, metres.
+    #[arg(long)]
+    height: Option<f64>,
+    /// alpha of V = alpha f^beta H.
+    #[arg(long, default_value_t = GRIEVE_ALPHA)]
+    alpha: f64,
+    /// beta of V = alpha f^beta H.
+    #[arg(long, default_value_t = GRIEVE_BETA)]
+    beta: f64,
+    /// Up axis in the trajectory's world frame: x, y, z (signed), auto (plane fit) or a,b,c.
+    #[arg(long, default_value = "-y", allow_hyphen_values = true)]
+    up: String,
+    /// Analysis window t_DFT, seconds.
+    #[arg(long, default_value_t = 4.0)]
+    window: f64,
+    /// Update period t_upd (section length), seconds.
+    #[arg(long, default_value_t = 1.0)]
+    update: f64,
+    /// Number of particles.
+    #[arg(long, default_value_t = 5000)]
+    particles: usize,
+    /// Scale drift of the filter, decades per sqrt(s).
+    #[arg(long, default_value_t = 0.1)]
+    sigma_drift: f64,
+    /// Seed of the particle filter.
+    #[arg(long, default_value_t = 0x5ca1e)]
+    seed: u64,
+    /// Output: the scaled TUM trajectory (metres).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Output: a PNG with frequency, scale and speed per section.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+    /// Output: the sections as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Ground truth (TUM, metres) for the arc-length error of the input and the result.
+    #[arg(long)]
+    gt: Option<PathBuf>,
+}
+
+/// Options of `rgbid scale experiment`.
+#[derive(clap::Args)]
+pub struct ExperimentArgs {
+    /// Duration of each sequence, seconds.
+    #[arg(long, default_value_t = 90.0)]
+    duration: f64,
+    /// Number of seeds per sequence.
+    #[arg(long, default_value_t = 3)]
+    seeds: u64,
+    /// Number of particles.
+    #[arg(long, default_value_t = 5000)]
+    particles: usize,
+    /// Scale drift of the emulated monocular SLAM, std of ln s per sqrt(s).
+    #[arg(long, default_value_t = 0.04)]
+    drift: f64,
+    /// Folder for plots and TUM files (estimate, ground truth) of the first seed of every
+    /// sequence.
+    #[arg(long)]
+    out_dir: Option<PathBuf>,
+}
+
+/// Runs `rgbid scale`.
+pub fn run(a: Args) -> Result<()> {
+    match a.command {
+        Some(Command::Calibrate { file, height }) => run_calibrate(&file, height),
+        Some(Command::Experiment(e)) => run_experiment(&e),
+        None => run_scale(&a.run),
+    }
+}
+
+fn run_calibrate(file: &Path, height: f64) -> Result<()> {
+    let text =
+        std::fs::read_to_string(file).with_context(|| format!("reading {}", file.display()))?;
+    let mut samples = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let s = line.trim();
+        if s.is_empty() || s.starts_with('#') {
+            continue;
+        }
+        let v: Vec<f64> = s
+            .split(|c: char| c.is_whitespace() || c == ',')
+            .filter(|x| !x.is_empty())
+            .map(|x| x.parse::<f64>())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("{}:{}: expected numbers", file.display(), i + 1))?;
+        if v.len() != 3 {
+            bail!(
+                "{}:{}: expected step_period distance time, found {} values",
+                file.display(),
+                i + 1,
+                v.len()
+            );
+        }
+        samples.push(CalibrationSample {
+            step_period: v[0],
+            distance: v[1],
+            time: v[2],
+        });
+    }
+    let m = calibrate(height, &samples)?;
+    println!(
+        "alpha {:.4}  beta {:.4}  (height {:.2} m, {} walks)",
+        m.alpha,
+        m.beta,
+        height,
+        samples.len()
+    );
+    println!(
+        "{:>10} {:>10} {:>12} {:>12} {:>8}",
+        "f (Hz)", "V (m/s)", "model (m/s)", "Grieve (m/s)", "err %"
+    );
+    for s in &samples {
+        let f = 1.0 / s.step_period;
+        let v = s.distance / s.time;
+        let g = GRIEVE_ALPHA * f.powf(GRIEVE_BETA) * height;
+        println!(
+            "{:10.3} {:10.3} {:12.3} {:12.3} {:8.2}",
+            f,
+            v,
+            m.speed(f),
+            g,
+            100.0 * (m.speed(f) / v - 1.0)
+        );
+    }
+    Ok(())
+}
+
+/// An `(x, y)` plot point.
+type Point = (f64, f64);
+
+fn section_plot(
+    path: &Path,
+    r: &DynScaleResult,
+    truth: Option<(&[Point], &[Point])>,
+) -> Result<()> {
+    let mid = |s: &rgbid::scale::Section| 0.5 * (s.t_start + s.t_end);
+    let blue = [30, 80, 200];
+    let red = [200, 40, 40];
+    let freq: Vec<(f64, f64)> = r
+        .sections
+        .iter()
+        .map(|s| (mid(s), if s.walking { s.analysis.frequency } else { 0.0 }))
+        .collect();
+    let scale: Vec<(f64, f64)> = r.sections.iter().map(|s| (mid(s), s.scale)).collect();
+    let speed: Vec<(f64, f64)> = r.sections.iter().map(|s| (mid(s), s.speed())).collect();
+    let mut p1 = vec![Series {
+        points: freq,
+        color: blue,
+        dots: true,
+    }];
+    let mut p2 = vec![Series {
+        points: scale,
+        color: blue,
+        dots: false,
+    }];
+    if let Some((f, s)) = truth {
+        p1.insert(
+            0,
+            Series {
+                points: f.to_vec(),
+                color: red,
+                dots: false,
+            },
+        );
+        p2.insert(
+            0,
+            Series {
+                points: s.to_vec(),
+                color: red,
+                dots: false,
+            },
+        );
+    }
+    let p3 = vec![Series {
+        points: speed,
+        color: blue,
+        dots: false,
+    }];
+    plot_panels(path, &[p1, p2, p3], 1200, 900)?;
+    Ok(())
+}
+
+fn run_scale(a: &RunArgs) -> Result<()> {
+    let Some(path) = &a.traj else {
+        bail!("give a trajectory: rgbid scale TRAJ --height H [--out scaled.txt] (or a subcommand: calibrate, experiment)");
+    };
+    let Some(height) = a.height else {
+        bail!("--height (metres) is required to scale a trajectory");
+    };
+    let traj = read_tum(path)?;
+    let mut cfg = DynScaleConfig::new(height, a.fps);
+    cfg.model.alpha = a.alpha;
+    cfg.model.beta = a.beta;
+    cfg.up = UpAxis::parse(&a.up)?;
+    cfg.window = a.window;
+    cfg.update = a.update;
+    cfg.filter.particles = a.particles;
+    cfg.filter.sigma_drift = a.sigma_drift;
+    cfg.seed = a.seed;
+    let r = DynScale::new(cfg)?.run(&traj)?;
+    let u = r.up;
+    println!(
+        "{} poses over {:.1} s, up [{:.3} {:.3} {:.3}], {} sections",
+        traj.len(),
+        traj[traj.len() - 1].timestamp - traj[0].timestamp,
+        u[0],
+        u[1],
+        u[2],
+        r.sections.len()
+    );
+    println!(
+        "{:>8} {:>8} {:>5} {:>8} {:>10} {:>8} {:>9} {:>9} {:>8}",
+        "t0 (s)", "t1 (s)", "walk", "f (Hz)", "power", "conc", "scale", "V (m/s)", "used"
+    );
+    for s in &r.sections {
+        println!(
+            "{:8.2} {:8.2} {:>5} {:8.3} {:10.3e} {:8.2} {:9.4} {:9.3} {:>8}",
+            s.t_start,
+            s.t_end,
+            if s.walking { "yes" } else { "no" },
+            s.analysis.frequency,
+            s.analysis.peak_power,
+            s.analysis.concentration,
+            s.scale,
+            s.speed(),
+            if s.consistent { "yes" } else { "no" }
+        );
+    }
+    let walking = r.sections.iter().filter(|s| s.walking).count();
+    println!(
+        "walking in {walking}/{} sections; final scale {:.4} m/unit",
+        r.sections.len(),
+        r.sections[r.sections.len() - 1].scale
+    );
+    if let Some(gt_path) = &a.gt {
+        let gt = read_tum(gt_path)?;
+        for (name, est) in [("input", &traj), ("scaled", &r.scaled)] {
+            let e = arc_length_error(&gt, est, 1000, false)?;
+            println!(
+                "{name:>7}: arc-length error mean {:.3} m, max {:.3} m, relative {:.2} % of {:.1} m",
+                e.mean,
+                e.max,
+                100.0 * e.relative,
+                e.gt_length
+            );
+        }
+    }
+    if let Some(out) = &a.out {
+        write_tum(out, &r.scaled)?;
+        println!("wrote {}", out.display());
+    }
+    if let Some(p) = &a.json {
+        let sections = serde_json::to_string_pretty(&r.sections)?;
+        std::fs::write(p, sections).with_context(|| format!("writing {}", p.display()))?;
+        println!("wrote {}", p.display());
+    }
+    if let Some(p) = &a.plot {
+        section_plot(p, &r, None)?;
+        println!(
+            "wrote {} (panels: step frequency Hz, scale m/unit, speed m/s vs time)",
+            p.display()
+        );
+    }
+    Ok(())
+}
+
+fn stats_line(label: &str, v: &[f64]) -> String {
+    format!(
+        "{label:<8} n {:4}  mean {:.4}  p95 {:.4}  max {:.4}  within 0.05 Hz {:5.1} %",
+        v.len(),
+        v.iter().sum::<f64>() / v.len().max(1) as f64,
+        percentile(v, 0.95),
+        v.iter().cloned().fold(0.0, f64::max),
+        100.0 * v.iter().filter(|e| **e < 0.05).count() as f64 / v.len().max(1) as f64
+    )
+}
+
+fn run_experiment(a: &ExperimentArgs) -> Result<()> {
+    let seqs = standard_sequences(a.duration);
+    let mut cfg = ExperimentConfig::default();
+    cfg.dynscale.filter.particles = a.particles;
+    cfg.drift.drift = a.drift;
+    let alpha_factors = [0.8, 0.9, 1.1, 1.2];
+    let beta_deltas = [-0.2, -0.1, 0.1, 0.2];
+    let total = seqs.len() as u64 * a.seeds
+        + 2 * (alpha_factors.len() + beta_deltas.len()) as u64 * a.seeds;
+    let bar = ProgressBar::new(total);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} {bar:30} {pos}/{len}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    if let Some(d) = &a.out_dir {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+    }
+    let mut reports: Vec<RunReport> = Vec::new();
+    for spec in &seqs {
+        for seed in 0..a.seeds {
+            bar.set_message(format!("{} seed {seed}", spec.name));
+            let r = run_sequence(spec, seed, &cfg)
+                .with_context(|| format!("{} seed {seed}", spec.name))?;
+            if let (Some(d), 0) = (&a.out_dir, seed) {
+                let true_scale: Vec<(f64, f64)> = r
+                    .run
+                    .est
+                    .iter()
+                    .zip(&r.run.true_scale)
+                    .step_by(10)
+                    .map(|(p, s)| (p.timestamp, *s))
+                    .collect();
+                write_tum(&d.join(format!("{}_est.txt", spec.name)), &r.run.est)?;
+                write_tum(&d.join(format!("{}_gt.txt", spec.name)), &r.run.gt)?;
+                section_plot(
+                    &d.join(format!("{}.png", spec.name)),
+                    &r.dynscale,
+                    Some((&r.true_frequency, &true_scale)),
+                )?;
+            }
+            reports.push(r);
+            bar.inc(1);
+        }
+    }
+    // Sensitivity to alpha / beta errors on head and chest walks.
+    let mut sens: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
+    let variants: Vec<(String, f64, f64)> = alpha_factors
+        .iter()
+        .map(|f| (format!("alpha x{f:.1}"), *f, 0.0))
+        .chain(
+            beta_deltas
+                .iter()
+                .map(|d| (format!("beta {d:+.1}"), 1.0, *d)),
+        )
+        .collect();
+    for (label, fa, db) in &variants {
+        let (mut ratios, mut rel) = (Vec::new(), Vec::new());
+        for spec in &seqs[..2] {
+            for seed in 0..a.seeds {
+                bar.set_message(format!("sensitivity {label}"));
+                let mut c = cfg.clone();
+                c.keep_model = true;
+                c.dynscale.model.height = spec.params.height;
+                c.dynscale.model.alpha = spec.params.alpha * fa;
+                c.dynscale.model.beta = spec.params.beta + db;
+                let r = run_sequence(spec, seed, &c)?;
+                for s in r
+                    .dynscale
+                    .sections
+                    .iter()
+                    .filter(|s| s.walking && s.consistent)
+                {
+                    let i = (((s.t_end - r.run.est[0].timestamp) * c.fps).round() as usize)
+                        .min(r.run.true_scale.len() - 1);
+                    ratios.push(s.scale / r.run.true_scale[i]);
+                }
+                rel.push(r.metric[2].relative);
+                bar.inc(1);
+            }
+        }
+        sens.push((label.clone(), ratios, rel));
+    }
+    bar.finish_and_clear();
+
+    println!("Walking sequences: {} s each, {} seeds, 30 fps, emulated monocular drift (ln-scale random walk {:.3}/sqrt(s), unknown global scale in [0.2, 5] m/unit), keyframes every 3 frames", a.duration, a.seeds, a.drift);
+    println!(
+        "\nPosition error by normalised arc length, rigid alignment (metric), mean over seeds;"
+    );
+    println!(
+        "shape rel: after a similarity alignment; len ratio: estimated / true path length (median)"
+    );
+    println!(
+        "{:<8} {:<20} {:>10} {:>10} {:>10} {:>14} {:>10}",
+        "seq", "method", "mean (m)", "max (m)", "rel (%)", "shape rel (%)", "len ratio"
+    );
+    for spec in &seqs {
+        let rs: Vec<&RunReport> = reports.iter().filter(|r| r.sequence == spec.name).collect();
+        let n = rs.len().max(1) as f64;
+        for (k, m) in METHODS.iter().enumerate() {
+            let avg = |f: &dyn Fn(&RunReport) -> f64| rs.iter().map(|r| f(r)).sum::<f64>() / n;
+            println!(
+                "{:<8} {:<20} {:10.3} {:10.3} {:10.2} {:14.2} {:10.3}",
+                spec.name,
+                m,
+                avg(&|r| r.metric[k].mean),
+                avg(&|r| r.metric[k].max),
+                100.0 * avg(&|r| r.metric[k].relative),
+                100.0 * avg(&|r| r.shape[k].relative),
+                median(
+                    &rs.iter()
+                        .map(|r| r.metric[k].est_length / r.metric[k].gt_length)
+                        .collect::<Vec<_>>()
+                )
+            );
+        }
+        let loops: usize = rs.iter().map(|r| r.loops).sum();
+        let len = rs.iter().map(|r| r.metric[0].gt_length).sum::<f64>() / n;
+        println!(
+            "{:<8} ({} loop closures in all, path {:.0} m on average)",
+            "", loops, len
+        );
+    }
+    println!("\nStep frequency error in steady-walking windows (Hz)");
+    for spec in &seqs {
+        let v: Vec<f64> = reports
+            .iter()
+            .filter(|r| r.sequence == spec.name)
+            .flat_map(|r| r.frequency_errors.clone())
+            .collect();
+        println!("{}", stats_line(&spec.name, &v));
+    }
+    let all: Vec<f64> = reports
+        .iter()
+        .flat_map(|r| r.frequency_errors.clone())
+        .collect();
+    println!("{}", stats_line("all", &all));
+    println!("\nStop detection (windows >= 75 % standing detected as not walking; fully walking windows called standing)");
+    for spec in &seqs {
+        let rs = reports.iter().filter(|r| r.sequence == spec.name);
+        let (mut s, mut w) = ((0, 0), (0, 0));
+        for r in rs {
+            s.0 += r.stop_windows.0;
+            s.1 += r.stop_windows.1;
+            w.0 += r.walk_windows.0;
+            w.1 += r.walk_windows.1;
+        }
+        println!(
+            "{:<8} stops detected {:3}/{:<3}  false stops {:3}/{:<3}",
+            spec.name, s.1, s.0, w.1, w.0
+        );
+    }
+    println!("\nScale error per updated walking section |s/s_true - 1| (%)");
+    for spec in &seqs {
+        let v: Vec<f64> = reports
+            .iter()
+            .filter(|r| r.sequence == spec.name)
+            .flat_map(|r| r.scale_errors.clone())
+            .collect();
+        println!(
+            "{:<8} n {:4}  median {:6.2}  p90 {:6.2}",
+            spec.name,
+            v.len(),
+            100.0 * median(&v),
+            100.0 * percentile(&v, 0.9)
+        );
+    }
+    println!("\nSensitivity to walking-model errors (head + chest): s/s_true per section, dynScale relative error");
+    let expected = |fa: f64, db: f64| fa * 1.6f64.powf(db);
+    for ((label, ratios, rel), (_, fa, db)) in sens.iter().zip(&variants) {
+        println!(
+            "{:<11} median s/s_true {:.3} (alpha' f^beta' / alpha f^beta at 1.6 Hz: {:.3})  dynScale rel {:5.2} %",
+            label,
+            median(ratios),
+            expected(*fa, *db),
+            100.0 * rel.iter().sum::<f64>() / rel.len().max(1) as f64
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,304 @@
+//! The tables 3.1-3.4 analogues on generated walking sequences.
+//!
+//! For each sequence (head / chest mount with pace changes and stops, frequent stops, stairs)
+//! and seed: the ground truth comes from [`crate::synth::Trajectory::walking`] at `fps`; the
+//! monocular estimate from [`emulate_monocular`] (pose noise, unknown global scale drawn
+//! log-uniformly in [0.2, 5] metres per unit, log-scale random walk); then four variants are
+//! evaluated on keyframes (every `keyframe_stride`-th frame) by normalised arc length:
+//! `unscaled` (the estimate), `optimSim3` (loop closure only), `dynScale` (Algorithm 1) and
+//! `dynScale+optimSim3` (loop closure on the rescaled estimate, keeping its metric scale by
+//! weak per-second scale priors). Also measured: step
+//! frequency error in windows of steady walking, stop detection, and the scale error of each
+//! walking section against the true local scale (geometric mean over its window).
+
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+
+use super::drift::{emulate_monocular, DriftModel, EmulatedRun};
+use super::dynscale::{DynScale, DynScaleConfig, DynScaleResult};
+use super::loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
+use super::metric::{arc_length_error, ArcLengthError};
+use super::ScaleError;
+use crate::io::trajectory::TimedPose;
+use crate::synth::trajectory::{Mount, PaceSegment, WalkingParams};
+use crate::synth::{Scene, Trajectory};
+
+/// A generated walking sequence.
+#[derive(Clone, Debug)]
+pub struct SequenceSpec {
+    /// Short name (`head`, `chest`, `stops`, `stairs`).
+    pub name: String,
+    /// Walking parameters (height, model, mount, schedule, stairs).
+    pub params: WalkingParams,
+    /// Duration, seconds.
+    pub duration: f64,
+}
+
+fn pace(schedule: &[(f64, f64)]) -> Vec<PaceSegment> {
+    schedule
+        .iter()
+        .map(|&(duration, frequency)| PaceSegment {
+            duration,
+            frequency,
+        })
+        .collect()
+}
+
+/// The standard set: `head` and `chest` (paces 1.6, 2.0, stop, 1.3, 1.8 steps/s, 8 s each),
+/// `stops` (head, 1.7 steps/s with 6 s stops every 8 s), `stairs` (head, 1.6 steps/s, 12
+/// risers of 0.17 m from 30 % of the duration). Walker height 1.80 m, Grieve's model.
+pub fn standard_sequences(duration: f64) -> Vec<SequenceSpec> {
+    let base = WalkingParams {
+        height: 1.80,
+        schedule: pace(&[(8.0, 1.6), (8.0, 2.0), (8.0, 0.0), (8.0, 1.3), (8.0, 1.8)]),
+        ..WalkingParams::default()
+    };
+    vec![
+        SequenceSpec {
+            name: "head".into(),
+            params: base.clone(),
+            duration,
+        },
+        SequenceSpec {
+            name: "chest".into(),
+            params: WalkingParams {
+                mount: Mount::Chest,
+                ..base.clone()
+            },
+            duration,
+        },
+        SequenceSpec {
+            name: "stops".into(),
+            params: WalkingParams {
+                schedule: pace(&[(8.0, 1.7), (6.0, 0.0)]),
+                ..base.clone()
+            },
+            duration,
+        },
+        SequenceSpec {
+            name: "stairs".into(),
+            params: WalkingParams {
+                schedule: pace(&[(1e9, 1.6)]),
+                stairs: Some((0.3 * duration, 12, 0.17)),
+                ..base
+            },
+            duration,
+        },
+    ]
+}
+
+/// Settings of one experiment run.
+#[derive(Clone, Debug)]
+pub struct ExperimentConfig {
+    /// Frame rate, frames per second.
+    pub fps: f64,
+    /// Keyframe stride for the pose graph and the error metric.
+    pub keyframe_stride: usize,
+    /// Scene preset whose free area the walker circles.
+    pub scene: String,
+    /// Drift model (its `initial_scale` and `seed` are replaced per seed).
+    pub drift: DriftModel,
+    /// Loop closures.
+    pub loops: LoopConfig,
+    /// Dynamic scale settings (the walking model's height is taken from the sequence unless
+    /// `keep_model` is set).
+    pub dynscale: DynScaleConfig,
+    /// Use `dynscale.model` as is (sensitivity runs).
+    pub keep_model: bool,
+    /// Points of the arc-length error.
+    pub samples: usize,
+}
+
+impl Default for ExperimentConfig {
+    fn default() -> Self {
+        ExperimentConfig {
+            fps: 30.0,
+            keyframe_stride: 3,
+            scene: "office".into(),
+            drift: DriftModel::default(),
+            loops: LoopConfig::default(),
+            dynscale: DynScaleConfig::new(1.80, 30.0),
+            keep_model: false,
+            samples: 1000,
+        }
+    }
+}
+
+/// The variants compared, in table order.
+pub const METHODS: [&str; 4] = ["unscaled", "optimSim3", "dynScale", "dynScale+optimSim3"];
+
+/// Results of one sequence and seed.
+#[derive(Clone, Debug)]
+pub struct RunReport {
+    /// Sequence name.
+    pub sequence: String,
+    /// Seed.
+    pub seed: u64,
+    /// The unknown global scale of the emulated estimate, metres per unit.
+    pub initial_scale: f64,
+    /// Number of loop closures.
+    pub loops: usize,
+    /// Per method (order of [`METHODS`]): metric error (rigid alignment).
+    pub metric: Vec<ArcLengthError>,
+    /// Per method: shape error (similarity alignment).
+    pub shape: Vec<ArcLengthError>,
+    /// |f_est - f_true| in windows of steady walking, Hz.
+    pub frequency_errors: Vec<f64>,
+    /// Windows at least 75 % standing, and how many were detected as not walking.
+    pub stop_windows: (usize, usize),
+    /// Windows entirely walking, and how many were wrongly detected as standing.
+    pub walk_windows: (usize, usize),
+    /// |s_est / s_true - 1| per walking section.
+    pub scale_errors: Vec<f64>,
+    /// The dynScale result (sections, scaled trajectory).
+    pub dynscale: DynScaleResult,
+    /// Emulated run (ground truth, estimate, true scales).
+    pub run: EmulatedRun,
+    /// True step frequency over time `(t, f)` at 10 Hz.
+    pub true_frequency: Vec<(f64, f64)>,
+}
+
+/// Runs one sequence with one seed.
+pub fn run_sequence(
+    spec: &SequenceSpec,
+    seed: u64,
+    cfg: &ExperimentConfig,
+) -> Result<RunReport, ScaleError> {
+    let scene = Scene::preset(&cfg.scene, seed).map_err(|e| ScaleError::InvalidParameter {
+        name: "scene",
+        why: e.to_string(),
+    })?;
+    let traj = Trajectory::walking(&scene, spec.params.clone(), spec.duration, seed);
+    let frames = (spec.duration * cfg.fps).floor() as usize;
+    let gt = traj.sample(frames, cfg.fps, 0.0);
+    let mut rng = Pcg64::seed_from_u64(seed ^ 0x51ca);
+    let initial_scale = 10f64.powf(rng.random_range(-0.7..0.7));
+    let drift = DriftModel {
+        initial_scale,
+        seed,
+        ..cfg.drift.clone()
+    };
+    let run = emulate_monocular(&gt, &drift);
+    let mut dcfg = cfg.dynscale.clone();
+    dcfg.fps = cfg.fps;
+    dcfg.seed = seed ^ 0xf11e;
+    if !cfg.keep_model {
+        dcfg.model.height = spec.params.height;
+    }
+    let dyn_result = DynScale::new(dcfg.clone())?.run(&run.est)?;
+
+    // Keyframes of every variant.
+    let kf: Vec<usize> = (0..run.est.len())
+        .step_by(cfg.keyframe_stride.max(1))
+        .collect();
+    let pick = |v: &[TimedPose]| -> Vec<TimedPose> { kf.iter().map(|&k| v[k]).collect() };
+    let gt_kf = pick(&run.gt);
+    let est_kf = pick(&run.est);
+    let dyn_kf = pick(&dyn_result.scaled);
+    let scale_kf: Vec<f64> = kf.iter().map(|&k| run.true_scale[k]).collect();
+    let dyn_scale_kf: Vec<f64> = kf
+        .iter()
+        .map(|&k| run.true_scale[k] / dyn_result.scale_at(run.est[k].timestamp))
+        .collect();
+    let loops = detect_loops_from_ground_truth(&gt_kf, &cfg.loops);
+    let sim3 = optim_sim3(&est_kf, &gt_kf, &scale_kf, &loops, &cfg.loops, None)?;
+    let dyn_sim3 = optim_sim3(
+        &dyn_kf,
+        &gt_kf,
+        &dyn_scale_kf,
+        &loops,
+        &cfg.loops,
+        Some(0.05),
+    )?;
+    let variants = [&est_kf, &sim3, &dyn_kf, &dyn_sim3];
+    let mut metric = Vec::new();
+    let mut shape = Vec::new();
+    for v in variants {
+        metric.push(arc_length_error(&gt_kf, v, cfg.samples, false)?);
+        shape.push(arc_length_error(&gt_kf, v, cfg.samples, true)?);
+    }
+
+    // Frequency, stops and scale per section (windows of full length only).
+    let p = &spec.params;
+    let (mut freq_err, mut stops, mut walks, mut scale_err) =
+        (Vec::new(), (0, 0), (0, 0), Vec::new());
+    for s in &dyn_result.sections {
+        if s.t_end - s.window_start < dcfg.window * 0.95 {
+            continue;
+        }
+        let n = ((s.t_end - s.window_start) * cfg.fps).round() as usize + 1;
+        let f: Vec<f64> = (0..n)
+            .map(|i| p.frequency_at(s.window_start + i as f64 / cfg.fps))
+            .collect();
+        let fmin = f.iter().cloned().fold(f64::INFINITY, f64::min);
+        let fmax = f.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let standing = f.iter().filter(|&&x| x <= 0.0).count() as f64 / n as f64;
+        if standing >= 0.75 {
+            stops.0 += 1;
+            stops.1 += usize::from(!s.walking);
+        }
+        if fmin > 0.0 {
+            walks.0 += 1;
+            walks.1 += usize::from(!s.walking);
+            if s.walking && fmax - fmin < 0.02 {
+                let mean = f.iter().sum::<f64>() / n as f64;
+                freq_err.push((s.analysis.frequency - mean).abs());
+            }
+        }
+        if s.walking && s.consistent {
+            let i0 = ((s.window_start - run.est[0].timestamp) * cfg.fps).round() as usize;
+            let i1 = (((s.t_end - run.est[0].timestamp) * cfg.fps).round() as usize)
+                .min(run.true_scale.len() - 1);
+            let ln_mean =
+                run.true_scale[i0..=i1].iter().map(|v| v.ln()).sum::<f64>() / (i1 + 1 - i0) as f64;
+            scale_err.push((s.scale / ln_mean.exp() - 1.0).abs());
+        }
+    }
+    let true_frequency = (0..(spec.duration * 10.0) as usize)
+        .map(|i| {
+            let t = i as f64 / 10.0;
+            (t, p.frequency_at(t))
+        })
+        .collect();
+    Ok(RunReport {
+        sequence: spec.name.clone(),
+        seed,
+        initial_scale,
+        loops: loops.len(),
+        metric,
+        shape,
+        frequency_errors: freq_err,
+        stop_windows: stops,
+        walk_windows: walks,
+        scale_errors: scale_err,
+        dynscale: dyn_result,
+        run,
+        true_frequency,
+    })
+}
+
+/// Median of `v` (NaN when empty).
+pub fn median(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let n = s.len();
+    if n % 2 == 1 {
+        s[n / 2]
+    } else {
+        0.5 * (s[n / 2 - 1] + s[n / 2])
+    }
+}
+
+/// Percentile `q` in [0, 1] of `v` (nearest rank; NaN when empty).
+pub fn percentile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let k = ((q * s.len() as f64).ceil() as usize).clamp(1, s.len()) - 1;
+    s[k]
+}

@@ -1,0 +1,240 @@
+//! Metric scale from walking (thesis ch. 3): spectrum, stop detection, filter, errors.
+
+use std::f64::consts::PI;
+
+use glam::{DQuat, DVec3};
+use rgbid::geometry::Se3;
+use rgbid::io::trajectory::{read_tum, TimedPose};
+use rgbid::scale::experiment::{run_sequence, standard_sequences, ExperimentConfig};
+use rgbid::scale::{
+    emulate_monocular, DriftModel, DynScale, DynScaleConfig, HighPass, ScaleError, SpectrumConfig,
+    StepAnalysis,
+};
+use rgbid::synth::{Scene, Trajectory};
+
+fn noise(k: usize) -> f64 {
+    // Deterministic pseudo-noise in [-1, 1].
+    let x = (k as f64 * 12.9898).sin() * 43758.5453;
+    2.0 * (x - x.floor()) - 1.0
+}
+
+#[test]
+fn known_frequencies_give_peak_within_005_hz() {
+    let fs = 30.0;
+    let cfg = SpectrumConfig::default();
+    for &f in &[1.05, 1.3, 1.62, 1.91, 2.25, 2.6, 2.95] {
+        let x: Vec<f64> = (0..900)
+            .map(|k| {
+                let t = k as f64 / fs;
+                0.1 * t + 0.02 * (2.0 * PI * f * t + 0.3).cos() + 0.003 * noise(k)
+            })
+            .collect();
+        let y = HighPass::filter_signal(0.7, fs, &x).unwrap();
+        for start in [150, 400, 780] {
+            let a = StepAnalysis::analyze(&y[start..start + 120], fs, &cfg).unwrap();
+            assert!(
+                (a.frequency - f).abs() < 0.05,
+                "f {f}: peak {} at {start}",
+                a.frequency
+            );
+            assert!(a.is_walking(&cfg, Some(1.0)), "{a:?}");
+            assert!(
+                (a.amplitude - 0.02).abs() < 0.006,
+                "amplitude {}",
+                a.amplitude
+            );
+        }
+    }
+}
+
+#[test]
+fn standing_is_not_walking() {
+    let fs = 30.0;
+    let cfg = SpectrumConfig::default();
+    // Standing: drift + sensor noise, no oscillation.
+    let x: Vec<f64> = (0..300)
+        .map(|k| 0.001 * k as f64 / fs + 0.002 * noise(k))
+        .collect();
+    let y = HighPass::filter_signal(0.7, fs, &x).unwrap();
+    let a = StepAnalysis::analyze(&y[150..270], fs, &cfg).unwrap();
+    assert!(
+        !a.is_walking(&cfg, Some(1.0)),
+        "noise detected as walking: {a:?}"
+    );
+    // A tiny oscillation (0.5 mm): below A_z- once the scale is known.
+    let x: Vec<f64> = (0..300)
+        .map(|k| 0.0005 * (2.0 * PI * 1.7 * k as f64 / fs).sin())
+        .collect();
+    let y = HighPass::filter_signal(0.7, fs, &x).unwrap();
+    let a = StepAnalysis::analyze(&y[150..270], fs, &cfg).unwrap();
+    assert!(!a.is_walking(&cfg, Some(1.0)) && a.is_walking(&cfg, Some(20.0)));
+}
+
+fn walk(seed: u64, duration: f64) -> (Vec<TimedPose>, rgbid::synth::trajectory::WalkingParams) {
+    let spec = &standard_sequences(duration)[0];
+    let scene = Scene::preset("office", seed).unwrap();
+    let traj = Trajectory::walking(&scene, spec.params.clone(), duration, seed);
+    (
+        traj.sample((duration * 30.0) as usize, 30.0, 0.0),
+        spec.params.clone(),
+    )
+}
+
+#[test]
+fn constant_scale_is_recovered_on_a_generated_walk() {
+    let (gt, params) = walk(4, 40.0);
+    let truth = 0.37; // metres per SLAM unit
+    let run = emulate_monocular(
+        &gt,
+        &DriftModel {
+            initial_scale: truth,
+            drift: 0.0,
+            ..DriftModel::default()
+        },
+    );
+    let mut cfg = DynScaleConfig::new(params.height, 30.0);
+    cfg.filter.particles = 2000;
+    let r = DynScale::new(cfg).unwrap().run(&run.est).unwrap();
+    let walking: Vec<f64> = r
+        .sections
+        .iter()
+        .filter(|s| s.walking)
+        .map(|s| s.scale)
+        .collect();
+    assert!(
+        walking.len() > 20,
+        "only {} walking sections",
+        walking.len()
+    );
+    let last = walking[walking.len() - 1];
+    let med = rgbid::scale::experiment::median(&walking[5..]);
+    assert!(
+        (med / truth - 1.0).abs() < 0.04,
+        "median scale {med} vs {truth}"
+    );
+    assert!(
+        (last / truth - 1.0).abs() < 0.08,
+        "final scale {last} vs {truth}"
+    );
+    // Scaled trajectory length matches the truth.
+    let len = |v: &[TimedPose]| {
+        v.windows(2)
+            .map(|w| {
+                (w[1].world_from_camera.translation - w[0].world_from_camera.translation).length()
+            })
+            .sum::<f64>()
+    };
+    let ratio = len(&r.scaled) / len(&gt);
+    assert!((ratio - 1.0).abs() < 0.06, "scaled/true length {ratio}");
+}
+
+#[test]
+fn head_walk_with_drift_beats_unscaled_and_finds_frequency_and_stops() {
+    let spec = &standard_sequences(48.0)[0];
+    let mut cfg = ExperimentConfig::default();
+    cfg.dynscale.filter.particles = 2000;
+    let r = run_sequence(spec, 2, &cfg).unwrap();
+    let n = r.frequency_errors.len();
+    assert!(n > 10, "{n} steady windows");
+    let within = r.frequency_errors.iter().filter(|e| **e < 0.05).count();
+    assert!(
+        within as f64 >= 0.9 * n as f64,
+        "{within}/{n} within 0.05 Hz: {:?}",
+        r.frequency_errors
+    );
+    assert!(
+        r.stop_windows.0 >= 2 && r.stop_windows.1 == r.stop_windows.0,
+        "stops {:?}",
+        r.stop_windows
+    );
+    assert!(
+        r.walk_windows.1 * 10 <= r.walk_windows.0,
+        "false stops {:?}",
+        r.walk_windows
+    );
+    let (un, dy) = (&r.metric[0], &r.metric[2]);
+    assert!(
+        dy.relative < 0.5 * un.relative.max(0.02),
+        "dynScale {} vs unscaled {}",
+        dy.relative,
+        un.relative
+    );
+    assert!(dy.relative < 0.1, "dynScale relative error {}", dy.relative);
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("bad.txt");
+    std::fs::write(
+        &p,
+        "# t x y z qx qy qz qw\n0.0 0 0 0 0 0 0 1\n0.1 0 zero 0 0 0 0 1\n",
+    )
+    .unwrap();
+    let e = read_tum(&p).unwrap_err().to_string();
+    assert!(e.contains(":3:") && e.contains("not a number"), "{e}");
+    std::fs::write(&p, "# nothing\n").unwrap();
+    assert!(read_tum(&p).is_err());
+    let ds = DynScale::new(DynScaleConfig::new(1.8, 30.0)).unwrap();
+    assert!(matches!(ds.run(&[]), Err(ScaleError::TooShort { .. })));
+    let pose = |t: f64| TimedPose {
+        timestamp: t,
+        world_from_camera: Se3::new(DQuat::IDENTITY, DVec3::ZERO),
+    };
+    let v = vec![pose(0.0), pose(1.0), pose(1.0)];
+    assert!(matches!(ds.run(&v), Err(ScaleError::BadTimestamps(_))));
+    let v: Vec<TimedPose> = (0..30).map(|k| pose(k as f64 / 30.0)).collect();
+    assert!(matches!(ds.run(&v), Err(ScaleError::TooShort { .. })));
+    // Long enough but never walking: the scale is unobservable.
+    let v: Vec<TimedPose> = (0..300).map(|k| pose(k as f64 / 30.0)).collect();
+    assert!(
+        matches!(ds.run(&v), Err(ScaleError::NoWalking { .. })),
+        "{:?}",
+        ds.run(&v).err()
+    );
+    assert!(DynScale::new(DynScaleConfig {
+        window: 0.1,
+        ..DynScaleConfig::new(1.8, 30.0)
+    })
+    .is_err());
+    assert!(rgbid::scale::UpAxis::parse("w").is_err());
+}
+
+#[test]
+fn recursive_scaling_is_continuous_and_landmarks_follow_their_anchor() {
+    let (gt, params) = walk(6, 30.0);
+    let run = emulate_monocular(
+        &gt,
+        &DriftModel {
+            initial_scale: 2.0,
+            drift: 0.05,
+            ..DriftModel::default()
+        },
+    );
+    let mut cfg = DynScaleConfig::new(params.height, 30.0);
+    cfg.filter.particles = 1000;
+    cfg.up = rgbid::scale::UpAxis::parse("auto").unwrap();
+    let r = DynScale::new(cfg).unwrap().run(&run.est).unwrap();
+    // The plane-fit up axis is close to the first camera's -y (pitch ~0.1 rad).
+    let up = DVec3::from_array(r.up);
+    assert!(up.dot(DVec3::NEG_Y).abs() > 0.97, "up {up:?}");
+    for w in r.sections.windows(2) {
+        let t = w[1].t_start;
+        let p = rgbid::scale::dynscale::interpolate_position(&run.est, t);
+        let before = DVec3::from_array(w[0].origin_scaled)
+            + w[0].scale * (p - DVec3::from_array(w[0].origin_raw));
+        let after = r.scale_position(t + 1e-9, p);
+        assert!(
+            (before - after).length() < 1e-6,
+            "jump at {t}: {before:?} vs {after:?}"
+        );
+    }
+    let t = 12.3;
+    let s = r.scale_at(t);
+    let v = r.scale_velocity(t, DVec3::new(0.5, 0.0, 0.0));
+    assert!((v.x - 0.5 * s).abs() < 1e-12);
+    let x = DVec3::new(1.0, 2.0, 3.0);
+    let a = r.scale_landmark(t, x);
+    let b = r.scale_position(t, x);
+    assert_eq!(a, b);
+}
