@@ -725,7 +725,7 @@ impl MonoSlam {
         // Emptiest cells first, ties in random order.
         let mut order: Vec<(usize, u64)> = (0..gx * gy).map(|c| (c, self.rng.random())).collect();
         order.sort_by_key(|&(c, r)| (counts[c], r));
-        let min_dist2 = (2.0 * self.config.big_patch_half as f64).powi(2);
+        let min_dist2 = self.config.min_feature_distance.powi(2);
         let mut taken: Vec<DVec2> = predicted;
         let mut added = 0;
         let mut rounds = 0;

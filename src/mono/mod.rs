@@ -154,6 +154,8 @@ pub struct MonoConfig {
     pub fast_threshold: f32,
     /// Grid of cells (columns, rows) used to find sparsely populated image areas.
     pub grid: (usize, usize),
+    /// Smallest distance between a new feature and any predicted one, pixels.
+    pub min_feature_distance: f64,
     /// Inlier threshold of 1-point RANSAC, pixels.
     pub ransac_threshold: f64,
     /// Probability that 1-point RANSAC draws at least one all-inlier hypothesis.
@@ -187,6 +189,7 @@ impl Default for MonoConfig {
             max_search_half: 30.0,
             fast_threshold: 20.0,
             grid: (4, 4),
+            min_feature_distance: 12.0,
             ransac_threshold: 2.0,
             ransac_confidence: 0.99,
             max_unmatched_frames: 15,
@@ -216,6 +219,7 @@ impl MonoConfig {
         pos("sigma_inverse_depth", self.sigma_inverse_depth)?;
         pos("max_search_half", self.max_search_half)?;
         pos("ransac_threshold", self.ransac_threshold)?;
+        pos("min_feature_distance", self.min_feature_distance)?;
         if !(self.k_lim.is_finite() && self.k_lim >= 1.0) {
             return Err(MonoError::InvalidConfig {
                 name: "k_lim",
