@@ -44,6 +44,8 @@ enum Command {
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
+    /// Monocular EKF SLAM for pinhole, fisheye and catadioptric cameras (unified model).
+    Mono(Box<cli::mono::Args>),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -75,6 +77,7 @@ fn run(command: Command) -> Result<()> {
         Command::Vocab(c) => cli::vocab::run(c),
         Command::Segment(a) => cli::segment::run(a),
         Command::Graph(c) => cli::graph::run(c),
+        Command::Mono(a) => cli::mono::run(*a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

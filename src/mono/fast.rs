@@ -40,17 +40,21 @@ pub struct Corner {
 /// `(x, y)` at least 3 pixels from the border.
 pub fn fast_score(img: &ImageF32, x: usize, y: usize, t: f32) -> Option<f32> {
     let c = img.at(x, y);
-    let mut vals = [0.0f32; 16];
-    for (k, (dx, dy)) in CIRCLE.iter().enumerate() {
-        vals[k] = img.at((x as i32 + dx) as usize, (y as i32 + dy) as usize);
-    }
+    let at = |k: usize| {
+        let (dx, dy) = CIRCLE[k];
+        img.at((x as i32 + dx) as usize, (y as i32 + dy) as usize)
+    };
     // Quick rejection: any arc of 9 contiguous circle pixels covers at least 2 of the 4
     // compass points.
-    let compass = [vals[0], vals[4], vals[8], vals[12]];
+    let compass = [at(0), at(4), at(8), at(12)];
     let bright = compass.iter().filter(|v| **v > c + t).count();
     let dark = compass.iter().filter(|v| **v < c - t).count();
     if bright < 2 && dark < 2 {
         return None;
+    }
+    let mut vals = [0.0f32; 16];
+    for (k, v) in vals.iter_mut().enumerate() {
+        *v = at(k);
     }
     let mut best: Option<f32> = None;
     for sign in [1.0f32, -1.0] {

@@ -642,12 +642,40 @@ impl MonoSlam {
             nu[2 * j] = b.z.x - p.uv.x;
             nu[2 * j + 1] = b.z.y - p.uv.y;
         }
-        // K = P H^T S^-1 computed as (S^-1 (P H^T)^T)^T.
-        let kt = chol.solve(&pht.transpose());
-        let dx = kt.transpose() * nu;
-        self.cov.gemm(-1.0, &pht, &kt, 1.0);
-        let sym = (&self.cov + self.cov.transpose()) * 0.5;
-        self.cov = sym;
+        // With S = L L^T and W = P H^T L^-T: K nu = W L^-1 nu and
+        // P - K S K^T = P - W W^T, a symmetric rank-2m update (the O(n^2 m) step): only the
+        // lower triangle is computed, by blocks of columns in parallel, then mirrored.
+        let l = chol.l();
+        let Some(wt) = l.solve_lower_triangular(&pht.transpose()) else {
+            return Err(MonoError::Diverged("singular innovation covariance".into()));
+        };
+        let Some(lnu) = l.solve_lower_triangular(&nu) else {
+            return Err(MonoError::Diverged("singular innovation covariance".into()));
+        };
+        let dx = wt.transpose() * lnu;
+        let w = wt.transpose();
+        let block = n.div_ceil(8 * rayon::current_num_threads().max(1)).max(16);
+        self.cov
+            .as_mut_slice()
+            .par_chunks_mut(n * block)
+            .enumerate()
+            .for_each(|(b, chunk)| {
+                let c0 = b * block;
+                let nc = chunk.len() / n;
+                let mut view = nalgebra::DMatrixViewMut::from_slice(chunk, n, nc);
+                let mut lower = view.rows_mut(c0, n - c0);
+                lower.gemm(
+                    -1.0,
+                    &w.rows(c0, n - c0),
+                    &wt.columns(c0, nc),
+                    1.0,
+                );
+            });
+        for c in 0..n {
+            for r in 0..c {
+                self.cov[(r, c)] = self.cov[(c, r)];
+            }
+        }
         self.state = self.state.corrected(&dx.as_slice()[..CAMERA_DIM]);
         for (i, f) in self.features.iter_mut().enumerate() {
             let o = landmark_offset(i);
@@ -691,7 +719,6 @@ impl MonoSlam {
 
     /// Initialises new landmarks at FAST corners in cells without predicted landmarks.
     fn initialise_features(&mut self, image: &ImageF32, first: bool) -> usize {
-        let margin = (self.config.big_patch_half + 2) as f64;
         let predicted: Vec<DVec2> = self
             .features
             .iter()
@@ -713,61 +740,72 @@ impl MonoSlam {
         .min(self.config.max_landmarks - self.features.len());
         let (gx, gy) = self.config.grid;
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
-        let mut counts = vec![0usize; gx * gy];
         let cell_of = |uv: DVec2| {
             let cx = ((uv.x.max(0.0) / w as f64) * gx as f64) as usize;
             let cy = ((uv.y.max(0.0) / h as f64) * gy as f64) as usize;
             cy.min(gy - 1) * gx + cx.min(gx - 1)
         };
+        let mut counts = vec![0usize; gx * gy];
         for uv in &predicted {
             counts[cell_of(*uv)] += 1;
         }
-        // Emptiest cells first, ties in random order.
+        // FAST per cell, computed when the cell is first visited (emptiest cells first),
+        // corners whose big patch sees the scene, sorted by score.
+        let m = self.config.big_patch_half + 2;
+        let r = self.config.big_patch_half;
+        let threshold = self.config.fast_threshold;
+        let mut cells: Vec<Option<Vec<DVec2>>> = vec![None; gx * gy];
+        // Emptiest cells first, ties in random order; one feature per cell per round.
         let mut order: Vec<(usize, u64)> = (0..gx * gy).map(|c| (c, self.rng.random())).collect();
         order.sort_by_key(|&(c, r)| (counts[c], r));
         let min_dist2 = self.config.min_feature_distance.powi(2);
         let mut taken: Vec<DVec2> = predicted;
         let mut added = 0;
-        let mut rounds = 0;
-        while added < budget && rounds < 3 {
-            rounds += 1;
+        loop {
             let before = added;
             for &(c, _) in &order {
                 if added >= budget {
                     break;
                 }
-                let (cx, cy) = (c % gx, c / gx);
-                let rect = (cx * w / gx, cy * h / gy, (cx + 1) * w / gx, (cy + 1) * h / gy);
-                let mask = &self.mask;
-                let corners = fast::detect(image, rect, self.config.fast_threshold, |x, y| {
-                    let m = margin as usize;
-                    x >= m && y >= m && x + m < w && y + m < h && {
-                        // The whole big patch must see the scene.
-                        let r = self.config.big_patch_half;
-                        mask[y * w + x]
+                if cells[c].is_none() {
+                    let (cx, cy) = (c % gx, c / gx);
+                    let rect = (cx * w / gx, cy * h / gy, (cx + 1) * w / gx, (cy + 1) * h / gy);
+                    let mask = &self.mask;
+                    let mut found = fast::detect(image, rect, threshold, |x, y| {
+                        x >= m
+                            && y >= m
+                            && x + m < w
+                            && y + m < h
+                            && mask[y * w + x]
                             && mask[(y - r) * w + x - r]
                             && mask[(y - r) * w + x + r]
                             && mask[(y + r) * w + x - r]
                             && mask[(y + r) * w + x + r]
-                    }
-                });
-                let best = corners
-                    .iter()
-                    .filter(|k| {
-                        let uv = DVec2::new(k.x as f64, k.y as f64);
-                        taken.iter().all(|t| (*t - uv).length_squared() > min_dist2)
-                    })
-                    .max_by(|a, b| a.score.total_cmp(&b.score));
-                let Some(best) = best else {
+                    });
+                    found.sort_by(|a, b| b.score.total_cmp(&a.score));
+                    cells[c] = Some(
+                        found
+                            .iter()
+                            .map(|k| DVec2::new(k.x as f64, k.y as f64))
+                            .collect(),
+                    );
+                }
+                let Some(list) = cells[c].as_mut() else {
                     continue;
                 };
-                let uv = DVec2::new(best.x as f64, best.y as f64);
-                if self.add_feature(image, uv) {
-                    taken.push(uv);
-                    added += 1;
+                while let Some(pos) = list
+                    .iter()
+                    .position(|uv| taken.iter().all(|t| (*t - *uv).length_squared() > min_dist2))
+                {
+                    let uv = list.remove(pos);
+                    if self.add_feature(image, uv) {
+                        taken.push(uv);
+                        added += 1;
+                        break;
+                    }
                 }
             }
-            if added == before {
+            if added == before || added >= budget {
                 break;
             }
         }
