@@ -11,9 +11,9 @@
 //! remaining matches that are compatible (95 % gate) after the first ("rescued"
 //! high-innovation inliers); map management: a landmark unmatched for
 //! `max_unmatched_frames` consecutive frames, or matched in fewer than half of at least 10
-//! attempts, leaves the state; if it is then a well-conditioned 3D point (linearity index
-//! below `point_linearity`) it joins the fixed map, otherwise (a ray, little parallax) it is
-//! dropped; new landmarks at FAST corners in image cells without predicted landmarks.
+//! attempts, leaves the state; if it is then a 3D point (its inverse depth bounded away
+//! from zero, `rho > point_sigmas * sigma_rho`) it joins the fixed map, otherwise (a ray:
+//! too little parallax, depth still compatible with infinity) it is dropped; new landmarks at FAST corners in image cells without predicted landmarks.
 //!
 //! Statistics of table 2.1 ([`MonoStats`]): FI, features initialised; Rm, successful matches
 //! per initialised feature; Rf, features that became 3D map points per initialised feature.
@@ -226,11 +226,19 @@ impl MonoSlam {
         self.cov[(o, o)].max(0.0).sqrt()
     }
 
-    fn is_point(&self, i: usize) -> bool {
-        self.features[i]
-            .landmark
-            .linearity_index(self.sigma_rho(i), self.state.position)
-            < self.config.point_linearity
+    /// True when landmark `i` has a bounded depth (a 3D point), false for a ray.
+    pub fn is_point(&self, i: usize) -> bool {
+        i < self.features.len()
+            && self.features[i].landmark.rho > self.config.point_sigmas * self.sigma_rho(i)
+    }
+
+    /// Linearity index of landmark `i` at the current camera (see
+    /// [`InverseDepthLandmark::linearity_index`]); infinite for an unknown index.
+    pub fn linearity_index(&self, i: usize) -> f64 {
+        self.features.get(i).map_or(f64::INFINITY, |f| {
+            f.landmark
+                .linearity_index(self.sigma_rho(i), self.state.position)
+        })
     }
 
     /// Processes one grey image (intensity in `[0, 255]`) taken at `timestamp` seconds.

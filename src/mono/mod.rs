@@ -163,9 +163,9 @@ pub struct MonoConfig {
     /// Consecutive frames a landmark may go unmatched (while predicted visible or not)
     /// before it is moved out of the state into the fixed map.
     pub max_unmatched_frames: usize,
-    /// Linearity index below which an inverse-depth landmark counts as a 3D point rather
-    /// than a ray (Civera et al. 2008), dimensionless.
-    pub point_linearity: f64,
+    /// A landmark counts as a 3D point (bounded depth) rather than a ray (depth still
+    /// compatible with infinity) when `rho > point_sigmas * sigma_rho`; 2 is the 95 % bound.
+    pub point_sigmas: f64,
     /// Seed of the RANSAC sampling.
     pub seed: u64,
 }
@@ -193,7 +193,7 @@ impl Default for MonoConfig {
             ransac_threshold: 2.0,
             ransac_confidence: 0.99,
             max_unmatched_frames: 15,
-            point_linearity: 0.1,
+            point_sigmas: 2.0,
             seed: 1,
         }
     }
@@ -220,6 +220,7 @@ impl MonoConfig {
         pos("max_search_half", self.max_search_half)?;
         pos("ransac_threshold", self.ransac_threshold)?;
         pos("min_feature_distance", self.min_feature_distance)?;
+        pos("point_sigmas", self.point_sigmas)?;
         if !(self.k_lim.is_finite() && self.k_lim >= 1.0) {
             return Err(MonoError::InvalidConfig {
                 name: "k_lim",
