@@ -47,7 +47,13 @@ fn bad_folders_and_files_give_errors() {
         let e = ImageSequence::open(&bad).expect_err(what);
         match what {
             "time" => assert!(matches!(e, MonoError::NonIncreasingTime { .. }), "{e}"),
-            _ => assert!(matches!(e, MonoError::Parse { line: 2.., .. } | MonoError::Parse { line: 1, .. }), "{e}"),
+            _ => assert!(
+                matches!(
+                    e,
+                    MonoError::Parse { line: 2.., .. } | MonoError::Parse { line: 1, .. }
+                ),
+                "{e}"
+            ),
         }
     }
     // A corrupt image: listed fine, fails to decode with the path in the message.
@@ -119,7 +125,10 @@ fn cli_runs_on_an_image_only_folder() {
     let cam_file = tmp.path().join("camera.txt");
     std::fs::write(
         &cam_file,
-        format!("{} {} {} {} {} {}\n", c.xi, c.gamma, c.cx, c.cy, c.width, c.height),
+        format!(
+            "{} {} {} {} {} {}\n",
+            c.xi, c.gamma, c.cx, c.cy, c.width, c.height
+        ),
     )
     .unwrap();
     write_tum(&seq.join("groundtruth.txt"), &frames.ground_truth).unwrap();
@@ -134,7 +143,11 @@ fn cli_runs_on_an_image_only_folder() {
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "{stdout}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     assert!(stdout.contains("ATE after Sim(3) alignment"), "{stdout}");
     assert!(stdout.contains("ms/frame"), "{stdout}");
     let traj = read_tum(&out).unwrap();
@@ -148,7 +161,9 @@ fn cli_runs_on_an_image_only_folder() {
     std::fs::write(seq.join("rgb.txt"), list).unwrap();
     let s = ImageSequence::open(&seq).unwrap();
     assert_eq!(s.len(), frames.images.len());
-    assert!(s.frames[0].1.ends_with(format!("images/{:.6}.png", frames.images[0].0)));
+    assert!(s.frames[0]
+        .1
+        .ends_with(format!("images/{:.6}.png", frames.images[0].0)));
     let o = Command::new(exe)
         .args(["mono", seq.to_str().unwrap(), "--camera"])
         .arg(&cam_file)

@@ -319,7 +319,9 @@ fn table21(args: &Args) -> Result<()> {
         spec.seed,
         t0.elapsed().as_secs_f64()
     );
-    println!("FI = features initialised, Rm = matches per feature, Rf = 3D map features per feature");
+    println!(
+        "FI = features initialised, Rm = matches per feature, Rf = 3D map features per feature"
+    );
     println!(
         "{:<8} {:>6} {:>6} {:>7} {:>7} {:>10} {:>8}",
         "patch", "zncc", "FI", "Rm", "Rf", "ATE [m]", "ms/frame"
@@ -338,7 +340,8 @@ fn table21(args: &Args) -> Result<()> {
             };
             let line = match run_synthetic(&frames, &cfg) {
                 Ok(r) => {
-                    let mut t: Vec<f64> = r.reports.iter().skip(1).map(|x| x.times.total()).collect();
+                    let mut t: Vec<f64> =
+                        r.reports.iter().skip(1).map(|x| x.times.total()).collect();
                     format!(
                         "{:<8} {:>6.2} {:>6} {:>7.2} {:>7.3} {:>10.4} {:>8.2}",
                         format!("{mode:?}").to_lowercase(),

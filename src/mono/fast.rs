@@ -178,7 +178,12 @@ mod tests {
             }
         }
         assert!(detect(&edge, (0, 0, w, h), 20.0, |_, _| true).is_empty());
-        assert!(detect(&ImageF32::filled(w, h, 9.0), (0, 0, w, h), 20.0, |_, _| true).is_empty());
+        assert!(
+            detect(&ImageF32::filled(w, h, 9.0), (0, 0, w, h), 20.0, |_, _| {
+                true
+            })
+            .is_empty()
+        );
         // The keep mask is honoured.
         assert!(detect(&img, (0, 0, w, h), 20.0, |x, _| x < 10).is_empty());
     }

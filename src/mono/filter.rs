@@ -373,7 +373,10 @@ impl MonoSlam {
             && s.angular_velocity.is_finite()
             && self.features.iter().all(|f| {
                 let l = &f.landmark;
-                l.anchor.is_finite() && l.theta.is_finite() && l.phi.is_finite() && l.rho.is_finite()
+                l.anchor.is_finite()
+                    && l.theta.is_finite()
+                    && l.phi.is_finite()
+                    && l.rho.is_finite()
             })
     }
 
@@ -394,7 +397,9 @@ impl MonoSlam {
         if n > 12 {
             let pcf = self.cov.view((0, 12), (12, n - 12)).clone_owned();
             let new_cf = &fd * pcf;
-            self.cov.view_mut((12, 0), (n - 12, 12)).copy_from(&new_cf.transpose());
+            self.cov
+                .view_mut((12, 0), (n - 12, 12))
+                .copy_from(&new_cf.transpose());
             self.cov.view_mut((0, 12), (12, n - 12)).copy_from(&new_cf);
         }
     }
@@ -421,7 +426,10 @@ impl MonoSlam {
 
     fn in_image(&self, uv: DVec2, margin: f64) -> bool {
         let (w, h) = (f64::from(self.camera.width), f64::from(self.camera.height));
-        if !(uv.x >= margin && uv.y >= margin && uv.x <= w - 1.0 - margin && uv.y <= h - 1.0 - margin)
+        if !(uv.x >= margin
+            && uv.y >= margin
+            && uv.x <= w - 1.0 - margin
+            && uv.y <= h - 1.0 - margin)
         {
             return false;
         }
@@ -478,10 +486,20 @@ impl MonoSlam {
             }
         };
         let si = s.try_inverse()?;
-        let rx = (CHI2_95_2DOF * s[(0, 0)]).sqrt().min(self.config.max_search_half);
-        let ry = (CHI2_95_2DOF * s[(1, 1)]).sqrt().min(self.config.max_search_half);
-        let (x0, x1) = ((pred.uv.x - rx).floor() as i64, (pred.uv.x + rx).ceil() as i64);
-        let (y0, y1) = ((pred.uv.y - ry).floor() as i64, (pred.uv.y + ry).ceil() as i64);
+        let rx = (CHI2_95_2DOF * s[(0, 0)])
+            .sqrt()
+            .min(self.config.max_search_half);
+        let ry = (CHI2_95_2DOF * s[(1, 1)])
+            .sqrt()
+            .min(self.config.max_search_half);
+        let (x0, x1) = (
+            (pred.uv.x - rx).floor() as i64,
+            (pred.uv.x + rx).ceil() as i64,
+        );
+        let (y0, y1) = (
+            (pred.uv.y - ry).floor() as i64,
+            (pred.uv.y + ry).ceil() as i64,
+        );
         let (bw, bh) = ((x1 - x0 + 1) as usize, (y1 - y0 + 1) as usize);
         let mut scores = vec![f64::NEG_INFINITY; bw * bh];
         let mut best = (f64::NEG_INFINITY, 0usize, 0usize);
@@ -618,7 +636,8 @@ impl MonoSlam {
         }
         let mut pht = DMatrix::zeros(n, m2);
         for (j, (b, p)) in batch.iter().zip(&preds).enumerate() {
-            pht.columns_mut(2 * j, 2).copy_from(&self.p_ht(b.feature, p));
+            pht.columns_mut(2 * j, 2)
+                .copy_from(&self.p_ht(b.feature, p));
         }
         let mut s = DMatrix::zeros(m2, m2);
         for (j, (b, p)) in batch.iter().zip(&preds).enumerate() {
@@ -672,12 +691,7 @@ impl MonoSlam {
                 let nc = chunk.len() / n;
                 let mut view = nalgebra::DMatrixViewMut::from_slice(chunk, n, nc);
                 let mut lower = view.rows_mut(c0, n - c0);
-                lower.gemm(
-                    -1.0,
-                    &w.rows(c0, n - c0),
-                    &wt.columns(c0, nc),
-                    1.0,
-                );
+                lower.gemm(-1.0, &w.rows(c0, n - c0), &wt.columns(c0, nc), 1.0);
             });
         for c in 0..n {
             for r in 0..c {
@@ -777,7 +791,12 @@ impl MonoSlam {
                 }
                 if cells[c].is_none() {
                     let (cx, cy) = (c % gx, c / gx);
-                    let rect = (cx * w / gx, cy * h / gy, (cx + 1) * w / gx, (cy + 1) * h / gy);
+                    let rect = (
+                        cx * w / gx,
+                        cy * h / gy,
+                        (cx + 1) * w / gx,
+                        (cy + 1) * h / gy,
+                    );
                     let mask = &self.mask;
                     let mut found = fast::detect(image, rect, threshold, |x, y| {
                         x >= m
@@ -801,10 +820,11 @@ impl MonoSlam {
                 let Some(list) = cells[c].as_mut() else {
                     continue;
                 };
-                while let Some(pos) = list
-                    .iter()
-                    .position(|uv| taken.iter().all(|t| (*t - *uv).length_squared() > min_dist2))
-                {
+                while let Some(pos) = list.iter().position(|uv| {
+                    taken
+                        .iter()
+                        .all(|t| (*t - *uv).length_squared() > min_dist2)
+                }) {
                     let uv = list.remove(pos);
                     if self.add_feature(image, uv) {
                         taken.push(uv);
@@ -852,9 +872,8 @@ impl MonoSlam {
         let pcc = self.cov.view((0, 0), (6, 6)).clone_owned();
         let sp = self.config.sigma_pixel * self.config.sigma_pixel;
         let sr = self.config.sigma_inverse_depth * self.config.sigma_inverse_depth;
-        let block = &jc * pcc * jc.transpose()
-            + &ju * ju.transpose() * sp
-            + &jr * jr.transpose() * sr;
+        let block =
+            &jc * pcc * jc.transpose() + &ju * ju.transpose() * sp + &jr * jr.transpose() * sr;
         let mut cov = DMatrix::zeros(n + 6, n + 6);
         cov.view_mut((0, 0), (n, n)).copy_from(&self.cov);
         cov.view_mut((n, 0), (6, n)).copy_from(&cross);

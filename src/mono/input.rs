@@ -179,7 +179,8 @@ pub fn unified_from_model(model: &CameraModel) -> Result<UnifiedCamera, MonoErro
             UnifiedCamera::new(0.0, p.fx, p.cx, p.cy, p.width, p.height)
         }
     };
-    cam.validate().map_err(|e| MonoError::Camera(e.to_string()))?;
+    cam.validate()
+        .map_err(|e| MonoError::Camera(e.to_string()))?;
     Ok(cam)
 }
 
@@ -204,7 +205,8 @@ pub fn parse_camera(text: &str, path: &Path) -> Result<UnifiedCamera, MonoError>
             line: e.line(),
             message: format!("not a camera model: {e}"),
         })?;
-        cam.validate().map_err(|e| MonoError::Camera(e.to_string()))?;
+        cam.validate()
+            .map_err(|e| MonoError::Camera(e.to_string()))?;
         return Ok(cam);
     }
     for (k, line) in text.lines().enumerate() {
@@ -227,7 +229,7 @@ pub fn parse_camera(text: &str, path: &Path) -> Result<UnifiedCamera, MonoError>
             });
         }
         let size = |x: f64| {
-            (x.fract() == 0.0 && x >= 1.0 && x <= 65535.0)
+            (x.fract() == 0.0 && (1.0..=65535.0).contains(&x))
                 .then_some(x as u32)
                 .ok_or_else(|| MonoError::Parse {
                     path: path.to_path_buf(),
@@ -238,7 +240,8 @@ pub fn parse_camera(text: &str, path: &Path) -> Result<UnifiedCamera, MonoError>
         let mut cam = UnifiedCamera::new(v[0], v[1], v[2], v[3], size(v[4])?, size(v[5])?);
         cam.fov_radius = v.get(6).copied();
         cam.inner_radius = v.get(7).copied();
-        cam.validate().map_err(|e| MonoError::Camera(e.to_string()))?;
+        cam.validate()
+            .map_err(|e| MonoError::Camera(e.to_string()))?;
         return Ok(cam);
     }
     Err(MonoError::Parse {
@@ -257,10 +260,9 @@ mod tests {
         let p = Path::new("cam.txt");
         let c = parse_camera("# omni\n0.9 120 199.5 199.5 400 400 188 32\n", p).unwrap();
         assert_eq!((c.xi, c.width, c.fov_radius), (0.9, 400, Some(188.0)));
-        let json = serde_json::to_string(&CameraModel::Unified(UnifiedCamera::catadioptric(
-            400, 400,
-        )))
-        .unwrap();
+        let json =
+            serde_json::to_string(&CameraModel::Unified(UnifiedCamera::catadioptric(400, 400)))
+                .unwrap();
         assert_eq!(
             parse_camera(&json, p).unwrap(),
             UnifiedCamera::catadioptric(400, 400)
@@ -271,11 +273,26 @@ mod tests {
         let bad = crate::camera::PinholeCamera::new(300.0, 310.0, 159.5, 119.5, 320, 240);
         let json = serde_json::to_string(&CameraModel::Pinhole(bad)).unwrap();
         assert!(matches!(parse_camera(&json, p), Err(MonoError::Camera(_))));
-        assert!(matches!(parse_camera("0.9 120 1 2 400", p), Err(MonoError::Parse { .. })));
-        assert!(matches!(parse_camera("a b c", p), Err(MonoError::Parse { .. })));
-        assert!(matches!(parse_camera("0.9 120 1 2 400.5 400", p), Err(MonoError::Parse { .. })));
-        assert!(matches!(parse_camera("-1 120 1 2 400 400", p), Err(MonoError::Camera(_))));
-        assert!(matches!(parse_camera("{\"x\": 1}", p), Err(MonoError::Parse { .. })));
+        assert!(matches!(
+            parse_camera("0.9 120 1 2 400", p),
+            Err(MonoError::Parse { .. })
+        ));
+        assert!(matches!(
+            parse_camera("a b c", p),
+            Err(MonoError::Parse { .. })
+        ));
+        assert!(matches!(
+            parse_camera("0.9 120 1 2 400.5 400", p),
+            Err(MonoError::Parse { .. })
+        ));
+        assert!(matches!(
+            parse_camera("-1 120 1 2 400 400", p),
+            Err(MonoError::Camera(_))
+        ));
+        assert!(matches!(
+            parse_camera("{\"x\": 1}", p),
+            Err(MonoError::Parse { .. })
+        ));
         assert!(matches!(parse_camera("", p), Err(MonoError::Parse { .. })));
     }
 }

@@ -131,7 +131,8 @@ impl InverseDepthLandmark {
         d_cam.fixed_view_mut::<3, 3>(0, 0).copy_from(&d_r);
         d_cam.fixed_view_mut::<3, 3>(0, 3).copy_from(&d_th);
         let mut d_lm = SMatrix::<f64, 3, 6>::zeros();
-        d_lm.fixed_view_mut::<3, 3>(0, 0).copy_from(&(rt_n * self.rho));
+        d_lm.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(rt_n * self.rho));
         d_lm.set_column(3, &col(dm_dtheta));
         d_lm.set_column(4, &col(dm_dphi));
         d_lm.set_column(5, &col(self.anchor - cam.position));
@@ -330,7 +331,8 @@ mod tests {
     #[test]
     fn initialisation_jacobians_match_finite_differences() {
         let h = 1e-6;
-        let param = |l: &InverseDepthLandmark| [l.anchor.x, l.anchor.y, l.anchor.z, l.theta, l.phi, l.rho];
+        let param =
+            |l: &InverseDepthLandmark| [l.anchor.x, l.anchor.y, l.anchor.z, l.theta, l.phi, l.rho];
         for camera in cams() {
             let c = cam_state();
             let uv = DVec2::new(
@@ -344,12 +346,23 @@ mod tests {
             for k in 0..6 {
                 let mut d = [0.0; 12];
                 d[k] = h;
-                let a = param(&initialise(&camera, &c.corrected(&d), uv, 0.5).unwrap().landmark);
+                let a = param(
+                    &initialise(&camera, &c.corrected(&d), uv, 0.5)
+                        .unwrap()
+                        .landmark,
+                );
                 d[k] = -h;
-                let b = param(&initialise(&camera, &c.corrected(&d), uv, 0.5).unwrap().landmark);
+                let b = param(
+                    &initialise(&camera, &c.corrected(&d), uv, 0.5)
+                        .unwrap()
+                        .landmark,
+                );
                 for r in 0..6 {
                     let num = (a[r] - b[r]) / (2.0 * h);
-                    assert!((num - init.d_camera[(r, k)]).abs() < 1e-6, "cam r={r} k={k}");
+                    assert!(
+                        (num - init.d_camera[(r, k)]).abs() < 1e-6,
+                        "cam r={r} k={k}"
+                    );
                 }
             }
             for k in 0..2 {
@@ -359,7 +372,10 @@ mod tests {
                 let b = param(&initialise(&camera, &c, uv - du, 0.5).unwrap().landmark);
                 for r in 0..6 {
                     let num = (a[r] - b[r]) / 2e-4;
-                    assert!((num - init.d_pixel[(r, k)]).abs() < 1e-7, "pixel r={r} k={k}");
+                    assert!(
+                        (num - init.d_pixel[(r, k)]).abs() < 1e-7,
+                        "pixel r={r} k={k}"
+                    );
                 }
             }
         }

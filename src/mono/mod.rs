@@ -75,7 +75,9 @@ pub enum MonoError {
         message: String,
     },
     /// An image's size differs from the camera's.
-    #[error("{what}: image is {width}x{height}, the camera expects {expected_width}x{expected_height}")]
+    #[error(
+        "{what}: image is {width}x{height}, the camera expects {expected_width}x{expected_height}"
+    )]
     ImageSize {
         /// Which image.
         what: String,
@@ -213,7 +215,10 @@ impl MonoConfig {
             }
         };
         pos("sigma_linear_acceleration", self.sigma_linear_acceleration)?;
-        pos("sigma_angular_acceleration", self.sigma_angular_acceleration)?;
+        pos(
+            "sigma_angular_acceleration",
+            self.sigma_angular_acceleration,
+        )?;
         pos("sigma_pixel", self.sigma_pixel)?;
         pos("initial_inverse_depth", self.initial_inverse_depth)?;
         pos("sigma_inverse_depth", self.sigma_inverse_depth)?;

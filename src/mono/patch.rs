@@ -273,7 +273,9 @@ mod tests {
         assert!(t.correlate_at(&img, 43, 30).unwrap() < 0.99);
         assert!(t.correlate_at(&img, 2, 2).is_none());
         // Identity warp (same place, same distance) reproduces the plain template.
-        let (w, k, da) = fp.warped(&cam, DVec2::new(40.0, 30.0), 1.0, 2.0, 4).unwrap();
+        let (w, k, da) = fp
+            .warped(&cam, DVec2::new(40.0, 30.0), 1.0, 2.0, 4)
+            .unwrap();
         assert!((k - 1.0).abs() < 1e-12 && da.abs() < 1e-12);
         assert!((w.correlate_at(&img, 40, 30).unwrap() - 1.0).abs() < 1e-6);
     }
@@ -296,11 +298,19 @@ mod tests {
         let dst = DVec2::new(40.0, 60.0);
         assert!((rot.at(40, 60) - img.at(60, 40)).abs() < 1e-6);
         let fp = FeaturePatch::new(&img, &cam, src, 10, 4).unwrap();
-        let plain = fp.plain.clone().unwrap().correlate_at(&rot, 40, 60).unwrap();
+        let plain = fp
+            .plain
+            .clone()
+            .unwrap()
+            .correlate_at(&rot, 40, 60)
+            .unwrap();
         let (warped, k, da) = fp.warped(&cam, dst, 1.0, 2.0, 4).unwrap();
         let warped = warped.correlate_at(&rot, 40, 60).unwrap();
         assert!((da - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
-        assert!((k - 1.0).abs() < 1e-9, "same radius, same magnification: {k}");
+        assert!(
+            (k - 1.0).abs() < 1e-9,
+            "same radius, same magnification: {k}"
+        );
         assert!(warped > 0.99, "warped {warped}");
         assert!(plain < 0.8, "plain {plain}");
         let (_, k_big, _) = fp.warped(&cam, dst, 10.0, 2.0, 4).unwrap();

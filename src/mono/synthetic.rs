@@ -73,14 +73,7 @@ impl SyntheticSpec {
                     f64::from(self.height) * 0.5 - 0.5,
                 );
                 (
-                    CameraModel::Pinhole(PinholeCamera::new(
-                        f,
-                        f,
-                        cx,
-                        cy,
-                        self.width,
-                        self.height,
-                    )),
+                    CameraModel::Pinhole(PinholeCamera::new(f, f, cx, cy, self.width, self.height)),
                     UnifiedCamera::new(0.0, f, cx, cy, self.width, self.height),
                 )
             }
