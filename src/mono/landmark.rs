@@ -173,9 +173,9 @@ impl InverseDepthLandmark {
     }
 }
 
-/// A new landmark from pixel `uv` seen by `cam`, with the Jacobians of its parameters with
+/// A new landmark from a pixel seen by a camera, with the Jacobians of its parameters with
 /// respect to the camera's `[dr, dtheta]` (6x6), the pixel (6x2) and the initial inverse
-/// depth (6x1) (eq. 2.44-2.50). `None` where the pixel has no pre-image.
+/// depth (6x1) (eq. 2.44-2.50), from which its covariance and cross-covariances follow.
 pub struct Initialisation {
     /// The landmark.
     pub landmark: InverseDepthLandmark,
@@ -187,7 +187,8 @@ pub struct Initialisation {
     pub d_rho: SMatrix<f64, 6, 1>,
 }
 
-/// Initialises a landmark at pixel `uv` with inverse depth `rho0` (see [`Initialisation`]).
+/// Initialises a landmark at pixel `uv` with inverse depth `rho0` (1/m) (see
+/// [`Initialisation`]); `None` where the pixel has no pre-image.
 pub fn initialise(
     camera: &UnifiedCamera,
     cam: &CameraState,
