@@ -24,6 +24,7 @@ pub mod gpu;
 pub mod graph;
 pub mod image;
 pub mod io;
+pub mod mono;
 pub mod odometry;
 pub mod place;
 pub mod scale;

@@ -49,6 +49,8 @@ enum Command {
     Slam(cli::slam::Args),
     /// True metric scale of a walking person's monocular trajectory (step frequency).
     Scale(cli::scale::Args),
+    /// Monocular EKF SLAM for pinhole, fisheye and catadioptric cameras (unified model).
+    Mono(Box<cli::mono::Args>),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -82,6 +84,7 @@ fn run(command: Command) -> Result<()> {
         Command::Graph(c) => cli::graph::run(c),
         Command::Slam(a) => cli::slam::run(a),
         Command::Scale(a) => cli::scale::run(a),
+        Command::Mono(a) => cli::mono::run(*a),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod demo;
 pub mod eval;
 pub mod graph;
+pub mod mono;
 pub mod odometry;
 pub mod place;
 pub mod scale;

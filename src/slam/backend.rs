@@ -89,7 +89,8 @@ pub(crate) struct Backend {
     pub graph: PoseGraph3,
     odometry: Odometry,
     pub loops: Vec<LoopRecord>,
-    cluster_last: Option<usize>,
+    /// Open loop cluster: ids of its first and last query keyframes.
+    cluster: Option<(usize, usize)>,
     pub timings: Vec<KeyframeTiming>,
     pub shared: Arc<Mutex<Shared>>,
     /// Keyframes before this id come from a loaded map (fixed in the graph).
@@ -125,7 +126,7 @@ impl Backend {
             graph: PoseGraph3::new(),
             odometry,
             loops: Vec::new(),
-            cluster_last: None,
+            cluster: None,
             timings: Vec::new(),
             shared,
             map_keyframes: 0,
@@ -307,7 +308,10 @@ impl Backend {
                 let info = information_from(cov.as_ref(), 0.01, 0.01);
                 self.graph
                     .add_edge(d.candidate_id as i64, id as i64, refined, info)?;
-                self.cluster_last = Some(id);
+                self.cluster = Some(match self.cluster {
+                    Some((first, _)) => (first, id),
+                    None => (id, id),
+                });
             }
             self.loops.push(LoopRecord {
                 query: id,
@@ -322,9 +326,11 @@ impl Backend {
                 relocalisation: false,
             });
         }
-        // Optimise when the loop cluster closes.
-        if let Some(last) = self.cluster_last {
-            if id >= last + self.config.loop_cluster_gap {
+        // Optimise when the loop cluster closes (no loop for `gap` keyframes), or when a long
+        // revisit has kept it open for `2 gap` keyframes, so the map is corrected during it.
+        if let Some((first, last)) = self.cluster {
+            let gap = self.config.loop_cluster_gap;
+            if id >= last + gap || id >= first + 2 * gap {
                 timing.optimise_ms = self.optimise()?;
             }
         }
@@ -344,7 +350,7 @@ impl Backend {
 
     /// Optimises the keyframe graph (if a loop cluster is pending); returns milliseconds.
     pub fn optimise(&mut self) -> Result<f64, SlamError> {
-        if self.cluster_last.take().is_none() {
+        if self.cluster.take().is_none() {
             return Ok(0.0);
         }
         let t = Instant::now();

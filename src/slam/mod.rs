@@ -110,7 +110,7 @@ pub struct SlamConfig {
     /// Place recognition (ORB, database query, verification).
     pub detector: LoopDetectorParams,
     /// Loops whose query keyframes are within this many keyframes form one cluster; the graph
-    /// is optimised when the cluster closes.
+    /// is optimised when the cluster closes, or after it has been open for twice this many.
     pub loop_cluster_gap: usize,
     /// A loop is rejected when the dense refinement moves the RANSAC pose by more than this
     /// (metres) ...

@@ -1,0 +1,319 @@
+//! Patches for data association: ZNCC correlation and the catadioptric patch warping of the
+//! thesis (sec. 2.5, eq. 2.64-2.70).
+//!
+//! At initialisation a big square patch (half size `B`) is sampled around the feature. In
+//! plain mode the correlation patch is the central `(2h+1)^2` part of it, unchanged. In
+//! warped mode it is resampled for the current prediction: rotated by the change of the
+//! feature's polar angle around the image centre, `delta_alpha = alpha_now - alpha_init`
+//! (a catadioptric image turns with the azimuth of the ray), and scaled by
+//! `k = (mu(theta_now) / mu(theta_init)) * (d_init / d_now)`, where `mu(theta)` is the unified
+//! model's local magnification at polar angle `theta` from the optical axis (the geometric
+//! mean of the radial `dr/dtheta = gamma (1 + xi cos theta) / (cos theta + xi)^2` and the
+//! tangential `r / sin theta = gamma / (cos theta + xi)` magnifications) and `d` the distance
+//! from the camera to the feature (their ratio from the inverse-depth estimate). `k` is
+//! limited to `[1 / k_lim, k_lim]` (eq. 2.66-2.67). The warp (eq. 2.68-2.70) maps a pixel
+//! offset `o` of the correlation patch to `Rot(-delta_alpha) o / k` in the big patch,
+//! sampled bilinearly.
+
+use glam::DVec2;
+
+use crate::camera::UnifiedCamera;
+use crate::image::ImageF32;
+
+/// How correlation patches are built.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+pub enum PatchMode {
+    /// The patch as seen at initialisation.
+    #[default]
+    Plain,
+    /// Rotated and scaled for the predicted view (catadioptric cameras).
+    Warped,
+}
+
+/// Bilinear sample at `(x, y)` (pixel centres at integers); `None` outside the image.
+#[inline]
+pub fn sample_bilinear(img: &ImageF32, x: f64, y: f64) -> Option<f32> {
+    if !(x >= 0.0 && y >= 0.0) {
+        return None;
+    }
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    if x0 + 1 >= img.width || y0 + 1 >= img.height {
+        return None;
+    }
+    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+    let i = y0 * img.width + x0;
+    let d = &img.data;
+    let top = d[i] * (1.0 - fx) + d[i + 1] * fx;
+    let bottom = d[i + img.width] * (1.0 - fx) + d[i + img.width + 1] * fx;
+    Some(top * (1.0 - fy) + bottom * fy)
+}
+
+/// Zero-mean normalised cross-correlation of two equally long patches, in `[-1, 1]`;
+/// `0` when either is flat.
+pub fn zncc(a: &[f32], b: &[f32]) -> f64 {
+    let n = a.len().min(b.len());
+    if n == 0 {
+        return 0.0;
+    }
+    let (mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0f64, 0.0, 0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        let (x, y) = (f64::from(*x), f64::from(*y));
+        sa += x;
+        sb += y;
+        saa += x * x;
+        sbb += y * y;
+        sab += x * y;
+    }
+    let nf = n as f64;
+    let va = saa - sa * sa / nf;
+    let vb = sbb - sb * sb / nf;
+    if va <= 1e-9 * nf || vb <= 1e-9 * nf {
+        return 0.0;
+    }
+    (sab - sa * sb / nf) / (va * vb).sqrt()
+}
+
+/// A template normalised once (zero mean, unit norm) for repeated correlation.
+#[derive(Clone, Debug)]
+pub struct Template {
+    /// Half size, pixels.
+    pub half: usize,
+    values: Vec<f64>,
+}
+
+impl Template {
+    /// Normalises a `(2 half + 1)^2` patch; `None` when it is (nearly) flat.
+    pub fn new(patch: &[f32], half: usize) -> Option<Template> {
+        let n = patch.len() as f64;
+        let mean = patch.iter().map(|v| f64::from(*v)).sum::<f64>() / n;
+        let values: Vec<f64> = patch.iter().map(|v| f64::from(*v) - mean).collect();
+        let norm = values.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if norm < 1e-3 * n.sqrt() {
+            return None;
+        }
+        Some(Template {
+            half,
+            values: values.into_iter().map(|v| v / norm).collect(),
+        })
+    }
+
+    /// ZNCC against the image patch centred on integer pixel `(x, y)`; `None` when the patch
+    /// leaves the image.
+    pub fn correlate_at(&self, img: &ImageF32, x: i64, y: i64) -> Option<f64> {
+        let h = self.half as i64;
+        if x - h < 0 || y - h < 0 || x + h >= img.width as i64 || y + h >= img.height as i64 {
+            return None;
+        }
+        let side = 2 * self.half + 1;
+        let (mut s, mut ss, mut st) = (0.0f64, 0.0f64, 0.0f64);
+        for j in 0..side {
+            let row = ((y - h) as usize + j) * img.width + (x - h) as usize;
+            let pix = &img.data[row..row + side];
+            let tv = &self.values[j * side..(j + 1) * side];
+            for (p, t) in pix.iter().zip(tv) {
+                let p = f64::from(*p);
+                s += p;
+                ss += p * p;
+                st += p * t;
+            }
+        }
+        let n = (side * side) as f64;
+        let var = ss - s * s / n;
+        if var <= 1e-9 * n {
+            return Some(0.0);
+        }
+        // The template has zero mean, so the image mean drops out of the cross term.
+        Some(st / var.sqrt())
+    }
+}
+
+/// The big patch kept from a feature's initialisation.
+#[derive(Clone, Debug)]
+pub struct FeaturePatch {
+    /// Half size of the big patch, pixels.
+    pub big_half: usize,
+    /// The big patch, row-major `(2 big_half + 1)^2`, sampled around the initial pixel.
+    pub big: Vec<f32>,
+    /// Polar angle of the initial pixel around the principal point, radians.
+    pub alpha_init: f64,
+    /// Magnification `mu` of the camera model at the initial pixel, pixels per radian.
+    pub mu_init: f64,
+    /// The plain correlation template (centre of the big patch); `None` if flat.
+    pub plain: Option<Template>,
+}
+
+/// Polar angle of a pixel around the principal point, radians.
+pub fn polar_angle(camera: &UnifiedCamera, uv: DVec2) -> f64 {
+    (uv.y - camera.cy).atan2(uv.x - camera.cx)
+}
+
+/// The unified model's isotropic local magnification at pixel `uv` (pixels per radian of
+/// viewing angle), see the module docs; `None` without a pre-image.
+pub fn magnification(camera: &UnifiedCamera, uv: DVec2) -> Option<f64> {
+    let s = camera.unproject(uv)?;
+    let c = s.z.clamp(-1.0, 1.0);
+    let w = c + camera.xi;
+    if w <= 1e-9 {
+        return None;
+    }
+    let radial = camera.gamma * (1.0 + camera.xi * c) / (w * w);
+    let tangential = camera.gamma / w;
+    Some((radial * tangential).max(0.0).sqrt())
+}
+
+impl FeaturePatch {
+    /// Samples the big patch around `uv`; `None` when it does not fit in the image or the
+    /// camera has no pre-image there.
+    pub fn new(
+        img: &ImageF32,
+        camera: &UnifiedCamera,
+        uv: DVec2,
+        big_half: usize,
+        half: usize,
+    ) -> Option<FeaturePatch> {
+        let side = 2 * big_half + 1;
+        let mut big = Vec::with_capacity(side * side);
+        for j in 0..side {
+            for i in 0..side {
+                let x = uv.x + i as f64 - big_half as f64;
+                let y = uv.y + j as f64 - big_half as f64;
+                big.push(sample_bilinear(img, x, y)?);
+            }
+        }
+        let small = 2 * half + 1;
+        let off = big_half - half;
+        let mut centre = Vec::with_capacity(small * small);
+        for j in 0..small {
+            centre.extend_from_slice(&big[(off + j) * side + off..(off + j) * side + off + small]);
+        }
+        Some(FeaturePatch {
+            big_half,
+            big,
+            alpha_init: polar_angle(camera, uv),
+            mu_init: magnification(camera, uv)?,
+            plain: Template::new(&centre, half),
+        })
+    }
+
+    /// The warped correlation template for a feature predicted at `uv` with distance ratio
+    /// `d_init / d_now`; `None` when flat. `k` is limited to `[1/k_lim, k_lim]`.
+    pub fn warped(
+        &self,
+        camera: &UnifiedCamera,
+        uv: DVec2,
+        distance_ratio: f64,
+        k_lim: f64,
+        half: usize,
+    ) -> Option<(Template, f64, f64)> {
+        let mu = magnification(camera, uv)?;
+        let k = (mu / self.mu_init * distance_ratio).clamp(1.0 / k_lim, k_lim);
+        let da = polar_angle(camera, uv) - self.alpha_init;
+        let (s, c) = (-da).sin_cos();
+        let side = 2 * self.big_half + 1;
+        let small = 2 * half + 1;
+        let b = self.big_half as f64;
+        let mut out = Vec::with_capacity(small * small);
+        for j in 0..small {
+            for i in 0..small {
+                let o = DVec2::new(i as f64 - half as f64, j as f64 - half as f64);
+                let x = (c * o.x - s * o.y) / k + b;
+                let y = (s * o.x + c * o.y) / k + b;
+                let x = x.clamp(0.0, side as f64 - 1.001);
+                let y = y.clamp(0.0, side as f64 - 1.001);
+                let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+                let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+                let at = |xx: usize, yy: usize| self.big[yy * side + xx];
+                let top = at(x0, y0) * (1.0 - fx) + at(x0 + 1, y0) * fx;
+                let bot = at(x0, y0 + 1) * (1.0 - fx) + at(x0 + 1, y0 + 1) * fx;
+                out.push(top * (1.0 - fy) + bot * fy);
+            }
+        }
+        Template::new(&out, half).map(|t| (t, k, da))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn textured(w: usize, h: usize) -> ImageF32 {
+        let mut img = ImageF32::filled(w, h, 0.0);
+        for y in 0..h {
+            for x in 0..w {
+                let (xf, yf) = (x as f32, y as f32);
+                img.data[y * w + x] = 128.0
+                    + 60.0 * (0.31 * xf + 0.05 * yf).sin()
+                    + 40.0 * (0.17 * yf - 0.11 * xf).cos()
+                    + 20.0 * (0.023 * xf * yf).sin();
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn zncc_is_invariant_to_gain_and_offset() {
+        let a = [1.0f32, 5.0, 3.0, 8.0, 2.0];
+        let b: Vec<f32> = a.iter().map(|v| 2.5 * v + 10.0).collect();
+        assert!((zncc(&a, &b) - 1.0).abs() < 1e-12);
+        let c: Vec<f32> = a.iter().map(|v| -v).collect();
+        assert!((zncc(&a, &c) + 1.0).abs() < 1e-12);
+        assert_eq!(zncc(&a, &[3.0; 5]), 0.0);
+        let t = Template::new(&a, 0).unwrap();
+        let _ = t;
+    }
+
+    #[test]
+    fn template_correlation_peaks_at_the_source() {
+        let img = textured(80, 60);
+        let cam = UnifiedCamera::new(0.0, 100.0, 39.5, 29.5, 80, 60);
+        let fp = FeaturePatch::new(&img, &cam, DVec2::new(40.0, 30.0), 10, 4).unwrap();
+        let t = fp.plain.clone().unwrap();
+        let at = t.correlate_at(&img, 40, 30).unwrap();
+        assert!((at - 1.0).abs() < 1e-9, "{at}");
+        assert!(t.correlate_at(&img, 43, 30).unwrap() < 0.99);
+        assert!(t.correlate_at(&img, 2, 2).is_none());
+        // Identity warp (same place, same distance) reproduces the plain template.
+        let (w, k, da) = fp
+            .warped(&cam, DVec2::new(40.0, 30.0), 1.0, 2.0, 4)
+            .unwrap();
+        assert!((k - 1.0).abs() < 1e-12 && da.abs() < 1e-12);
+        assert!((w.correlate_at(&img, 40, 30).unwrap() - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn warp_undoes_a_rotation_and_k_is_limited() {
+        // Rotate the image by 90 degrees about the principal point: a feature moves from
+        // polar angle 0 to pi/2 and its patch turns by pi/2.
+        let n = 81;
+        let img = textured(n, n);
+        let mut rot = ImageF32::filled(n, n, 0.0);
+        for y in 0..n {
+            for x in 0..n {
+                // rot(x, y) = img(y, n - 1 - x): a +90 degree turn (y down).
+                rot.data[y * n + x] = img.at(y, n - 1 - x);
+            }
+        }
+        let cam = UnifiedCamera::new(0.9, 60.0, 40.0, 40.0, n as u32, n as u32);
+        let src = DVec2::new(60.0, 40.0);
+        let dst = DVec2::new(40.0, 60.0);
+        assert!((rot.at(40, 60) - img.at(60, 40)).abs() < 1e-6);
+        let fp = FeaturePatch::new(&img, &cam, src, 10, 4).unwrap();
+        let plain = fp
+            .plain
+            .clone()
+            .unwrap()
+            .correlate_at(&rot, 40, 60)
+            .unwrap();
+        let (warped, k, da) = fp.warped(&cam, dst, 1.0, 2.0, 4).unwrap();
+        let warped = warped.correlate_at(&rot, 40, 60).unwrap();
+        assert!((da - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
+        assert!(
+            (k - 1.0).abs() < 1e-9,
+            "same radius, same magnification: {k}"
+        );
+        assert!(warped > 0.99, "warped {warped}");
+        assert!(plain < 0.8, "plain {plain}");
+        let (_, k_big, _) = fp.warped(&cam, dst, 10.0, 2.0, 4).unwrap();
+        assert!((k_big - 2.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,183 @@
+//! Image-only input for monocular SLAM: sequence folders (rgb.txt or time-stamped file
+//! names), camera files, bad input (missing folder, corrupt image, bad lists) and the
+//! `rgbid mono` command end to end on a folder written from a synthetic sequence.
+
+use std::path::Path;
+use std::process::Command;
+
+use image::{GrayImage, Luma};
+use rgbid::camera::UnifiedCamera;
+use rgbid::image::ImageF32;
+use rgbid::io::trajectory::{read_tum, write_tum};
+use rgbid::mono::input::load_grey;
+use rgbid::mono::synthetic::{render, SyntheticCamera, SyntheticSpec};
+use rgbid::mono::{ImageSequence, MonoConfig, MonoError, MonoSlam};
+
+fn save_grey(path: &Path, img: &ImageF32) {
+    let g = GrayImage::from_fn(img.width as u32, img.height as u32, |x, y| {
+        Luma([img.at(x as usize, y as usize).round().clamp(0.0, 255.0) as u8])
+    });
+    g.save(path).expect("save png");
+}
+
+#[test]
+fn bad_folders_and_files_give_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("nope");
+    assert!(matches!(
+        ImageSequence::open(&missing),
+        Err(MonoError::File { .. })
+    ));
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    std::fs::write(empty.join("notes.txt"), "hello").unwrap();
+    assert!(matches!(
+        ImageSequence::open(&empty),
+        Err(MonoError::NoImages { .. })
+    ));
+    // rgb.txt with a bad time stamp, with too few fields, with repeated time stamps.
+    let bad = tmp.path().join("bad");
+    std::fs::create_dir(&bad).unwrap();
+    for (text, what) in [
+        ("# c\n1.0 rgb/a.png\nx rgb/b.png\n", "number"),
+        ("1.0\n", "fields"),
+        ("1.0 a.png\n1.0 b.png\n", "time"),
+    ] {
+        std::fs::write(bad.join("rgb.txt"), text).unwrap();
+        let e = ImageSequence::open(&bad).expect_err(what);
+        match what {
+            "time" => assert!(matches!(e, MonoError::NonIncreasingTime { .. }), "{e}"),
+            _ => assert!(
+                matches!(
+                    e,
+                    MonoError::Parse { line: 2.., .. } | MonoError::Parse { line: 1, .. }
+                ),
+                "{e}"
+            ),
+        }
+    }
+    // A corrupt image: listed fine, fails to decode with the path in the message.
+    let corrupt = tmp.path().join("corrupt");
+    std::fs::create_dir(&corrupt).unwrap();
+    std::fs::write(corrupt.join("0.500000.png"), b"\x89PNG\r\n\x1a\nnot really").unwrap();
+    let seq = ImageSequence::open(&corrupt).unwrap();
+    assert_eq!(seq.len(), 1);
+    let e = seq.load(0).unwrap().expect_err("corrupt");
+    assert!(matches!(e, MonoError::Decode { .. }));
+    assert!(e.to_string().contains("0.500000.png"));
+    assert!(seq.load(1).is_none());
+    assert!(matches!(
+        load_grey(&corrupt.join("missing.png")),
+        Err(MonoError::File { .. })
+    ));
+}
+
+#[test]
+fn filter_rejects_wrong_sizes_and_time_going_backwards() {
+    let cam = UnifiedCamera::new(0.0, 200.0, 79.5, 59.5, 160, 120);
+    let mut slam = MonoSlam::new(cam, MonoConfig::default()).unwrap();
+    let img = ImageF32::filled(160, 120, 100.0);
+    assert!(matches!(
+        slam.process(0.0, &ImageF32::filled(100, 120, 0.0)),
+        Err(MonoError::ImageSize { .. })
+    ));
+    slam.process(1.0, &img).unwrap();
+    assert!(matches!(
+        slam.process(1.0, &img),
+        Err(MonoError::NonIncreasingTime { .. })
+    ));
+    assert!(matches!(
+        slam.process(f64::NAN, &img),
+        Err(MonoError::InvalidConfig { .. })
+    ));
+    let bad = MonoConfig {
+        zncc_threshold: 1.5,
+        ..MonoConfig::default()
+    };
+    assert!(matches!(
+        MonoSlam::new(cam, bad),
+        Err(MonoError::InvalidConfig { .. })
+    ));
+    let bad_cam = UnifiedCamera::new(0.5, -1.0, 0.0, 0.0, 10, 10);
+    assert!(matches!(
+        MonoSlam::new(bad_cam, MonoConfig::default()),
+        Err(MonoError::Camera(_))
+    ));
+}
+
+/// Writes a synthetic pinhole sequence as a folder of time-stamped PNGs with a camera text
+/// file, runs `rgbid mono` on it, and checks the trajectory it writes; then the same images
+/// through an rgb.txt list; then a missing folder.
+#[test]
+fn cli_runs_on_an_image_only_folder() {
+    let spec = SyntheticSpec::new(SyntheticCamera::Pinhole, 320, 240, 45);
+    let frames = render(&spec).expect("render");
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("seq");
+    std::fs::create_dir_all(seq.join("images")).unwrap();
+    let mut list = String::from("# timestamp filename\n");
+    for (t, img) in &frames.images {
+        save_grey(&seq.join(format!("{t:.6}.png")), img);
+        save_grey(&seq.join("images").join(format!("{t:.6}.png")), img);
+        list.push_str(&format!("{t:.6} images/{t:.6}.png\n"));
+    }
+    let c = frames.camera;
+    let cam_file = tmp.path().join("camera.txt");
+    std::fs::write(
+        &cam_file,
+        format!(
+            "{} {} {} {} {} {}\n",
+            c.xi, c.gamma, c.cx, c.cy, c.width, c.height
+        ),
+    )
+    .unwrap();
+    write_tum(&seq.join("groundtruth.txt"), &frames.ground_truth).unwrap();
+    let exe = env!("CARGO_BIN_EXE_rgbid");
+    let out = tmp.path().join("traj.txt");
+    let o = Command::new(exe)
+        .args(["mono", seq.to_str().unwrap(), "--camera"])
+        .arg(&cam_file)
+        .arg("--out")
+        .arg(&out)
+        .arg("--bench")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(stdout.contains("ATE after Sim(3) alignment"), "{stdout}");
+    assert!(stdout.contains("ms/frame"), "{stdout}");
+    let traj = read_tum(&out).unwrap();
+    assert_eq!(traj.len(), frames.images.len());
+    assert!((traj[0].world_from_camera.translation).length() < 1e-12);
+    // The camera moved in the estimate too.
+    let last = traj.last().unwrap().world_from_camera.translation;
+    assert!(last.length() > 1e-3);
+
+    // The same images listed in rgb.txt (the folder's own PNGs are then ignored).
+    std::fs::write(seq.join("rgb.txt"), list).unwrap();
+    let s = ImageSequence::open(&seq).unwrap();
+    assert_eq!(s.len(), frames.images.len());
+    assert!(s.frames[0]
+        .1
+        .ends_with(format!("images/{:.6}.png", frames.images[0].0)));
+    let o = Command::new(exe)
+        .args(["mono", seq.to_str().unwrap(), "--camera"])
+        .arg(&cam_file)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    assert_eq!(read_tum(&out).unwrap().len(), frames.images.len());
+
+    let o = Command::new(exe)
+        .args(["mono", tmp.path().join("missing").to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("missing"));
+}
