@@ -12,7 +12,14 @@ use rgbid::slam::{fuse_cpu, FusionParams, KeyframeFuser};
 
 fn camera(w: u32, h: u32) -> PinholeCamera {
     let f = 525.0 * f64::from(w) / 640.0;
-    PinholeCamera::new(f, f, (f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0, w, h)
+    PinholeCamera::new(
+        f,
+        f,
+        (f64::from(w) - 1.0) / 2.0,
+        (f64::from(h) - 1.0) / 2.0,
+        w,
+        h,
+    )
 }
 
 /// Inverse depth of a slanted wall with a box in front, seen from `world_from_camera`,
@@ -23,7 +30,11 @@ fn render(cam: &PinholeCamera, world_from_camera: &Se3, noise: f64, seed: u64) -
     let mut img = ImageF32::filled(w, h, 0.0);
     for v in 0..h {
         for u in 0..w {
-            let d = DVec3::new((u as f64 - cam.cx) / cam.fx, (v as f64 - cam.cy) / cam.fy, 1.0);
+            let d = DVec3::new(
+                (u as f64 - cam.cx) / cam.fx,
+                (v as f64 - cam.cy) / cam.fy,
+                1.0,
+            );
             let o = world_from_camera.translation;
             let dir = world_from_camera.transform_vector(d);
             // Wall z = 3 + 0.2 x (world), box face z = 2 for |x| < 0.3, |y| < 0.3.
@@ -55,7 +66,10 @@ fn fusion_averages_noise_and_counts_covisibility() {
     let kf_pose = pose(0.0, 0.0, 0.0);
     let truth = render(&cam, &kf_pose, 0.0, 1);
     let mut rho = render(&cam, &kf_pose, 0.01, 2).data;
-    let mut weight: Vec<f32> = rho.iter().map(|&r| if r > 0.0 { 1.0 } else { 0.0 }).collect();
+    let mut weight: Vec<f32> = rho
+        .iter()
+        .map(|&r| if r > 0.0 { 1.0 } else { 0.0 })
+        .collect();
     let err = |r: &[f32]| {
         let (mut s, mut n) = (0.0, 0);
         for (a, b) in r.iter().zip(truth.data.iter()) {
@@ -73,11 +87,21 @@ fn fusion_averages_noise_and_counts_covisibility() {
         let p = pose(0.02 * k as f64, -0.01 * k as f64, 0.01 * k as f64);
         let cur = render(&cam, &p, 0.01, 10 + k);
         let cur_from_kf = p.inverse() * kf_pose;
-        last = Some(fuse_cpu(&mut rho, &mut weight, &cur.data, &cam, &cur_from_kf, &params));
+        last = Some(fuse_cpu(
+            &mut rho,
+            &mut weight,
+            &cur.data,
+            &cam,
+            &cur_from_kf,
+            &params,
+        ));
     }
     let e1 = err(&rho);
     let c = last.unwrap();
-    assert!(e1 < 0.6 * e0, "fusion did not reduce the depth error: {e0} -> {e1}");
+    assert!(
+        e1 < 0.6 * e0,
+        "fusion did not reduce the depth error: {e0} -> {e1}"
+    );
     assert!(c.covisibility() > 0.8, "covisibility {}", c.covisibility());
     assert!(c.fused as f64 > 0.7 * c.covisible as f64, "{c:?}");
     assert!(weight.iter().cloned().fold(0.0f32, f32::max) >= 8.0);
@@ -86,7 +110,14 @@ fn fusion_averages_noise_and_counts_covisibility() {
     let away = Se3::new(DQuat::from_rotation_y(std::f64::consts::PI), DVec3::ZERO);
     let cur = render(&cam, &away, 0.0, 3);
     let before = rho.clone();
-    let c = fuse_cpu(&mut rho, &mut weight, &cur.data, &cam, &away.inverse(), &params);
+    let c = fuse_cpu(
+        &mut rho,
+        &mut weight,
+        &cur.data,
+        &cam,
+        &away.inverse(),
+        &params,
+    );
     assert_eq!(c.covisible, 0);
     assert_eq!(rho, before);
 }
@@ -99,10 +130,14 @@ fn fusion_gpu_matches_cpu_mirror() {
     for (w, h) in [(160u32, 120u32), (203, 97), (640, 480)] {
         let cam = camera(w, h);
         let kf = render(&cam, &Se3::IDENTITY, 0.01, 5);
-        let mut cpu = KeyframeFuser::new(cam, FusionParams::default(), &ComputeBackend::Cpu).unwrap();
-        let mut gpu_f =
-            KeyframeFuser::new(cam, FusionParams::default(), &ComputeBackend::Gpu(gpu.clone()))
-                .unwrap();
+        let mut cpu =
+            KeyframeFuser::new(cam, FusionParams::default(), &ComputeBackend::Cpu).unwrap();
+        let mut gpu_f = KeyframeFuser::new(
+            cam,
+            FusionParams::default(),
+            &ComputeBackend::Gpu(gpu.clone()),
+        )
+        .unwrap();
         cpu.start(&kf);
         gpu_f.start(&kf);
         for k in 0..4u64 {
@@ -112,8 +147,14 @@ fn fusion_gpu_matches_cpu_mirror() {
             let b = gpu_f.fuse(&cur, &p.inverse()).unwrap();
             let tol = |x: u64| (x as f64 * 0.002).max(3.0);
             assert_eq!(a.valid, b.valid, "{w}x{h} frame {k}");
-            assert!((a.covisible as f64 - b.covisible as f64).abs() <= tol(a.covisible), "{w}x{h} frame {k}: {a:?} vs {b:?}");
-            assert!((a.fused as f64 - b.fused as f64).abs() <= tol(a.fused), "{w}x{h} frame {k}: {a:?} vs {b:?}");
+            assert!(
+                (a.covisible as f64 - b.covisible as f64).abs() <= tol(a.covisible),
+                "{w}x{h} frame {k}: {a:?} vs {b:?}"
+            );
+            assert!(
+                (a.fused as f64 - b.fused as f64).abs() <= tol(a.fused),
+                "{w}x{h} frame {k}: {a:?} vs {b:?}"
+            );
         }
         let (rc, wc) = cpu.finish().unwrap();
         let (rg, wg) = gpu_f.finish().unwrap();

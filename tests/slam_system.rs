@@ -18,26 +18,66 @@ use rgbid::synth::{
 fn camera(w: u32) -> PinholeCamera {
     let h = w * 3 / 4;
     let f = 525.0 * f64::from(w) / 640.0;
-    PinholeCamera::new(f, f, (f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0, w, h)
+    PinholeCamera::new(
+        f,
+        f,
+        (f64::from(w) - 1.0) / 2.0,
+        (f64::from(h) - 1.0) / 2.0,
+        w,
+        h,
+    )
 }
 
-fn sequence(scene: Scene, kind: TrajectoryKind, frames: usize, seed: u64, cam: PinholeCamera) -> Sequence {
+fn sequence(
+    scene: Scene,
+    kind: TrajectoryKind,
+    frames: usize,
+    seed: u64,
+    cam: PinholeCamera,
+) -> Sequence {
     sequence_with_noise(scene, kind, frames, frames, seed, seed, cam)
 }
 
 /// `frames` frames at 30 fps of a trajectory lasting `trajectory_frames / 30` seconds.
-fn sequence_with_noise(scene: Scene, kind: TrajectoryKind, frames: usize, trajectory_frames: usize, seed: u64, noise_seed: u64, cam: PinholeCamera) -> Sequence {
+fn sequence_with_noise(
+    scene: Scene,
+    kind: TrajectoryKind,
+    frames: usize,
+    trajectory_frames: usize,
+    seed: u64,
+    noise_seed: u64,
+    cam: PinholeCamera,
+) -> Sequence {
     let config = SequenceConfig {
         frames,
         seed: noise_seed,
         ..Default::default()
     };
     let traj = Trajectory::new(kind, &scene, trajectory_frames as f64 / 30.0, seed).unwrap();
-    Sequence::new(Arc::new(scene), CameraModel::Pinhole(cam), traj, config, &RenderBackend::Cpu).unwrap()
+    Sequence::new(
+        Arc::new(scene),
+        CameraModel::Pinhole(cam),
+        traj,
+        config,
+        &RenderBackend::Cpu,
+    )
+    .unwrap()
 }
 
-fn run(seq: &mut Sequence, cam: PinholeCamera, config: SlamConfig, map: Option<Map>) -> (SlamResult, Vec<FrameStatus>) {
-    let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), map).unwrap();
+fn run(
+    seq: &mut Sequence,
+    cam: PinholeCamera,
+    config: SlamConfig,
+    map: Option<Map>,
+) -> (SlamResult, Vec<FrameStatus>) {
+    let mut slam = Slam::new(
+        config,
+        cam,
+        &ComputeBackend::Cpu,
+        Vocabulary::embedded_default().unwrap(),
+        map,
+    )
+    .unwrap();
     let mut status = Vec::new();
     for i in 0..seq.len() {
         let f = seq.render_frame(i).unwrap();
@@ -59,7 +99,11 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
     assert!(r.keyframes.len() >= 2, "{} keyframes", r.keyframes.len());
     assert_eq!(r.timings.len(), r.keyframes.len());
     let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
-    assert!(m.ate.translation.rmse < 0.03, "ATE {}", m.ate.translation.rmse);
+    assert!(
+        m.ate.translation.rmse < 0.03,
+        "ATE {}",
+        m.ate.translation.rmse
+    );
     // Keyframe fusion keeps most of the depth and raises the weights above 1.
     let kf = &r.keyframes[0];
     assert!(kf.weight.iter().filter(|&&w| w >= 2).count() > kf.weight.len() / 3);
@@ -71,11 +115,15 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
     let back = Map::load(&path).unwrap();
     assert_eq!(back.keyframes.len(), r.map.keyframes.len());
     assert_eq!(back.keyframes[1].intensity, r.map.keyframes[1].intensity);
-    assert_eq!(back.keyframes[1].inverse_depth, r.map.keyframes[1].inverse_depth);
+    assert_eq!(
+        back.keyframes[1].inverse_depth,
+        r.map.keyframes[1].inverse_depth
+    );
     assert_eq!(back.features[1].descriptors, r.map.features[1].descriptors);
     assert_eq!(back.mask_flags, r.map.mask_flags);
     assert_eq!(back.edges.len(), r.map.edges.len());
-    let d = back.keyframes[1].world_from_keyframe.inverse() * r.map.keyframes[1].world_from_keyframe;
+    let d =
+        back.keyframes[1].world_from_keyframe.inverse() * r.map.keyframes[1].world_from_keyframe;
     assert!(d.translation.length() < 1e-12);
 
     // Truncated, foreign and future files are clear errors.
@@ -98,7 +146,14 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
 #[test]
 fn wrong_frame_size_is_an_error_not_a_panic() {
     let cam = camera(160);
-    let mut slam = Slam::new(SlamConfig::default(), cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), None).unwrap();
+    let mut slam = Slam::new(
+        SlamConfig::default(),
+        cam,
+        &ComputeBackend::Cpu,
+        Vocabulary::embedded_default().unwrap(),
+        None,
+    )
+    .unwrap();
     let f = rgbid::image::test_pattern(64, 48, 1);
     let e = slam.process(&f).unwrap_err();
     assert!(matches!(e, SlamError::FrameSize { got_w: 64, .. }), "{e}");
@@ -124,7 +179,14 @@ fn second_session_relocalises_in_the_saved_map() {
     // Same path, other session (moved objects), other sensor noise; only the first 40 frames.
     let mut s1 = sequence_with_noise(session1, TrajectoryKind::Loop, 40, 300, 5, 77, cam);
     let gt1 = s1.ground_truth();
-    let mut slam = Slam::new(SlamConfig::default(), cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), Some(map)).unwrap();
+    let mut slam = Slam::new(
+        SlamConfig::default(),
+        cam,
+        &ComputeBackend::Cpu,
+        Vocabulary::embedded_default().unwrap(),
+        Some(map),
+    )
+    .unwrap();
     let mut first_reloc = None;
     for i in 0..s1.len() {
         let f = s1.render_frame(i).unwrap();
@@ -142,11 +204,21 @@ fn second_session_relocalises_in_the_saved_map() {
     let est: Vec<TimedPose> = r1.trajectory.clone();
     let mut worst: f64 = 0.0;
     for e in &est {
-        let g = gt1.iter().min_by(|a, b| (a.timestamp - e.timestamp).abs().total_cmp(&(b.timestamp - e.timestamp).abs())).unwrap();
+        let g = gt1
+            .iter()
+            .min_by(|a, b| {
+                (a.timestamp - e.timestamp)
+                    .abs()
+                    .total_cmp(&(b.timestamp - e.timestamp).abs())
+            })
+            .unwrap();
         let want: Se3 = map_from_world * g.world_from_camera;
         worst = worst.max((want.translation - e.world_from_camera.translation).length());
     }
-    assert!(worst < 0.08, "worst position error in the map frame {worst} m");
+    assert!(
+        worst < 0.08,
+        "worst position error in the map frame {worst} m"
+    );
 }
 
 /// The sensor is covered for a few frames: those frames are reported lost (no pose), then
@@ -157,7 +229,14 @@ fn lost_tracking_is_reported_and_relocalised() {
     let scene = Scene::preset("office", 9).unwrap();
     let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 60, 300, 9, 9, cam);
     let gt = seq.ground_truth();
-    let mut slam = Slam::new(SlamConfig::default(), cam, &ComputeBackend::Cpu, Vocabulary::embedded_default().unwrap(), None).unwrap();
+    let mut slam = Slam::new(
+        SlamConfig::default(),
+        cam,
+        &ComputeBackend::Cpu,
+        Vocabulary::embedded_default().unwrap(),
+        None,
+    )
+    .unwrap();
     let mut statuses = Vec::new();
     for i in 0..seq.len() {
         let f = seq.render_frame(i).unwrap();
@@ -169,16 +248,31 @@ fn lost_tracking_is_reported_and_relocalised() {
         }
         let r = slam.process(&frame).unwrap();
         if (30..34).contains(&i) {
-            assert!(r.world_from_camera.is_none(), "frame {i} kept a pose while covered");
+            assert!(
+                r.world_from_camera.is_none(),
+                "frame {i} kept a pose while covered"
+            );
         }
         statuses.push(r.status);
     }
-    assert!(statuses[30..34].iter().all(|s| *s == FrameStatus::Lost), "{statuses:?}");
-    let back = statuses[34..].iter().position(|s| *s == FrameStatus::Relocalised);
-    assert!(back.is_some_and(|k| k < 5), "no relocalisation soon after: {statuses:?}");
+    assert!(
+        statuses[30..34].iter().all(|s| *s == FrameStatus::Lost),
+        "{statuses:?}"
+    );
+    let back = statuses[34..]
+        .iter()
+        .position(|s| *s == FrameStatus::Relocalised);
+    assert!(
+        back.is_some_and(|k| k < 5),
+        "no relocalisation soon after: {statuses:?}"
+    );
     let r = slam.finish().unwrap();
     assert_eq!(r.trajectory.len(), 60 - 4 - back.unwrap());
     // Same map frame before and after the loss.
     let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
-    assert!(m.ate.translation.rmse < 0.03, "ATE {}", m.ate.translation.rmse);
+    assert!(
+        m.ate.translation.rmse < 0.03,
+        "ATE {}",
+        m.ate.translation.rmse
+    );
 }

@@ -348,7 +348,16 @@ fn run_slam(
     let processed = slam.frames();
     let result = slam.finish()?;
     let wall = t0.elapsed().as_secs_f64();
-    write_outputs(a, source, &camera, &result, &mut load_ms, dropped, processed, wall)?;
+    write_outputs(
+        a,
+        source,
+        &camera,
+        &result,
+        &mut load_ms,
+        dropped,
+        processed,
+        wall,
+    )?;
     if let Some(e) = error {
         return Err(e);
     }
@@ -434,7 +443,12 @@ fn write_outputs(
     f.flush()?;
     let mut model_points = 0;
     if !a.no_model {
-        let pts = build_model(&r.keyframes, &r.keyframe_poses, camera, &ModelParams::default());
+        let pts = build_model(
+            &r.keyframes,
+            &r.keyframe_poses,
+            camera,
+            &ModelParams::default(),
+        );
         let filtered = voxel_filter(&pts, a.voxel);
         model_points = filtered.len();
         write_ply(&out.join("model.ply"), &filtered)?;
@@ -458,10 +472,26 @@ fn write_outputs(
             .collect();
         median(&mut v)
     };
-    let tracked = r.frames.iter().filter(|f| f.frontworld_from_camera.is_some()).count();
-    let lost = r.frames.iter().filter(|f| f.status == FrameStatus::Lost).count();
-    let reloc = r.frames.iter().filter(|f| f.status == FrameStatus::Relocalised).count();
-    let accepted = r.loops.iter().filter(|l| l.accepted && !l.relocalisation).count();
+    let tracked = r
+        .frames
+        .iter()
+        .filter(|f| f.frontworld_from_camera.is_some())
+        .count();
+    let lost = r
+        .frames
+        .iter()
+        .filter(|f| f.status == FrameStatus::Lost)
+        .count();
+    let reloc = r
+        .frames
+        .iter()
+        .filter(|f| f.status == FrameStatus::Relocalised)
+        .count();
+    let accepted = r
+        .loops
+        .iter()
+        .filter(|l| l.accepted && !l.relocalisation)
+        .count();
     println!(
         "frames {processed} (dropped {dropped}), tracked {tracked}, lost {lost}, relocalised {reloc}; \
          keyframes {} ({} new), loops {accepted} accepted of {} detected; wall {wall:.1} s",
@@ -482,8 +512,18 @@ fn write_outputs(
         let mut v: Vec<f64> = r.timings.iter().map(g).collect();
         median(&mut v)
     };
-    let mut loop_align: Vec<f64> = r.timings.iter().filter(|t| t.align_ms > 0.0).map(|t| t.align_ms).collect();
-    let mut opt: Vec<f64> = r.timings.iter().filter(|t| t.optimise_ms > 0.0).map(|t| t.optimise_ms).collect();
+    let mut loop_align: Vec<f64> = r
+        .timings
+        .iter()
+        .filter(|t| t.align_ms > 0.0)
+        .map(|t| t.align_ms)
+        .collect();
+    let mut opt: Vec<f64> = r
+        .timings
+        .iter()
+        .filter(|t| t.optimise_ms > 0.0)
+        .map(|t| t.optimise_ms)
+        .collect();
     println!("back-end per keyframe (median ms): segment {:.1} | ORB+BoW {:.1} | query+verify {:.1} | total {:.1}; per loop: dense align {:.1}; per optimisation {:.1} ({}); final {:.1}",
         kcol(&|t| t.segment_ms),
         kcol(&|t| t.describe_ms),
@@ -495,7 +535,10 @@ fn write_outputs(
         r.final_optimise_ms);
     let rss = peak_rss_mb();
     if let Some(m) = rss {
-        println!("peak resident memory {m:.0} MB; map {:.2} MB per keyframe", r.map.bytes_per_keyframe() / 1e6);
+        println!(
+            "peak resident memory {m:.0} MB; map {:.2} MB per keyframe",
+            r.map.bytes_per_keyframe() / 1e6
+        );
     }
     let mut summary = serde_json::json!({
         "frames": processed, "dropped": dropped, "tracked": tracked, "lost": lost,
@@ -512,7 +555,11 @@ fn write_outputs(
             }
             match evaluate(&gt, est, &opts) {
                 Ok(m) => {
-                    let rpe = m.rpe.as_ref().map(|x| x.translation_m.rmse).unwrap_or(f64::NAN);
+                    let rpe = m
+                        .rpe
+                        .as_ref()
+                        .map(|x| x.translation_m.rmse)
+                        .unwrap_or(f64::NAN);
                     println!(
                         "{name:<9} ATE rmse {:.4} m (max {:.4}), RPE {:.4} m/s over {} poses",
                         m.ate.translation.rmse, m.ate.translation.max, rpe, m.matched
@@ -524,7 +571,10 @@ fn write_outputs(
             }
         }
     }
-    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
     println!("wrote {}", out.display());
     Ok(())
 }

@@ -79,6 +79,12 @@ pub(crate) struct Relocalisation {
     pub frontworld_from_keyframe: Se3,
 }
 
+/// A keyframe's description, its per-mask feature flags, and the segmentation and
+/// description times (ms).
+type Described = (KeyframeDescription, Vec<Vec<bool>>, f64, f64);
+/// A refined loop: `candidate_from_query`, its covariance and the dense covisibility.
+type Refined = (Se3, Option<[[f64; 6]; 6]>, f64);
+
 pub(crate) struct Backend {
     pub camera: PinholeCamera,
     pub config: SlamConfig,
@@ -152,10 +158,7 @@ impl Backend {
         Ok(out)
     }
 
-    pub fn describe(
-        &self,
-        frame: &RgbdFrame,
-    ) -> Result<(KeyframeDescription, Vec<Vec<bool>>, f64, f64), SlamError> {
+    pub fn describe(&self, frame: &RgbdFrame) -> Result<Described, SlamError> {
         let t = Instant::now();
         let masks = self.masks(frame)?;
         let segment_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -188,7 +191,7 @@ impl Backend {
         candidate: usize,
         query: &RgbdFrame,
         candidate_from_query_guess: Se3,
-    ) -> Result<(Se3, Option<[[f64; 6]; 6]>, f64), SlamError> {
+    ) -> Result<Refined, SlamError> {
         let reference = self.keyframes[candidate].frame();
         let a = self
             .odometry
@@ -335,7 +338,9 @@ impl Backend {
             }
         }
         let correction = match self.pose_of(id) {
-            Ok(p) if timing.optimise_ms > 0.0 => p * self.keyframes[id].world_from_keyframe.inverse(),
+            Ok(p) if timing.optimise_ms > 0.0 => {
+                p * self.keyframes[id].world_from_keyframe.inverse()
+            }
             _ => world_from_frontworld,
         };
         if let Ok(mut s) = self.shared.lock() {

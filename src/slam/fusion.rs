@@ -282,8 +282,10 @@ impl GpuFusion {
         if cur_rho.len() != self.pixels {
             return Err(SlamError::Internal("fusion frame size changed".into()));
         }
-        ctx.queue.write_buffer(cur, 0, bytemuck::cast_slice(cur_rho));
-        ctx.queue.write_buffer(&self.uniform, 0, bytemuck::bytes_of(u));
+        ctx.queue
+            .write_buffer(cur, 0, bytemuck::cast_slice(cur_rho));
+        ctx.queue
+            .write_buffer(&self.uniform, 0, bytemuck::bytes_of(u));
         ctx.queue.write_buffer(&self.counts, 0, &[0u8; 16]);
         let mut enc = ctx
             .device
@@ -373,7 +375,11 @@ impl KeyframeFuser {
     }
 
     /// Fuses a frame with inverse depth `cur_rho` whose pose is `cur_from_kf`.
-    pub fn fuse(&mut self, cur_rho: &ImageF32, cur_from_kf: &Se3) -> Result<FusionCounts, SlamError> {
+    pub fn fuse(
+        &mut self,
+        cur_rho: &ImageF32,
+        cur_from_kf: &Se3,
+    ) -> Result<FusionCounts, SlamError> {
         if cur_rho.data.len() != (self.camera.width * self.camera.height) as usize
             || self.rho.len() != cur_rho.data.len()
         {

@@ -309,10 +309,7 @@ impl Map {
         if bytes.len() < 8 || &bytes[..8] != MAGIC {
             return Err(MapError::Foreign(p.clone()));
         }
-        let mut r = Reader {
-            b: &bytes,
-            pos: 8,
-        };
+        let mut r = Reader { b: &bytes, pos: 8 };
         let version = r.u32().ok_or_else(|| corrupt("header"))?;
         if version != MAP_VERSION {
             return Err(MapError::Version {

@@ -48,7 +48,10 @@ pub fn build_model(
     let mut out = Vec::new();
     for (k, (kf, pose)) in keyframes.iter().zip(world_from_keyframe.iter()).enumerate() {
         let prev = if k > 0 && keyframes[k - 1].session == kf.session {
-            Some((&keyframes[k - 1], world_from_keyframe[k - 1].inverse() * *pose))
+            Some((
+                &keyframes[k - 1],
+                world_from_keyframe[k - 1].inverse() * *pose,
+            ))
         } else {
             None
         };
@@ -59,7 +62,9 @@ pub fn build_model(
                     let u = (camera.fx * q.x / q.z + camera.cx).round();
                     let v = (camera.fy * q.y / q.z + camera.cy).round();
                     if u >= 0.0 && v >= 0.0 && (u as usize) < pk.width && (v as usize) < pk.height {
-                        let r = f64::from(pk.inverse_depth[v as usize * pk.width + u as usize].to_f32());
+                        let r = f64::from(
+                            pk.inverse_depth[v as usize * pk.width + u as usize].to_f32(),
+                        );
                         if r > 0.0 && (r - 1.0 / q.z).abs() < params.seen_tolerance {
                             continue;
                         }

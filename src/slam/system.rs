@@ -97,7 +97,10 @@ pub struct SlamResult {
 
 enum ToBackend {
     Keyframe(Box<Keyframe>),
-    Relocalise(Box<RgbdFrame>, Sender<Result<Option<Relocalisation>, SlamError>>),
+    Relocalise(
+        Box<RgbdFrame>,
+        Sender<Result<Option<Relocalisation>, SlamError>>,
+    ),
 }
 
 struct CurrentKeyframe {
@@ -141,7 +144,7 @@ fn add_cov(a: &mut [[f64; 6]; 6], b: &[[f64; 6]; 6]) {
 fn default_cov() -> [[f64; 6]; 6] {
     let mut c = [[0.0; 6]; 6];
     for (i, row) in c.iter_mut().enumerate() {
-        row[i] = if i < 3 { 1e-6 } else { 1e-6 };
+        row[i] = 1e-6;
     }
     c
 }
@@ -307,16 +310,18 @@ impl Slam {
         FrameReport {
             record,
             status: record.status,
-            world_from_camera: record
-                .frontworld_from_camera
-                .map(|p| self.correction() * p),
+            world_from_camera: record.frontworld_from_camera.map(|p| self.correction() * p),
             keyframes,
             loops,
         }
     }
 
     /// Tries to relocalise `frame`; on success the odometry restarts there.
-    fn try_relocalise(&mut self, index: usize, frame: &RgbdFrame) -> Result<Option<Se3>, SlamError> {
+    fn try_relocalise(
+        &mut self,
+        index: usize,
+        frame: &RgbdFrame,
+    ) -> Result<Option<Se3>, SlamError> {
         let (rtx, rrx) = channel();
         self.send(ToBackend::Relocalise(Box::new(frame.clone()), rtx))?;
         let answer = match rrx.recv() {
@@ -372,7 +377,7 @@ impl Slam {
         }
         if self.lost {
             let every = self.config.relocalise_every.max(1);
-            if index % every == 0 {
+            if index.is_multiple_of(every) {
                 if let Some(p) = self.try_relocalise(index, frame)? {
                     self.lost = false;
                     record.status = FrameStatus::Relocalised;
@@ -424,7 +429,9 @@ impl Slam {
         let (kf_id, frontworld_from_kf) = (cur.id, cur.frontworld_from_keyframe);
         let kf_from_camera = frontworld_from_kf.inverse() * frontworld_from_camera;
         let tf = Instant::now();
-        let counts = self.fuser.fuse(&frame.inverse_depth, &kf_from_camera.inverse())?;
+        let counts = self
+            .fuser
+            .fuse(&frame.inverse_depth, &kf_from_camera.inverse())?;
         record.fusion_ms = tf.elapsed().as_secs_f64() * 1e3;
         record.keyframe_covisibility = counts.covisibility();
         record.keyframe = Some((kf_id, kf_from_camera));
