@@ -1,0 +1,139 @@
+//! Images of the library (intensity, inverse depth, segmentation) as egui colour images.
+
+use egui::{Color32, ColorImage};
+use rgbid::image::ImageF32;
+
+/// The "turbo" colour map (polynomial approximation by Google), `t` in [0, 1].
+pub fn turbo(t: f32) -> Color32 {
+    let t = t.clamp(0.0, 1.0);
+    let t2 = t * t;
+    let t3 = t2 * t;
+    let t4 = t3 * t;
+    let t5 = t4 * t;
+    let r = 0.135_721_38 + 4.615_392_6 * t - 42.660_324 * t2 + 132.131_08 * t3 - 152.942_4 * t4
+        + 59.286_38 * t5;
+    let g = 0.091_402_61 + 2.194_188_4 * t + 4.842_966_6 * t2 - 14.185_034 * t3 + 4.277_298_6 * t4
+        + 2.829_566 * t5;
+    let b = 0.106_673_3 + 12.641_946 * t - 60.582_05 * t2 + 110.362_77 * t3 - 89.903_11 * t4
+        + 27.348_25 * t5;
+    let c = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    Color32::from_rgb(c(r), c(g), c(b))
+}
+
+/// Grey image of intensities in [0, 255].
+pub fn intensity_image(img: &ImageF32) -> ColorImage {
+    let pixels = img
+        .data
+        .iter()
+        .map(|&v| {
+            let g = v.clamp(0.0, 255.0) as u8;
+            Color32::from_gray(g)
+        })
+        .collect();
+    ColorImage::new([img.width, img.height], pixels)
+}
+
+/// The value below which `q` (0-1) of the positive finite values lie; `None` when there are none.
+pub fn quantile_positive(values: &[f32], q: f32) -> Option<f32> {
+    let mut v: Vec<f32> = values
+        .iter()
+        .copied()
+        .filter(|x| x.is_finite() && *x > 0.0)
+        .collect();
+    if v.is_empty() {
+        return None;
+    }
+    let k = ((v.len() - 1) as f32 * q.clamp(0.0, 1.0)).round() as usize;
+    let (_, x, _) = v.select_nth_unstable_by(k, f32::total_cmp);
+    Some(*x)
+}
+
+/// Inverse depth through the turbo map, scaled to `[0, max]` (1/m; near = red), invalid
+/// (0) black. With `max = None` the 98th percentile of the valid values is used.
+pub fn inverse_depth_image(img: &ImageF32, max: Option<f32>) -> ColorImage {
+    let max = max
+        .or_else(|| quantile_positive(&img.data, 0.98))
+        .filter(|m| *m > 0.0)
+        .unwrap_or(1.0);
+    let pixels = img
+        .data
+        .iter()
+        .map(|&rho| {
+            if rho > 0.0 && rho.is_finite() {
+                turbo(rho / max)
+            } else {
+                Color32::BLACK
+            }
+        })
+        .collect();
+    ColorImage::new([img.width, img.height], pixels)
+}
+
+/// RGB8 row-major bytes as an image; `None` when the size does not match.
+pub fn rgb_image(width: usize, height: usize, rgb: &[u8]) -> Option<ColorImage> {
+    (rgb.len() == width * height * 3).then(|| ColorImage::from_rgb([width, height], rgb))
+}
+
+/// Neg-entropy of each pixel's segment through the turbo map over the intensity (half and
+/// half); pixels without a segment (non-finite or zero value) show the intensity only.
+pub fn neg_entropy_overlay(neg_entropy: &ImageF32, intensity: Option<&ImageF32>) -> ColorImage {
+    let finite: Vec<f32> = neg_entropy
+        .data
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    let lo = finite.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = finite.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    let pixels = neg_entropy
+        .data
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| {
+            let g = intensity
+                .filter(|im| im.data.len() == neg_entropy.data.len())
+                .map_or(0.0, |im| im.data[i].clamp(0.0, 255.0));
+            if v.is_finite() && v != 0.0 {
+                let c = turbo((v - lo) / span);
+                let mix = |a: u8| (0.5 * f32::from(a) + 0.5 * g) as u8;
+                Color32::from_rgb(mix(c.r()), mix(c.g()), mix(c.b()))
+            } else {
+                Color32::from_gray(g as u8)
+            }
+        })
+        .collect();
+    ColorImage::new([neg_entropy.width, neg_entropy.height], pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn turbo_ends_are_dark_blue_and_dark_red() {
+        let a = turbo(0.0);
+        let b = turbo(1.0);
+        assert!(a.b() > a.r(), "{a:?}");
+        assert!(b.r() > b.b(), "{b:?}");
+        assert_eq!(turbo(-1.0), a);
+    }
+
+    #[test]
+    fn inverse_depth_invalid_is_black_and_sizes_match() {
+        let img = ImageF32::from_vec(3, 2, vec![0.0, 0.5, 1.0, f32::NAN, 2.0, 0.25]).unwrap();
+        let c = inverse_depth_image(&img, Some(2.0));
+        assert_eq!(c.size, [3, 2]);
+        assert_eq!(c.pixels[0], Color32::BLACK);
+        assert_eq!(c.pixels[3], Color32::BLACK);
+        assert_eq!(c.pixels[4], turbo(1.0));
+        assert_eq!(quantile_positive(&img.data, 1.0), Some(2.0));
+        assert_eq!(quantile_positive(&[0.0, -1.0], 0.5), None);
+    }
+
+    #[test]
+    fn rgb_image_checks_size() {
+        assert!(rgb_image(2, 2, &[0; 12]).is_some());
+        assert!(rgb_image(2, 2, &[0; 11]).is_none());
+    }
+}

@@ -1,0 +1,657 @@
+//! The 3D view: keyframe point clouds, trajectories, keyframe frusta and loop edges drawn with
+//! wgpu inside egui (an `egui_wgpu` paint callback). The geometry lives in two vertex buffers
+//! (points as a point list, segments as a line list) that are uploaded only when the
+//! geometry's version changes; every repaint only writes the 64-byte camera uniform, draws
+//! into an offscreen colour + depth target and copies it into egui's render pass.
+
+use std::sync::Arc;
+
+use bytemuck::{Pod, Zeroable};
+use egui_wgpu::wgpu;
+use glam::{DVec3, Mat4, Vec3, Vec4};
+use rgbid::geometry::Se3;
+use wgpu::util::DeviceExt;
+
+/// WGSL of the 3D view.
+pub const SHADER: &str = include_str!("../shaders/scene.wgsl");
+/// Format of the offscreen colour target (gamma-encoded like egui's colours).
+pub const OFFSCREEN_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+/// Format of the offscreen depth target.
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// One vertex: world position (metres) and RGBA8 colour.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct Vertex {
+    /// World position.
+    pub position: [f32; 3],
+    /// Colour, RGBA8 (gamma-encoded).
+    pub colour: [u8; 4],
+}
+
+impl Vertex {
+    /// A vertex at `p` (f64 world point) with colour `c`.
+    pub fn new(p: DVec3, c: [u8; 4]) -> Self {
+        Vertex {
+            position: [p.x as f32, p.y as f32, p.z as f32],
+            colour: c,
+        }
+    }
+}
+
+/// Everything the 3D view draws; `version` changes whenever the contents do.
+#[derive(Clone, Debug, Default)]
+pub struct Geometry {
+    /// Increases on every change (the renderer re-uploads when it differs).
+    pub version: u64,
+    /// Points.
+    pub points: Vec<Vertex>,
+    /// Line segments as vertex pairs.
+    pub lines: Vec<Vertex>,
+}
+
+impl Geometry {
+    /// Adds a polyline through `ps` as segments.
+    pub fn add_polyline(&mut self, ps: &[DVec3], colour: [u8; 4]) {
+        for w in ps.windows(2) {
+            self.lines.push(Vertex::new(w[0], colour));
+            self.lines.push(Vertex::new(w[1], colour));
+        }
+    }
+
+    /// Adds a segment.
+    pub fn add_segment(&mut self, a: DVec3, b: DVec3, colour: [u8; 4]) {
+        self.lines.push(Vertex::new(a, colour));
+        self.lines.push(Vertex::new(b, colour));
+    }
+
+    /// Adds a camera frustum (pyramid of depth `size` metres, 4:3 image) at `world_from_camera`.
+    pub fn add_frustum(&mut self, world_from_camera: &Se3, size: f64, colour: [u8; 4]) {
+        let c = world_from_camera.translation;
+        let (hw, hh) = (0.5 * size, 0.375 * size);
+        let corners = [
+            DVec3::new(-hw, -hh, size),
+            DVec3::new(hw, -hh, size),
+            DVec3::new(hw, hh, size),
+            DVec3::new(-hw, hh, size),
+        ]
+        .map(|p| world_from_camera.transform_point(p));
+        for k in 0..4 {
+            self.add_segment(c, corners[k], colour);
+            self.add_segment(corners[k], corners[(k + 1) % 4], colour);
+        }
+    }
+
+    /// Axis-aligned bounds of all vertices, `None` when empty.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        let mut it = self.points.iter().chain(&self.lines).map(|v| Vec3::from(v.position));
+        let first = it.next()?;
+        Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
+    }
+}
+
+/// Orbit camera around a target; the world's "up" is -y (camera frames are y-down).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OrbitCamera {
+    /// Point orbited and looked at.
+    pub target: Vec3,
+    /// Rotation about the up axis, radians.
+    pub yaw: f32,
+    /// Elevation above the horizontal, radians.
+    pub pitch: f32,
+    /// Distance eye-target, metres.
+    pub distance: f32,
+    /// Vertical field of view, radians.
+    pub fov_y: f32,
+}
+
+impl Default for OrbitCamera {
+    fn default() -> Self {
+        OrbitCamera {
+            target: Vec3::new(0.0, 0.0, 1.5),
+            yaw: 0.3,
+            pitch: 0.6,
+            distance: 5.0,
+            fov_y: 50f32.to_radians(),
+        }
+    }
+}
+
+const UP: Vec3 = Vec3::new(0.0, -1.0, 0.0);
+
+impl OrbitCamera {
+    /// Eye position.
+    pub fn eye(&self) -> Vec3 {
+        let (sy, cy) = self.yaw.sin_cos();
+        let (sp, cp) = self.pitch.sin_cos();
+        self.target + self.distance * Vec3::new(sy * cp, -sp, -cy * cp)
+    }
+
+    /// `clip_from_world` for a viewport of aspect `width / height` (wgpu depth 0..1).
+    pub fn clip_from_world(&self, aspect: f32) -> Mat4 {
+        let near = (self.distance * 1e-3).max(1e-3);
+        let far = self.distance * 100.0 + 100.0;
+        perspective_rh(self.fov_y, aspect.max(1e-3), near, far)
+            * look_at_rh(self.eye(), self.target, UP)
+    }
+
+    /// Orbit by a drag of `dx, dy` points.
+    pub fn orbit(&mut self, dx: f32, dy: f32) {
+        self.yaw -= dx * 0.01;
+        self.pitch = (self.pitch + dy * 0.01).clamp(-1.55, 1.55);
+    }
+
+    /// Pan by a drag of `dx, dy` points in a view `height` points tall.
+    pub fn pan(&mut self, dx: f32, dy: f32, height: f32) {
+        let forward = (self.target - self.eye()).normalize_or_zero();
+        let right = forward.cross(UP).normalize_or_zero();
+        let up = right.cross(forward);
+        let scale = 2.0 * self.distance * (0.5 * self.fov_y).tan() / height.max(1.0);
+        self.target += (-dx * right + dy * up) * scale;
+    }
+
+    /// Zoom by a factor (< 1 moves closer).
+    pub fn zoom(&mut self, factor: f32) {
+        self.distance = (self.distance * factor).clamp(0.01, 1e4);
+    }
+
+    /// Looks at the middle of `bounds` from far enough to see all of it.
+    pub fn frame_bounds(&mut self, (lo, hi): (Vec3, Vec3)) {
+        self.target = 0.5 * (lo + hi);
+        let radius = 0.5 * (hi - lo).length();
+        self.distance = (radius / (0.5 * self.fov_y).sin()).max(0.1);
+    }
+}
+
+/// Right-handed view matrix looking from `eye` at `target` (camera looks down -z).
+pub fn look_at_rh(eye: Vec3, target: Vec3, up: Vec3) -> Mat4 {
+    let f = (target - eye).normalize_or_zero();
+    let s = f.cross(up).normalize_or_zero();
+    let u = s.cross(f);
+    Mat4::from_cols(
+        Vec4::new(s.x, u.x, -f.x, 0.0),
+        Vec4::new(s.y, u.y, -f.y, 0.0),
+        Vec4::new(s.z, u.z, -f.z, 0.0),
+        Vec4::new(-s.dot(eye), -u.dot(eye), f.dot(eye), 1.0),
+    )
+}
+
+/// Right-handed perspective projection with wgpu's depth range 0..1.
+pub fn perspective_rh(fov_y: f32, aspect: f32, near: f32, far: f32) -> Mat4 {
+    let h = 1.0 / (0.5 * fov_y).tan();
+    let w = h / aspect;
+    let r = far / (near - far);
+    Mat4::from_cols(
+        Vec4::new(w, 0.0, 0.0, 0.0),
+        Vec4::new(0.0, h, 0.0, 0.0),
+        Vec4::new(0.0, 0.0, r, -1.0),
+        Vec4::new(0.0, 0.0, r * near, 0.0),
+    )
+}
+
+/// GPU side of the 3D view. Lives in egui_wgpu's callback resources.
+pub struct SceneRenderer {
+    point_pipeline: wgpu::RenderPipeline,
+    line_pipeline: wgpu::RenderPipeline,
+    blit_pipeline: wgpu::RenderPipeline,
+    camera_buffer: wgpu::Buffer,
+    camera_group: wgpu::BindGroup,
+    blit_layout: wgpu::BindGroupLayout,
+    sampler: wgpu::Sampler,
+    target: Option<Offscreen>,
+    points: Option<(wgpu::Buffer, u32)>,
+    lines: Option<(wgpu::Buffer, u32)>,
+    version: Option<u64>,
+}
+
+struct Offscreen {
+    size: [u32; 2],
+    colour: wgpu::Texture,
+    colour_view: wgpu::TextureView,
+    depth_view: wgpu::TextureView,
+    blit_group: wgpu::BindGroup,
+}
+
+impl SceneRenderer {
+    /// Pipelines for an egui render pass of `target_format` with `msaa_samples` and an
+    /// optional depth attachment (`egui_wgpu::RendererOptions`).
+    pub fn new(
+        device: &wgpu::Device,
+        target_format: wgpu::TextureFormat,
+        msaa_samples: u32,
+        egui_depth_format: Option<wgpu::TextureFormat>,
+    ) -> Self {
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("rgbid-viewer scene"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let camera_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene camera"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::VERTEX,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            }],
+        });
+        let blit_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene blit"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        });
+        let scene_pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("scene"),
+            bind_group_layouts: &[Some(&camera_layout)],
+            immediate_size: 0,
+        });
+        let blit_pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("scene blit"),
+            bind_group_layouts: &[Some(&blit_layout)],
+            immediate_size: 0,
+        });
+        let attributes = wgpu::vertex_attr_array![0 => Float32x3, 1 => Unorm8x4];
+        let vertex_layout = wgpu::VertexBufferLayout {
+            array_stride: std::mem::size_of::<Vertex>() as u64,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &attributes,
+        };
+        let scene_pipeline = |topology, label| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(label),
+                layout: Some(&scene_pl),
+                vertex: wgpu::VertexState {
+                    module: &module,
+                    entry_point: Some("vs_scene"),
+                    compilation_options: Default::default(),
+                    buffers: &[Some(vertex_layout.clone())],
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology,
+                    ..Default::default()
+                },
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: DEPTH_FORMAT,
+                    depth_write_enabled: Some(true),
+                    depth_compare: Some(wgpu::CompareFunction::Less),
+                    stencil: Default::default(),
+                    bias: Default::default(),
+                }),
+                multisample: Default::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &module,
+                    entry_point: Some("fs_scene"),
+                    compilation_options: Default::default(),
+                    targets: &[Some(OFFSCREEN_FORMAT.into())],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let point_pipeline = scene_pipeline(wgpu::PrimitiveTopology::PointList, "scene points");
+        let line_pipeline = scene_pipeline(wgpu::PrimitiveTopology::LineList, "scene lines");
+        let blit_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("scene blit"),
+            layout: Some(&blit_pl),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_blit"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: egui_depth_format.map(|format| wgpu::DepthStencilState {
+                format,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: wgpu::MultisampleState {
+                count: msaa_samples.max(1),
+                ..Default::default()
+            },
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some(if target_format.is_srgb() {
+                    "fs_blit_linear"
+                } else {
+                    "fs_blit_gamma"
+                }),
+                compilation_options: Default::default(),
+                targets: &[Some(target_format.into())],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let camera_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("scene camera"),
+            size: 64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let camera_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scene camera"),
+            layout: &camera_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: camera_buffer.as_entire_binding(),
+            }],
+        });
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("scene blit"),
+            mag_filter: wgpu::FilterMode::Nearest,
+            min_filter: wgpu::FilterMode::Nearest,
+            ..Default::default()
+        });
+        SceneRenderer {
+            point_pipeline,
+            line_pipeline,
+            blit_pipeline,
+            camera_buffer,
+            camera_group,
+            blit_layout,
+            sampler,
+            target: None,
+            points: None,
+            lines: None,
+            version: None,
+        }
+    }
+
+    /// Uploads `geometry` unless this version is already on the GPU. Returns whether it uploaded.
+    pub fn upload(&mut self, device: &wgpu::Device, geometry: &Geometry) -> bool {
+        if self.version == Some(geometry.version) {
+            return false;
+        }
+        let make = |v: &[Vertex], label| {
+            (!v.is_empty()).then(|| {
+                (
+                    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some(label),
+                        contents: bytemuck::cast_slice(v),
+                        usage: wgpu::BufferUsages::VERTEX,
+                    }),
+                    v.len() as u32,
+                )
+            })
+        };
+        self.points = make(&geometry.points, "scene points");
+        self.lines = make(&geometry.lines, "scene lines");
+        self.version = Some(geometry.version);
+        true
+    }
+
+    fn ensure_target(&mut self, device: &wgpu::Device, size: [u32; 2]) {
+        let size = [size[0].clamp(1, 8192), size[1].clamp(1, 8192)];
+        if self.target.as_ref().is_some_and(|t| t.size == size) {
+            return;
+        }
+        let extent = wgpu::Extent3d {
+            width: size[0],
+            height: size[1],
+            depth_or_array_layers: 1,
+        };
+        let texture = |format, usage, label| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: extent,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let colour = texture(
+            OFFSCREEN_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            "scene colour",
+        );
+        let depth = texture(
+            DEPTH_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT,
+            "scene depth",
+        );
+        let colour_view = colour.create_view(&Default::default());
+        let depth_view = depth.create_view(&Default::default());
+        let blit_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scene blit"),
+            layout: &self.blit_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::TextureView(&colour_view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+            ],
+        });
+        self.target = Some(Offscreen {
+            size,
+            colour,
+            colour_view,
+            depth_view,
+            blit_group,
+        });
+    }
+
+    /// Draws the uploaded geometry into the offscreen target of `size` pixels.
+    pub fn render(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        clip_from_world: Mat4,
+        size: [u32; 2],
+        background: [f32; 3],
+    ) {
+        self.ensure_target(device, size);
+        queue.write_buffer(
+            &self.camera_buffer,
+            0,
+            bytemuck::cast_slice(&clip_from_world.to_cols_array()),
+        );
+        let Some(target) = &self.target else {
+            return;
+        };
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("scene"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &target.colour_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color {
+                        r: f64::from(background[0]),
+                        g: f64::from(background[1]),
+                        b: f64::from(background[2]),
+                        a: 1.0,
+                    }),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &target.depth_view,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Discard,
+                }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_bind_group(0, &self.camera_group, &[]);
+        if let Some((buf, n)) = &self.lines {
+            pass.set_pipeline(&self.line_pipeline);
+            pass.set_vertex_buffer(0, buf.slice(..));
+            pass.draw(0..*n, 0..1);
+        }
+        if let Some((buf, n)) = &self.points {
+            pass.set_pipeline(&self.point_pipeline);
+            pass.set_vertex_buffer(0, buf.slice(..));
+            pass.draw(0..*n, 0..1);
+        }
+    }
+
+    /// Copies the offscreen image into `pass` (the callback's viewport).
+    pub fn blit(&self, pass: &mut wgpu::RenderPass<'static>) {
+        if let Some(t) = &self.target {
+            pass.set_pipeline(&self.blit_pipeline);
+            pass.set_bind_group(0, &t.blit_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
+    }
+
+    /// The offscreen colour texture (for read-back in benchmarks and tests).
+    pub fn colour_texture(&self) -> Option<&wgpu::Texture> {
+        self.target.as_ref().map(|t| &t.colour)
+    }
+
+    /// Numbers of uploaded points and line vertices.
+    pub fn counts(&self) -> (u32, u32) {
+        (
+            self.points.as_ref().map_or(0, |p| p.1),
+            self.lines.as_ref().map_or(0, |p| p.1),
+        )
+    }
+}
+
+/// The paint callback of one 3D view.
+pub struct SceneCallback {
+    /// What to draw.
+    pub geometry: Arc<Geometry>,
+    /// Camera matrix.
+    pub clip_from_world: Mat4,
+    /// Viewport size, pixels.
+    pub size_px: [u32; 2],
+    /// Background colour (gamma-encoded RGB in 0..1).
+    pub background: [f32; 3],
+}
+
+impl egui_wgpu::CallbackTrait for SceneCallback {
+    fn prepare(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        _screen: &egui_wgpu::ScreenDescriptor,
+        encoder: &mut wgpu::CommandEncoder,
+        resources: &mut egui_wgpu::CallbackResources,
+    ) -> Vec<wgpu::CommandBuffer> {
+        if let Some(r) = resources.get_mut::<SceneRenderer>() {
+            r.upload(device, &self.geometry);
+            r.render(
+                device,
+                queue,
+                encoder,
+                self.clip_from_world,
+                self.size_px,
+                self.background,
+            );
+        }
+        Vec::new()
+    }
+
+    fn paint(
+        &self,
+        _info: egui::PaintCallbackInfo,
+        pass: &mut wgpu::RenderPass<'static>,
+        resources: &egui_wgpu::CallbackResources,
+    ) {
+        if let Some(r) = resources.get::<SceneRenderer>() {
+            r.blit(pass);
+        }
+    }
+}
+
+/// Installs the renderer into an egui_wgpu render state (call once at start-up).
+pub fn install(render_state: &egui_wgpu::RenderState, msaa_samples: u32) {
+    let r = SceneRenderer::new(
+        &render_state.device,
+        render_state.target_format,
+        msaa_samples,
+        None,
+    );
+    render_state.renderer.write().callback_resources.insert(r);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn orbit_camera_projects_target_to_centre_and_up_is_up() {
+        let cam = OrbitCamera::default();
+        let m = cam.clip_from_world(1.5);
+        let c = m.project_point3(cam.target);
+        assert!(c.x.abs() < 1e-5 && c.y.abs() < 1e-5, "{c}");
+        assert!(c.z > 0.0 && c.z < 1.0);
+        // A point above the target (world -y) appears above the centre (clip +y).
+        let above = m.project_point3(cam.target + Vec3::new(0.0, -0.5, 0.0));
+        assert!(above.y > 0.05, "{above}");
+    }
+
+    #[test]
+    fn projection_maps_near_and_far_to_0_and_1() {
+        let m = perspective_rh(1.0, 1.5, 0.1, 10.0);
+        let n = m.project_point3(Vec3::new(0.0, 0.0, -0.1));
+        let f = m.project_point3(Vec3::new(0.0, 0.0, -10.0));
+        assert!(n.z.abs() < 1e-5 && (f.z - 1.0).abs() < 1e-5, "{n} {f}");
+        let v = look_at_rh(Vec3::new(1.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y);
+        let p = v.transform_point3(Vec3::ZERO);
+        assert!(p.x.abs() < 1e-5 && p.y.abs() < 1e-5 && p.z < 0.0, "{p}");
+    }
+
+    #[test]
+    fn frame_bounds_sees_the_corners() {
+        let mut cam = OrbitCamera::default();
+        let b = (Vec3::new(-3.0, -1.0, 0.0), Vec3::new(5.0, 2.0, 9.0));
+        cam.frame_bounds(b);
+        let m = cam.clip_from_world(1.0);
+        for x in [b.0.x, b.1.x] {
+            for y in [b.0.y, b.1.y] {
+                for z in [b.0.z, b.1.z] {
+                    let p = m.project_point3(Vec3::new(x, y, z));
+                    assert!(p.x.abs() <= 1.0 && p.y.abs() <= 1.0, "{p}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn geometry_frustum_and_bounds() {
+        let mut g = Geometry::default();
+        assert!(g.bounds().is_none());
+        g.add_frustum(&Se3::default(), 0.2, [255; 4]);
+        assert_eq!(g.lines.len(), 16);
+        let (lo, hi) = g.bounds().unwrap();
+        assert!((hi.z - 0.2).abs() < 1e-6 && lo.z.abs() < 1e-6);
+        assert!((hi.x - 0.1).abs() < 1e-6);
+    }
+}

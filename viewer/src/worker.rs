@@ -1,0 +1,380 @@
+//! The background thread that runs SLAM: it opens the source, feeds frames to
+//! [`rgbid::slam::Slam`] at the requested pace and sends owned per-frame snapshots to the UI
+//! through a bounded channel (the UI applies back-pressure by draining it once per repaint).
+
+use std::sync::mpsc::{channel, sync_channel, Receiver, RecvTimeoutError, Sender, SyncSender};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use glam::DVec3;
+use rgbid::camera::PinholeCamera;
+use rgbid::gpu::{select_backend, BackendChoice};
+use rgbid::image::{ImageF32, RgbdFrame};
+use rgbid::io::trajectory::TimedPose;
+use rgbid::place::Vocabulary;
+use rgbid::segment::{segment_keyframe, SegmentConfig};
+use rgbid::slam::{
+    build_model, voxel_filter, FrameReport, FrameStatus, ModelParams, Slam, SlamConfig,
+};
+
+use crate::source::{Source, SourceSpec};
+
+/// Settings of a run, chosen before it starts.
+#[derive(Clone, Debug)]
+pub struct RunConfig {
+    /// What to open.
+    pub source: SourceSpec,
+    /// Compute backend of the odometry, fusion and rendering of generated sequences.
+    pub backend: BackendChoice,
+    /// Keyframe covisibility threshold (0.7 in the thesis).
+    pub keyframe_covisibility: f64,
+    /// Superjut / neg-entropy masks in place recognition.
+    pub masks: bool,
+    /// Segment every new keyframe for the superjut panels (costs back-end-like time).
+    pub segment_keyframes: bool,
+    /// Every n-th pixel of a new keyframe becomes a live point.
+    pub point_step: usize,
+    /// Voxel size of the final model, metres.
+    pub voxel: f64,
+    /// Start playing at once (otherwise paused on the first frame).
+    pub autoplay: bool,
+}
+
+impl RunConfig {
+    /// Defaults for `source`.
+    pub fn new(source: SourceSpec) -> Self {
+        RunConfig {
+            source,
+            backend: BackendChoice::Auto,
+            keyframe_covisibility: 0.7,
+            masks: true,
+            segment_keyframes: true,
+            point_step: 2,
+            voxel: 0.01,
+            autoplay: true,
+        }
+    }
+}
+
+/// Commands from the UI.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Command {
+    /// Run continuously.
+    Play,
+    /// Stop after the current frame.
+    Pause,
+    /// Process one frame, then pause.
+    Step,
+    /// Pace: multiple of the sequence frame rate (30 fps); 0 = as fast as possible.
+    Speed(f64),
+    /// Stop feeding frames and finish (final optimisation, model).
+    Finish,
+}
+
+/// Camera intrinsics + metadata sent when the run starts.
+#[derive(Clone, Debug)]
+pub struct StartInfo {
+    /// Frames in the sequence.
+    pub frames: usize,
+    /// The camera.
+    pub camera: PinholeCamera,
+    /// Name of the compute backend.
+    pub backend: String,
+    /// Ground truth, if any.
+    pub groundtruth: Option<Vec<TimedPose>>,
+}
+
+/// One processed frame.
+#[derive(Clone, Debug)]
+pub struct FrameUpdate {
+    /// Frame index.
+    pub index: usize,
+    /// Intensity 0-255.
+    pub intensity: ImageF32,
+    /// Inverse depth 1/m (0 = invalid).
+    pub inverse_depth: ImageF32,
+    /// What SLAM said.
+    pub report: FrameReport,
+    /// Wall time of loading the frame, milliseconds.
+    pub load_ms: f64,
+}
+
+/// A new keyframe (sent with the frame that started it).
+#[derive(Clone, Debug)]
+pub struct KeyframeUpdate {
+    /// Frame index that started the keyframe.
+    pub frame_index: usize,
+    /// `world_from_camera` of the keyframe (front-end estimate at creation).
+    pub world_from_keyframe: rgbid::geometry::Se3,
+    /// Points in world coordinates with intensity, from the frame's inverse depth.
+    pub points: Vec<(DVec3, u8)>,
+    /// Superjut colours (RGB8, row-major), if segmentation is on and succeeded.
+    pub superjuts: Option<(usize, usize, Vec<u8>)>,
+    /// Neg-entropy per pixel, if segmentation is on and succeeded.
+    pub neg_entropy: Option<ImageF32>,
+    /// Segmentation time, milliseconds.
+    pub segment_ms: f64,
+}
+
+/// What a finished run produced.
+#[derive(Clone, Debug, Default)]
+pub struct FinishedRun {
+    /// Final (optimised) trajectory of every tracked frame.
+    pub trajectory: Vec<TimedPose>,
+    /// Optimised keyframe poses.
+    pub keyframes: Vec<TimedPose>,
+    /// Accepted loops as (query keyframe, candidate keyframe) indices into `keyframes`.
+    pub loops: Vec<(usize, usize)>,
+    /// Voxel-filtered model (world points with intensity).
+    pub model: Vec<(DVec3, u8)>,
+    /// Milliseconds of the final optimisation.
+    pub final_optimise_ms: f64,
+}
+
+/// Messages to the UI.
+#[derive(Debug)]
+pub enum Update {
+    /// The source is open and SLAM is ready.
+    Started(Box<StartInfo>),
+    /// A frame was processed.
+    Frame(Box<FrameUpdate>),
+    /// The frame just sent started a keyframe.
+    Keyframe(Box<KeyframeUpdate>),
+    /// The run finished.
+    Finished(Box<FinishedRun>),
+    /// The run stopped with an error.
+    Error(String),
+}
+
+/// Handle of a running worker: commands in, updates out.
+pub struct Worker {
+    /// Commands to the thread.
+    pub commands: Sender<Command>,
+    /// Updates from the thread.
+    pub updates: Receiver<Update>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl Worker {
+    /// Starts a run in a new thread.
+    pub fn spawn(config: RunConfig) -> Result<Worker> {
+        let (ctx, crx) = channel();
+        let (utx, urx) = sync_channel(16);
+        let handle = std::thread::Builder::new()
+            .name("rgbid-viewer-slam".into())
+            .spawn(move || {
+                if let Err(e) = run(&config, &crx, &utx) {
+                    let _ = utx.send(Update::Error(format!("{e:#}")));
+                }
+            })
+            .context("starting the SLAM thread")?;
+        Ok(Worker {
+            commands: ctx,
+            updates: urx,
+            handle: Some(handle),
+        })
+    }
+
+    /// Sends a command (ignored when the thread has ended).
+    pub fn send(&self, c: Command) {
+        let _ = self.commands.send(c);
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        // Ask the thread to finish and stop consuming; it ends when its next send fails.
+        let _ = self.commands.send(Command::Finish);
+        if let Some(h) = self.handle.take() {
+            // Draining lets a blocked send return; dropping the receiver afterwards unblocks the rest.
+            while !h.is_finished() {
+                match self.updates.recv_timeout(Duration::from_millis(20)) {
+                    Ok(_) | Err(RecvTimeoutError::Timeout) => {}
+                    Err(RecvTimeoutError::Disconnected) => break,
+                }
+            }
+            let _ = h.join();
+        }
+    }
+}
+
+/// Points of a frame in world coordinates (every `step`-th pixel with inverse depth).
+pub fn frame_points(
+    frame: &RgbdFrame,
+    camera: &PinholeCamera,
+    world_from_camera: &rgbid::geometry::Se3,
+    step: usize,
+) -> Vec<(DVec3, u8)> {
+    let step = step.max(1);
+    let (w, h) = (frame.width(), frame.height());
+    let mut out = Vec::with_capacity((w / step + 1) * (h / step + 1));
+    for y in (0..h).step_by(step) {
+        for x in (0..w).step_by(step) {
+            let i = y * w + x;
+            let rho = frame.inverse_depth.data[i];
+            if rho > 0.0 && rho.is_finite() {
+                let z = 1.0 / f64::from(rho);
+                let p = DVec3::new(
+                    (x as f64 - camera.cx) / camera.fx * z,
+                    (y as f64 - camera.cy) / camera.fy * z,
+                    z,
+                );
+                let g = frame.intensity.data[i].clamp(0.0, 255.0) as u8;
+                out.push((world_from_camera.transform_point(p), g));
+            }
+        }
+    }
+    out
+}
+
+enum Pace {
+    Paused,
+    Playing,
+    Stepping,
+}
+
+fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>) -> Result<()> {
+    let backend = select_backend(config.backend, None).context("choosing the backend")?;
+    let mut source = Source::open(&config.source, &backend)?;
+    let camera = source.camera();
+    let mut slam_config = SlamConfig {
+        keyframe_covisibility: config.keyframe_covisibility,
+        masks: config.masks,
+        ..Default::default()
+    };
+    if !config.masks {
+        slam_config.mask_thresholds.clear();
+    }
+    let mut slam = Slam::new(
+        slam_config,
+        camera,
+        &backend,
+        Vocabulary::embedded_default()?,
+        None,
+    )?;
+    let send = |u: Update| tx.send(u).map_err(|_| anyhow::anyhow!("the viewer closed"));
+    send(Update::Started(Box::new(StartInfo {
+        frames: source.len(),
+        camera,
+        backend: backend.name(),
+        groundtruth: source.groundtruth(),
+    })))?;
+    let mut pace = if config.autoplay {
+        Pace::Playing
+    } else {
+        Pace::Paused
+    };
+    let mut speed = 0.0_f64;
+    let mut next_due = Instant::now();
+    let mut i = 0;
+    'frames: while i < source.len() {
+        // Commands: block while paused, otherwise drain what is there.
+        loop {
+            let cmd = match pace {
+                Pace::Paused => match commands.recv() {
+                    Ok(c) => c,
+                    Err(_) => break 'frames,
+                },
+                _ => match commands.try_recv() {
+                    Ok(c) => c,
+                    Err(_) => break,
+                },
+            };
+            match cmd {
+                Command::Play => pace = Pace::Playing,
+                Command::Pause => pace = Pace::Paused,
+                Command::Step => pace = Pace::Stepping,
+                Command::Speed(s) => speed = s.max(0.0),
+                Command::Finish => break 'frames,
+            }
+        }
+        if speed > 0.0 {
+            let now = Instant::now();
+            if next_due > now {
+                std::thread::sleep(next_due - now);
+            }
+            next_due = Instant::now().max(next_due) + Duration::from_secs_f64(1.0 / (30.0 * speed));
+        }
+        let t0 = Instant::now();
+        let frame = source.load(i)?;
+        let load_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let report = slam.process(&frame)?;
+        let keyframe = if report.status == FrameStatus::NewKeyframe {
+            report.world_from_camera.map(|world_from_keyframe| {
+                let points = frame_points(&frame, &camera, &world_from_keyframe, config.point_step);
+                let t = Instant::now();
+                let seg = if config.segment_keyframes {
+                    segment_keyframe(
+                        &frame.intensity,
+                        &frame.inverse_depth,
+                        &camera,
+                        &SegmentConfig::default(),
+                    )
+                    .map_err(|e| log::warn!("segmentation of frame {i}: {e}"))
+                    .ok()
+                } else {
+                    None
+                };
+                KeyframeUpdate {
+                    frame_index: i,
+                    world_from_keyframe,
+                    points,
+                    superjuts: seg
+                        .as_ref()
+                        .map(|s| (s.width, s.height, s.colour_image())),
+                    neg_entropy: seg.as_ref().map(|s| s.neg_entropy_image()),
+                    segment_ms: t.elapsed().as_secs_f64() * 1e3,
+                }
+            })
+        } else {
+            None
+        };
+        send(Update::Frame(Box::new(FrameUpdate {
+            index: i,
+            intensity: frame.intensity,
+            inverse_depth: frame.inverse_depth,
+            report,
+            load_ms,
+        })))?;
+        if let Some(k) = keyframe {
+            send(Update::Keyframe(Box::new(k)))?;
+        }
+        if matches!(pace, Pace::Stepping) {
+            pace = Pace::Paused;
+        }
+        i += 1;
+    }
+    let result = slam.finish()?;
+    let keyframes: Vec<TimedPose> = result
+        .keyframes
+        .iter()
+        .zip(&result.keyframe_poses)
+        .map(|(k, p)| TimedPose {
+            timestamp: k.timestamp,
+            world_from_camera: *p,
+        })
+        .collect();
+    let index_of = |id: usize| result.keyframes.iter().position(|k| k.id == id);
+    let loops = result
+        .loops
+        .iter()
+        .filter(|l| l.accepted && !l.relocalisation)
+        .filter_map(|l| Some((index_of(l.query)?, index_of(l.candidate)?)))
+        .collect();
+    let model = build_model(
+        &result.keyframes,
+        &result.keyframe_poses,
+        &camera,
+        &ModelParams::default(),
+    );
+    let model = voxel_filter(&model, config.voxel);
+    send(Update::Finished(Box::new(FinishedRun {
+        trajectory: result.trajectory,
+        keyframes,
+        loops,
+        model,
+        final_optimise_ms: result.final_optimise_ms,
+    })))?;
+    Ok(())
+}

@@ -1,0 +1,223 @@
+//! Headless tests of the viewer: the SLAM worker on a generated sequence, and snapshots of the
+//! main panels rendered offscreen with wgpu (egui_kittest), compared against the PNGs in
+//! `tests/snapshots/` with a tolerance. `UPDATE_SNAPSHOTS=1` rewrites the references.
+//!
+//! Without a wgpu adapter the snapshot test prints a loud SKIPPED line, unless
+//! `RGBID_REQUIRE_GPU=1` (CI with lavapipe), where it fails.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use egui_kittest::{Harness, SnapshotOptions};
+use rgbid::gpu::BackendChoice;
+use rgbid_viewer::scene3d;
+use rgbid_viewer::source::SourceSpec;
+use rgbid_viewer::state::ViewerState;
+use rgbid_viewer::worker::{Command, RunConfig, Update, Worker};
+use rgbid_viewer::ViewerApp;
+
+const FRAMES: usize = 30;
+
+fn small_run(autoplay: bool) -> RunConfig {
+    let mut cfg = RunConfig::new(SourceSpec::Synth {
+        spec: "office:loop".into(),
+        frames: FRAMES,
+        width: 160,
+        seed: 1,
+    });
+    cfg.backend = BackendChoice::Cpu;
+    cfg.autoplay = autoplay;
+    cfg
+}
+
+/// Runs the small generated sequence to the end and returns the state it produced.
+fn finished_state() -> ViewerState {
+    let mut app = ViewerApp::new(ViewerState::default(), Some(small_run(true)));
+    app.speed = 0.0;
+    app.wait_until_finished();
+    assert!(app.state.error.is_none(), "{:?}", app.state.error);
+    app.state
+}
+
+#[test]
+fn worker_streams_frames_keyframes_and_finishes_accurately() {
+    let state = finished_state();
+    let start = state.start.as_ref().expect("Started message");
+    assert_eq!(start.frames, FRAMES);
+    assert_eq!(start.backend, "cpu");
+    assert_eq!(state.frames_processed, FRAMES);
+    assert_eq!(state.stages.len(), FRAMES);
+    assert!(!state.live_keyframes.is_empty());
+    let first_points = state.live_keyframes[0].1.len();
+    // 160x120 with step 2: 4800 pixels, nearly all with depth in the office scene.
+    assert!(first_points > 3000, "{first_points} live points");
+    assert!(state.panels.superjuts.is_some(), "superjut image of the keyframe");
+    assert!(state.panels.neg_entropy.is_some());
+    let run = state.finished.as_ref().expect("finished");
+    assert_eq!(run.trajectory.len(), FRAMES);
+    assert!(!run.model.is_empty());
+    assert!(!run.keyframes.is_empty());
+    // Ground truth exists for generated sequences; one second of odometry drifts little.
+    let worst = state
+        .position_error
+        .iter()
+        .map(|e| e[1])
+        .fold(0.0, f64::max);
+    assert_eq!(state.position_error.len(), FRAMES);
+    assert!(worst < 0.05, "position error up to {worst} m");
+}
+
+#[test]
+fn step_processes_exactly_one_frame_while_paused() {
+    let w = Worker::spawn(small_run(false)).expect("spawn");
+    let next = |timeout: Duration| w.updates.recv_timeout(timeout).ok();
+    match next(Duration::from_secs(60)) {
+        Some(Update::Started(_)) => {}
+        other => panic!("expected Started, got {other:?}"),
+    }
+    // Paused: nothing comes.
+    assert!(next(Duration::from_millis(400)).is_none());
+    w.send(Command::Step);
+    match next(Duration::from_secs(30)) {
+        Some(Update::Frame(f)) => assert_eq!(f.index, 0),
+        other => panic!("expected frame 0, got {other:?}"),
+    }
+    // The first frame starts a keyframe; after that, nothing more until the next command.
+    let mut more = Vec::new();
+    while let Some(u) = next(Duration::from_millis(400)) {
+        more.push(u);
+    }
+    assert!(
+        more.iter().all(|u| matches!(u, Update::Keyframe(_))),
+        "only the keyframe of frame 0 may follow: {more:?}"
+    );
+    w.send(Command::Step);
+    match next(Duration::from_secs(30)) {
+        Some(Update::Frame(f)) => assert_eq!(f.index, 1),
+        other => panic!("expected frame 1, got {other:?}"),
+    }
+    w.send(Command::Finish);
+    let t = Instant::now();
+    loop {
+        match next(Duration::from_secs(30)) {
+            Some(Update::Finished(r)) => {
+                assert_eq!(r.trajectory.len(), 2);
+                break;
+            }
+            Some(_) => {}
+            None => panic!("no Finished after {:?}", t.elapsed()),
+        }
+    }
+}
+
+/// A wgpu render state for kittest, or None (with a loud line) when there is no adapter.
+fn render_state_or_skip(test: &str) -> Option<egui_wgpu::RenderState> {
+    let made = std::panic::catch_unwind(|| {
+        egui_kittest::wgpu::create_render_state(
+            egui_kittest::wgpu::default_wgpu_setup(),
+            egui_wgpu::RendererOptions::PREDICTABLE,
+        )
+    });
+    match made {
+        Ok(rs) => Some(rs),
+        Err(_) => {
+            if std::env::var("RGBID_REQUIRE_GPU").as_deref() == Ok("1") {
+                panic!("{test}: RGBID_REQUIRE_GPU=1 but no wgpu adapter (install mesa-vulkan-drivers)");
+            }
+            eprintln!("SKIPPED {test}: no wgpu adapter (install mesa-vulkan-drivers for lavapipe)");
+            None
+        }
+    }
+}
+
+fn snapshot_options() -> SnapshotOptions {
+    SnapshotOptions::new()
+        .output_path(PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/snapshots")))
+        // Per-pixel colour distance tolerated, and how many pixels may exceed it (0.5 % of a
+        // 1200x800 image): rayon's reduction order moves a few points by a pixel.
+        .threshold(2.0)
+        .max_failed_pixels(4800)
+}
+
+fn harness<'a>(
+    rs: egui_wgpu::RenderState,
+    size: egui::Vec2,
+    app: ViewerApp,
+    ui: impl FnMut(&mut egui::Ui, &mut ViewerApp) + 'a,
+) -> Harness<'a, ViewerApp> {
+    scene3d::install(&rs, 1);
+    Harness::builder()
+        .with_size(size)
+        .with_pixels_per_point(1.0)
+        .with_accessibility_check(false)
+        .renderer(egui_kittest::wgpu::WgpuTestRenderer::from_render_state(rs))
+        .build_ui_state(ui, app)
+}
+
+/// The state of the small run with the stage times replaced by a fixed pattern (times are
+/// measurements and differ on every run; the snapshot checks drawing, not speed).
+fn deterministic_state() -> ViewerState {
+    let mut s = finished_state();
+    for r in &mut s.stages {
+        let i = r.index as f64;
+        r.pyramid_ms = 0.5 + 0.1 * (i * 0.7).sin();
+        r.scale_ms = 0.3;
+        r.reduce_ms = 2.0 + 0.5 * (i * 0.3).cos();
+        r.solve_ms = 0.1;
+        r.covisibility_ms = 0.4;
+        r.fusion_ms = 1.0 + 0.2 * (i * 0.5).sin();
+        r.frontend_ms = r.pyramid_ms + r.scale_ms + r.reduce_ms + r.solve_ms + r.covisibility_ms;
+    }
+    s
+}
+
+fn background_fraction(img: &image::RgbaImage, bg: [u8; 3]) -> f64 {
+    let n = img.pixels().filter(|p| p.0[..3] == bg).count();
+    n as f64 / (img.width() * img.height()) as f64
+}
+
+#[test]
+fn panel_snapshots_rendered_with_wgpu() {
+    let Some(rs) = render_state_or_skip("panel_snapshots_rendered_with_wgpu") else {
+        return;
+    };
+    let base = deterministic_state();
+    let state = base.clone();
+    let run = state.finished.clone().expect("finished");
+    let mut app = ViewerApp::new(state, None);
+    app.has_3d = true;
+    app.show_timing = false;
+    let mut h = harness(rs, egui::Vec2::new(1200.0, 800.0), app, |ui, app| app.show(ui));
+    h.run_steps(3);
+    let opts = snapshot_options();
+    h.snapshot_options("viewer_full", &opts);
+
+    // The 3D view alone: the model must be drawn (not just the background).
+    let state = ViewerState::from_run(run.clone());
+    let mut app = ViewerApp::new(state, None);
+    app.has_3d = true;
+    let rs = render_state_or_skip("3d").expect("adapter seen above");
+    let mut h3 = harness(rs, egui::Vec2::new(640.0, 480.0), app, |ui, app| {
+        egui::CentralPanel::default().show(ui, |ui| app.scene_ui(ui));
+    });
+    h3.run_steps(3);
+    let img = h3.render().expect("render");
+    // Offscreen background (0.07, 0.07, 0.09) -> (18, 18, 23) in 8 bits.
+    let bg = background_fraction(&img, [18, 18, 23]);
+    assert!(bg > 0.2 && bg < 0.98, "background covers {bg} of the 3D view");
+    h3.snapshot_options("scene3d", &opts);
+
+    // Image panels and plots alone.
+    let rs = render_state_or_skip("images").expect("adapter seen above");
+    let mut hi = harness(rs, egui::Vec2::new(360.0, 1000.0), ViewerApp::new(base.clone(), None), |ui, app| {
+        egui::CentralPanel::default().show(ui, |ui| app.images_ui(ui));
+    });
+    hi.run_steps(2);
+    hi.snapshot_options("images", &opts);
+    let rs = render_state_or_skip("plots").expect("adapter seen above");
+    let mut hp = harness(rs, egui::Vec2::new(1000.0, 260.0), ViewerApp::new(base.clone(), None), |ui, app| {
+        egui::CentralPanel::default().show(ui, |ui| app.plots_ui(ui));
+    });
+    hp.run_steps(2);
+    hp.snapshot_options("plots", &opts);
+}
