@@ -232,7 +232,7 @@ impl ViewerApp {
             let live = self.worker.is_some() && self.state.finished.is_none();
             ui.add_enabled_ui(live, |ui| {
                 if ui
-                    .button(if self.playing { "⏸ Pause" } else { "▶ Play" })
+                    .button(if self.playing { "Pause" } else { "Play" })
                     .clicked()
                 {
                     self.playing = !self.playing;
@@ -242,11 +242,11 @@ impl ViewerApp {
                         Command::Pause
                     });
                 }
-                if ui.button("⏭ Step").clicked() {
+                if ui.button("Step").clicked() {
                     self.playing = false;
                     self.send(Command::Step);
                 }
-                if ui.button("⏹ Finish").on_hover_text("stop feeding frames, optimise, build the model").clicked() {
+                if ui.button("Finish").on_hover_text("stop feeding frames, optimise, build the model").clicked() {
                     self.send(Command::Finish);
                 }
             });
@@ -282,7 +282,7 @@ impl ViewerApp {
                 );
                 ui.checkbox(&mut cfg.masks, "masks");
                 ui.checkbox(&mut cfg.segment_keyframes, "superjut panels");
-                if ui.button("⟲ Restart").on_hover_text("apply backend and parameters").clicked() {
+                if ui.button("Restart").on_hover_text("apply backend and parameters").clicked() {
                     self.restart();
                 }
             }
@@ -305,6 +305,7 @@ impl ViewerApp {
                     frames: 600,
                     width: 320,
                     seed: 1,
+                    trajectory_seconds: None,
                 });
                 if let Some(old) = &self.run_config {
                     cfg.backend = old.backend;

@@ -111,12 +111,13 @@ mod tests {
     use super::*;
 
     #[test]
-    fn turbo_ends_are_dark_blue_and_dark_red() {
-        let a = turbo(0.0);
-        let b = turbo(1.0);
+    fn turbo_runs_from_blue_to_red() {
+        let a = turbo(0.15);
+        let b = turbo(0.95);
         assert!(a.b() > a.r(), "{a:?}");
         assert!(b.r() > b.b(), "{b:?}");
-        assert_eq!(turbo(-1.0), a);
+        assert_eq!(turbo(-1.0), turbo(0.0));
+        assert_eq!(turbo(2.0), turbo(1.0));
     }
 
     #[test]

@@ -39,6 +39,10 @@ struct Args {
     /// Seed of a generated sequence.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Duration of a generated trajectory (one lap of a loop), seconds; default: the
+    /// sequence's duration (frames / 30).
+    #[arg(long)]
+    seconds: Option<f64>,
     /// Camera preset or calibration file for a TUM folder.
     #[arg(long)]
     camera: Option<String>,
@@ -87,6 +91,7 @@ fn main() -> Result<()> {
             frames: a.frames,
             width: a.width,
             seed: a.seed,
+            trajectory_seconds: a.seconds,
         }));
     } else if let Some(seq) = &a.sequence {
         if seq.join("trajectory.txt").exists() {

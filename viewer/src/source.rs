@@ -36,6 +36,9 @@ pub enum SourceSpec {
         width: u32,
         /// Seed of the scene, trajectory and noise.
         seed: u64,
+        /// Duration of the whole trajectory (a loop: one lap), seconds; `None` = the
+        /// sequence's duration. Longer than the sequence plays only the start of it.
+        trajectory_seconds: Option<f64>,
     },
 }
 
@@ -71,6 +74,7 @@ impl Source {
                 frames,
                 width,
                 seed,
+                trajectory_seconds,
             } => {
                 let (scene_name, traj) = spec.split_once(':').unwrap_or((spec.as_str(), "loop"));
                 if *width < 16 || *frames == 0 {
@@ -93,7 +97,11 @@ impl Source {
                     seed: *seed,
                     ..Default::default()
                 };
-                let trajectory = Trajectory::new(kind, &scene, config.duration(), *seed)?;
+                let seconds = trajectory_seconds.unwrap_or(config.duration());
+                if !(seconds.is_finite() && seconds > 0.0) {
+                    bail!("the trajectory duration must be > 0 s");
+                }
+                let trajectory = Trajectory::new(kind, &scene, seconds, *seed)?;
                 let rb = match backend {
                     ComputeBackend::Cpu => RenderBackend::Cpu,
                     ComputeBackend::Gpu(g) => RenderBackend::Gpu(g.clone()),
