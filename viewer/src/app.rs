@@ -65,6 +65,9 @@ pub struct ViewerApp {
     pub has_3d: bool,
     /// Show the UI frame time in the status line (off in snapshot tests).
     pub show_timing: bool,
+    /// Most points drawn per frame in the 3D view (`None` = all). Points are stored in an
+    /// interleaved order, so a budget draws a uniform subsample.
+    pub point_budget: Option<u32>,
     framed: bool,
     textures: Textures,
     frame_ms: VecDeque<f64>,
@@ -90,6 +93,7 @@ impl ViewerApp {
             message: String::new(),
             has_3d: false,
             show_timing: true,
+            point_budget: None,
             framed: false,
             textures: Textures::default(),
             frame_ms: VecDeque::new(),
@@ -495,7 +499,7 @@ impl ViewerApp {
     pub fn scene_ui(&mut self, ui: &mut egui::Ui) {
         self.state.rebuild_geometry();
         if !self.framed {
-            if let Some(b) = self.state.geometry.bounds() {
+            if let Some(b) = self.state.geometry.robust_bounds() {
                 self.camera.frame_bounds(b);
                 self.framed = true;
             }
@@ -503,9 +507,20 @@ impl ViewerApp {
         ui.horizontal(|ui| {
             ui.checkbox(&mut self.follow, "follow camera");
             if ui.button("frame all").clicked() {
-                if let Some(b) = self.state.geometry.bounds() {
+                if let Some(b) = self.state.geometry.robust_bounds() {
                     self.camera.frame_bounds(b);
                 }
+            }
+            let mut limited = self.point_budget.is_some();
+            if ui
+                .checkbox(&mut limited, "point budget")
+                .on_hover_text("draw a uniform subsample (for software renderers such as lavapipe)")
+                .changed()
+            {
+                self.point_budget = limited.then_some(250_000);
+            }
+            if let Some(b) = &mut self.point_budget {
+                ui.add(egui::DragValue::new(b).range(1_000..=100_000_000).speed(1000.0));
             }
             ui.label("drag: orbit | right/middle drag: pan | scroll: zoom");
             ui.colored_label(rgb(colours::ESTIMATE), "estimate");
@@ -530,7 +545,7 @@ impl ViewerApp {
             }
         }
         if response.double_clicked() {
-            if let Some(b) = self.state.geometry.bounds() {
+            if let Some(b) = self.state.geometry.robust_bounds() {
                 self.camera.frame_bounds(b);
             }
         }
@@ -559,6 +574,7 @@ impl ViewerApp {
             clip_from_world: self.camera.clip_from_world(rect.width() / rect.height().max(1.0)),
             size_px,
             background: [0.07, 0.07, 0.09],
+            point_budget: self.point_budget.unwrap_or(u32::MAX),
         };
         ui.painter()
             .add(egui_wgpu::Callback::new_paint_callback(rect, cb));

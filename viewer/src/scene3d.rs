@@ -39,15 +39,46 @@ impl Vertex {
     }
 }
 
-/// Everything the 3D view draws; `version` changes whenever the contents do.
+/// Everything the 3D view draws. Points and lines have their own versions: the trajectory
+/// changes every frame, the point cloud only with new keyframes, and only what changed is
+/// uploaded again.
 #[derive(Clone, Debug, Default)]
 pub struct Geometry {
-    /// Increases on every change (the renderer re-uploads when it differs).
-    pub version: u64,
-    /// Points.
-    pub points: Vec<Vertex>,
+    /// Increases whenever `points` changes.
+    pub points_version: u64,
+    /// Points, in an interleaved order (see [`interleave`]) so that any prefix is a uniform
+    /// subsample: drawing the first `n` is the level of detail under a point budget.
+    pub points: Arc<Vec<Vertex>>,
+    /// Increases whenever `lines` changes.
+    pub lines_version: u64,
     /// Line segments as vertex pairs.
     pub lines: Vec<Vertex>,
+}
+
+/// Reorders `v` so that every prefix is spread over the whole set: element `k` is
+/// `v[(k * stride) mod n]` with a stride near `n / golden ratio` coprime to `n`.
+pub fn interleave(v: Vec<Vertex>) -> Vec<Vertex> {
+    let n = v.len();
+    if n < 3 {
+        return v;
+    }
+    let gcd = |mut a: usize, mut b: usize| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    let mut stride = ((n as f64) * 0.618_033_988_75) as usize;
+    while gcd(stride, n) != 1 {
+        stride += 1;
+    }
+    let mut out = Vec::with_capacity(n);
+    let mut i = 0usize;
+    for _ in 0..n {
+        out.push(v[i]);
+        i = (i + stride) % n;
+    }
+    out
 }
 
 impl Geometry {
@@ -87,6 +118,38 @@ impl Geometry {
         let mut it = self.points.iter().chain(&self.lines).map(|v| Vec3::from(v.position));
         let first = it.next()?;
         Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
+    }
+
+    /// Bounds that ignore stray points: the 1st-99th percentile box of (up to 20000 of) the
+    /// points, joined with the lines' bounds.
+    pub fn robust_bounds(&self) -> Option<(Vec3, Vec3)> {
+        let step = (self.points.len() / 20_000).max(1);
+        let sample: Vec<Vec3> = self
+            .points
+            .iter()
+            .step_by(step)
+            .map(|v| Vec3::from(v.position))
+            .collect();
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        if sample.len() >= 10 {
+            for axis in 0..3 {
+                let mut c: Vec<f32> = sample.iter().map(|p| p[axis]).collect();
+                c.sort_by(f32::total_cmp);
+                lo[axis] = c[c.len() / 100];
+                hi[axis] = c[c.len() - 1 - c.len() / 100];
+            }
+        } else {
+            for p in &sample {
+                lo = lo.min(*p);
+                hi = hi.max(*p);
+            }
+        }
+        for v in &self.lines {
+            lo = lo.min(Vec3::from(v.position));
+            hi = hi.max(Vec3::from(v.position));
+        }
+        lo.is_finite().then_some((lo, hi))
     }
 }
 
@@ -201,7 +264,9 @@ pub struct SceneRenderer {
     target: Option<Offscreen>,
     points: Option<(wgpu::Buffer, u32)>,
     lines: Option<(wgpu::Buffer, u32)>,
-    version: Option<u64>,
+    points_version: Option<u64>,
+    lines_version: Option<u64>,
+    point_budget: u32,
 }
 
 struct Offscreen {
@@ -374,15 +439,14 @@ impl SceneRenderer {
             target: None,
             points: None,
             lines: None,
-            version: None,
+            points_version: None,
+            lines_version: None,
+            point_budget: u32::MAX,
         }
     }
 
-    /// Uploads `geometry` unless this version is already on the GPU. Returns whether it uploaded.
+    /// Uploads what changed in `geometry` (by version). Returns whether the points were uploaded.
     pub fn upload(&mut self, device: &wgpu::Device, geometry: &Geometry) -> bool {
-        if self.version == Some(geometry.version) {
-            return false;
-        }
         let make = |v: &[Vertex], label| {
             (!v.is_empty()).then(|| {
                 (
@@ -395,10 +459,21 @@ impl SceneRenderer {
                 )
             })
         };
+        if self.lines_version != Some(geometry.lines_version) {
+            self.lines = make(&geometry.lines, "scene lines");
+            self.lines_version = Some(geometry.lines_version);
+        }
+        if self.points_version == Some(geometry.points_version) {
+            return false;
+        }
         self.points = make(&geometry.points, "scene points");
-        self.lines = make(&geometry.lines, "scene lines");
-        self.version = Some(geometry.version);
+        self.points_version = Some(geometry.points_version);
         true
+    }
+
+    /// Most points drawn per frame (a prefix of the interleaved buffer); `u32::MAX` = all.
+    pub fn set_point_budget(&mut self, budget: u32) {
+        self.point_budget = budget.max(1);
     }
 
     fn ensure_target(&mut self, device: &wgpu::Device, size: [u32; 2]) {
@@ -516,7 +591,7 @@ impl SceneRenderer {
         if let Some((buf, n)) = &self.points {
             pass.set_pipeline(&self.point_pipeline);
             pass.set_vertex_buffer(0, buf.slice(..));
-            pass.draw(0..*n, 0..1);
+            pass.draw(0..(*n).min(self.point_budget), 0..1);
         }
     }
 
@@ -553,6 +628,8 @@ pub struct SceneCallback {
     pub size_px: [u32; 2],
     /// Background colour (gamma-encoded RGB in 0..1).
     pub background: [f32; 3],
+    /// Most points drawn (`u32::MAX` = all).
+    pub point_budget: u32,
 }
 
 impl egui_wgpu::CallbackTrait for SceneCallback {
@@ -566,6 +643,7 @@ impl egui_wgpu::CallbackTrait for SceneCallback {
     ) -> Vec<wgpu::CommandBuffer> {
         if let Some(r) = resources.get_mut::<SceneRenderer>() {
             r.upload(device, &self.geometry);
+            r.set_point_budget(self.point_budget);
             r.render(
                 device,
                 queue,
@@ -653,5 +731,21 @@ mod tests {
         let (lo, hi) = g.bounds().unwrap();
         assert!((hi.z - 0.2).abs() < 1e-6 && lo.z.abs() < 1e-6);
         assert!((hi.x - 0.1).abs() < 1e-6);
+        assert_eq!(g.robust_bounds(), g.bounds());
+    }
+
+    #[test]
+    fn interleave_is_a_permutation_with_spread_prefixes() {
+        let v: Vec<Vertex> = (0..1000)
+            .map(|i| Vertex::new(DVec3::new(f64::from(i), 0.0, 0.0), [0; 4]))
+            .collect();
+        let w = interleave(v.clone());
+        let mut xs: Vec<i32> = w.iter().map(|v| v.position[0] as i32).collect();
+        // The first 10 cover the range in steps of at most ~200.
+        let mut head = xs[..10].to_vec();
+        head.sort();
+        assert!(head.windows(2).all(|p| p[1] - p[0] < 250), "{head:?}");
+        xs.sort();
+        assert_eq!(xs, (0..1000).collect::<Vec<i32>>());
     }
 }

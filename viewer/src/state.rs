@@ -80,6 +80,7 @@ pub struct ViewerState {
     /// Extra points (benchmark clouds) drawn with the rest.
     pub extra_points: Arc<Vec<Vertex>>,
     geometry_dirty: bool,
+    points_dirty: bool,
     gt_alignment: Option<Se3>,
 }
 
@@ -108,6 +109,7 @@ impl ViewerState {
         s.finished = Some(folder.run);
         s.compute_final_error();
         s.geometry_dirty = true;
+        s.points_dirty = true;
         s.rebuild_geometry();
         s
     }
@@ -133,6 +135,7 @@ impl ViewerState {
                 self.finished = Some(*r);
                 self.compute_final_error();
                 self.geometry_dirty = true;
+                self.points_dirty = true;
             }
             Update::Error(e) => self.error = Some(e),
         }
@@ -179,6 +182,7 @@ impl ViewerState {
         self.panels.neg_entropy = k.neg_entropy;
         self.panels.version += 1;
         self.geometry_dirty = true;
+        self.points_dirty = true;
     }
 
     /// Per-frame position error of the final trajectory (replaces the live one).
@@ -212,68 +216,78 @@ impl ViewerState {
 
     /// Rebuilds the 3D geometry if something changed. Returns whether it did.
     pub fn rebuild_geometry(&mut self) -> bool {
-        if !self.geometry_dirty {
+        if !self.geometry_dirty && !self.points_dirty {
             return false;
         }
-        self.geometry_dirty = false;
-        let mut g = Geometry {
-            version: self.geometry.version + 1,
-            ..Default::default()
-        };
+        let mut g = (*self.geometry).clone();
         let grey = |v: u8| [v, v, v, 255];
-        match &self.finished {
-            Some(run) => {
-                g.points = run.model.iter().map(|(p, v)| Vertex::new(*p, grey(*v))).collect();
-                let traj: Vec<DVec3> = run
-                    .trajectory
-                    .iter()
-                    .map(|p| p.world_from_camera.translation)
-                    .collect();
-                g.add_polyline(&traj, colours::ESTIMATE);
-                for k in &run.keyframes {
-                    g.add_frustum(&k.world_from_camera, 0.08, colours::KEYFRAME);
+        if self.points_dirty {
+            self.points_dirty = false;
+            let mut pts: Vec<Vertex> = match &self.finished {
+                Some(run) => run.model.iter().map(|(p, v)| Vertex::new(*p, grey(*v))).collect(),
+                None => {
+                    let n: usize = self.live_keyframes.iter().map(|k| k.1.len()).sum();
+                    let mut pts = Vec::with_capacity(n + self.extra_points.len());
+                    for (_, kp) in &self.live_keyframes {
+                        pts.extend(kp.iter().map(|(p, v)| Vertex::new(*p, grey(*v))));
+                    }
+                    pts
                 }
-                for (a, b) in &run.loops {
-                    if let (Some(a), Some(b)) = (run.keyframes.get(*a), run.keyframes.get(*b)) {
-                        g.add_segment(
-                            a.world_from_camera.translation,
-                            b.world_from_camera.translation,
-                            colours::LOOP,
-                        );
+            };
+            pts.extend_from_slice(&self.extra_points);
+            g.points = Arc::new(crate::scene3d::interleave(pts));
+            g.points_version += 1;
+        }
+        if self.geometry_dirty {
+            self.geometry_dirty = false;
+            g.lines.clear();
+            g.lines_version += 1;
+            match &self.finished {
+                Some(run) => {
+                    let traj: Vec<DVec3> = run
+                        .trajectory
+                        .iter()
+                        .map(|p| p.world_from_camera.translation)
+                        .collect();
+                    g.add_polyline(&traj, colours::ESTIMATE);
+                    for k in &run.keyframes {
+                        g.add_frustum(&k.world_from_camera, 0.08, colours::KEYFRAME);
+                    }
+                    for (a, b) in &run.loops {
+                        if let (Some(a), Some(b)) = (run.keyframes.get(*a), run.keyframes.get(*b)) {
+                            g.add_segment(
+                                a.world_from_camera.translation,
+                                b.world_from_camera.translation,
+                                colours::LOOP,
+                            );
+                        }
+                    }
+                }
+                None => {
+                    let traj: Vec<DVec3> = self
+                        .live_trajectory
+                        .iter()
+                        .map(|p| p.world_from_camera.translation)
+                        .collect();
+                    g.add_polyline(&traj, colours::ESTIMATE);
+                    for (pose, _) in &self.live_keyframes {
+                        g.add_frustum(pose, 0.08, colours::KEYFRAME);
+                    }
+                    if let Some(p) = self.live_trajectory.last() {
+                        g.add_frustum(&p.world_from_camera, 0.15, colours::CURRENT);
                     }
                 }
             }
-            None => {
-                let n: usize = self.live_keyframes.iter().map(|k| k.1.len()).sum();
-                g.points.reserve(n);
-                for (_, pts) in &self.live_keyframes {
-                    g.points
-                        .extend(pts.iter().map(|(p, v)| Vertex::new(*p, grey(*v))));
-                }
-                let traj: Vec<DVec3> = self
-                    .live_trajectory
+            if let (Some(gt), Some(align)) = (&self.groundtruth, self.gt_alignment) {
+                // Ground truth in the estimate's world: est_world_from_gt_world = align^-1.
+                let inv = align.inverse();
+                let pts: Vec<DVec3> = gt
                     .iter()
-                    .map(|p| p.world_from_camera.translation)
+                    .map(|p| inv.transform_point(p.world_from_camera.translation))
                     .collect();
-                g.add_polyline(&traj, colours::ESTIMATE);
-                for (pose, _) in &self.live_keyframes {
-                    g.add_frustum(pose, 0.08, colours::KEYFRAME);
-                }
-                if let Some(p) = self.live_trajectory.last() {
-                    g.add_frustum(&p.world_from_camera, 0.15, colours::CURRENT);
-                }
+                g.add_polyline(&pts, colours::GROUND_TRUTH);
             }
         }
-        if let (Some(gt), Some(align)) = (&self.groundtruth, self.gt_alignment) {
-            // Ground truth in the estimate's world: est_world_from_gt_world = align^-1.
-            let inv = align.inverse();
-            let pts: Vec<DVec3> = gt
-                .iter()
-                .map(|p| inv.transform_point(p.world_from_camera.translation))
-                .collect();
-            g.add_polyline(&pts, colours::GROUND_TRUTH);
-        }
-        g.points.extend_from_slice(&self.extra_points);
         self.geometry = Arc::new(g);
         true
     }
@@ -303,7 +317,7 @@ impl ViewerState {
             pts.push(Vertex::new(p, [v, 255 - v / 2, 255 - v, 255]));
         }
         self.extra_points = Arc::new(pts);
-        self.geometry_dirty = true;
+        self.points_dirty = true;
         self.rebuild_geometry();
     }
 }
