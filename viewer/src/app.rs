@@ -140,7 +140,10 @@ impl ViewerApp {
             self.state = ViewerState::from_run(run);
             self.framed = false;
         } else if path.is_dir() {
-            let backend = self.run_config.as_ref().map_or(BackendChoice::Auto, |c| c.backend);
+            let backend = self
+                .run_config
+                .as_ref()
+                .map_or(BackendChoice::Auto, |c| c.backend);
             let mut cfg = RunConfig::new(SourceSpec::Tum {
                 dir: path.to_path_buf(),
                 camera: None,
@@ -188,6 +191,11 @@ impl ViewerApp {
         }
     }
 
+    /// Sends the current pace to the SLAM thread.
+    pub fn send_speed(&self) {
+        self.send(Command::Speed(self.speed));
+    }
+
     fn send(&self, c: Command) {
         if let Some(w) = &self.worker {
             w.send(c);
@@ -213,7 +221,12 @@ impl ViewerApp {
                 self.frame_ms.pop_front();
             }
         }
-        if let Some(m) = self.screenshot_message.lock().ok().and_then(|mut m| m.take()) {
+        if let Some(m) = self
+            .screenshot_message
+            .lock()
+            .ok()
+            .and_then(|mut m| m.take())
+        {
             self.message = m;
         }
         egui::Panel::top("controls").show(ui, |ui| self.controls_ui(ui));
@@ -250,7 +263,11 @@ impl ViewerApp {
                     self.playing = false;
                     self.send(Command::Step);
                 }
-                if ui.button("Finish").on_hover_text("stop feeding frames, optimise, build the model").clicked() {
+                if ui
+                    .button("Finish")
+                    .on_hover_text("stop feeding frames, optimise, build the model")
+                    .clicked()
+                {
                     self.send(Command::Finish);
                 }
             });
@@ -286,7 +303,11 @@ impl ViewerApp {
                 );
                 ui.checkbox(&mut cfg.masks, "masks");
                 ui.checkbox(&mut cfg.segment_keyframes, "superjut panels");
-                if ui.button("Restart").on_hover_text("apply backend and parameters").clicked() {
+                if ui
+                    .button("Restart")
+                    .on_hover_text("apply backend and parameters")
+                    .clicked()
+                {
                     self.restart();
                 }
             }
@@ -351,7 +372,10 @@ impl ViewerApp {
     /// One line of status.
     pub fn status_text(&self) -> String {
         let s = &self.state;
-        let frames = s.start.as_ref().map_or(String::new(), |i| format!("/{}", i.frames));
+        let frames = s
+            .start
+            .as_ref()
+            .map_or(String::new(), |i| format!("/{}", i.frames));
         let frame = s
             .last_frame
             .map_or("-".to_string(), |f| format!("{}{frames}", f + 1));
@@ -384,13 +408,15 @@ impl ViewerApp {
         }
         self.textures.version = Some(p.version);
         let opts = TextureOptions::NEAREST;
-        let set = |slot: &mut Option<TextureHandle>, name: &str, img: Option<egui::ColorImage>| {
-            match (slot.as_mut(), img) {
+        let set =
+            |slot: &mut Option<TextureHandle>, name: &str, img: Option<egui::ColorImage>| match (
+                slot.as_mut(),
+                img,
+            ) {
                 (Some(t), Some(img)) => t.set(img, opts),
                 (None, Some(img)) => *slot = Some(ctx.load_texture(name, img, opts)),
                 (_, None) => *slot = None,
-            }
-        };
+            };
         set(
             &mut self.textures.intensity,
             "intensity",
@@ -437,9 +463,21 @@ impl ViewerApp {
             }
         };
         show(ui, "intensity", &self.textures.intensity);
-        show(ui, "inverse depth (turbo, near = red)", &self.textures.inverse_depth);
-        show(ui, "superjuts of the latest keyframe", &self.textures.superjuts);
-        show(ui, "neg-entropy of the latest keyframe", &self.textures.neg_entropy);
+        show(
+            ui,
+            "inverse depth (turbo, near = red)",
+            &self.textures.inverse_depth,
+        );
+        show(
+            ui,
+            "superjuts of the latest keyframe",
+            &self.textures.superjuts,
+        );
+        show(
+            ui,
+            "neg-entropy of the latest keyframe",
+            &self.textures.neg_entropy,
+        );
     }
 
     /// The plots: time per stage, covisibility, position error.
@@ -481,8 +519,7 @@ impl ViewerApp {
                 });
             if has_error {
                 cols[2].label(RichText::new("position error vs ground truth (m)").strong());
-                let pts: PlotPoints<'static> =
-                    self.state.position_error.iter().copied().collect();
+                let pts: PlotPoints<'static> = self.state.position_error.iter().copied().collect();
                 Plot::new("position_error")
                     .height(height)
                     .legend(Legend::default())
@@ -520,7 +557,11 @@ impl ViewerApp {
                 self.point_budget = limited.then_some(250_000);
             }
             if let Some(b) = &mut self.point_budget {
-                ui.add(egui::DragValue::new(b).range(1_000..=100_000_000).speed(1000.0));
+                ui.add(
+                    egui::DragValue::new(b)
+                        .range(1_000..=100_000_000)
+                        .speed(1000.0),
+                );
             }
             ui.label("drag: orbit | right/middle drag: pan | scroll: zoom");
             ui.colored_label(rgb(colours::ESTIMATE), "estimate");
@@ -533,7 +574,8 @@ impl ViewerApp {
             let d = response.drag_delta();
             self.camera.orbit(d.x, d.y);
         }
-        if response.dragged_by(PointerButton::Secondary) || response.dragged_by(PointerButton::Middle)
+        if response.dragged_by(PointerButton::Secondary)
+            || response.dragged_by(PointerButton::Middle)
         {
             let d = response.drag_delta();
             self.camera.pan(d.x, d.y, rect.height());
@@ -571,7 +613,9 @@ impl ViewerApp {
         ];
         let cb = SceneCallback {
             geometry: self.state.geometry.clone(),
-            clip_from_world: self.camera.clip_from_world(rect.width() / rect.height().max(1.0)),
+            clip_from_world: self
+                .camera
+                .clip_from_world(rect.width() / rect.height().max(1.0)),
             size_px,
             background: [0.07, 0.07, 0.09],
             point_budget: self.point_budget.unwrap_or(u32::MAX),
@@ -647,7 +691,8 @@ pub fn save_colour_image(dir: &Path, img: &egui::ColorImage) -> Result<PathBuf> 
     let bytes: Vec<u8> = img.pixels.iter().flat_map(|c| c.to_array()).collect();
     let buf = image::RgbaImage::from_raw(w as u32, h as u32, bytes)
         .context("screenshot size does not match its pixels")?;
-    buf.save(&p).with_context(|| format!("writing {}", p.display()))?;
+    buf.save(&p)
+        .with_context(|| format!("writing {}", p.display()))?;
     Ok(p)
 }
 
@@ -655,7 +700,8 @@ impl eframe::App for ViewerApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
         let changed = self.poll();
         self.show(ui);
-        let running = self.worker.is_some() && self.state.finished.is_none() && self.state.error.is_none();
+        let running =
+            self.worker.is_some() && self.state.finished.is_none() && self.state.error.is_none();
         if running || changed {
             ui.ctx().request_repaint();
         }

@@ -23,7 +23,10 @@ use rgbid_viewer::worker::RunConfig;
 use rgbid_viewer::ViewerApp;
 
 #[derive(Parser)]
-#[command(version, about = "Native viewer of rgbid: live SLAM, image panels, 3D view, plots")]
+#[command(
+    version,
+    about = "Native viewer of rgbid: live SLAM, image panels, 3D view, plots"
+)]
 struct Args {
     /// TUM RGB-D folder (or an `rgbid slam` output folder, detected by its trajectory.txt).
     sequence: Option<PathBuf>,
@@ -174,7 +177,14 @@ fn bench_headless(points: usize, frames: usize, budget: u32) -> Result<()> {
     }
     let render_once = |r: &mut SceneRenderer, cam: &OrbitCamera| -> Result<()> {
         let mut enc = device.create_command_encoder(&Default::default());
-        r.render(&device, &queue, &mut enc, cam.clip_from_world(16.0 / 9.0), size, [0.0; 3]);
+        r.render(
+            &device,
+            &queue,
+            &mut enc,
+            cam.clip_from_world(16.0 / 9.0),
+            size,
+            [0.0; 3],
+        );
         queue.submit([enc.finish()]);
         device
             .poll(wgpu::PollType::wait_indefinitely())
@@ -195,7 +205,12 @@ fn bench_headless(points: usize, frames: usize, budget: u32) -> Result<()> {
     }
     times.sort_by(f64::total_cmp);
     let mean = times.iter().sum::<f64>() / times.len().max(1) as f64;
-    let pct = |q: f64| times.get(((times.len() as f64 - 1.0) * q) as usize).copied().unwrap_or(0.0);
+    let pct = |q: f64| {
+        times
+            .get(((times.len() as f64 - 1.0) * q) as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
     println!(
         "adapter: {} ({:?}, {:?})",
         info.name, info.device_type, info.backend

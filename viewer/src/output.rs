@@ -173,7 +173,11 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, u8)>> {
             stride += size_of(t)?;
         }
         if body.len() < count.saturating_mul(stride) {
-            bail!("file ends early: {count} vertices of {stride} bytes need {} bytes, {} present", count * stride, body.len());
+            bail!(
+                "file ends early: {count} vertices of {stride} bytes need {} bytes, {} present",
+                count * stride,
+                body.len()
+            );
         }
         let read = |rec: &[u8], k: usize| -> f64 {
             let o = offsets[k];
@@ -277,7 +281,11 @@ pub fn load_output(dir: &Path) -> Result<OutputFolder> {
 /// and the voxel-filtered model of its keyframes.
 pub fn load_map(path: &Path, voxel: f64) -> Result<FinishedRun> {
     let map = Map::load(path).with_context(|| format!("loading map {}", path.display()))?;
-    let poses: Vec<_> = map.keyframes.iter().map(|k| k.world_from_keyframe).collect();
+    let poses: Vec<_> = map
+        .keyframes
+        .iter()
+        .map(|k| k.world_from_keyframe)
+        .collect();
     let model = build_model(&map.keyframes, &poses, &map.camera, &ModelParams::default());
     let keyframes: Vec<TimedPose> = map
         .keyframes
@@ -311,7 +319,10 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("rgbid-viewer-ply-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("m.ply");
-        let pts = vec![(DVec3::new(1.0, -2.0, 3.5), 7u8), (DVec3::new(0.25, 0.5, 0.75), 200)];
+        let pts = vec![
+            (DVec3::new(1.0, -2.0, 3.5), 7u8),
+            (DVec3::new(0.25, 0.5, 0.75), 200),
+        ];
         rgbid::slam::write_ply(&p, &pts).unwrap();
         let back = read_ply(&p).unwrap();
         assert_eq!(back, pts);
@@ -322,7 +333,10 @@ mod tests {
     fn ply_errors_instead_of_panics() {
         assert!(parse_ply(b"").is_err());
         assert!(parse_ply(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0").is_err());
-        assert!(parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n").is_err());
+        assert!(parse_ply(
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n"
+        )
+        .is_err());
         let ok = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").unwrap();
         assert_eq!(ok, vec![(DVec3::new(1.0, 2.0, 3.0), 200)]);
     }

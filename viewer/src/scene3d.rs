@@ -115,7 +115,11 @@ impl Geometry {
 
     /// Axis-aligned bounds of all vertices, `None` when empty.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
-        let mut it = self.points.iter().chain(&self.lines).map(|v| Vec3::from(v.position));
+        let mut it = self
+            .points
+            .iter()
+            .chain(&self.lines)
+            .map(|v| Vec3::from(v.position));
         let first = it.next()?;
         Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
     }

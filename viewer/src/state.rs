@@ -27,6 +27,9 @@ pub mod colours {
     pub const LOOP: [u8; 4] = [255, 40, 200, 255];
 }
 
+/// World points with an intensity (0-255).
+pub type Cloud = Vec<(DVec3, u8)>;
+
 /// Images of the latest frame and keyframe.
 #[derive(Clone, Debug, Default)]
 pub struct Panels {
@@ -70,7 +73,7 @@ pub struct ViewerState {
     /// Live `world_from_camera` of tracked frames (time stamp, pose).
     pub live_trajectory: Vec<TimedPose>,
     /// Live keyframes: pose and world points.
-    pub live_keyframes: Vec<(Se3, Arc<Vec<(DVec3, u8)>>)>,
+    pub live_keyframes: Vec<(Se3, Arc<Cloud>)>,
     /// The result once the run finished (or a loaded folder/map).
     pub finished: Option<FinishedRun>,
     /// Last error of the run.
@@ -159,10 +162,11 @@ impl ViewerState {
                 .as_deref()
                 .and_then(|g| nearest_pose(g, tp.timestamp))
             {
-                let align = *self.gt_alignment.get_or_insert_with(|| {
-                    gt.world_from_camera * pose.inverse()
-                });
-                let e = (align.transform_point(pose.translation) - gt.world_from_camera.translation)
+                let align = *self
+                    .gt_alignment
+                    .get_or_insert_with(|| gt.world_from_camera * pose.inverse());
+                let e = (align.transform_point(pose.translation)
+                    - gt.world_from_camera.translation)
                     .length();
                 self.position_error.push([f.index as f64, e]);
             }
@@ -194,9 +198,8 @@ impl ViewerState {
         let mut out = Vec::new();
         for (i, p) in run.trajectory.iter().enumerate() {
             if let Some(g) = nearest_pose(gt, p.timestamp) {
-                let a = *align.get_or_insert_with(|| {
-                    g.world_from_camera * p.world_from_camera.inverse()
-                });
+                let a = *align
+                    .get_or_insert_with(|| g.world_from_camera * p.world_from_camera.inverse());
                 let e = (a.transform_point(p.world_from_camera.translation)
                     - g.world_from_camera.translation)
                     .length();
@@ -224,7 +227,11 @@ impl ViewerState {
         if self.points_dirty {
             self.points_dirty = false;
             let mut pts: Vec<Vertex> = match &self.finished {
-                Some(run) => run.model.iter().map(|(p, v)| Vertex::new(*p, grey(*v))).collect(),
+                Some(run) => run
+                    .model
+                    .iter()
+                    .map(|(p, v)| Vertex::new(*p, grey(*v)))
+                    .collect(),
                 None => {
                     let n: usize = self.live_keyframes.iter().map(|k| k.1.len()).sum();
                     let mut pts = Vec::with_capacity(n + self.extra_points.len());

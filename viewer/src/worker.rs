@@ -320,9 +320,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                     frame_index: i,
                     world_from_keyframe,
                     points,
-                    superjuts: seg
-                        .as_ref()
-                        .map(|s| (s.width, s.height, s.colour_image())),
+                    superjuts: seg.as_ref().map(|s| (s.width, s.height, s.colour_image())),
                     neg_entropy: seg.as_ref().map(|s| s.neg_entropy_image()),
                     segment_ms: t.elapsed().as_secs_f64() * 1e3,
                 }

@@ -36,6 +36,7 @@ fn small_run(autoplay: bool) -> RunConfig {
 fn finished_state() -> ViewerState {
     let mut app = ViewerApp::new(ViewerState::default(), Some(small_run(true)));
     app.speed = 0.0;
+    app.send_speed();
     app.wait_until_finished();
     assert!(app.state.error.is_none(), "{:?}", app.state.error);
     app.state
@@ -53,7 +54,10 @@ fn worker_streams_frames_keyframes_and_finishes_accurately() {
     let first_points = state.live_keyframes[0].1.len();
     // 160x120 with step 2: 4800 pixels, nearly all with depth in the office scene.
     assert!(first_points > 3000, "{first_points} live points");
-    assert!(state.panels.superjuts.is_some(), "superjut image of the keyframe");
+    assert!(
+        state.panels.superjuts.is_some(),
+        "superjut image of the keyframe"
+    );
     assert!(state.panels.neg_entropy.is_some());
     let run = state.finished.as_ref().expect("finished");
     assert_eq!(run.trajectory.len(), FRAMES);
@@ -124,7 +128,9 @@ fn render_state_or_skip(test: &str) -> Option<egui_wgpu::RenderState> {
         Ok(rs) => Some(rs),
         Err(_) => {
             if std::env::var("RGBID_REQUIRE_GPU").as_deref() == Ok("1") {
-                panic!("{test}: RGBID_REQUIRE_GPU=1 but no wgpu adapter (install mesa-vulkan-drivers)");
+                panic!(
+                    "{test}: RGBID_REQUIRE_GPU=1 but no wgpu adapter (install mesa-vulkan-drivers)"
+                );
             }
             eprintln!("SKIPPED {test}: no wgpu adapter (install mesa-vulkan-drivers for lavapipe)");
             None
@@ -134,7 +140,10 @@ fn render_state_or_skip(test: &str) -> Option<egui_wgpu::RenderState> {
 
 fn snapshot_options() -> SnapshotOptions {
     SnapshotOptions::new()
-        .output_path(PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/snapshots")))
+        .output_path(PathBuf::from(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/snapshots"
+        )))
         // Per-pixel colour distance tolerated, and how many pixels may exceed it (0.5 % of a
         // 1200x800 image): rayon's reduction order moves a few points by a pixel.
         .threshold(2.0)
@@ -189,7 +198,9 @@ fn panel_snapshots_rendered_with_wgpu() {
     let mut app = ViewerApp::new(state, None);
     app.has_3d = true;
     app.show_timing = false;
-    let mut h = harness(rs, egui::Vec2::new(1200.0, 800.0), app, |ui, app| app.show(ui));
+    let mut h = harness(rs, egui::Vec2::new(1200.0, 800.0), app, |ui, app| {
+        app.show(ui)
+    });
     h.run_steps(3);
     let opts = snapshot_options();
     let mut results = SnapshotResults::new();
@@ -208,24 +219,111 @@ fn panel_snapshots_rendered_with_wgpu() {
     let img = h3.render().expect("render");
     // Offscreen background (0.07, 0.07, 0.09) -> (18, 18, 23) in 8 bits.
     let bg = background_fraction(&img, [18, 18, 23]);
-    assert!(bg > 0.2 && bg < 0.98, "background covers {bg} of the 3D view");
+    assert!(
+        bg > 0.2 && bg < 0.98,
+        "background covers {bg} of the 3D view"
+    );
     h3.snapshot_options("scene3d", &opts);
     results.extend_harness(&mut h3);
 
     // Image panels and plots alone.
     let rs = render_state_or_skip("images").expect("adapter seen above");
-    let mut hi = harness(rs, egui::Vec2::new(360.0, 1000.0), ViewerApp::new(base.clone(), None), |ui, app| {
-        egui::CentralPanel::default().show(ui, |ui| app.images_ui(ui));
-    });
+    let mut hi = harness(
+        rs,
+        egui::Vec2::new(360.0, 1000.0),
+        ViewerApp::new(base.clone(), None),
+        |ui, app| {
+            egui::CentralPanel::default().show(ui, |ui| app.images_ui(ui));
+        },
+    );
     hi.run_steps(2);
     hi.snapshot_options("images", &opts);
     results.extend_harness(&mut hi);
     let rs = render_state_or_skip("plots").expect("adapter seen above");
-    let mut hp = harness(rs, egui::Vec2::new(1000.0, 260.0), ViewerApp::new(base.clone(), None), |ui, app| {
-        egui::CentralPanel::default().show(ui, |ui| app.plots_ui(ui));
-    });
+    let mut hp = harness(
+        rs,
+        egui::Vec2::new(1000.0, 260.0),
+        ViewerApp::new(base.clone(), None),
+        |ui, app| {
+            egui::CentralPanel::default().show(ui, |ui| app.plots_ui(ui));
+        },
+    );
     hp.run_steps(2);
     hp.snapshot_options("plots", &opts);
     results.extend_harness(&mut hp);
     results.unwrap();
+}
+
+/// Frame time of the whole UI (egui layout + tessellation + wgpu render + read-back) with a
+/// 1M-point cloud in the 3D view. A measurement, not an assertion on speed: run with
+/// `cargo test -p rgbid-viewer --test panels -- --ignored --nocapture ui_frame_time`.
+#[test]
+#[ignore = "benchmark: prints figures"]
+fn ui_frame_time_with_a_million_points() {
+    let Some(_) = render_state_or_skip("ui_frame_time_with_a_million_points") else {
+        return;
+    };
+    for (points, budget) in [(0, None), (1_000_000, None), (1_000_000, Some(250_000u32))] {
+        let rs = render_state_or_skip("ui_frame_time").expect("adapter seen above");
+        let adapter = rs.adapter.get_info().name;
+        let mut state = ViewerState::default();
+        state.add_bench_points(points);
+        let mut app = ViewerApp::new(state, None);
+        app.has_3d = true;
+        app.point_budget = budget;
+        let mut h = harness(rs, egui::Vec2::new(1280.0, 800.0), app, |ui, app| {
+            app.camera.orbit(2.0, 0.0);
+            app.show(ui);
+        });
+        h.run_steps(2);
+        let _ = h.render();
+        let mut times = Vec::new();
+        for _ in 0..15 {
+            let t = Instant::now();
+            h.step();
+            let _ = h.render().expect("render");
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        times.sort_by(f64::total_cmp);
+        println!(
+            "UI frame with {points} points, budget {:?}, 1280x800 on {adapter}: median {:.1} ms, min {:.1} ms",
+            budget,
+            times[times.len() / 2],
+            times[0]
+        );
+    }
+}
+
+/// Writes `viewer/screenshot.png` (the README's picture): the full UI after SLAM on one lap
+/// of the generated office loop. Run with
+/// `cargo test -p rgbid-viewer --test panels -- --ignored readme_screenshot`.
+#[test]
+#[ignore = "writes viewer/screenshot.png"]
+fn readme_screenshot() {
+    let Some(rs) = render_state_or_skip("readme_screenshot") else {
+        return;
+    };
+    let mut cfg = RunConfig::new(SourceSpec::Synth {
+        spec: "office:loop".into(),
+        frames: 300,
+        width: 320,
+        seed: 1,
+        trajectory_seconds: Some(10.0),
+    });
+    cfg.backend = BackendChoice::Cpu;
+    let mut app = ViewerApp::new(ViewerState::default(), Some(cfg));
+    app.speed = 0.0;
+    app.send_speed();
+    app.wait_until_finished();
+    assert!(app.state.error.is_none(), "{:?}", app.state.error);
+    app.has_3d = true;
+    app.show_timing = false;
+    let mut h = harness(rs, egui::Vec2::new(1400.0, 900.0), app, |ui, app| {
+        app.show(ui)
+    });
+    h.run_steps(3);
+    let img = h.render().expect("render");
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/screenshot.png");
+    img.save(path).expect("save");
+    println!("wrote {path}");
 }
