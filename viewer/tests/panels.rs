@@ -327,3 +327,36 @@ fn readme_screenshot() {
     img.save(path).expect("save");
     println!("wrote {path}");
 }
+
+#[test]
+fn exports_reopen_as_an_output_folder() {
+    let state = finished_state();
+    let run = state.finished.clone().expect("finished");
+    let dir = std::env::temp_dir().join(format!("rgbid-viewer-out-{}", std::process::id()));
+    let mut app = ViewerApp::new(state, None);
+    app.export_dir = dir.clone();
+    let traj = app.export_trajectory().expect("trajectory");
+    let ply = app.export_ply().expect("ply");
+    assert_eq!(traj, dir.join("trajectory.txt"));
+    assert_eq!(ply, dir.join("model.ply"));
+    rgbid::io::trajectory::write_tum(&dir.join("keyframes.txt"), &run.keyframes).expect("kf");
+    let gt = app.state.groundtruth.clone().expect("ground truth");
+    rgbid::io::trajectory::write_tum(&dir.join("groundtruth.txt"), &gt).expect("gt");
+
+    let mut reopened = ViewerApp::new(ViewerState::default(), None);
+    reopened.open(&dir).expect("open output folder");
+    let r = reopened.state.finished.as_ref().expect("shown as finished");
+    assert_eq!(r.trajectory.len(), run.trajectory.len());
+    assert_eq!(r.keyframes.len(), run.keyframes.len());
+    assert_eq!(r.model.len(), run.model.len());
+    for (a, b) in r.model.iter().zip(&run.model) {
+        assert!((a.0 - b.0).length() < 1e-5 && a.1 == b.1);
+    }
+    // Ground truth is matched again and the trajectory error is as small as live.
+    assert_eq!(reopened.state.position_error.len(), run.trajectory.len());
+    assert!(reopened.state.position_error.iter().all(|e| e[1] < 0.05));
+    assert_eq!(reopened.state.point_count(), run.model.len());
+    // Not a folder of rgbid: a clear error, no panic.
+    assert!(reopened.open(&dir.join("missing")).is_err());
+    std::fs::remove_dir_all(&dir).ok();
+}
