@@ -360,3 +360,39 @@ fn exports_reopen_as_an_output_folder() {
     assert!(reopened.open(&dir.join("missing")).is_err());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn saved_map_opens_with_its_keyframes_and_model() {
+    use rgbid::slam::{Slam, SlamConfig};
+    let backend = rgbid::gpu::ComputeBackend::Cpu;
+    let spec = match small_run(true).source {
+        s @ SourceSpec::Synth { .. } => s,
+        other => panic!("{other:?}"),
+    };
+    let mut source = rgbid_viewer::source::Source::open(&spec, &backend).expect("source");
+    let mut slam = Slam::new(
+        SlamConfig::default(),
+        source.camera(),
+        &backend,
+        rgbid::place::Vocabulary::embedded_default().expect("vocabulary"),
+        None,
+    )
+    .expect("slam");
+    for i in 0..source.len() {
+        slam.process(&source.load(i).expect("frame"))
+            .expect("process");
+    }
+    let result = slam.finish().expect("finish");
+    let path = std::env::temp_dir().join(format!("rgbid-viewer-{}.map", std::process::id()));
+    result.map.save(&path).expect("save map");
+    let mut app = ViewerApp::new(ViewerState::default(), None);
+    app.open(&path).expect("open map");
+    let run = app.state.finished.as_ref().expect("map shown");
+    assert_eq!(run.keyframes.len(), result.keyframes.len());
+    assert!(run.model.len() > 1000, "{} model points", run.model.len());
+    assert_eq!(app.state.point_count(), run.model.len());
+    // A file that is not a map: an error, not a panic.
+    std::fs::write(&path, b"not a map").expect("write");
+    assert!(app.open(&path).is_err());
+    std::fs::remove_file(&path).ok();
+}
