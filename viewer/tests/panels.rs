@@ -396,3 +396,56 @@ fn saved_map_opens_with_its_keyframes_and_model() {
     assert!(app.open(&path).is_err());
     std::fs::remove_file(&path).ok();
 }
+
+#[test]
+fn dragging_orbits_and_scrolling_zooms_the_3d_view() {
+    let Some(rs) = render_state_or_skip("dragging_orbits_and_scrolling_zooms_the_3d_view") else {
+        return;
+    };
+    let mut state = ViewerState::default();
+    state.add_bench_points(10_000);
+    let mut app = ViewerApp::new(state, None);
+    app.has_3d = true;
+    let mut h = harness(rs, egui::Vec2::new(640.0, 480.0), app, |ui, app| {
+        egui::CentralPanel::default().show(ui, |ui| app.scene_ui(ui));
+    });
+    h.run_steps(2);
+    let before = h.state().camera;
+    let at = egui::pos2(320.0, 260.0);
+    let button = |pos, pressed| egui::Event::PointerButton {
+        pos,
+        button: egui::PointerButton::Primary,
+        pressed,
+        modifiers: Default::default(),
+    };
+    h.event(egui::Event::PointerMoved(at));
+    h.event(button(at, true));
+    h.step();
+    for k in 1..=6 {
+        h.event(egui::Event::PointerMoved(
+            at + egui::vec2(10.0 * k as f32, 0.0),
+        ));
+        h.step();
+    }
+    h.event(button(at + egui::vec2(60.0, 0.0), false));
+    h.step();
+    let orbited = h.state().camera;
+    assert!(
+        (orbited.yaw - before.yaw).abs() > 0.2,
+        "{before:?} -> {orbited:?}"
+    );
+    assert_eq!(orbited.distance, before.distance);
+    h.event(egui::Event::MouseWheel {
+        unit: egui::MouseWheelUnit::Point,
+        delta: egui::vec2(0.0, 200.0),
+        phase: egui::TouchPhase::Move,
+        source: egui::MouseWheelSource::Unknown,
+        modifiers: Default::default(),
+    });
+    h.run_steps(20);
+    let zoomed = h.state().camera;
+    assert!(
+        zoomed.distance < 0.9 * orbited.distance,
+        "{orbited:?} -> {zoomed:?}"
+    );
+}
