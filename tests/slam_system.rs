@@ -276,3 +276,30 @@ fn lost_tracking_is_reported_and_relocalised() {
         m.ate.translation.rmse
     );
 }
+
+/// Two laps of a closed loop: the second lap revisits the first, loops are detected,
+/// verified, refined and close the graph; SLAM's ATE must be at most half of odometry's.
+#[test]
+fn loop_closure_halves_the_odometry_error_on_two_laps() {
+    let cam = camera(192);
+    let scene = Scene::preset("kitchen", 2).unwrap();
+    // 240 frames per lap (8 s), two laps.
+    let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 480, 240, 2, 2, cam);
+    let gt = seq.ground_truth();
+    let (r, status) = run(&mut seq, cam, SlamConfig::default(), None);
+    assert!(status.iter().all(|s| *s != FrameStatus::Lost));
+    let accepted = r.loops.iter().filter(|l| l.accepted).count();
+    assert!(
+        accepted >= 3,
+        "only {accepted} loops accepted: {:?}",
+        r.loops
+    );
+    let slam = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
+    let odo = evaluate(&gt, &r.odometry, &EvalOptions::default()).unwrap();
+    let (a, b) = (slam.ate.translation.rmse, odo.ate.translation.rmse);
+    eprintln!("two laps: SLAM ATE {a:.4} m, odometry {b:.4} m, {accepted} loops");
+    assert!(
+        a <= 0.5 * b,
+        "SLAM ATE {a} not at most half of odometry {b}"
+    );
+}
