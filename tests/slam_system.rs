@@ -96,8 +96,12 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
     let (r, status) = run(&mut seq, cam, SlamConfig::default(), None);
     assert!(status.iter().all(|s| *s != FrameStatus::Lost), "{status:?}");
     assert_eq!(r.trajectory.len(), 90);
-    assert!(r.keyframes.len() >= 2, "{} keyframes", r.keyframes.len());
-    assert_eq!(r.timings.len(), r.keyframes.len());
+    assert!(
+        r.keyframes().len() >= 2,
+        "{} keyframes",
+        r.keyframes().len()
+    );
+    assert_eq!(r.timings.len(), r.keyframes().len());
     let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
     assert!(
         m.ate.translation.rmse < 0.03,
@@ -105,7 +109,7 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
         m.ate.translation.rmse
     );
     // Keyframe fusion keeps most of the depth and raises the weights above 1.
-    let kf = &r.keyframes[0];
+    let kf = &r.keyframes()[0];
     assert!(kf.weight.iter().filter(|&&w| w >= 2).count() > kf.weight.len() / 3);
 
     // Map round trip.
@@ -198,7 +202,7 @@ fn second_session_relocalises_in_the_saved_map() {
     let r1 = slam.finish().unwrap();
     let i = first_reloc.expect("the second session never relocalised in the map");
     assert!(i < 10, "relocalised only at frame {i}");
-    assert!(r1.keyframes.len() > n_map);
+    assert!(r1.keyframes().len() > n_map);
     // Map frame = first camera of session 0: map_from_world = inv(gt0[0]).
     let map_from_world = gt0[0].world_from_camera.inverse();
     let est: Vec<TimedPose> = r1.trajectory.clone();
@@ -274,5 +278,32 @@ fn lost_tracking_is_reported_and_relocalised() {
         m.ate.translation.rmse < 0.03,
         "ATE {}",
         m.ate.translation.rmse
+    );
+}
+
+/// Two laps of a closed loop: the second lap revisits the first, loops are detected,
+/// verified, refined and close the graph; SLAM's ATE must be at most half of odometry's.
+#[test]
+fn loop_closure_halves_the_odometry_error_on_two_laps() {
+    let cam = camera(192);
+    let scene = Scene::preset("kitchen", 2).unwrap();
+    // 240 frames per lap (8 s), two laps.
+    let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 480, 240, 2, 2, cam);
+    let gt = seq.ground_truth();
+    let (r, status) = run(&mut seq, cam, SlamConfig::default(), None);
+    assert!(status.iter().all(|s| *s != FrameStatus::Lost));
+    let accepted = r.loops.iter().filter(|l| l.accepted).count();
+    assert!(
+        accepted >= 3,
+        "only {accepted} loops accepted: {:?}",
+        r.loops
+    );
+    let slam = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
+    let odo = evaluate(&gt, &r.odometry, &EvalOptions::default()).unwrap();
+    let (a, b) = (slam.ate.translation.rmse, odo.ate.translation.rmse);
+    eprintln!("two laps: SLAM ATE {a:.4} m, odometry {b:.4} m, {accepted} loops");
+    assert!(
+        a <= 0.5 * b,
+        "SLAM ATE {a} not at most half of odometry {b}"
     );
 }

@@ -256,7 +256,7 @@ fn tum_folder_is_complete_and_byte_identical() {
         std::fs::read_to_string(a.path().join("calib.txt"))
             .unwrap()
             .trim(),
-        "131.25 131.25 79.5 59.5 5000"
+        "131.25 131.25 79.5 59.5 5000 160 120"
     );
     let gt = read_tum(&a.path().join("groundtruth.txt")).unwrap();
     assert_eq!(gt.len(), 3);

@@ -21,10 +21,10 @@ pub struct Args {
     #[arg(long, default_value = "loop")]
     pub trajectory: String,
     /// Number of frames (30 per second).
-    #[arg(long, default_value_t = 330)]
+    #[arg(long, default_value_t = 390)]
     pub frames: usize,
-    /// Laps of the loop over the frames (a little over one closes the loop).
-    #[arg(long, default_value_t = 1.1)]
+    /// Laps of the loop over the frames (1.3: the last 90 frames revisit the start).
+    #[arg(long, default_value_t = 1.3)]
     pub laps: f64,
     /// Image width in pixels (height is 3/4 of it). 320 keeps the default run around a
     /// minute on a 2-core machine without a GPU.

@@ -15,8 +15,7 @@ use rgbid::io::trajectory::{read_tum, write_tum, TimedPose};
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_model, voxel_filter, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig,
-    SlamResult,
+    build_model, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
@@ -379,7 +378,7 @@ fn write_outputs(
     write_tum(&out.join("trajectory.txt"), &r.trajectory)?;
     write_tum(&out.join("odometry.txt"), &r.odometry)?;
     let kf_traj: Vec<TimedPose> = r
-        .keyframes
+        .keyframes()
         .iter()
         .zip(r.keyframe_poses.iter())
         .map(|(k, p)| TimedPose {
@@ -443,13 +442,11 @@ fn write_outputs(
     f.flush()?;
     let mut model_points = 0;
     if !a.no_model {
-        let pts = build_model(
-            &r.keyframes,
-            &r.keyframe_poses,
-            camera,
-            &ModelParams::default(),
-        );
-        let filtered = voxel_filter(&pts, a.voxel);
+        let params = ModelParams {
+            voxel: a.voxel,
+            ..Default::default()
+        };
+        let filtered = build_model(r.keyframes(), &r.keyframe_poses, camera, &params);
         model_points = filtered.len();
         write_ply(&out.join("model.ply"), &filtered)?;
     }
@@ -495,7 +492,7 @@ fn write_outputs(
     println!(
         "frames {processed} (dropped {dropped}), tracked {tracked}, lost {lost}, relocalised {reloc}; \
          keyframes {} ({} new), loops {accepted} accepted of {} detected; wall {wall:.1} s",
-        r.keyframes.len(),
+        r.keyframes().len(),
         r.timings.len(),
         r.loops.iter().filter(|l| !l.relocalisation).count()
     );
@@ -542,7 +539,7 @@ fn write_outputs(
     }
     let mut summary = serde_json::json!({
         "frames": processed, "dropped": dropped, "tracked": tracked, "lost": lost,
-        "relocalised": reloc, "keyframes": r.keyframes.len(), "loops_accepted": accepted,
+        "relocalised": reloc, "keyframes": r.keyframes().len(), "loops_accepted": accepted,
         "wall_s": wall, "model_points": model_points, "peak_rss_mb": rss,
     });
     if let Some(gt) = source.groundtruth() {

@@ -7,7 +7,7 @@
 //! DIR/rgb.txt, depth.txt   "timestamp filename" lists
 //! DIR/associations.txt     "t rgb/<t>.png t depth/<t>.png"
 //! DIR/groundtruth.txt      TUM trajectory, world_from_camera
-//! DIR/calib.txt            "fx fy cx cy 5000" (pinhole cameras)
+//! DIR/calib.txt            "fx fy cx cy 5000 width height" (pinhole cameras)
 //! DIR/camera.json          the camera model (pinhole or unified)
 //! DIR/README.txt           the parameters used
 //! ```
@@ -57,7 +57,10 @@ impl TumWriter {
         if let CameraModel::Pinhole(c) = camera {
             write_text(
                 &dir.join("calib.txt"),
-                &format!("{} {} {} {} 5000\n", c.fx, c.fy, c.cx, c.cy),
+                &format!(
+                    "{} {} {} {} 5000 {} {}\n",
+                    c.fx, c.fy, c.cx, c.cy, c.width, c.height
+                ),
             )?;
         }
         let json = serde_json::to_string_pretty(camera)

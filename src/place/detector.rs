@@ -124,17 +124,7 @@ impl LoopDetector {
                     want_h: intensity.height,
                 });
             }
-            inside.push(
-                features
-                    .keypoints
-                    .iter()
-                    .map(|k| {
-                        let x = (k.uv.x.round().max(0.0) as usize).min(m.width - 1);
-                        let y = (k.uv.y.round().max(0.0) as usize).min(m.height - 1);
-                        m.at(x, y) > 0.0
-                    })
-                    .collect(),
-            );
+            inside.push(keypoints_inside(&features, m));
         }
         Ok(self.describe_features(features, &inside))
     }
@@ -201,6 +191,17 @@ impl LoopDetector {
             min_reference_score: 0.0,
         };
         let candidates = self.database.query(id, &desc.bows, 1.0, &params);
+        self.best_verified(id, desc, candidates)
+    }
+
+    /// Verifies `candidates` against `desc` (query id `id`); the accepted one with most
+    /// inliers.
+    fn best_verified(
+        &self,
+        id: usize,
+        desc: &KeyframeDescription,
+        candidates: Vec<Candidate>,
+    ) -> Result<Option<DetectedLoop>, PlaceError> {
         let mut found: Option<DetectedLoop> = None;
         for c in candidates {
             let old = &self.keyframes[c.keyframe_id];
@@ -240,31 +241,25 @@ impl LoopDetector {
             let candidates = self
                 .database
                 .query(id, &desc.bows, reference, &self.params.query);
-            for c in candidates.into_iter().take(self.params.max_verified) {
-                let old = &self.keyframes[c.keyframe_id];
-                let outcome = verify_loop(
-                    &desc.features,
-                    &old.features,
-                    Some((&desc.feature_vector, &old.feature_vector)),
-                    &self.params.verify,
-                )?;
-                if let VerifyOutcome::Accepted(m) = outcome {
-                    let better = found
-                        .as_ref()
-                        .is_none_or(|f| m.inliers.len() > f.loop_match.inliers.len());
-                    if better {
-                        found = Some(DetectedLoop {
-                            query_id: id,
-                            candidate_id: c.keyframe_id,
-                            candidate: c,
-                            loop_match: m,
-                        });
-                    }
-                }
-            }
+            let mut candidates = candidates;
+            candidates.truncate(self.params.max_verified);
+            found = self.best_verified(id, &desc, candidates)?;
         }
         self.database.add(id, desc.bows.clone())?;
         self.keyframes.push(desc);
         Ok((id, found))
     }
+}
+
+/// One flag per keypoint of `features`: its nearest pixel of `mask` is nonzero.
+pub fn keypoints_inside(features: &OrbFeatures, mask: &ImageF32) -> Vec<bool> {
+    features
+        .keypoints
+        .iter()
+        .map(|k| {
+            let x = (k.uv.x.round().max(0.0) as usize).min(mask.width.saturating_sub(1));
+            let y = (k.uv.y.round().max(0.0) as usize).min(mask.height.saturating_sub(1));
+            mask.at(x, y) > 0.0
+        })
+        .collect()
 }

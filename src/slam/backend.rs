@@ -12,6 +12,7 @@ use crate::gpu::ComputeBackend;
 use crate::graph::{PoseGraph3, SolverOptions};
 use crate::image::{ImageF32, RgbdFrame};
 use crate::odometry::Odometry;
+use crate::place::detector::keypoints_inside;
 use crate::place::{KeyframeDescription, LoopDetector, Vocabulary};
 use crate::segment::segment_keyframe;
 
@@ -169,17 +170,7 @@ impl Backend {
                 .describe(&frame.intensity, &frame.inverse_depth, &self.camera, &refs)?;
         let flags = masks
             .iter()
-            .map(|m| {
-                desc.features
-                    .keypoints
-                    .iter()
-                    .map(|k| {
-                        let x = (k.uv.x.round().max(0.0) as usize).min(m.width - 1);
-                        let y = (k.uv.y.round().max(0.0) as usize).min(m.height - 1);
-                        m.at(x, y) > 0.0
-                    })
-                    .collect()
-            })
+            .map(|m| keypoints_inside(&desc.features, m))
             .collect();
         Ok((desc, flags, segment_ms, t.elapsed().as_secs_f64() * 1e3))
     }
@@ -208,6 +199,24 @@ impl Backend {
             .index_of(id as i64)
             .ok_or_else(|| SlamError::Internal(format!("keyframe {id} not in the graph")))?;
         Ok(self.graph.poses[idx])
+    }
+
+    /// How far the dense refinement moved the RANSAC pose (metres, radians) and why the
+    /// result is rejected (empty when accepted).
+    fn check_refined(&self, guess: &Se3, refined: &Se3, covisibility: f64) -> (f64, f64, String) {
+        let delta = guess.inverse() * *refined;
+        let dt = delta.translation.length();
+        let dr = delta.rotation.to_axis_angle().1.abs();
+        let reason = if covisibility < self.config.loop_min_covisibility {
+            format!("covisibility {covisibility:.2}")
+        } else if dt > self.config.loop_max_refine_translation
+            || dr > self.config.loop_max_refine_rotation
+        {
+            format!("dense refinement moved {dt:.3} m / {dr:.3} rad")
+        } else {
+            String::new()
+        };
+        (dt, dr, reason)
     }
 
     /// Adds a keyframe of a loaded map (already described; its pose is final and fixed).
@@ -295,17 +304,7 @@ impl Backend {
             let guess = d.loop_match.query_from_candidate.inverse();
             let (refined, cov, covis) = self.refine(d.candidate_id, &frame, guess)?;
             timing.align_ms = t.elapsed().as_secs_f64() * 1e3;
-            let delta = guess.inverse() * refined;
-            let dt = delta.translation.length();
-            let dr = delta.rotation.to_axis_angle().1.abs();
-            let mut reason = String::new();
-            if covis < self.config.loop_min_covisibility {
-                reason = format!("covisibility {covis:.2}");
-            } else if dt > self.config.loop_max_refine_translation
-                || dr > self.config.loop_max_refine_rotation
-            {
-                reason = format!("dense refinement moved {dt:.3} m / {dr:.3} rad");
-            }
+            let (dt, dr, reason) = self.check_refined(&guess, &refined, covis);
             let accepted = reason.is_empty();
             if accepted {
                 let info = information_from(cov.as_ref(), 0.01, 0.01);
@@ -382,12 +381,8 @@ impl Backend {
         };
         let guess = d.loop_match.query_from_candidate.inverse();
         let (refined, cov, covis) = self.refine(d.candidate_id, frame, guess)?;
-        let delta = guess.inverse() * refined;
-        let dt = delta.translation.length();
-        let dr = delta.rotation.to_axis_angle().1.abs();
-        let ok = covis >= self.config.loop_min_covisibility
-            && dt <= self.config.loop_max_refine_translation
-            && dr <= self.config.loop_max_refine_rotation;
+        let (dt, dr, reason) = self.check_refined(&guess, &refined, covis);
+        let ok = reason.is_empty();
         self.loops.push(LoopRecord {
             query: self.keyframes.len(),
             candidate: d.candidate_id,
@@ -397,11 +392,7 @@ impl Backend {
             refine_rotation: dr,
             covisibility: covis,
             accepted: ok,
-            reason: if ok {
-                String::new()
-            } else {
-                format!("relocalisation rejected: covisibility {covis:.2}, moved {dt:.3} m / {dr:.3} rad")
-            },
+            reason,
             relocalisation: true,
         });
         if !ok {

@@ -132,9 +132,10 @@ fn pose_from(a: &[f64; 7]) -> Option<Se3> {
 }
 
 impl Map {
-    pub(crate) fn from_backend(back: &Backend, sessions: u32) -> Map {
+    /// Moves the back-end's keyframes into a map (with their optimised poses).
+    pub(crate) fn from_backend(back: &mut Backend, sessions: u32) -> Map {
         let poses = back.keyframe_poses();
-        let mut keyframes = back.keyframes.clone();
+        let mut keyframes = std::mem::take(&mut back.keyframes);
         for (k, p) in keyframes.iter_mut().zip(poses.iter()) {
             k.world_from_keyframe = *p;
         }
@@ -163,7 +164,7 @@ impl Map {
             vocabulary_words: back.detector.vocabulary().num_words(),
             keyframes,
             features,
-            mask_flags: back.mask_flags.clone(),
+            mask_flags: std::mem::take(&mut back.mask_flags),
             edges,
         }
     }

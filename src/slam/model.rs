@@ -38,14 +38,16 @@ impl Default for ModelParams {
 }
 
 /// Points of the model in the world frame (metres) with their intensity: every keyframe's
-/// points, minus those the previous keyframe already had, placed with `world_from_keyframe`.
+/// points, minus those the previous keyframe already had, placed with `world_from_keyframe`,
+/// accumulated straight into the voxel grid of `params.voxel` (so memory follows the model's
+/// size, not the number of keyframe pixels); `voxel <= 0` keeps every point.
 pub fn build_model(
     keyframes: &[Keyframe],
     world_from_keyframe: &[Se3],
     camera: &PinholeCamera,
     params: &ModelParams,
 ) -> Vec<(DVec3, u8)> {
-    let mut out = Vec::new();
+    let mut grid = VoxelGrid::new(params.voxel);
     for (k, (kf, pose)) in keyframes.iter().zip(world_from_keyframe.iter()).enumerate() {
         let prev = if k > 0 && keyframes[k - 1].session == kf.session {
             Some((
@@ -71,42 +73,73 @@ pub fn build_model(
                     }
                 }
             }
-            out.push((pose.transform_point(p), i));
+            grid.add(pose.transform_point(p), i);
         }
     }
-    out
+    grid.points()
+}
+
+/// Running voxel-grid average (or a plain list when the size is not positive).
+struct VoxelGrid {
+    size: f64,
+    cells: HashMap<(i64, i64, i64), (DVec3, u32, usize)>,
+    order: Vec<(i64, i64, i64)>,
+    raw: Vec<(DVec3, u8)>,
+}
+
+impl VoxelGrid {
+    fn new(size: f64) -> Self {
+        VoxelGrid {
+            size,
+            cells: HashMap::new(),
+            order: Vec::new(),
+            raw: Vec::new(),
+        }
+    }
+
+    fn add(&mut self, p: DVec3, i: u8) {
+        if !p.is_finite() {
+            return;
+        }
+        if self.size <= 0.0 {
+            self.raw.push((p, i));
+            return;
+        }
+        let key = (
+            (p.x / self.size).floor() as i64,
+            (p.y / self.size).floor() as i64,
+            (p.z / self.size).floor() as i64,
+        );
+        let order = &mut self.order;
+        let e = self.cells.entry(key).or_insert_with(|| {
+            order.push(key);
+            (DVec3::ZERO, 0, 0)
+        });
+        e.0 += p;
+        e.1 += u32::from(i);
+        e.2 += 1;
+    }
+
+    fn points(self) -> Vec<(DVec3, u8)> {
+        if self.size <= 0.0 {
+            return self.raw;
+        }
+        self.order
+            .iter()
+            .filter_map(|k| self.cells.get(k))
+            .map(|(s, i, n)| (*s / *n as f64, (*i / *n as u32) as u8))
+            .collect()
+    }
 }
 
 /// Voxel-grid filter: one point per occupied voxel of `size` metres (the mean of its points
 /// and intensities). `size <= 0` returns the input.
 pub fn voxel_filter(points: &[(DVec3, u8)], size: f64) -> Vec<(DVec3, u8)> {
-    if size <= 0.0 {
-        return points.to_vec();
-    }
-    let mut cells: HashMap<(i64, i64, i64), (DVec3, u32, usize)> = HashMap::new();
-    let mut order = Vec::new();
+    let mut grid = VoxelGrid::new(size);
     for (p, i) in points {
-        if !p.is_finite() {
-            continue;
-        }
-        let key = (
-            (p.x / size).floor() as i64,
-            (p.y / size).floor() as i64,
-            (p.z / size).floor() as i64,
-        );
-        let e = cells.entry(key).or_insert_with(|| {
-            order.push(key);
-            (DVec3::ZERO, 0, 0)
-        });
-        e.0 += *p;
-        e.1 += u32::from(*i);
-        e.2 += 1;
+        grid.add(*p, *i);
     }
-    order
-        .iter()
-        .filter_map(|k| cells.get(k))
-        .map(|(s, i, n)| (*s / *n as f64, (*i / *n as u32) as u8))
-        .collect()
+    grid.points()
 }
 
 /// Writes points as a binary little-endian PLY with grey colour.

@@ -81,8 +81,6 @@ pub struct SlamResult {
     pub trajectory: Vec<TimedPose>,
     /// Front-end (odometry-only) trajectory of the tracked frames.
     pub odometry: Vec<TimedPose>,
-    /// Keyframes (all, including those of a loaded map) with their optimised poses.
-    pub keyframes: Vec<Keyframe>,
     /// Optimised `world_from_keyframe`, one per keyframe.
     pub keyframe_poses: Vec<Se3>,
     /// Loops found (accepted and rejected).
@@ -498,13 +496,12 @@ impl Slam {
                 })
             })
             .collect();
-        let map = Map::from_backend(&back, self.session + 1);
+        let map = Map::from_backend(&mut back, self.session + 1);
         let timings = back.timings.clone();
         Ok(SlamResult {
             frames: std::mem::take(&mut self.frames),
             trajectory,
             odometry,
-            keyframes: std::mem::take(&mut back.keyframes),
             keyframe_poses,
             loops: std::mem::take(&mut back.loops),
             timings,
@@ -516,6 +513,14 @@ impl Slam {
     /// Keyframes of a loaded map.
     pub fn map_keyframes(&self) -> usize {
         self.map_keyframes
+    }
+}
+
+impl SlamResult {
+    /// All keyframes (those of a loaded map included); their `world_from_keyframe` is the
+    /// optimised pose (they live in [`Self::map`]).
+    pub fn keyframes(&self) -> &[Keyframe] {
+        &self.map.keyframes
     }
 }
 
