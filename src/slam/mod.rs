@@ -15,7 +15,7 @@
 //!     println!("{:?} {:?}", report.status, report.world_from_camera);
 //! }
 //! let result = slam.finish()?;
-//! println!("{} keyframes, {} loops", result.keyframes.len(), result.loops.len());
+//! println!("{} keyframes, {} loops", result.keyframes().len(), result.loops.len());
 //! # Ok(()) }
 //! ```
 
