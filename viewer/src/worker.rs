@@ -345,7 +345,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     }
     let result = slam.finish()?;
     let keyframes: Vec<TimedPose> = result
-        .keyframes
+        .keyframes()
         .iter()
         .zip(&result.keyframe_poses)
         .map(|(k, p)| TimedPose {
@@ -353,7 +353,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
             world_from_camera: *p,
         })
         .collect();
-    let index_of = |id: usize| result.keyframes.iter().position(|k| k.id == id);
+    let index_of = |id: usize| result.keyframes().iter().position(|k| k.id == id);
     let loops = result
         .loops
         .iter()
@@ -361,7 +361,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         .filter_map(|l| Some((index_of(l.query)?, index_of(l.candidate)?)))
         .collect();
     let model = build_model(
-        &result.keyframes,
+        result.keyframes(),
         &result.keyframe_poses,
         &camera,
         &ModelParams::default(),
