@@ -388,7 +388,7 @@ fn saved_map_opens_with_its_keyframes_and_model() {
     let mut app = ViewerApp::new(ViewerState::default(), None);
     app.open(&path).expect("open map");
     let run = app.state.finished.as_ref().expect("map shown");
-    assert_eq!(run.keyframes.len(), result.keyframes.len());
+    assert_eq!(run.keyframes.len(), result.keyframes().len());
     assert!(run.model.len() > 1000, "{} model points", run.model.len());
     assert_eq!(app.state.point_count(), run.model.len());
     // A file that is not a map: an error, not a panic.
