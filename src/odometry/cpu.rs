@@ -4,9 +4,9 @@
 use rayon::prelude::*;
 
 use super::kernel::{
-    accumulate_pixel, covisible, downsample, gradients, pack_level0, pixel_terms, sample_index,
-    WarpParams, INVALID_RESIDUAL, PARTIAL_LEN,
+    covisible, downsample, gradients, pack_level0, WarpParams, INVALID_RESIDUAL, PARTIAL_LEN,
 };
+use super::rows::{accumulate_rows, sample_range, Warp};
 use crate::image::RgbdFrame;
 
 /// Dimensions and offset of one pyramid level within a frame's buffers.
@@ -44,13 +44,21 @@ pub struct CpuPyramid {
     pub levels: Vec<LevelLayout>,
     /// `(I, dI/du, dI/dv, 0)` per pixel.
     pub photo: Vec<[f32; 4]>,
-    /// `(rho, drho/du, drho/dv, 0)` per pixel.
+    /// `(rho, drho/du, drho/dv, z)` per pixel, with `z = 1 / rho` (0 where rho is invalid)
+    /// cached for the CPU's warp (the GPU layout leaves `.w` at 0).
     pub geo: Vec<[f32; 4]>,
 }
 
 impl CpuPyramid {
     /// Builds the pyramid and gradients of `frame` with `levels` levels.
     pub fn build(frame: &RgbdFrame, levels: usize) -> CpuPyramid {
+        Self::build_from(frame, levels, 0)
+    }
+
+    /// Like [`Self::build`], but levels finer than `first_gradient_level` get no gradients
+    /// (and no cached depth): they are only the source of the coarser levels, for an odometry
+    /// that does not optimise them.
+    pub fn build_from(frame: &RgbdFrame, levels: usize, first_gradient_level: usize) -> CpuPyramid {
         let layout = pyramid_layout(frame.width(), frame.height(), levels);
         let total = layout
             .last()
@@ -88,28 +96,28 @@ impl CpuPyramid {
                     }
                 });
         }
-        for l in &layout {
-            let range = l.offset..l.offset + l.width * l.height;
-            let grads: Vec<([f32; 2], [f32; 2])> = (0..l.width * l.height)
-                .into_par_iter()
-                .map(|i| {
-                    gradients(
-                        &photo[range.clone()],
-                        &geo[range.clone()],
-                        l.width,
-                        l.height,
-                        i % l.width,
-                        i / l.width,
-                    )
-                })
-                .collect();
-            for (i, (gp, gg)) in grads.into_iter().enumerate() {
-                let k = l.offset + i;
-                photo[k][1] = gp[0];
-                photo[k][2] = gp[1];
-                geo[k][1] = gg[0];
-                geo[k][2] = gg[1];
-            }
+        for l in layout.iter().skip(first_gradient_level) {
+            let n = l.width * l.height;
+            let range = l.offset..l.offset + n;
+            // The level's values, so that rows can be written in parallel while their
+            // neighbours are read.
+            let src_p: Vec<[f32; 4]> = photo[range.clone()].to_vec();
+            let src_g: Vec<[f32; 4]> = geo[range.clone()].to_vec();
+            photo[range.clone()]
+                .par_chunks_mut(l.width)
+                .zip(geo[range].par_chunks_mut(l.width))
+                .enumerate()
+                .for_each(|(y, (rp, rg))| {
+                    for x in 0..l.width {
+                        let (gp, gg) = gradients(&src_p, &src_g, l.width, l.height, x, y);
+                        rp[x][1] = gp[0];
+                        rp[x][2] = gp[1];
+                        rg[x][1] = gg[0];
+                        rg[x][2] = gg[1];
+                        let rho = rg[x][0];
+                        rg[x][3] = if rho > 0.0 { 1.0 / rho } else { 0.0 };
+                    }
+                });
         }
         CpuPyramid {
             levels: layout,
@@ -134,23 +142,18 @@ pub fn sample_residuals(
 ) -> Vec<[f32; 2]> {
     let (rp, rg) = reference.level(level);
     let (cp, cg) = current.level(level);
-    let n = p.dims[0] * p.dims[1];
-    let count = p.dims[3];
-    (0..count)
-        .into_par_iter()
-        .map(|k| {
-            let i = sample_index(k, count, n) as usize;
-            let t = pixel_terms(p, rp, rg, cp, cg, i, false);
-            [
-                t.r_photo.unwrap_or(INVALID_RESIDUAL),
-                t.r_geo.unwrap_or(INVALID_RESIDUAL),
-            ]
-        })
-        .collect()
+    let count = p.dims[3] as usize;
+    let k = Warp::new(p);
+    let mut out = vec![[INVALID_RESIDUAL; 2]; count];
+    const BLOCK: usize = 2048;
+    out.par_chunks_mut(BLOCK)
+        .enumerate()
+        .for_each(|(b, chunk)| sample_range(&k, rp, rg, cp, cg, b * BLOCK, count, chunk));
+    out
 }
 
 /// Per-chunk partial sums of the IRLS normal equations (the same partial layout as the GPU's
-/// per-workgroup output). `chunks` is the number of partials.
+/// per-workgroup output). `chunks` is the number of partials; each covers a band of rows.
 pub fn normal_equation_partials(
     p: &WarpParams,
     reference: &CpuPyramid,
@@ -160,31 +163,16 @@ pub fn normal_equation_partials(
 ) -> Vec<[f32; PARTIAL_LEN]> {
     let (rp, rg) = reference.level(level);
     let (cp, cg) = current.level(level);
-    let n = (p.dims[0] * p.dims[1]) as usize;
-    let per = n.div_ceil(chunks.max(1));
-    (0..chunks)
+    let h = p.dims[1] as usize;
+    let k = Warp::new(p);
+    let rows_per = h.div_ceil(chunks.max(1)).max(1);
+    (0..h.div_ceil(rows_per))
         .into_par_iter()
         .map(|c| {
-            let mut acc = [0.0f32; PARTIAL_LEN];
-            // Rows of 4 pixels accumulate in a small f32 buffer flushed per row for accuracy.
-            let end = ((c + 1) * per).min(n);
-            let mut row = [0.0f32; PARTIAL_LEN];
-            let mut in_row = 0;
-            for i in c * per..end {
-                accumulate_pixel(p, rp, rg, cp, cg, i, &mut row);
-                in_row += 1;
-                if in_row == 64 {
-                    for k in 0..PARTIAL_LEN {
-                        acc[k] += row[k];
-                    }
-                    row = [0.0; PARTIAL_LEN];
-                    in_row = 0;
-                }
-            }
-            for k in 0..PARTIAL_LEN {
-                acc[k] += row[k];
-            }
-            acc
+            let mut acc = [0.0f64; PARTIAL_LEN];
+            let rows = c * rows_per..((c + 1) * rows_per).min(h);
+            accumulate_rows(&k, rp, rg, cp, cg, rows, &mut acc);
+            acc.map(|v| v as f32)
         })
         .collect()
 }

@@ -21,6 +21,7 @@ pub mod cpu;
 pub mod gpu;
 pub mod kernel;
 pub mod robust;
+mod rows;
 mod solver;
 mod tracker;
 

@@ -225,7 +225,12 @@ impl Odometry {
         let levels = self.config.levels;
         let spare = self.spare.take();
         Ok(match &mut self.engine {
-            Engine::Cpu => Pyramid::Cpu(CpuPyramid::build(frame, levels)),
+            Engine::Cpu => {
+                // Gradients are needed from the finest optimised level (covisibility reads only
+                // inverse depth).
+                let first = self.config.finest_level(self.camera.width as usize);
+                Pyramid::Cpu(CpuPyramid::build_from(frame, levels, first))
+            }
             Engine::Gpu(g) => {
                 let recycle = match spare {
                     Some(Pyramid::Gpu(p)) => Some(p),
@@ -475,7 +480,8 @@ impl Odometry {
         let mut levels = Vec::new();
         let mut last_ne: Option<NormalEquations> = None;
         let mut any_update = false;
-        for level in (cfg.stop_level..cfg.levels).rev() {
+        let finest = cfg.finest_level(self.camera.width as usize);
+        for level in (finest..cfg.levels).rev() {
             let cam = self.camera.at_level(level);
             let n = (cam.width * cam.height) as usize;
             let samples = n.min(cfg.max_samples) as u32;
@@ -488,7 +494,7 @@ impl Odometry {
                 super::robust::ScaleEstimate,
                 super::robust::ScaleEstimate,
             )> = None;
-            for _ in 0..cfg.iterations_at(level) {
+            for _ in 0..cfg.iterations_at(level, finest) {
                 let mut p = self.params(level, &cur_from_ref, samples);
                 // Scales.
                 let ts = Instant::now();
