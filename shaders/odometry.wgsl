@@ -11,7 +11,7 @@ struct WarpParams {
     rot1: vec4<f32>,
     rot2: vec4<f32>,
     robust: vec4<f32>, // sigma_I, sigma_W, nu_I, nu_W
-    flags: vec4<u32>,  // estimator, term mask, geometric param (0 inv depth, 1 depth), -
+    flags: vec4<u32>,  // estimator, term mask, geometric param (0 inv depth, 1 depth), sample offset
 }
 
 @group(0) @binding(0) var<uniform> P: WarpParams;
@@ -213,8 +213,11 @@ fn sample_residuals(@builtin(global_invocation_id) id: vec3<u32>) {
     let r = n % count;
     let i = id.x * q + (id.x * r) / count;
     let t = pixel_terms(i, false);
-    out[2u * id.x] = select(INVALID_RESIDUAL, t.r_photo, t.photo_ok);
-    out[2u * id.x + 1u] = select(INVALID_RESIDUAL, t.r_geo, t.geo_ok);
+    // flags.w: where the sample starts in `out` (after the normal-equation partials when both
+    // run in one submission).
+    let o = P.flags.w;
+    out[o + 2u * id.x] = select(INVALID_RESIDUAL, t.r_photo, t.photo_ok);
+    out[o + 2u * id.x + 1u] = select(INVALID_RESIDUAL, t.r_geo, t.geo_ok);
 }
 
 fn covisible(i: u32) -> u32 {

@@ -119,6 +119,35 @@ fn gpu_matches_cpu_mirror() {
                     xg[k]
                 );
             }
+            // The fused pass (normal equations + the sample in one submission) returns the
+            // same partial sums and the same sample as the separate kernels.
+            let (nf, sf) = g
+                .normal_equations_and_sample(&p, &ga, &gb)
+                .expect("gpu fused");
+            let xf = sum(&nf);
+            assert_eq!(xf[28], xg[28], "fused photometric count at level {level}");
+            for k in 0..28 {
+                assert!(
+                    (xf[k] - xg[k]).abs() <= 1e-6 * scale + 1e-5 * xg[k].abs(),
+                    "fused entry {k} at level {level}: {} vs {}",
+                    xf[k],
+                    xg[k]
+                );
+            }
+            assert_eq!(sf.len(), sg.len());
+            for (f, s) in sf.iter().zip(&sg) {
+                assert_eq!(f, s, "fused sample differs from the separate sample pass");
+            }
+            let (_, sfc) = cpu::normal_equations_and_sample(&p, &ca, &cb, level, 7);
+            assert_eq!(sfc.len(), sc.len());
+            for (f, s) in sfc.iter().zip(&sc) {
+                for c in 0..2 {
+                    assert!(
+                        (f[c] - s[c]).abs() <= 1e-5 * s[c].abs().max(1.0),
+                        "cpu fused sample {f:?} vs {s:?}"
+                    );
+                }
+            }
             // Covisibility counts.
             let cc = cpu::covisibility_counts(&p, &ca, &cb, level);
             let cg = g

@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use super::kernel::{
     covisible, downsample, gradients, pack_level0, WarpParams, INVALID_RESIDUAL, PARTIAL_LEN,
 };
-use super::rows::{accumulate_rows, sample_range, Warp};
+use super::rows::{accumulate_rows, first_sample_at, sample_range, SampleWalk, Warp};
 use crate::image::RgbdFrame;
 
 /// Dimensions and offset of one pyramid level within a frame's buffers.
@@ -171,10 +171,57 @@ pub fn normal_equation_partials(
         .map(|c| {
             let mut acc = [0.0f64; PARTIAL_LEN];
             let rows = c * rows_per..((c + 1) * rows_per).min(h);
-            accumulate_rows(&k, rp, rg, cp, cg, rows, &mut acc);
+            accumulate_rows(&k, rp, rg, cp, cg, rows, &mut acc, None);
             acc.map(|v| v as f32)
         })
         .collect()
+}
+
+/// [`normal_equation_partials`] and, from the same pass, the systematic residual sample of
+/// [`sample_residuals`] at the same pose (the tracker uses it for the next iteration's scale).
+pub fn normal_equations_and_sample(
+    p: &WarpParams,
+    reference: &CpuPyramid,
+    current: &CpuPyramid,
+    level: usize,
+    chunks: usize,
+) -> (Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>) {
+    let (rp, rg) = reference.level(level);
+    let (cp, cg) = current.level(level);
+    let (w, h) = (p.dims[0] as usize, p.dims[1] as usize);
+    let (n, count) = (w * h, p.dims[3] as usize);
+    let k = Warp::new(p);
+    let rows_per = h.div_ceil(chunks.max(1)).max(1);
+    let bands: Vec<_> = (0..h.div_ceil(rows_per))
+        .into_par_iter()
+        .map(|c| {
+            let rows = c * rows_per..((c + 1) * rows_per).min(h);
+            // The samples whose pixels fall in these rows.
+            let k_lo = first_sample_at(rows.start * w, count, n).min(count);
+            let k_hi = first_sample_at(rows.end * w, count, n).min(count);
+            let mut sample = vec![[INVALID_RESIDUAL; 2]; k_hi - k_lo];
+            let mut acc = [0.0f64; PARTIAL_LEN];
+            let walk = SampleWalk::new(k_lo, count, n);
+            accumulate_rows(
+                &k,
+                rp,
+                rg,
+                cp,
+                cg,
+                rows,
+                &mut acc,
+                Some((&mut sample, walk)),
+            );
+            (acc.map(|v| v as f32), sample)
+        })
+        .collect();
+    let mut parts = Vec::with_capacity(bands.len());
+    let mut sample = Vec::with_capacity(count);
+    for (a, s) in bands {
+        parts.push(a);
+        sample.extend(s);
+    }
+    (parts, sample)
 }
 
 /// Covisibility counts `(pixels with depth, covisible pixels)` of `reference` in `current`.

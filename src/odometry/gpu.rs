@@ -265,6 +265,19 @@ impl GpuOdometry {
         groups: u32,
         read: usize,
     ) -> Result<Vec<f32>, GpuError> {
+        self.run_many(&[(pipe, groups)], params, reference, current, read)
+    }
+
+    /// Runs `dispatches` (pipeline, workgroups) in one submission with the same parameters and
+    /// reads back the first `read` floats of the output buffer (one round trip).
+    fn run_many(
+        &mut self,
+        dispatches: &[(Pipe, u32)],
+        params: &WarpParams,
+        reference: &GpuPyramid,
+        current: &GpuPyramid,
+        read: usize,
+    ) -> Result<Vec<f32>, GpuError> {
         self.ensure_out(read);
         let bg = self.bind(reference, current);
         self.ctx
@@ -276,7 +289,7 @@ impl GpuOdometry {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("warp"),
             });
-        {
+        for &(pipe, groups) in dispatches {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: None,
                 timestamp_writes: None,
@@ -292,6 +305,38 @@ impl GpuOdometry {
         enc.copy_buffer_to_buffer(&self.out, 0, &self.staging, 0, (read * 4) as u64);
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.read_staging(&self.staging, read)
+    }
+
+    /// The normal equations at the pose in `params` and, in the same submission and read-back,
+    /// the systematic residual sample at that pose (for the next iteration's scale).
+    pub fn normal_equations_and_sample(
+        &mut self,
+        params: &WarpParams,
+        reference: &GpuPyramid,
+        current: &GpuPyramid,
+    ) -> Result<(Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>), GpuError> {
+        let n = (params.dims[0] * params.dims[1]) as usize;
+        let groups = self.ctx.reduction_groups(n, WG);
+        let count = params.dims[3] as usize;
+        let offset = groups as usize * PARTIAL_LEN;
+        let mut p = *params;
+        p.flags[3] = offset as u32;
+        let v = self.run_many(
+            &[
+                (Pipe::Normal, groups),
+                (Pipe::Sample, count.div_ceil(WG) as u32),
+            ],
+            &p,
+            reference,
+            current,
+            offset + 2 * count,
+        )?;
+        let parts = v[..offset]
+            .chunks_exact(PARTIAL_LEN)
+            .map(|c| c.try_into().unwrap_or([0.0; PARTIAL_LEN]))
+            .collect();
+        let sample = v[offset..].chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+        Ok((parts, sample))
     }
 
     /// Per-workgroup partial sums of the normal equations at `level` (`params.dims` set).

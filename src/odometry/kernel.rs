@@ -38,7 +38,7 @@ pub struct WarpParams {
     /// sigma_I, sigma_W, nu_I, nu_W.
     pub robust: [f32; 4],
     /// estimator code, term mask (1 photometric, 2 geometric), geometric parametrisation
-    /// (0 inverse depth, 1 depth), unused.
+    /// (0 inverse depth, 1 depth), offset of the residual sample in the GPU output buffer.
     pub flags: [u32; 4],
 }
 

@@ -137,6 +137,49 @@ fn jacobian(k: &Warp, gu: f32, gv: f32, dz: f32, qx: f32, qy: f32, qz: f32, iz: 
     [a, b, c, qy * c - qz * b, qz * a - qx * c, qx * b - qy * a]
 }
 
+/// Walks the systematic sample `i_k = floor(k n / count)` ([`super::kernel::sample_index`])
+/// from `k0` on, as quotient and remainder (no division per step).
+pub(crate) struct SampleWalk {
+    /// The current sample's pixel index.
+    pub(crate) i: usize,
+    rem: usize,
+    step: usize,
+    step_rem: usize,
+    count: usize,
+}
+
+impl SampleWalk {
+    pub(crate) fn new(k0: usize, count: usize, n: usize) -> Self {
+        let count = count.max(1);
+        let num = k0 as u64 * n as u64;
+        Self {
+            i: (num / count as u64) as usize,
+            rem: (num % count as u64) as usize,
+            step: n / count,
+            step_rem: n % count,
+            count,
+        }
+    }
+
+    /// Moves to the next sample; returns how far the pixel index moved.
+    #[inline(always)]
+    pub(crate) fn advance(&mut self) -> usize {
+        let mut d = self.step;
+        self.rem += self.step_rem;
+        if self.rem >= self.count {
+            self.rem -= self.count;
+            d += 1;
+        }
+        self.i += d;
+        d
+    }
+}
+
+/// The first sample index `k` whose pixel `floor(k n / count)` is at or after pixel `i`.
+pub(crate) fn first_sample_at(i: usize, count: usize, n: usize) -> usize {
+    ((i as u64 * count as u64).div_ceil(n.max(1) as u64)) as usize
+}
+
 /// Accumulates the IRLS normal equations of rows `rows` of the reference level.
 pub(crate) fn accumulate_rows(
     k: &Warp,
@@ -146,22 +189,24 @@ pub(crate) fn accumulate_rows(
     cur_geo: &[[f32; 4]],
     rows: std::ops::Range<usize>,
     out: &mut [f64; PARTIAL_LEN],
+    sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU supports the features enabled on `accumulate_rows_avx2`.
             unsafe {
-                accumulate_rows_avx2(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out);
+                accumulate_rows_avx2(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
             }
             return;
         }
     }
-    accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out);
+    accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
 fn accumulate_rows_avx2(
     k: &Warp,
     ref_photo: &[[f32; 4]],
@@ -170,8 +215,9 @@ fn accumulate_rows_avx2(
     cur_geo: &[[f32; 4]],
     rows: std::ops::Range<usize>,
     out: &mut [f64; PARTIAL_LEN],
+    sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
-    accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out);
+    accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
 }
 
 /// Weighted Jacobians and residuals of one row, structure of arrays, so that the sums of
@@ -245,6 +291,7 @@ fn dot(x: &[f32], y: &[f32]) -> f32 {
 }
 
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn accumulate_rows_body(
     k: &Warp,
     ref_photo: &[[f32; 4]],
@@ -253,7 +300,14 @@ fn accumulate_rows_body(
     cur_geo: &[[f32; 4]],
     rows: std::ops::Range<usize>,
     out: &mut [f64; PARTIAL_LEN],
+    sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
+    // The sample residuals of these rows (if wanted): `slots` in order, at the walk's pixels.
+    let (slots, mut walk) = match sample {
+        Some((s, wk)) => (s, wk),
+        None => (&mut [][..], SampleWalk::new(0, 1, 0)),
+    };
+    let mut slot = 0usize;
     let w = k.w;
     let (sp, sg) = (k.sigma[0], k.sigma[1]);
     let (isp2, isg2) = (1.0 / (sp * sp), 1.0 / (sg * sg));
@@ -263,12 +317,23 @@ fn accumulate_rows_body(
         let rp = &ref_photo[y * w..(y + 1) * w];
         let rg = &ref_geo[y * w..(y + 1) * w];
         let ry = k.ry[y];
-        for ((pi, gi), &rx) in rp.iter().zip(rg).zip(&k.rx) {
+        for (x, ((pi, gi), &rx)) in rp.iter().zip(rg).zip(&k.rx).enumerate() {
+            let sampled = slot < slots.len() && walk.i == y * w + x;
             // geo.w caches z = 1 / rho (see `CpuPyramid`).
             if gi[0] <= 0.0 {
+                if sampled {
+                    slots[slot] = [INVALID_RESIDUAL; 2];
+                    slot += 1;
+                    walk.advance();
+                }
                 continue;
             }
             let (r_p, j_p, r_g, j_g) = terms::<true>(k, pi[0], gi[3], rx, ry, cur_photo, cur_geo);
+            if sampled {
+                slots[slot] = [r_p, r_g];
+                slot += 1;
+                walk.advance();
+            }
             if r_p != INVALID_RESIDUAL {
                 let wt = weight(k.est, r_p / sp, k.nu[0]) * isp2;
                 buf.push(j_p, r_p, wt);
@@ -298,15 +363,10 @@ pub(crate) fn sample_range(
     count: usize,
     out: &mut [[f32; 2]],
 ) {
-    let n = k.w * k.h;
-    let count = count.max(1);
-    // i_k = floor(k n / count), tracked as quotient + remainder.
-    let num = k0 as u64 * n as u64;
-    let mut i = (num / count as u64) as usize;
-    let mut rem = (num % count as u64) as usize;
-    let (step, step_rem) = (n / count, n % count);
-    let (mut x, mut y) = (i % k.w, i / k.w);
+    let mut walk = SampleWalk::new(k0, count, k.w * k.h);
+    let (mut x, mut y) = (walk.i % k.w, walk.i / k.w);
     for o in out.iter_mut() {
+        let i = walk.i;
         let g = ref_geo.get(i).copied().unwrap_or_default();
         *o = if g[0] > 0.0 {
             let (r_p, _, r_g, _) = terms::<false>(
@@ -322,14 +382,7 @@ pub(crate) fn sample_range(
         } else {
             [INVALID_RESIDUAL, INVALID_RESIDUAL]
         };
-        let mut d = step;
-        rem += step_rem;
-        if rem >= count {
-            rem -= count;
-            d += 1;
-        }
-        i += d;
-        x += d;
+        x += walk.advance();
         while x >= k.w {
             x -= k.w;
             y += 1;
@@ -403,6 +456,7 @@ mod tests {
                     &b.geo,
                     0..h,
                     &mut got,
+                    None,
                 );
                 assert_eq!(got[28] as f32, want[28], "photometric count");
                 assert_eq!(got[29] as f32, want[29], "geometric count");
@@ -415,6 +469,21 @@ mod tests {
                         "entry {i}: {} vs {}",
                         got[i],
                         want[i]
+                    );
+                }
+                // The sample taken during the reduction equals the separate sample pass.
+                let (_, fused) =
+                    crate::odometry::cpu::normal_equations_and_sample(&p, &a, &b, 0, 5);
+                let separate = crate::odometry::cpu::sample_residuals(&p, &a, &b, 0);
+                assert_eq!(fused.len(), separate.len());
+                for (f, s) in fused.iter().zip(&separate) {
+                    assert!(
+                        (f[0] - s[0]).abs() <= 1e-5 * s[0].abs().max(1.0),
+                        "{f:?} vs {s:?}"
+                    );
+                    assert!(
+                        (f[1] - s[1]).abs() <= 1e-5 * s[1].abs().max(1.0),
+                        "{f:?} vs {s:?}"
                     );
                 }
                 // The incremental sample walks the same pixels as `sample_index`.

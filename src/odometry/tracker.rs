@@ -468,6 +468,29 @@ impl Odometry {
         })
     }
 
+    fn partials_and_sample(
+        &mut self,
+        p: &WarpParams,
+        r: &Pyramid,
+        c: &Pyramid,
+        level: usize,
+    ) -> Result<(Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>), OdometryError> {
+        Ok(match (&mut self.engine, r, c) {
+            (Engine::Cpu, Pyramid::Cpu(r), Pyramid::Cpu(c)) => {
+                let chunks = (rayon::current_num_threads() * 8).max(8);
+                cpu::normal_equations_and_sample(p, r, c, level, chunks)
+            }
+            (Engine::Gpu(g), Pyramid::Gpu(r), Pyramid::Gpu(c)) => {
+                g.normal_equations_and_sample(p, r, c)?
+            }
+            _ => {
+                return Err(OdometryError::InvalidConfig(
+                    "pyramid from another backend".into(),
+                ))
+            }
+        })
+    }
+
     fn align_pyramids(
         &mut self,
         r: &Pyramid,
@@ -494,6 +517,10 @@ impl Odometry {
                 super::robust::ScaleEstimate,
                 super::robust::ScaleEstimate,
             )> = None;
+            // The residual sample taken by the previous iteration's normal-equation pass (at
+            // the pose before its update): the scale lags one Gauss-Newton step, which saves a
+            // warp of the sample (CPU) or a round trip (GPU) per iteration.
+            let mut pending_sample: Option<Vec<[f32; 2]>> = None;
             for _ in 0..cfg.iterations_at(level, finest) {
                 let mut p = self.params(level, &cur_from_ref, samples);
                 // Scales.
@@ -510,7 +537,10 @@ impl Odometry {
                         },
                     )
                 } else {
-                    let s = self.sample(&p, r, c, level)?;
+                    let s = match pending_sample.take() {
+                        Some(s) => s,
+                        None => self.sample(&p, r, c, level)?,
+                    };
                     let photo: Vec<f64> = s
                         .iter()
                         .filter(|v| v[0] != INVALID_RESIDUAL)
@@ -555,7 +585,13 @@ impl Odometry {
                 times.scale_ms += ts.elapsed().as_secs_f64() * 1e3;
                 // Normal equations.
                 let tr = Instant::now();
-                let parts = self.partials(&p, r, c, level)?;
+                let parts = if cfg.scale == ScaleMethod::Fixed {
+                    self.partials(&p, r, c, level)?
+                } else {
+                    let (parts, s) = self.partials_and_sample(&p, r, c, level)?;
+                    pending_sample = Some(s);
+                    parts
+                };
                 let ne = NormalEquations::from_partials(&parts);
                 times.reduce_ms += tr.elapsed().as_secs_f64() * 1e3;
                 let tsol = Instant::now();
