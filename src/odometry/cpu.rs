@@ -59,13 +59,28 @@ impl CpuPyramid {
     /// (and no cached depth): they are only the source of the coarser levels, for an odometry
     /// that does not optimise them.
     pub fn build_from(frame: &RgbdFrame, levels: usize, first_gradient_level: usize) -> CpuPyramid {
+        Self::build_reusing(frame, levels, first_gradient_level, None)
+    }
+
+    /// Like [`Self::build_from`], writing into `recycle`'s buffers when it has the same layout
+    /// (every value is overwritten), which saves allocating and zeroing them per frame.
+    pub fn build_reusing(
+        frame: &RgbdFrame,
+        levels: usize,
+        first_gradient_level: usize,
+        recycle: Option<CpuPyramid>,
+    ) -> CpuPyramid {
         let layout = pyramid_layout(frame.width(), frame.height(), levels);
         let total = layout
             .last()
             .map(|l| l.offset + l.width * l.height)
             .unwrap_or(0);
-        let mut photo = vec![[0.0f32; 4]; total];
-        let mut geo = vec![[0.0f32; 4]; total];
+        let (mut photo, mut geo) = match recycle {
+            Some(r) if r.levels == layout && r.photo.len() == total && r.geo.len() == total => {
+                (r.photo, r.geo)
+            }
+            _ => (vec![[0.0f32; 4]; total], vec![[0.0f32; 4]; total]),
+        };
         let n0 = layout[0].width * layout[0].height;
         photo[..n0]
             .par_iter_mut()

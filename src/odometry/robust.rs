@@ -87,6 +87,10 @@ pub struct ScaleEstimate {
     pub nu: f64,
 }
 
+/// Relative change of sigma^2 at which the fixed-point scale iteration stops (a scale to
+/// 0.05 %; it is re-estimated every Gauss-Newton iteration anyway).
+pub const SCALE_TOLERANCE: f64 = 1e-3;
+
 /// Lower bound of the Student-t degrees of freedom search (eq. 6.16).
 pub const NU_MIN: f64 = 2.0;
 /// Upper bound of the Student-t degrees of freedom search.
@@ -261,7 +265,7 @@ pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> S
                         .map(|x| x * x * (nu + 1.0) / (nu + x * x / sigma2))
                         .sum();
                     let next = s / n as f64;
-                    let done = ((next - sigma2) / sigma2).abs() < 1e-5;
+                    let done = ((next - sigma2) / sigma2).abs() < SCALE_TOLERANCE;
                     sigma2 = next;
                     if done {
                         break;
@@ -286,7 +290,7 @@ pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> S
                     .map(|x| f64::from(weight(code, (x / s) as f32, 0.0)) * x * x)
                     .sum();
                 let next = acc / (n as f64 * c);
-                let done = ((next - sigma2) / sigma2).abs() < 1e-5;
+                let done = ((next - sigma2) / sigma2).abs() < SCALE_TOLERANCE;
                 sigma2 = next;
                 if done || !(sigma2 > 0.0) {
                     break;

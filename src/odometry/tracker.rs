@@ -229,7 +229,11 @@ impl Odometry {
                 // Gradients are needed from the finest optimised level (covisibility reads only
                 // inverse depth).
                 let first = self.config.finest_level(self.camera.width as usize);
-                Pyramid::Cpu(CpuPyramid::build_from(frame, levels, first))
+                let recycle = match spare {
+                    Some(Pyramid::Cpu(p)) => Some(p),
+                    _ => None,
+                };
+                Pyramid::Cpu(CpuPyramid::build_reusing(frame, levels, first, recycle))
             }
             Engine::Gpu(g) => {
                 let recycle = match spare {
@@ -541,26 +545,24 @@ impl Odometry {
                         Some(s) => s,
                         None => self.sample(&p, r, c, level)?,
                     };
-                    let photo: Vec<f64> = s
-                        .iter()
-                        .filter(|v| v[0] != INVALID_RESIDUAL)
-                        .map(|v| f64::from(v[0]))
-                        .collect();
-                    let geo: Vec<f64> = s
-                        .iter()
-                        .filter(|v| v[1] != INVALID_RESIDUAL)
-                        .map(|v| f64::from(v[1]))
-                        .collect();
+                    // The two populations are independent: estimate them on two threads.
+                    let (est, method) = (cfg.estimator, cfg.scale);
+                    let population = |c: usize| -> Vec<f64> {
+                        s.iter()
+                            .filter(|v| v[c] != INVALID_RESIDUAL)
+                            .map(|v| f64::from(v[c]))
+                            .collect()
+                    };
                     // Full estimate (scale and degrees of freedom) on the first iteration of a
                     // level, warm-started scale updates after that.
                     let e = match prev_scale {
-                        None => (
-                            estimate_scale(&photo, cfg.estimator, cfg.scale),
-                            estimate_scale(&geo, cfg.estimator, cfg.scale),
+                        None => rayon::join(
+                            || estimate_scale(&population(0), est, method),
+                            || estimate_scale(&population(1), est, method),
                         ),
-                        Some((pp, pg)) => (
-                            update_scale(&photo, cfg.estimator, cfg.scale, pp),
-                            update_scale(&geo, cfg.estimator, cfg.scale, pg),
+                        Some((pp, pg)) => rayon::join(
+                            || update_scale(&population(0), est, method, pp),
+                            || update_scale(&population(1), est, method, pg),
                         ),
                     };
                     prev_scale = Some(e);
