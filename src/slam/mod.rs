@@ -127,15 +127,9 @@ impl Default for SlamConfig {
     fn default() -> Self {
         let mut detector = LoopDetectorParams::default();
         detector.query.min_separation = 8;
-        // Four pyramid levels instead of the odometry's three: the same accuracy on
-        // redkitchen (ATE 16.77 vs 16.74 mm over 150 frames) and a wider basin for fast
-        // motion (the generated `lab` loop at 0.95 m/s: ATE 4.3 mm instead of 0.96 m over 40
-        // frames at 320x240).
-        let odometry = OdometryConfig {
-            levels: 4,
-            iterations: vec![5, 10, 25, 25],
-            ..OdometryConfig::default()
-        };
+        // The odometry's defaults: four pyramid levels (a wide basin for fast motion: the
+        // generated `lab` loop at 0.95 m/s diverged with three) and no level wider than 320.
+        let odometry = OdometryConfig::default();
         SlamConfig {
             odometry,
             keyframe_covisibility: 0.7,
