@@ -12,6 +12,9 @@ use super::robust::weight;
 pub(crate) struct Warp {
     w: usize,
     h: usize,
+    /// `(w - 1) as f32` and `(h - 1) as f32`: the last valid bilinear base coordinates.
+    wm1: f32,
+    hm1: f32,
     fx: f32,
     fy: f32,
     cx: f32,
@@ -34,6 +37,8 @@ impl Warp {
         Self {
             w: p.dims[0] as usize,
             h: p.dims[1] as usize,
+            wm1: p.dims[0].saturating_sub(1) as f32,
+            hm1: p.dims[1].saturating_sub(1) as f32,
             fx: p.intr[0],
             fy: p.intr[1],
             cx: p.intr[2],
@@ -82,13 +87,13 @@ fn terms<const JAC: bool>(
     let iz = 1.0 / qz;
     let u = k.fx * qx * iz + k.cx;
     let v = k.fy * qy * iz + k.cy;
-    if !(u >= 0.0 && v >= 0.0 && u < (k.w - 1) as f32 && v < (k.h - 1) as f32) {
+    if !(u >= 0.0 && v >= 0.0 && u < k.wm1 && v < k.hm1) {
         return invalid;
     }
     let (mut rp, mut jp, mut rg, mut jg) = invalid;
     if k.photo {
         // u, v >= 0: truncation is floor.
-        let (xi, yi) = (u as usize, v as usize);
+        let (xi, yi) = (u as i32 as usize, v as i32 as usize);
         let (ax, ay) = (u - xi as f32, v - yi as f32);
         let i0 = yi * k.w + xi;
         let top = &cur_photo[i0..i0 + 2];
@@ -108,7 +113,7 @@ fn terms<const JAC: bool>(
         }
     }
     if k.geo {
-        let (xn, yn) = ((u + 0.5) as usize, (v + 0.5) as usize);
+        let (xn, yn) = ((u + 0.5) as i32 as usize, (v + 0.5) as i32 as usize);
         let g = cur_geo[yn * k.w + xn];
         if g[0] > 0.0 && g[1] != INVALID_GRAD {
             let (res, gu, gv, dz) = if k.depth_param {
