@@ -225,74 +225,88 @@ fn accumulate_rows_avx2(
     accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
 }
 
-/// Weighted Jacobians and residuals of one row, structure of arrays, so that the sums of
-/// products below vectorise across pixels.
-struct RowBuffer {
-    /// `J_a` for a = 0..6 and `r` as the 7th column.
-    v: [Vec<f32>; 7],
-    /// `w * v` (the robust weight over sigma^2 applied).
-    wv: [Vec<f32>; 7],
+/// Entries per block of [`TermBlock`]: small enough to stay in L1, a multiple of 32.
+const BLOCK: usize = 64;
+
+/// Jacobians, residuals and weights of up to [`BLOCK`] residual terms, structure of arrays, so
+/// that the sums of products vectorise across terms. Full blocks are summed into the f64
+/// partial as they fill up.
+struct TermBlock {
+    /// `J_a` for a = 0..6 and `r` as the 7th row.
+    v: [[f32; BLOCK]; 7],
+    /// Robust weight over sigma^2.
+    w: [f32; BLOCK],
     len: usize,
 }
 
-impl RowBuffer {
-    fn new(cap: usize) -> Self {
+impl TermBlock {
+    fn new() -> Self {
         Self {
-            v: std::array::from_fn(|_| vec![0.0; cap]),
-            wv: std::array::from_fn(|_| vec![0.0; cap]),
+            v: [[0.0; BLOCK]; 7],
+            w: [0.0; BLOCK],
             len: 0,
         }
     }
 
     #[inline(always)]
-    fn push(&mut self, j: [f32; 6], r: f32, wt: f32) {
-        let i = self.len;
+    fn push(&mut self, j: [f32; 6], r: f32, wt: f32, out: &mut [f64; PARTIAL_LEN]) {
+        // `len < BLOCK` always holds here; the mask lets the compiler drop the bounds checks.
+        let i = self.len & (BLOCK - 1);
         let vals = [j[0], j[1], j[2], j[3], j[4], j[5], r];
         for (a, val) in vals.into_iter().enumerate() {
             self.v[a][i] = val;
-            self.wv[a][i] = wt * val;
         }
-        self.len += 1;
+        self.w[i] = wt;
+        self.len = i + 1;
+        if self.len == BLOCK {
+            self.flush_into(out);
+        }
     }
 
-    /// Adds `sum w v_a v_b` (upper triangle, gradient, cost) of the row to `out`.
+    /// Adds `sum w v_a v_b` (upper triangle, gradient, cost) of the block to `out`.
     #[inline(always)]
     fn flush_into(&mut self, out: &mut [f64; PARTIAL_LEN]) {
-        let n = self.len;
+        let n = self.len.min(BLOCK);
+        // Unused slots are zero-weighted so that the sums always run over whole blocks.
+        self.w[n..].fill(0.0);
+        for a in 0..7 {
+            self.v[a][n..].fill(0.0);
+        }
+        let mut wv = [[0.0f32; BLOCK]; 7];
+        for a in 0..7 {
+            for k in 0..BLOCK {
+                wv[a][k] = self.w[k] * self.v[a][k];
+            }
+        }
         let mut k = 0;
         for a in 0..6 {
             for b in a..6 {
-                out[k] += f64::from(dot(&self.wv[a][..n], &self.v[b][..n]));
+                out[k] += f64::from(dot(&wv[a], &self.v[b]));
                 k += 1;
             }
         }
         for a in 0..6 {
-            out[21 + a] += f64::from(dot(&self.wv[a][..n], &self.v[6][..n]));
+            out[21 + a] += f64::from(dot(&wv[a], &self.v[6]));
         }
-        out[27] += f64::from(dot(&self.wv[6][..n], &self.v[6][..n]));
+        out[27] += f64::from(dot(&wv[6], &self.v[6]));
         self.len = 0;
     }
 }
 
-/// `sum x_i y_i` in 4 x 8 independent f32 lanes (vectorisable without reassociation flags,
-/// and without one long dependency chain).
+/// `sum x_i y_i` over one block in 4 x 8 independent f32 lanes (vectorisable without
+/// reassociation flags, and without one long dependency chain).
 #[inline(always)]
-fn dot(x: &[f32], y: &[f32]) -> f32 {
+fn dot(x: &[f32; BLOCK], y: &[f32; BLOCK]) -> f32 {
     let mut lanes = [[0.0f32; 8]; 4];
-    let (xc, yc) = (x.chunks_exact(32), y.chunks_exact(32));
-    let (xr, yr) = (xc.remainder(), yc.remainder());
-    for (a, b) in xc.zip(yc) {
+    for c in 0..BLOCK / 32 {
         for (q, lane) in lanes.iter_mut().enumerate() {
             for l in 0..8 {
-                lane[l] += a[8 * q + l] * b[8 * q + l];
+                let i = 32 * c + 8 * q + l;
+                lane[l] += x[i] * y[i];
             }
         }
     }
-    let mut s = 0.0;
-    for (a, b) in xr.iter().zip(yr) {
-        s += a * b;
-    }
-    s + lanes.iter().flatten().sum::<f32>()
+    lanes.iter().flatten().sum::<f32>()
 }
 
 #[inline(always)]
@@ -316,7 +330,7 @@ fn accumulate_rows_body(
     let w = k.w;
     let (sp, sg) = (k.sigma[0], k.sigma[1]);
     let (isp2, isg2) = (1.0 / (sp * sp), 1.0 / (sg * sg));
-    let mut buf = RowBuffer::new(2 * w);
+    let mut buf = TermBlock::new();
     let (mut n_photo, mut n_geo) = (0u64, 0u64);
     for y in rows {
         let rp = &ref_photo[y * w..(y + 1) * w];
@@ -341,17 +355,17 @@ fn accumulate_rows_body(
             }
             if r_p != INVALID_RESIDUAL {
                 let wt = weight(k.est, r_p / sp, k.nu[0]) * isp2;
-                buf.push(j_p, r_p, wt);
+                buf.push(j_p, r_p, wt, out);
                 n_photo += 1;
             }
             if r_g != INVALID_RESIDUAL {
                 let wt = weight(k.est, r_g / sg, k.nu[1]) * isg2;
-                buf.push(j_g, r_g, wt);
+                buf.push(j_g, r_g, wt, out);
                 n_geo += 1;
             }
         }
-        buf.flush_into(out);
     }
+    buf.flush_into(out);
     out[28] += n_photo as f64;
     out[29] += n_geo as f64;
 }
