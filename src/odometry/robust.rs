@@ -10,7 +10,9 @@
 )]
 #[serde(rename_all = "lowercase")]
 pub enum Estimator {
-    /// Plain least squares (weight 1).
+    /// Plain least squares (weight 1). JSON: `"leastsquares"` (or `"least-squares"`, as on
+    /// the command line).
+    #[serde(alias = "least-squares")]
     LeastSquares,
     /// Huber with k = 1.345 (in units of sigma).
     Huber,
