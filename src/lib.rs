@@ -30,4 +30,5 @@ pub mod place;
 pub mod scale;
 pub mod segment;
 pub mod slam;
+pub mod source;
 pub mod synth;

@@ -163,6 +163,12 @@ fn real_data_redkitchen_default_odometry_is_no_worse_than_opencv() {
     let ate = m.ate.translation.rmse;
     let rpe = m.rpe.expect("1 s pairs").translation_m_per_s.rmse;
     println!("redkitchen 300 frames: ATE {ate:.4} m, RPE {rpe:.4} m/s");
-    assert!(ate <= 0.033, "ATE {ate} m worse than OpenCV RGB_DEPTH (0.033 m)");
-    assert!(rpe <= 0.035, "RPE {rpe} m/s worse than OpenCV RGB_DEPTH (0.035 m/s)");
+    assert!(
+        ate <= 0.033,
+        "ATE {ate} m worse than OpenCV RGB_DEPTH (0.033 m)"
+    );
+    assert!(
+        rpe <= 0.035,
+        "RPE {rpe} m/s worse than OpenCV RGB_DEPTH (0.035 m/s)"
+    );
 }

@@ -2,7 +2,6 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -10,16 +9,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
-use rgbid::image::RgbdFrame;
-use rgbid::io::trajectory::{read_tum, write_tum, TimedPose};
-use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::io::trajectory::{write_tum, TimedPose};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
     build_model, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
-use rgbid::synth::{
-    CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
-};
+use rgbid::source::{FrameSource, SourceSpec};
+use rgbid::synth::{SequenceConfig, TrajectoryKind};
 
 /// Arguments of `rgbid slam`.
 #[derive(clap::Args)]
@@ -89,116 +85,54 @@ pub struct Args {
     pub adapter: Option<String>,
 }
 
-/// Where the frames come from.
-pub enum Source {
-    /// A TUM folder.
-    Tum(TumSequence),
-    /// A generated sequence.
-    Synth(Box<Sequence>, PinholeCamera),
-}
-
-impl Source {
-    /// Opens the source the arguments name.
-    #[allow(clippy::too_many_arguments)]
-    pub fn open(
-        sequence: Option<&Path>,
-        synth: Option<&str>,
-        camera: Option<&str>,
-        max_frames: Option<usize>,
-        frames: usize,
-        width: u32,
-        seed: u64,
-        session: u32,
-        laps: f64,
-        backend: &ComputeBackend,
-    ) -> Result<Source> {
-        if let Some(spec) = synth {
-            let (scene_name, traj) = spec.split_once(':').unwrap_or((spec, "loop"));
-            let (w, h) = (width, width * 3 / 4);
-            let f = 525.0 * f64::from(w) / 640.0;
-            let cam = PinholeCamera::new(
-                f,
-                f,
-                (f64::from(w) - 1.0) / 2.0,
-                (f64::from(h) - 1.0) / 2.0,
-                w,
-                h,
-            );
-            let base = Scene::preset(scene_name, seed)?;
-            let scene = Arc::new(if session > 0 {
-                base.session(session)
-            } else {
-                base
-            });
-            let kind = TrajectoryKind::from_name(traj)?;
-            let config = SequenceConfig {
-                frames: max_frames.unwrap_or(frames).min(frames),
-                seed: seed + u64::from(session) * 1000,
-                ..Default::default()
-            };
-            if !(laps.is_finite() && laps > 0.0) {
-                bail!("--laps must be > 0");
-            }
-            let laps = if kind == TrajectoryKind::Loop {
-                laps
-            } else {
-                1.0
-            };
-            let trajectory = Trajectory::new(kind, &scene, config.duration() / laps, seed)?;
-            let rb = match backend {
-                ComputeBackend::Cpu => RenderBackend::Cpu,
-                ComputeBackend::Gpu(g) => RenderBackend::Gpu(g.clone()),
-            };
-            let seq = Sequence::new(scene, CameraModel::Pinhole(cam), trajectory, config, &rb)?;
-            return Ok(Source::Synth(Box::new(seq), cam));
+/// The source the arguments name (a TUM folder, or `--synth` with `--laps` laps of a loop).
+#[allow(clippy::too_many_arguments)]
+pub fn source_spec(
+    sequence: Option<&Path>,
+    synth: Option<&str>,
+    camera: Option<&str>,
+    max_frames: Option<usize>,
+    frames: usize,
+    width: u32,
+    seed: u64,
+    session: u32,
+    laps: f64,
+) -> Result<SourceSpec> {
+    if let Some(spec) = synth {
+        let frames = max_frames.unwrap_or(frames).min(frames);
+        if !(laps.is_finite() && laps > 0.0) {
+            bail!("--laps must be > 0");
         }
-        let Some(dir) = sequence else {
-            bail!("give a TUM folder or --synth SCENE:TRAJECTORY");
+        let traj = spec.split_once(':').map_or("loop", |(_, t)| t);
+        let lap_seconds = if TrajectoryKind::from_name(traj)? == TrajectoryKind::Loop {
+            Some(
+                SequenceConfig {
+                    frames,
+                    ..Default::default()
+                }
+                .duration()
+                    / laps,
+            )
+        } else {
+            None
         };
-        let mut opts = OpenOptions {
-            max_frames,
-            ..Default::default()
-        };
-        if let Some(c) = camera {
-            opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
-        }
-        Ok(Source::Tum(TumSequence::open(dir, &opts)?))
+        return Ok(SourceSpec::Synth {
+            spec: spec.to_string(),
+            frames,
+            width,
+            seed,
+            session,
+            lap_seconds,
+        });
     }
-
-    /// Number of frames.
-    pub fn len(&self) -> usize {
-        match self {
-            Source::Tum(s) => s.len(),
-            Source::Synth(s, _) => s.len(),
-        }
-    }
-
-    /// The camera.
-    pub fn camera(&self) -> PinholeCamera {
-        match self {
-            Source::Tum(s) => s.camera,
-            Source::Synth(_, c) => *c,
-        }
-    }
-
-    /// Frame `i`.
-    pub fn load(&mut self, i: usize) -> Result<RgbdFrame> {
-        match self {
-            Source::Tum(s) => Ok(s.load(i)?),
-            Source::Synth(s, _) => {
-                let f = s.render_frame(i)?;
-                Ok(f.frame.to_rgbd_frame(f.timestamp))
-            }
-        }
-    }
-
-    /// Ground truth, if any.
-    pub fn groundtruth(&self) -> Option<Vec<TimedPose>> {
-        match self {
-            Source::Tum(s) => s.groundtruth.as_ref().and_then(|p| read_tum(p).ok()),
-            Source::Synth(s, _) => Some(s.ground_truth()),
-        }
-    }
+    let Some(dir) = sequence else {
+        bail!("give a TUM folder or --synth SCENE:TRAJECTORY");
+    };
+    Ok(SourceSpec::Tum {
+        dir: dir.to_path_buf(),
+        camera: camera.map(str::to_string),
+        max_frames,
+    })
 }
 
 fn peak_rss_mb() -> Option<f64> {
@@ -215,7 +149,7 @@ fn median(v: &mut [f64]) -> f64 {
 /// Runs the subcommand.
 pub fn run(a: Args) -> Result<()> {
     let backend = select_backend(a.backend, a.adapter.as_deref())?;
-    let mut source = Source::open(
+    let spec = source_spec(
         a.sequence.as_deref(),
         a.synth.as_deref(),
         a.camera.as_deref(),
@@ -225,9 +159,9 @@ pub fn run(a: Args) -> Result<()> {
         a.seed,
         a.session,
         a.laps,
-        &backend,
     )?;
-    if source.len() == 0 {
+    let mut source = FrameSource::open(&spec, &backend)?;
+    if source.is_empty() {
         bail!("the sequence has no frames");
     }
     let vocabulary = match &a.vocabulary {
@@ -259,7 +193,7 @@ pub fn run(a: Args) -> Result<()> {
 
 fn run_slam(
     a: &Args,
-    source: &mut Source,
+    source: &mut FrameSource,
     config: SlamConfig,
     backend: &ComputeBackend,
     vocabulary: Vocabulary,
@@ -306,7 +240,7 @@ fn run_slam(
         let frame = match source.load(i) {
             Ok(f) => f,
             Err(e) => {
-                error = Some(e.context(format!("frame {i}")));
+                error = Some(anyhow::Error::new(e).context(format!("frame {i}")));
                 break;
             }
         };
@@ -366,7 +300,7 @@ fn run_slam(
 #[allow(clippy::too_many_arguments)]
 fn write_outputs(
     a: &Args,
-    source: &Source,
+    source: &FrameSource,
     camera: &PinholeCamera,
     r: &SlamResult,
     load_ms: &mut [f64],

@@ -200,7 +200,7 @@ pub fn normal_equations_and_sample(
     current: &CpuPyramid,
     level: usize,
     chunks: usize,
-) -> (Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>) {
+) -> super::kernel::PartialsAndSample {
     let (rp, rg) = reference.level(level);
     let (cp, cg) = current.level(level);
     let (w, h) = (p.dims[0] as usize, p.dims[1] as usize);

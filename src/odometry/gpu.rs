@@ -314,7 +314,7 @@ impl GpuOdometry {
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
-    ) -> Result<(Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>), GpuError> {
+    ) -> Result<super::kernel::PartialsAndSample, GpuError> {
         let n = (params.dims[0] * params.dims[1]) as usize;
         let groups = self.ctx.reduction_groups(n, WG);
         let count = params.dims[3] as usize;

@@ -25,6 +25,10 @@ pub const MIN_DEPTH: f32 = 0.05;
 /// photometric count + geometric count + (unused).
 pub const PARTIAL_LEN: usize = 30;
 
+/// Normal-equation partials and the residual sample taken in the same pass
+/// (`(partials, [(r_photo, r_geo)])`, see `normal_equations_and_sample` of both backends).
+pub type PartialsAndSample = (Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>);
+
 /// Uniform parameters of the warp kernels (mirrors `WarpParams` in `odometry.wgsl`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]

@@ -186,6 +186,7 @@ pub(crate) fn first_sample_at(i: usize, count: usize, n: usize) -> usize {
 }
 
 /// Accumulates the IRLS normal equations of rows `rows` of the reference level.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn accumulate_rows(
     k: &Warp,
     ref_photo: &[[f32; 4]],
@@ -372,6 +373,7 @@ fn accumulate_rows_body(
 
 /// Residuals `(r_photo, r_geo)` of the systematic sample `k0..k0 + out.len()` of `count`
 /// samples among the level's pixels ([`super::kernel::sample_index`], computed incrementally).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn sample_range(
     k: &Warp,
     ref_photo: &[[f32; 4]],

@@ -478,7 +478,7 @@ impl Odometry {
         r: &Pyramid,
         c: &Pyramid,
         level: usize,
-    ) -> Result<(Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>), OdometryError> {
+    ) -> Result<super::kernel::PartialsAndSample, OdometryError> {
         Ok(match (&mut self.engine, r, c) {
             (Engine::Cpu, Pyramid::Cpu(r), Pyramid::Cpu(c)) => {
                 let chunks = (rayon::current_num_threads() * 8).max(8);

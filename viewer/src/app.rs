@@ -330,7 +330,8 @@ impl ViewerApp {
                     frames: 600,
                     width: 320,
                     seed: 1,
-                    trajectory_seconds: None,
+                    session: 0,
+                    lap_seconds: None,
                 });
                 if let Some(old) = &self.run_config {
                     cfg.backend = old.backend;

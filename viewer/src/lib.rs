@@ -7,7 +7,8 @@ pub mod app;
 pub mod images;
 pub mod output;
 pub mod scene3d;
-pub mod source;
+/// Where frames come from (the library's [`rgbid::source`], shared with `rgbid slam`).
+pub use rgbid::source;
 pub mod state;
 pub mod worker;
 

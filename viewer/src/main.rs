@@ -101,7 +101,8 @@ fn main() -> Result<()> {
             frames: a.frames,
             width: a.width,
             seed: a.seed,
-            trajectory_seconds: a.seconds,
+            session: 0,
+            lap_seconds: a.seconds,
         }));
     } else if let Some(seq) = &a.sequence {
         if seq.join("trajectory.txt").exists() {

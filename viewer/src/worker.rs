@@ -18,7 +18,7 @@ use rgbid::slam::{
     build_model, voxel_filter, FrameReport, FrameStatus, ModelParams, Slam, SlamConfig,
 };
 
-use crate::source::{Source, SourceSpec};
+use crate::source::{FrameSource, SourceSpec};
 
 /// Settings of a run, chosen before it starts.
 #[derive(Clone, Debug)]
@@ -236,7 +236,7 @@ enum Pace {
 
 fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>) -> Result<()> {
     let backend = select_backend(config.backend, None).context("choosing the backend")?;
-    let mut source = Source::open(&config.source, &backend)?;
+    let mut source = FrameSource::open(&config.source, &backend)?;
     let camera = source.camera();
     let mut slam_config = SlamConfig {
         keyframe_covisibility: config.keyframe_covisibility,

@@ -25,7 +25,8 @@ fn small_run(autoplay: bool) -> RunConfig {
         width: 160,
         seed: 1,
         // A 20 s lap: the 30 frames walk its first second.
-        trajectory_seconds: Some(20.0),
+        session: 0,
+        lap_seconds: Some(20.0),
     });
     cfg.backend = BackendChoice::Cpu;
     cfg.autoplay = autoplay;
@@ -308,7 +309,8 @@ fn readme_screenshot() {
         frames: 300,
         width: 320,
         seed: 1,
-        trajectory_seconds: Some(10.0),
+        session: 0,
+        lap_seconds: Some(10.0),
     });
     cfg.backend = BackendChoice::Cpu;
     let mut app = ViewerApp::new(ViewerState::default(), Some(cfg));
@@ -369,7 +371,7 @@ fn saved_map_opens_with_its_keyframes_and_model() {
         s @ SourceSpec::Synth { .. } => s,
         other => panic!("{other:?}"),
     };
-    let mut source = rgbid_viewer::source::Source::open(&spec, &backend).expect("source");
+    let mut source = rgbid_viewer::source::FrameSource::open(&spec, &backend).expect("source");
     let mut slam = Slam::new(
         SlamConfig::default(),
         source.camera(),

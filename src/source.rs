@@ -1,0 +1,199 @@
+//! Where frames come from: a TUM RGB-D folder or a generated ([`crate::synth`]) sequence, behind
+//! one interface (used by `rgbid slam`, `rgbid demo` and the viewer).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::camera::PinholeCamera;
+use crate::gpu::ComputeBackend;
+use crate::image::RgbdFrame;
+use crate::io::trajectory::{read_tum, TimedPose};
+use crate::io::tum::{OpenOptions, TumSequence};
+use crate::io::IoError;
+use crate::synth::{
+    CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, SynthError, Trajectory,
+    TrajectoryKind,
+};
+
+/// Errors of [`FrameSource`].
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// Reading the TUM folder (or the camera file) failed.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// Building or rendering the generated sequence failed.
+    #[error(transparent)]
+    Synth(#[from] SynthError),
+    /// The description itself is unusable.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// What to open: a description that can be sent to another thread and reopened.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SourceSpec {
+    /// A TUM RGB-D folder (rgb.txt + depth.txt or associations.txt).
+    Tum {
+        /// The folder.
+        dir: PathBuf,
+        /// Camera preset or calibration file (see `rgbid odometry --help`); `None` = the
+        /// folder's `calib.txt`, else the default preset.
+        camera: Option<String>,
+        /// Only the first N frames.
+        max_frames: Option<usize>,
+    },
+    /// A generated sequence `SCENE:TRAJECTORY` (e.g. `office:loop`) seen by a pinhole camera
+    /// with the Kinect's field of view (fx = 525 px at 640 wide).
+    Synth {
+        /// `SCENE:TRAJECTORY` (`SCENE` alone means `SCENE:loop`).
+        spec: String,
+        /// Number of frames (30 per second).
+        frames: usize,
+        /// Image width in pixels (the height is 3/4 of it).
+        width: u32,
+        /// Seed of the scene, trajectory and noise.
+        seed: u64,
+        /// Session of the scene (0 = as generated; k > 0 moves, removes and adds objects, and
+        /// the sensor noise seed changes with it).
+        session: u32,
+        /// Duration of the trajectory in seconds (one lap of a loop, which then repeats);
+        /// `None` = the sequence's duration.
+        lap_seconds: Option<f64>,
+    },
+}
+
+impl SourceSpec {
+    /// A short label (for titles and logs).
+    pub fn label(&self) -> String {
+        match self {
+            SourceSpec::Tum { dir, .. } => dir.display().to_string(),
+            SourceSpec::Synth {
+                spec,
+                frames,
+                width,
+                ..
+            } => format!("synth {spec} ({frames} frames, {width} px)"),
+        }
+    }
+}
+
+/// An opened source of frames.
+pub enum FrameSource {
+    /// A TUM folder, streamed from disk.
+    Tum(TumSequence),
+    /// A generated sequence, rendered frame by frame, and its camera.
+    Synth(Box<Sequence>, PinholeCamera),
+}
+
+impl FrameSource {
+    /// Opens `spec`; generated sequences render on `backend`.
+    pub fn open(spec: &SourceSpec, backend: &ComputeBackend) -> Result<FrameSource, SourceError> {
+        match spec {
+            SourceSpec::Synth {
+                spec,
+                frames,
+                width,
+                seed,
+                session,
+                lap_seconds,
+            } => {
+                let (scene_name, traj) = spec.split_once(':').unwrap_or((spec.as_str(), "loop"));
+                if *width < 16 || *frames == 0 {
+                    return Err(SourceError::Invalid(
+                        "a generated sequence needs width >= 16 and at least one frame".into(),
+                    ));
+                }
+                let (w, h) = (*width, *width * 3 / 4);
+                let f = 525.0 * f64::from(w) / 640.0;
+                let cam = PinholeCamera::new(
+                    f,
+                    f,
+                    (f64::from(w) - 1.0) / 2.0,
+                    (f64::from(h) - 1.0) / 2.0,
+                    w,
+                    h,
+                );
+                let base = Scene::preset(scene_name, *seed)?;
+                let scene = Arc::new(if *session > 0 {
+                    base.session(*session)
+                } else {
+                    base
+                });
+                let kind = TrajectoryKind::from_name(traj)?;
+                let config = SequenceConfig {
+                    frames: *frames,
+                    seed: seed + u64::from(*session) * 1000,
+                    ..Default::default()
+                };
+                let seconds = lap_seconds.unwrap_or(config.duration());
+                if !(seconds.is_finite() && seconds > 0.0) {
+                    return Err(SourceError::Invalid(format!(
+                        "the trajectory duration must be > 0 s (got {seconds})"
+                    )));
+                }
+                let trajectory = Trajectory::new(kind, &scene, seconds, *seed)?;
+                let rb = match backend {
+                    ComputeBackend::Cpu => RenderBackend::Cpu,
+                    ComputeBackend::Gpu(g) => RenderBackend::Gpu(g.clone()),
+                };
+                let seq = Sequence::new(scene, CameraModel::Pinhole(cam), trajectory, config, &rb)?;
+                Ok(FrameSource::Synth(Box::new(seq), cam))
+            }
+            SourceSpec::Tum {
+                dir,
+                camera,
+                max_frames,
+            } => {
+                let mut opts = OpenOptions {
+                    max_frames: *max_frames,
+                    ..Default::default()
+                };
+                if let Some(c) = camera {
+                    opts.camera = Some(c.parse()?);
+                }
+                Ok(FrameSource::Tum(TumSequence::open(dir, &opts)?))
+            }
+        }
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        match self {
+            FrameSource::Tum(s) => s.len(),
+            FrameSource::Synth(s, _) => s.len(),
+        }
+    }
+
+    /// True when there are no frames.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The (undistorted pinhole) camera of the frames.
+    pub fn camera(&self) -> PinholeCamera {
+        match self {
+            FrameSource::Tum(s) => s.camera,
+            FrameSource::Synth(_, c) => *c,
+        }
+    }
+
+    /// Frame `i` (intensity 0-255, inverse depth 1/m).
+    pub fn load(&mut self, i: usize) -> Result<RgbdFrame, SourceError> {
+        match self {
+            FrameSource::Tum(s) => Ok(s.load(i)?),
+            FrameSource::Synth(s, _) => {
+                let f = s.render_frame(i)?;
+                Ok(f.frame.to_rgbd_frame(f.timestamp))
+            }
+        }
+    }
+
+    /// Ground truth (`world_from_camera` per time stamp), if there is any (a TUM folder's
+    /// `groundtruth.txt` that cannot be read counts as none).
+    pub fn groundtruth(&self) -> Option<Vec<TimedPose>> {
+        match self {
+            FrameSource::Tum(s) => s.groundtruth.as_ref().and_then(|p| read_tum(p).ok()),
+            FrameSource::Synth(s, _) => Some(s.ground_truth()),
+        }
+    }
+}
