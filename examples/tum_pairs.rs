@@ -1,3 +1,8 @@
+//! Aligns the two real TUM pairs of `../shared/data/rgbd/tum_pairs` with the odometry
+//! configuration of each JSON file given (an `OdometryConfig`; `{}` = the defaults) and prints
+//! the error of `prev_from_cur` against ground truth (the README's thesis-claims table):
+//! `cargo run --release --example tum_pairs -- a.json b.json`.
+
 use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
@@ -6,7 +11,13 @@ use rgbid::odometry::*;
 fn main() {
     let cam = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
     for cfg_path in std::env::args().skip(1) {
-        let cfg = OdometryConfig::from_json_file(std::path::Path::new(&cfg_path)).unwrap();
+        let cfg = match OdometryConfig::from_json_file(std::path::Path::new(&cfg_path)) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("{e}");
+                std::process::exit(2);
+            }
+        };
         for case in ["case_1", "case_2"] {
             let dir = std::path::Path::new("../shared/data/rgbd/tum_pairs").join(case);
             let load = |a: &str, b: &str| {
