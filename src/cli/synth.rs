@@ -45,9 +45,10 @@ pub struct Args {
     /// Image width in pixels.
     #[arg(long, default_value_t = 640)]
     width: u32,
-    /// Image height in pixels.
-    #[arg(long, default_value_t = 480)]
-    height: u32,
+    /// Image height in pixels (default: 3/4 of the width, as `rgbid slam --synth` and
+    /// `rgbid demo` use).
+    #[arg(long)]
+    height: Option<u32>,
     /// Seed of the scene, trajectory and noise.
     #[arg(long, default_value_t = 7)]
     seed: u64,
@@ -77,6 +78,13 @@ pub struct Args {
     /// adapter, software included) without writing files, and print the seconds.
     #[arg(long)]
     bench: bool,
+}
+
+impl Args {
+    /// The image height: `--height`, else 3/4 of the width.
+    fn height(&self) -> u32 {
+        self.height.unwrap_or(self.width * 3 / 4)
+    }
 }
 
 fn camera(kind: CameraKind, w: u32, h: u32) -> CameraModel {
@@ -121,7 +129,7 @@ pub fn run(args: Args) -> Result<()> {
         bail!("--frames must be at least 1");
     }
     let base = Arc::new(Scene::preset(&args.scene, args.seed)?);
-    let cam = camera(args.camera, args.width, args.height);
+    let cam = camera(args.camera, args.width, args.height());
     let config = SequenceConfig {
         frames: args.frames,
         fps: args.fps,
@@ -239,7 +247,7 @@ fn readme(
         args.fps,
         args.camera,
         args.width,
-        args.height,
+        args.height(),
         args.seed,
         if args.no_noise { " --no-noise" } else { "" },
         if args.exposure_changes { " --exposure-changes" } else { "" },
@@ -275,7 +283,7 @@ fn bench(
         "rendering {} frames of {}x{} ({} scene, {} primitives, {} trajectory), sensor model included",
         args.frames,
         args.width,
-        args.height,
+        args.height(),
         args.scene,
         scene.primitive_count(),
         args.trajectory
