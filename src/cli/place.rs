@@ -3,11 +3,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::image::{rgb_to_intensity, ImageF32};
+use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::place::{
     extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary,
 };
@@ -42,12 +42,10 @@ pub struct LoopsArgs {
     /// Minimum normalised score of a candidate.
     #[arg(long, default_value_t = 0.3)]
     pub min_score: f64,
-    /// Camera intrinsics `fx fy cx cy` (default: calib.txt of the sequence, else TUM 525 525 319.5 239.5).
-    #[arg(long, num_args = 4, value_names = ["FX", "FY", "CX", "CY"])]
-    pub intrinsics: Option<Vec<f64>>,
-    /// Depth PNG units per metre (default: calib.txt, else 5000).
+    /// Camera: a preset (tum_fr1, tum_fr2, tum_fr3, default) or a camera config file (with
+    /// the depth factor). Default: calib.txt beside the sequence, else the `default` preset.
     #[arg(long)]
-    pub depth_factor: Option<f64>,
+    pub camera: Option<String>,
     /// Ground-truth revisit: camera centres closer than this (metres)...
     #[arg(long, default_value_t = 0.5)]
     pub gt_distance: f64,
@@ -93,85 +91,9 @@ pub fn load_intensity(path: &Path) -> Result<ImageF32> {
     ImageF32::from_vec(w, h, data).context("image buffer size")
 }
 
-fn load_inverse_depth(path: &Path, factor: f64) -> Result<ImageF32> {
-    let img = image::open(path)
-        .with_context(|| format!("reading {}", path.display()))?
-        .to_luma16();
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let data = img
-        .pixels()
-        .map(|p| {
-            if p[0] == 0 {
-                0.0
-            } else {
-                (factor / f64::from(p[0])) as f32
-            }
-        })
-        .collect();
-    ImageF32::from_vec(w, h, data).context("depth buffer size")
-}
-
 /// The default vocabulary, embedded in the binary (trained on rgbid-rendered images).
 pub fn default_vocabulary() -> Result<Vocabulary> {
     Ok(Vocabulary::embedded_default()?)
-}
-
-/// A TUM-layout sequence as listed by associations.txt (`t_rgb rgb_path t_depth depth_path`).
-/// Minimal reader for this command until `io::tum` lands.
-struct Sequence {
-    frames: Vec<(f64, PathBuf, PathBuf)>,
-    camera: PinholeCamera,
-    depth_factor: f64,
-}
-
-fn open_sequence(
-    dir: &Path,
-    intrinsics: Option<&[f64]>,
-    depth_factor: Option<f64>,
-) -> Result<Sequence> {
-    let assoc = dir.join("associations.txt");
-    let text =
-        std::fs::read_to_string(&assoc).with_context(|| format!("reading {}", assoc.display()))?;
-    let mut frames = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let t: Vec<&str> = line.split_whitespace().collect();
-        if t.is_empty() || t[0].starts_with('#') {
-            continue;
-        }
-        if t.len() < 4 {
-            bail!(
-                "{}:{}: expected `t_rgb rgb t_depth depth`",
-                assoc.display(),
-                i + 1
-            );
-        }
-        let ts: f64 = t[0]
-            .parse()
-            .with_context(|| format!("{}:{}: bad time stamp", assoc.display(), i + 1))?;
-        frames.push((ts, dir.join(t[1]), dir.join(t[3])));
-    }
-    if frames.is_empty() {
-        bail!("{}: no frames", assoc.display());
-    }
-    let calib: Option<Vec<f64>> = std::fs::read_to_string(dir.join("calib.txt"))
-        .ok()
-        .and_then(|s| s.split_whitespace().map(|v| v.parse().ok()).collect());
-    let (fx, fy, cx, cy) = match (intrinsics, calib.as_deref()) {
-        (Some(k), _) => (k[0], k[1], k[2], k[3]),
-        (None, Some(c)) if c.len() >= 4 => (c[0], c[1], c[2], c[3]),
-        _ => (525.0, 525.0, 319.5, 239.5),
-    };
-    let factor = depth_factor
-        .or(calib.as_deref().and_then(|c| c.get(4).copied()))
-        .unwrap_or(5000.0);
-    let first = load_intensity(&frames[0].1)?;
-    let camera = PinholeCamera::new(fx, fy, cx, cy, first.width as u32, first.height as u32);
-    camera.validate()?;
-    Ok(Sequence {
-        frames,
-        camera,
-        depth_factor: factor,
-    })
 }
 
 fn progress(n: usize, what: &str) -> ProgressBar {
@@ -200,7 +122,11 @@ fn nearest_pose(gt: &[rgbid::io::trajectory::TimedPose], t: f64) -> Option<Se3> 
 }
 
 fn loops(a: LoopsArgs) -> Result<()> {
-    let seq = open_sequence(&a.seq, a.intrinsics.as_deref(), a.depth_factor)?;
+    let mut opts = OpenOptions::default();
+    if let Some(c) = &a.camera {
+        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
+    }
+    let seq = TumSequence::open(&a.seq, &opts)?;
     let vocab = match &a.vocab {
         Some(p) => Vocabulary::load(p)?,
         None => default_vocabulary()?,
@@ -221,23 +147,21 @@ fn loops(a: LoopsArgs) -> Result<()> {
     params.query.min_normalised_score = a.min_score;
     params.direct_index_depth = vocab.levels().saturating_sub(3).max(1);
     let mut det = LoopDetector::new(vocab, params);
-    let idx: Vec<usize> = (0..seq.frames.len()).step_by(a.every.max(1)).collect();
+    let idx: Vec<usize> = (0..seq.len()).step_by(a.every.max(1)).collect();
     let pb = progress(idx.len(), "keyframes");
     let (mut t_desc, mut t_query) = (Vec::new(), Vec::new());
     let mut loops: Vec<DetectedLoop> = Vec::new();
     let mut stamps = Vec::new();
     for &i in &idx {
-        let (ts, rgb, depth) = &seq.frames[i];
-        let intensity = load_intensity(rgb)?;
-        let inv = load_inverse_depth(depth, seq.depth_factor)?;
+        let frame = seq.load(i)?;
         let t0 = Instant::now();
-        let desc = det.describe(&intensity, &inv, &seq.camera, &[])?;
+        let desc = det.describe(&frame.intensity, &frame.inverse_depth, &seq.camera, &[])?;
         let t1 = Instant::now();
         let (_, found) = det.insert(desc)?;
         let t2 = Instant::now();
         t_desc.push((t1 - t0).as_secs_f64() * 1e3);
         t_query.push((t2 - t1).as_secs_f64() * 1e3);
-        stamps.push(*ts);
+        stamps.push(frame.timestamp);
         if let Some(l) = found {
             pb.suspend(|| print_loop(&l, &stamps));
             loops.push(l);

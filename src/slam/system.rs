@@ -119,7 +119,7 @@ pub struct Slam {
     current: Option<CurrentKeyframe>,
     next_keyframe_id: usize,
     /// Frames since the last keyframe: inverse depth and front-end pose.
-    buffer: Vec<(ImageF32, Se3)>,
+    buffer: std::collections::VecDeque<(ImageF32, Se3)>,
     /// Accumulated covariance of the current reference relative to the keyframe.
     chain_covariance: [[f64; 6]; 6],
     lost: bool,
@@ -186,7 +186,7 @@ impl Slam {
             fuser,
             current: None,
             next_keyframe_id: map_keyframes,
-            buffer: Vec::new(),
+            buffer: std::collections::VecDeque::new(),
             chain_covariance: [[0.0; 6]; 6],
             lost: map_keyframes > 0,
             frames: Vec::new(),
@@ -456,9 +456,9 @@ impl Slam {
             record.keyframe = Some((id, Se3::IDENTITY));
         } else {
             self.buffer
-                .push((frame.inverse_depth.clone(), frontworld_from_camera));
+                .push_back((frame.inverse_depth.clone(), frontworld_from_camera));
             if self.buffer.len() > self.config.buffer_frames {
-                self.buffer.remove(0);
+                self.buffer.pop_front();
             }
         }
         record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
