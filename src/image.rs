@@ -104,3 +104,24 @@ pub fn test_pattern(w: usize, h: usize, seed: u32) -> RgbdFrame {
         inverse_depth: ImageF32::from_vec(w, h, r).unwrap_or_else(|| ImageF32::filled(w, h, 0.0)),
     }
 }
+
+/// Offsets `(dx, dy)` in pixels of the 16 pixels of the radius-3 Bresenham circle of the FAST
+/// corner test (Rosten and Drummond 2006), clockwise from the top, `y` down.
+pub const FAST_CIRCLE: [(i32, i32); 16] = [
+    (0, -3),
+    (1, -3),
+    (2, -2),
+    (3, -1),
+    (3, 0),
+    (3, 1),
+    (2, 2),
+    (1, 3),
+    (0, 3),
+    (-1, 3),
+    (-2, 2),
+    (-3, 1),
+    (-3, 0),
+    (-3, -1),
+    (-2, -2),
+    (-1, -3),
+];

@@ -2,26 +2,7 @@
 //! rectangle, with a corner score for picking the strongest one.
 
 use crate::image::ImageF32;
-
-/// Offsets of the Bresenham circle of radius 3, clockwise from the top.
-const CIRCLE: [(i32, i32); 16] = [
-    (0, -3),
-    (1, -3),
-    (2, -2),
-    (3, -1),
-    (3, 0),
-    (3, 1),
-    (2, 2),
-    (1, 3),
-    (0, 3),
-    (-1, 3),
-    (-2, 2),
-    (-3, 1),
-    (-3, 0),
-    (-3, -1),
-    (-2, -2),
-    (-1, -3),
-];
+use crate::image::FAST_CIRCLE as CIRCLE;
 
 /// A detected corner: pixel centre and score (sum of absolute differences beyond the
 /// threshold over the contiguous arc, intensity units).

@@ -167,25 +167,8 @@ impl OrbFeatures {
     }
 }
 
-/// Offsets of the 16 pixels of the radius-3 Bresenham circle, in order around it.
-const CIRCLE: [(i32, i32); 16] = [
-    (0, -3),
-    (1, -3),
-    (2, -2),
-    (3, -1),
-    (3, 0),
-    (3, 1),
-    (2, 2),
-    (1, 3),
-    (0, 3),
-    (-1, 3),
-    (-2, 2),
-    (-3, 1),
-    (-3, 0),
-    (-3, -1),
-    (-2, -2),
-    (-1, -3),
-];
+// The FAST circle (shared with the monocular EKF's detector).
+use crate::image::FAST_CIRCLE as CIRCLE;
 
 /// Bilinear resampling to `w x h` with pixel centres aligned (`src = (dst + 0.5) * s - 0.5`).
 fn resize_bilinear(src: &ImageF32, w: usize, h: usize) -> ImageF32 {
