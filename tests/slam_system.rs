@@ -8,9 +8,12 @@ use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
+use rgbid::image::RgbdFrame;
 use rgbid::io::trajectory::TimedPose;
 use rgbid::place::Vocabulary;
-use rgbid::slam::{FrameStatus, Map, MapError, Slam, SlamConfig, SlamError, SlamResult};
+use rgbid::slam::{
+    FrameReport, FrameStatus, Map, MapError, Slam, SlamConfig, SlamError, SlamResult,
+};
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
 };
@@ -64,12 +67,15 @@ fn sequence_with_noise(
     .unwrap()
 }
 
+/// Runs SLAM over `seq`; `modify(i, frame)` may alter frame `i` before it is processed.
+/// Returns the finished result and every frame's report.
 fn run(
     seq: &mut Sequence,
     cam: PinholeCamera,
     config: SlamConfig,
     map: Option<Map>,
-) -> (SlamResult, Vec<FrameStatus>) {
+    mut modify: impl FnMut(usize, &mut RgbdFrame),
+) -> (SlamResult, Vec<FrameReport>) {
     let mut slam = Slam::new(
         config,
         cam,
@@ -78,13 +84,18 @@ fn run(
         map,
     )
     .unwrap();
-    let mut status = Vec::new();
+    let mut reports = Vec::new();
     for i in 0..seq.len() {
         let f = seq.render_frame(i).unwrap();
-        let r = slam.process(&f.frame.to_rgbd_frame(f.timestamp)).unwrap();
-        status.push(r.status);
+        let mut frame = f.frame.to_rgbd_frame(f.timestamp);
+        modify(i, &mut frame);
+        reports.push(slam.process(&frame).unwrap());
     }
-    (slam.finish().unwrap(), status)
+    (slam.finish().unwrap(), reports)
+}
+
+fn statuses(reports: &[FrameReport]) -> Vec<FrameStatus> {
+    reports.iter().map(|r| r.status).collect()
 }
 
 #[test]
@@ -93,7 +104,8 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
     let scene = Scene::preset("office", 3).unwrap();
     let mut seq = sequence(scene, TrajectoryKind::Handheld, 90, 3, cam);
     let gt = seq.ground_truth();
-    let (r, status) = run(&mut seq, cam, SlamConfig::default(), None);
+    let (r, reports) = run(&mut seq, cam, SlamConfig::default(), None, |_, _| {});
+    let status = statuses(&reports);
     assert!(status.iter().all(|s| *s != FrameStatus::Lost), "{status:?}");
     assert_eq!(r.trajectory.len(), 90);
     assert!(
@@ -173,7 +185,7 @@ fn second_session_relocalises_in_the_saved_map() {
     // One lap takes 300 frames (10 s); session 0 maps the first 120 frames of it.
     let mut s0 = sequence_with_noise(scene, TrajectoryKind::Loop, 120, 300, 5, 5, cam);
     let gt0 = s0.ground_truth();
-    let (r0, _) = run(&mut s0, cam, SlamConfig::default(), None);
+    let (r0, _) = run(&mut s0, cam, SlamConfig::default(), None, |_, _| {});
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("office.rgbmap");
     r0.map.save(&path).unwrap();
@@ -183,23 +195,10 @@ fn second_session_relocalises_in_the_saved_map() {
     // Same path, other session (moved objects), other sensor noise; only the first 40 frames.
     let mut s1 = sequence_with_noise(session1, TrajectoryKind::Loop, 40, 300, 5, 77, cam);
     let gt1 = s1.ground_truth();
-    let mut slam = Slam::new(
-        SlamConfig::default(),
-        cam,
-        &ComputeBackend::Cpu,
-        Vocabulary::embedded_default().unwrap(),
-        Some(map),
-    )
-    .unwrap();
-    let mut first_reloc = None;
-    for i in 0..s1.len() {
-        let f = s1.render_frame(i).unwrap();
-        let r = slam.process(&f.frame.to_rgbd_frame(f.timestamp)).unwrap();
-        if r.status == FrameStatus::Relocalised && first_reloc.is_none() {
-            first_reloc = Some(i);
-        }
-    }
-    let r1 = slam.finish().unwrap();
+    let (r1, reports) = run(&mut s1, cam, SlamConfig::default(), Some(map), |_, _| {});
+    let first_reloc = reports
+        .iter()
+        .position(|r| r.status == FrameStatus::Relocalised);
     let i = first_reloc.expect("the second session never relocalised in the map");
     assert!(i < 10, "relocalised only at frame {i}");
     assert!(r1.keyframes().len() > n_map);
@@ -233,44 +232,32 @@ fn lost_tracking_is_reported_and_relocalised() {
     let scene = Scene::preset("office", 9).unwrap();
     let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 60, 300, 9, 9, cam);
     let gt = seq.ground_truth();
-    let mut slam = Slam::new(
-        SlamConfig::default(),
-        cam,
-        &ComputeBackend::Cpu,
-        Vocabulary::embedded_default().unwrap(),
-        None,
-    )
-    .unwrap();
-    let mut statuses = Vec::new();
-    for i in 0..seq.len() {
-        let f = seq.render_frame(i).unwrap();
-        let mut frame = f.frame.to_rgbd_frame(f.timestamp);
-        if (30..34).contains(&i) {
+    let covered = 30..34;
+    let (r, reports) = run(&mut seq, cam, SlamConfig::default(), None, |i, frame| {
+        if covered.contains(&i) {
             // Covered sensor: black image, no depth.
             frame.intensity.data.iter_mut().for_each(|v| *v = 0.0);
             frame.inverse_depth.data.iter_mut().for_each(|v| *v = 0.0);
         }
-        let r = slam.process(&frame).unwrap();
-        if (30..34).contains(&i) {
-            assert!(
-                r.world_from_camera.is_none(),
-                "frame {i} kept a pose while covered"
-            );
-        }
-        statuses.push(r.status);
+    });
+    for i in covered.clone() {
+        assert!(
+            reports[i].world_from_camera.is_none(),
+            "frame {i} kept a pose while covered"
+        );
     }
+    let status = statuses(&reports);
     assert!(
-        statuses[30..34].iter().all(|s| *s == FrameStatus::Lost),
-        "{statuses:?}"
+        status[30..34].iter().all(|s| *s == FrameStatus::Lost),
+        "{status:?}"
     );
-    let back = statuses[34..]
+    let back = status[34..]
         .iter()
         .position(|s| *s == FrameStatus::Relocalised);
     assert!(
         back.is_some_and(|k| k < 5),
-        "no relocalisation soon after: {statuses:?}"
+        "no relocalisation soon after: {status:?}"
     );
-    let r = slam.finish().unwrap();
     assert_eq!(r.trajectory.len(), 60 - 4 - back.unwrap());
     // Same map frame before and after the loss.
     let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
@@ -290,8 +277,8 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
     // 240 frames per lap (8 s), two laps.
     let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 480, 240, 2, 2, cam);
     let gt = seq.ground_truth();
-    let (r, status) = run(&mut seq, cam, SlamConfig::default(), None);
-    assert!(status.iter().all(|s| *s != FrameStatus::Lost));
+    let (r, reports) = run(&mut seq, cam, SlamConfig::default(), None, |_, _| {});
+    assert!(statuses(&reports).iter().all(|s| *s != FrameStatus::Lost));
     let accepted = r.loops.iter().filter(|l| l.accepted).count();
     assert!(
         accepted >= 3,
