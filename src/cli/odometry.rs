@@ -36,6 +36,10 @@ pub struct OdometryOptions {
     /// Finest pyramid level used (0 = full resolution).
     #[arg(long)]
     pub stop_level: Option<usize>,
+    /// Levels wider than this many pixels are not optimised (default 320: at 640x480 the
+    /// finest optimised level is 320x240); 0 optimises every level down to --stop-level.
+    #[arg(long)]
+    pub max_width: Option<usize>,
     /// Align every frame to the previous one (no reference-frame keeping).
     #[arg(long)]
     pub frame_to_frame: bool,
@@ -75,10 +79,13 @@ impl OdometryOptions {
         }
         if let Some(v) = self.levels {
             c.levels = v;
-            c.covisibility_level = c.covisibility_level.min(v - 1);
+            c.covisibility_level = c.covisibility_level.min(v.saturating_sub(1));
         }
         if let Some(v) = self.stop_level {
             c.stop_level = v;
+        }
+        if let Some(v) = self.max_width {
+            c.max_width = v;
         }
         if self.frame_to_frame {
             c.reference_switch = None;
