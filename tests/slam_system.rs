@@ -108,6 +108,16 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
     let status = statuses(&reports);
     assert!(status.iter().all(|s| *s != FrameStatus::Lost), "{status:?}");
     assert_eq!(r.trajectory.len(), 90);
+    // Every tracked frame after the first carries the odometry's diagnostics.
+    for rep in &reports[1..] {
+        let d = rep.record.diagnostics;
+        assert!(
+            d.iterations > 0 && d.sigma_photo > 0.0 && d.sigma_geo > 0.0,
+            "frame {}: {d:?}",
+            rep.record.index
+        );
+        assert!(d.condition_number.is_finite() && d.condition_number >= 1.0);
+    }
     assert!(
         r.keyframes().len() >= 2,
         "{} keyframes",

@@ -340,12 +340,12 @@ fn write_outputs(
     }
     f.flush()?;
     let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("timing.csv"))?);
-    writeln!(f, "index,timestamp,status,frontend_ms,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,fusion_ms,covisibility,keyframe_covisibility")?;
+    writeln!(f, "index,timestamp,status,frontend_ms,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,fusion_ms,covisibility,keyframe_covisibility,sigma_photo,sigma_geo,nu,condition_number,iterations")?;
     for fr in &r.frames {
         let t = &fr.times;
         writeln!(
             f,
-            "{},{:.6},{:?},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.4},{:.4}",
+            "{},{:.6},{:?},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.4},{:.4},{:.4},{:.7},{:.3},{:.4e},{}",
             fr.index,
             fr.timestamp,
             fr.status,
@@ -357,7 +357,12 @@ fn write_outputs(
             t.covisibility_ms,
             fr.fusion_ms,
             fr.covisibility,
-            fr.keyframe_covisibility
+            fr.keyframe_covisibility,
+            fr.diagnostics.sigma_photo,
+            fr.diagnostics.sigma_geo,
+            fr.diagnostics.nu,
+            fr.diagnostics.condition_number,
+            fr.diagnostics.iterations
         )?;
     }
     f.flush()?;

@@ -31,7 +31,7 @@ pub use fusion::{fuse_cpu, FusionCounts, FusionParams, KeyframeFuser};
 pub use keyframe::{Keyframe, KeyframeLink};
 pub use map::{Map, MapError, MAP_VERSION};
 pub use model::{build_model, voxel_filter, write_ply, ModelParams};
-pub use system::{FrameRecord, FrameReport, FrameStatus, Slam, SlamResult};
+pub use system::{FrameRecord, FrameReport, FrameStatus, OdometryDiagnostics, Slam, SlamResult};
 
 use crate::odometry::OdometryConfig;
 use crate::place::LoopDetectorParams;

@@ -56,6 +56,25 @@ pub struct FrameRecord {
     pub covisibility: f64,
     /// Covisibility of the current keyframe with the frame.
     pub keyframe_covisibility: f64,
+    /// Odometry diagnostics of the frame's alignment (0 where it was not tracked).
+    pub diagnostics: OdometryDiagnostics,
+}
+
+/// What the odometry reported about one frame's alignment, for plots and failure analysis: a
+/// converged photometric scale far above the recent frames' (10x was seen on a wrong
+/// convergence) or an exploding condition number are the signs of a bad alignment.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct OdometryDiagnostics {
+    /// Photometric residual scale at the finest level, intensity levels (0-255 scale).
+    pub sigma_photo: f64,
+    /// Geometric residual scale at the finest level, 1/m (or m with depth residuals).
+    pub sigma_geo: f64,
+    /// Student-t degrees of freedom at the finest level.
+    pub nu: f64,
+    /// Condition number of the final Hessian.
+    pub condition_number: f64,
+    /// Gauss-Newton iterations over all levels.
+    pub iterations: usize,
 }
 
 /// What [`Slam::process`] returns for one frame.
@@ -359,6 +378,7 @@ impl Slam {
             fusion_ms: 0.0,
             covisibility: 0.0,
             keyframe_covisibility: 0.0,
+            diagnostics: OdometryDiagnostics::default(),
         };
         // Start of the first session: this frame is the origin.
         if self.current.is_none() && !self.lost {
@@ -412,6 +432,13 @@ impl Slam {
         };
         record.times = r.stats.times;
         record.covisibility = r.stats.covisibility;
+        record.diagnostics = OdometryDiagnostics {
+            sigma_photo: r.stats.sigma_photo,
+            sigma_geo: r.stats.sigma_geo,
+            nu: r.stats.nu,
+            condition_number: r.stats.condition_number,
+            iterations: r.stats.iterations,
+        };
         record.status = FrameStatus::Tracking;
         if r.stats.new_reference {
             if let Some(c) = &r.covariance {
