@@ -52,18 +52,13 @@ pub struct CpuPyramid {
 impl CpuPyramid {
     /// Builds the pyramid and gradients of `frame` with `levels` levels.
     pub fn build(frame: &RgbdFrame, levels: usize) -> CpuPyramid {
-        Self::build_from(frame, levels, 0)
+        Self::build_reusing(frame, levels, 0, None)
     }
 
-    /// Like [`Self::build`], but levels finer than `first_gradient_level` get no gradients
-    /// (and no cached depth): they are only the source of the coarser levels, for an odometry
-    /// that does not optimise them.
-    pub fn build_from(frame: &RgbdFrame, levels: usize, first_gradient_level: usize) -> CpuPyramid {
-        Self::build_reusing(frame, levels, first_gradient_level, None)
-    }
-
-    /// Like [`Self::build_from`], writing into `recycle`'s buffers when it has the same layout
-    /// (every value is overwritten), which saves allocating and zeroing them per frame.
+    /// Like [`Self::build`], writing into `recycle`'s buffers when it has the same layout (every
+    /// value is overwritten), which saves allocating and zeroing them per frame. Levels finer
+    /// than `first_gradient_level` get no gradients (and no cached depth): they are only the
+    /// source of the coarser levels, for an odometry that does not optimise them.
     pub fn build_reusing(
         frame: &RgbdFrame,
         levels: usize,

@@ -167,23 +167,9 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     ]
 }
 
-/// Reference pixel `(x, y)` (inverse depth `rho` > 0) back-projected and moved into the
-/// current camera by `cur_from_ref` (metres). Mirror of `warp_point` in the WGSL.
-#[inline(always)]
-fn warp_xy(p: &WarpParams, x: f32, y: f32, rho: f32) -> [f32; 3] {
-    let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
-    let z = 1.0 / rho;
-    let pr = [(x - cx) / fx * z, (y - cy) / fy * z, z];
-    let r = &p.rot;
-    [
-        r[0][0] * pr[0] + r[0][1] * pr[1] + r[0][2] * pr[2] + r[0][3],
-        r[1][0] * pr[0] + r[1][1] * pr[1] + r[1][2] * pr[2] + r[1][3],
-        r[2][0] * pr[0] + r[2][1] * pr[1] + r[2][2] * pr[2] + r[2][3],
-    ]
-}
-
 /// Reference pixel `i` back-projected with its inverse depth and moved into the current
-/// camera by `cur_from_ref` (metres); `None` where it has no depth.
+/// camera by `cur_from_ref` (metres); `None` where it has no depth. Mirror of `warp_point`
+/// in the WGSL.
 #[inline]
 fn warp_point(p: &WarpParams, ref_geo: &[[f32; 4]], i: usize) -> Option<[f32; 3]> {
     let w = p.dims[0] as usize;
@@ -191,7 +177,17 @@ fn warp_point(p: &WarpParams, ref_geo: &[[f32; 4]], i: usize) -> Option<[f32; 3]
     if rho <= 0.0 {
         return None;
     }
-    Some(warp_xy(p, (i % w) as f32, (i / w) as f32, rho))
+    let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
+    let x = (i % w) as f32;
+    let y = (i / w) as f32;
+    let z = 1.0 / rho;
+    let pr = [(x - cx) / fx * z, (y - cy) / fy * z, z];
+    let r = &p.rot;
+    Some([
+        r[0][0] * pr[0] + r[0][1] * pr[1] + r[0][2] * pr[2] + r[0][3],
+        r[1][0] * pr[0] + r[1][1] * pr[1] + r[1][2] * pr[2] + r[1][3],
+        r[2][0] * pr[0] + r[2][1] * pr[1] + r[2][2] * pr[2] + r[2][3],
+    ])
 }
 
 /// Warps reference pixel `i` of the level into the current frame and evaluates the residuals
@@ -207,40 +203,12 @@ pub fn pixel_terms(
     i: usize,
     want_jacobians: bool,
 ) -> PixelTerms {
-    let w = p.dims[0] as usize;
-    pixel_terms_xy(
-        p,
-        ref_photo[i][0],
-        ref_geo[i][0],
-        cur_photo,
-        cur_geo,
-        i % w,
-        i / w,
-        want_jacobians,
-    )
-}
-
-/// [`pixel_terms`] of the reference pixel at column `x`, row `y` with intensity `ref_i` and
-/// inverse depth `rho` (the row-wise loops of the CPU backend call this directly).
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-pub fn pixel_terms_xy(
-    p: &WarpParams,
-    ref_i: f32,
-    rho: f32,
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
-    x: usize,
-    y: usize,
-    want_jacobians: bool,
-) -> PixelTerms {
     let mut out = PixelTerms::default();
     let w = p.dims[0] as usize;
     let h = p.dims[1] as usize;
-    if rho <= 0.0 {
+    let Some(q) = warp_point(p, ref_geo, i) else {
         return out;
-    }
-    let q = warp_xy(p, x as f32, y as f32, rho);
+    };
     let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
     if q[2] < MIN_DEPTH {
         return out;
@@ -251,12 +219,11 @@ pub fn pixel_terms_xy(
     if !(u >= 0.0 && v >= 0.0 && u < (w - 1) as f32 && v < (h - 1) as f32) {
         return out;
     }
-    // u, v >= 0 here, so truncation is floor (and avoids a libm call without SSE4.1).
-    let xi = u as usize;
-    let yi = v as usize;
-    let ax = u - xi as f32;
-    let ay = v - yi as f32;
-    let k = yi * w + xi;
+    let x0 = u.floor();
+    let y0 = v.floor();
+    let ax = u - x0;
+    let ay = v - y0;
+    let k = y0 as usize * w + x0 as usize;
     let (p00, p10, p01, p11) = (
         cur_photo[k],
         cur_photo[k + 1],
@@ -273,7 +240,7 @@ pub fn pixel_terms_xy(
     }
     let terms = p.flags[1];
     if terms & 1 != 0 {
-        out.r_photo = Some(c[0] - ref_i);
+        out.r_photo = Some(c[0] - ref_photo[i][0]);
         if want_jacobians {
             let a = c[1] * fx * iz;
             let b = c[2] * fy * iz;
@@ -283,9 +250,8 @@ pub fn pixel_terms_xy(
         }
     }
     if terms & 2 != 0 {
-        // Nearest pixel: u + 0.5 >= 0.5, so truncation is floor here too.
-        let xn = (u + 0.5) as usize;
-        let yn = (v + 0.5) as usize;
+        let xn = (u + 0.5).floor() as usize;
+        let yn = (v + 0.5).floor() as usize;
         let g = cur_geo[yn * w + xn];
         if g[0] > 0.0 && g[1] != INVALID_GRAD {
             let depth_param = p.flags[2] == 1;
@@ -309,7 +275,7 @@ pub fn pixel_terms_xy(
 }
 
 /// Adds `wt * J J^T` and `wt * J r` to a partial (mirror of `accumulate` in the WGSL).
-#[inline(always)]
+#[inline]
 pub fn accumulate(acc: &mut [f32; PARTIAL_LEN], j: &[f32; 6], r: f32, wt: f32) {
     let mut k = 0;
     for a in 0..6 {
@@ -337,12 +303,6 @@ pub fn accumulate_pixel(
     acc: &mut [f32; PARTIAL_LEN],
 ) {
     let t = pixel_terms(p, ref_photo, ref_geo, cur_photo, cur_geo, i, true);
-    accumulate_terms(p, &t, acc);
-}
-
-/// Adds the robust-weighted terms of one pixel to `acc` (photometric and geometric).
-#[inline(always)]
-pub fn accumulate_terms(p: &WarpParams, t: &PixelTerms, acc: &mut [f32; PARTIAL_LEN]) {
     let est = p.flags[0];
     if let Some(r) = t.r_photo {
         let s = p.robust[0];

@@ -1,5 +1,5 @@
 //! The CPU backend's hot loops: the per-pixel mathematics of [`super::kernel::pixel_terms`]
-//! and [`super::kernel::accumulate_terms`], restructured for a CPU (row-wise, scalar
+//! and [`super::kernel::accumulate_pixel`], restructured for a CPU (row-wise, scalar
 //! temporaries, a SIMD-friendly 7x8 accumulator, no integer divisions). The same equations,
 //! operation for operation up to floating-point reassociation; `tests/odometry_parity.rs`
 //! compares them with the WGSL and the unit test below with the reference mirror.
