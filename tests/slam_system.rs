@@ -304,3 +304,46 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
         "SLAM ATE {a} not at most half of odometry {b}"
     );
 }
+
+/// A one-second lap of the office (about 10 m/s, far beyond a handheld camera): the dense
+/// alignment converges to wrong poses with high covisibility. With the default speed bounds
+/// those frames are reported lost instead of keeping a wrong pose; without them (the bounds
+/// disabled) the same frames keep poses that are decimetres off, so the scenario is real.
+#[test]
+fn implausibly_fast_motion_is_lost_not_a_wrong_pose() {
+    let cam = camera(320);
+    let worst_error = |config: SlamConfig| {
+        let scene = Scene::preset("office", 1).unwrap();
+        let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 8, 30, 1, 1, cam);
+        let gt = seq.ground_truth();
+        let (_, reports) = run(&mut seq, cam, config, None, |_, _| {});
+        let origin = gt[0].world_from_camera.inverse();
+        let mut worst: f64 = 0.0;
+        for (i, r) in reports.iter().enumerate() {
+            if let Some(p) = r.world_from_camera {
+                let truth = origin * gt[i].world_from_camera;
+                worst = worst.max((truth.translation - p.translation).length());
+            }
+        }
+        (worst, statuses(&reports))
+    };
+    let unbounded = SlamConfig {
+        lost_max_speed: f64::INFINITY,
+        lost_max_angular_speed: f64::INFINITY,
+        ..SlamConfig::default()
+    };
+    let (worst_unbounded, _) = worst_error(unbounded);
+    assert!(
+        worst_unbounded > 0.2,
+        "the scenario should diverge without the bound: worst error {worst_unbounded} m"
+    );
+    let (worst, status) = worst_error(SlamConfig::default());
+    assert!(
+        status.contains(&FrameStatus::Lost),
+        "no frame declared lost: {status:?}"
+    );
+    assert!(
+        worst < 0.05,
+        "a frame kept a pose {worst} m off: {status:?}"
+    );
+}

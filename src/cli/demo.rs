@@ -63,6 +63,8 @@ pub fn run(a: Args) -> Result<()> {
         realtime: None,
         no_masks: false,
         keyframe_covisibility: 0.7,
+        max_speed: rgbid::slam::SlamConfig::default().lost_max_speed,
+        max_angular_speed: rgbid::slam::SlamConfig::default().lost_max_angular_speed,
         no_model: false,
         voxel: 0.01,
         vocabulary: None,

@@ -68,6 +68,14 @@ pub struct Args {
     /// Keyframe covisibility threshold.
     #[arg(long, default_value_t = 0.7)]
     pub keyframe_covisibility: f64,
+    /// A frame whose motion since the last posed frame is faster than this (m/s) is treated as
+    /// a tracking failure (lost, then relocalised) instead of keeping a wrong pose. The default
+    /// suits handheld and worn cameras; raise it for vehicles, `inf` disables it.
+    #[arg(long, default_value_t = SlamConfig::default().lost_max_speed)]
+    pub max_speed: f64,
+    /// The same for the rotation rate (rad/s).
+    #[arg(long, default_value_t = SlamConfig::default().lost_max_angular_speed)]
+    pub max_angular_speed: f64,
     /// Do not write model.ply.
     #[arg(long)]
     pub no_model: bool,
@@ -175,6 +183,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut config = SlamConfig {
         masks: !a.no_masks,
         keyframe_covisibility: a.keyframe_covisibility,
+        lost_max_speed: a.max_speed,
+        lost_max_angular_speed: a.max_angular_speed,
         ..Default::default()
     };
     if a.realtime.is_some() {

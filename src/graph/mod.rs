@@ -21,7 +21,7 @@ pub mod solver;
 
 pub use init::{initialize_2d, initialize_3d, InitMethod};
 pub use lie::{Manifold, Se2, Sim3};
-pub use pose_graph::{Edge, Pose, PoseGraph, PoseGraph2, PoseGraph3, PoseGraphSim3};
+pub use pose_graph::{Edge, EdgeCost, Pose, PoseGraph, PoseGraph2, PoseGraph3, PoseGraphSim3};
 pub use solver::{
     Algorithm, Factor, Problem, RobustKernel, SolveReport, SolverOptions, Termination,
 };

@@ -469,8 +469,9 @@ impl<P: Pose> PoseGraph<P> {
         Ok(())
     }
 
-    /// A solver problem over this graph's poses (the first vertex fixed when none is).
-    pub fn to_problem(&self) -> Result<Problem<P>, GraphError> {
+    /// A solver problem with this graph's poses as variables and no factors yet (the gauge
+    /// vertex fixed); fails when the graph is not connected.
+    fn problem_variables(&self) -> Result<Problem<P>, GraphError> {
         let root = self.check_connected()?;
         let mut p = Problem::new();
         for (i, x) in self.poses.iter().enumerate() {
@@ -478,6 +479,12 @@ impl<P: Pose> PoseGraph<P> {
             p.set_fixed(i, self.fixed[i]);
         }
         p.set_fixed(root, true);
+        Ok(p)
+    }
+
+    /// A solver problem over this graph's poses (the first vertex fixed when none is).
+    pub fn to_problem(&self) -> Result<Problem<P>, GraphError> {
+        let mut p = self.problem_variables()?;
         for k in 0..self.edges.len() {
             p.add_factor(self.edge_factor(k)?)?;
         }
@@ -562,6 +569,11 @@ pub trait RotationTranslation {
     fn rt(&self) -> (DMat3, DVec3);
     /// Spatial dimension (2 or 3).
     const SPACE_DIM: usize;
+    /// Derivative of the world translation with respect to the translation part of the
+    /// manifold increment (columns per increment coordinate): identity for SE(2), whose
+    /// retraction adds in the world frame, and `R` for SE(3), which adds in the body frame.
+    /// The rotation increment is always about body axes (`R exp([w]x)`).
+    fn translation_tangent(&self) -> DMat3;
 }
 impl RotationTranslation for Se2 {
     fn rt(&self) -> (DMat3, DVec3) {
@@ -571,12 +583,141 @@ impl RotationTranslation for Se2 {
         )
     }
     const SPACE_DIM: usize = 2;
+    fn translation_tangent(&self) -> DMat3 {
+        DMat3::IDENTITY
+    }
 }
 impl RotationTranslation for Se3 {
     fn rt(&self) -> (DMat3, DVec3) {
         (self.rotation_matrix(), self.translation)
     }
     const SPACE_DIM: usize = 3;
+    fn translation_tangent(&self) -> DMat3 {
+        self.rotation_matrix()
+    }
+}
+
+/// Which cost an SE(n) pose graph minimises.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum EdgeCost {
+    /// The usual g2o / GTSAM cost: the geodesic error `log(Z^-1 Xi^-1 Xj)` whitened by the
+    /// full information matrix (this is what `chi2` measures).
+    #[default]
+    Geodesic,
+    /// The SE-Sync objective `F` (chordal rotation distance, isotropic weights kappa and tau
+    /// from the information matrix; see [`PoseGraph::sesync_objective`]). Its optimum is the
+    /// point SE-Sync's certified `f*` refers to; it differs from the geodesic optimum where
+    /// the information is far from isotropic (CSAIL, cubicle).
+    Chordal,
+}
+
+/// One edge of the SE-Sync objective: residual `[sqrt(tau) (tj - ti - Ri tij);
+/// sqrt(kappa) vec(Rj - Ri Rij)]` over the spatial dimension `n` (`n + n^2` rows), so that
+/// its squared norm is the edge's term of `F`.
+struct ChordalFactor<P> {
+    vars: [usize; 2],
+    rz: DMat3,
+    tz: DVec3,
+    sqrt_kappa: f64,
+    sqrt_tau: f64,
+    _pose: std::marker::PhantomData<P>,
+}
+
+impl<P: Pose + RotationTranslation> Factor<P> for ChordalFactor<P> {
+    fn variables(&self) -> &[usize] {
+        &self.vars
+    }
+    fn residual_dim(&self) -> usize {
+        P::SPACE_DIM + P::SPACE_DIM * P::SPACE_DIM
+    }
+    fn evaluate(&self, values: &[P], r: &mut [f64], jacobian: Option<&mut [f64]>) {
+        let n = P::SPACE_DIM;
+        let d = P::DIM;
+        let xi = &values[self.vars[0]];
+        let xj = &values[self.vars[1]];
+        let (ri, ti) = xi.rt();
+        let (rj, tj) = xj.rt();
+        let dt = tj - ti - ri * self.tz;
+        let dr = rj - ri * self.rz;
+        for a in 0..n {
+            r[a] = self.sqrt_tau * dt[a];
+            for b in 0..n {
+                r[n + a * n + b] = self.sqrt_kappa * dr.col(b)[a];
+            }
+        }
+        let Some(jac) = jacobian else { return };
+        jac.fill(0.0);
+        let cols = 2 * d;
+        // Translation increments.
+        let (bi, bj) = (xi.translation_tangent(), xj.translation_tangent());
+        for c in 0..n {
+            for a in 0..n {
+                jac[a * cols + c] = -self.sqrt_tau * bi.col(c)[a];
+                jac[a * cols + d + c] = self.sqrt_tau * bj.col(c)[a];
+            }
+        }
+        // Rotation increments about body axes: z only in 2D.
+        let axes: &[usize] = if n == 2 { &[2] } else { &[0, 1, 2] };
+        for (k, &axis) in axes.iter().enumerate() {
+            let c = n + k;
+            let mut e = DVec3::ZERO;
+            e[axis] = 1.0;
+            let ki = ri * skew(e);
+            let kj = rj * skew(e);
+            let dti = ki * self.tz;
+            let dri = ki * self.rz;
+            for a in 0..n {
+                jac[a * cols + c] = -self.sqrt_tau * dti[a];
+                for b in 0..n {
+                    let row = (n + a * n + b) * cols;
+                    jac[row + c] = -self.sqrt_kappa * dri.col(b)[a];
+                    jac[row + d + c] = self.sqrt_kappa * kj.col(b)[a];
+                }
+            }
+        }
+    }
+}
+
+impl<P: Pose + RotationTranslation> PoseGraph<P> {
+    /// A solver problem over this graph's poses with the chosen edge cost (the first vertex
+    /// fixed when none is).
+    pub fn to_problem_with(&self, cost: EdgeCost) -> Result<Problem<P>, GraphError> {
+        if cost == EdgeCost::Geodesic {
+            return self.to_problem();
+        }
+        let mut p = self.problem_variables()?;
+        for e in &self.edges {
+            let (kappa, tau) = sesync_weights(&e.information, P::SPACE_DIM, P::DIM);
+            if !(kappa.is_finite() && tau.is_finite() && kappa > 0.0 && tau > 0.0) {
+                return Err(GraphError::InformationNotPositiveDefinite {
+                    from: self.ids[e.from],
+                    to: self.ids[e.to],
+                });
+            }
+            let (rz, tz) = e.measurement.rt();
+            p.add_factor(Box::new(ChordalFactor::<P> {
+                vars: [e.from, e.to],
+                rz,
+                tz,
+                sqrt_kappa: kappa.sqrt(),
+                sqrt_tau: tau.sqrt(),
+                _pose: std::marker::PhantomData,
+            }))?;
+        }
+        Ok(p)
+    }
+
+    /// Optimises the poses in place with the chosen edge cost.
+    pub fn optimize_with(
+        &mut self,
+        opts: &SolverOptions,
+        cost: EdgeCost,
+    ) -> Result<SolveReport, GraphError> {
+        let mut p = self.to_problem_with(cost)?;
+        let rep = p.optimize(opts)?;
+        self.poses = p.values;
+        Ok(rep)
+    }
 }
 
 impl<P: Pose + RotationTranslation> PoseGraph<P> {
@@ -755,6 +896,83 @@ mod tests {
             1.1,
         );
         check_jacobians(xi, xj, z, 1e-6);
+    }
+
+    fn check_chordal_jacobians<P: Pose + RotationTranslation>(xi: P, xj: P, z: P, info: Vec<f64>) {
+        let mut g = PoseGraph::<P>::new();
+        g.add_vertex(0, xi).unwrap();
+        g.add_vertex(1, xj).unwrap();
+        g.add_edge(0, 1, z, info).unwrap();
+        g.add_vertex(2, xj).unwrap();
+        g.add_edge(1, 2, z, identity_info(P::DIM)).unwrap();
+        let p = g.to_problem_with(EdgeCost::Chordal).unwrap();
+        let f = &p.factors()[0];
+        let m = f.residual_dim();
+        let d = P::DIM;
+        let mut r0 = vec![0.0; m];
+        let mut jac = vec![0.0; m * 2 * d];
+        let vals = vec![xi, xj];
+        f.evaluate(&vals, &mut r0, Some(&mut jac));
+        // F of this edge is |r|^2.
+        let mut g1 = g.clone();
+        g1.edges.truncate(1);
+        assert!((r0.iter().map(|v| v * v).sum::<f64>() - g1.sesync_objective()).abs() < 1e-9);
+        let h = 1e-6;
+        for slot in 0..2 {
+            for c in 0..d {
+                let mut delta = vec![0.0; d];
+                delta[c] = h;
+                let mut vp = vals.clone();
+                vp[slot] = vals[slot].retract(&delta);
+                let mut rp = vec![0.0; m];
+                f.evaluate(&vp, &mut rp, None);
+                delta[c] = -h;
+                vp[slot] = vals[slot].retract(&delta);
+                let mut rm = vec![0.0; m];
+                f.evaluate(&vp, &mut rm, None);
+                for row in 0..m {
+                    let fd = (rp[row] - rm[row]) / (2.0 * h);
+                    let an = jac[row * 2 * d + slot * d + c];
+                    assert!(
+                        (fd - an).abs() < 1e-6,
+                        "slot {slot} row {row} col {c}: fd {fd} analytic {an}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn chordal_jacobians_match_finite_differences() {
+        let mut info2 = identity_info(3);
+        info2[0] = 4.0;
+        info2[1] = 1.0;
+        info2[3] = 1.0;
+        info2[8] = 9.0;
+        check_chordal_jacobians(
+            Se2::new(1.0, -0.5, 0.8),
+            Se2::new(2.5, 0.7, -2.0),
+            Se2::new(0.9, 1.1, 0.4),
+            info2,
+        );
+        let mut info3 = identity_info(6);
+        info3[0] = 3.0;
+        info3[4 * 6 + 4] = 7.0;
+        check_chordal_jacobians(
+            Se3::new(
+                DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -0.5, 1.2),
+                DVec3::new(1.0, 2.0, -0.5),
+            ),
+            Se3::new(
+                DQuat::from_euler(glam::EulerRot::XYZ, -0.7, 0.2, 2.0),
+                DVec3::new(-1.0, 0.4, 0.9),
+            ),
+            Se3::new(
+                DQuat::from_euler(glam::EulerRot::XYZ, 0.1, 0.9, -0.3),
+                DVec3::new(0.3, -0.2, 0.1),
+            ),
+            info3,
+        );
     }
 
     #[test]

@@ -32,6 +32,10 @@ pub struct G2oFile {
     pub graph: LoadedGraph,
     /// True when some vertices had no VERTEX line and the spanning tree initialised them.
     pub spanning_tree_initialised: bool,
+    /// Lines (1-based) whose information matrix was not positive definite and was made so
+    /// by dropping its translation-rotation cross blocks (see [`repair_information`]); the
+    /// cubicle benchmark has such edges.
+    pub repaired_information: Vec<usize>,
 }
 
 pub(crate) fn parse_f64s(
@@ -113,6 +117,100 @@ pub(crate) struct RawGraph {
     pub first_vertex_line: BTreeMap<i64, usize>,
 }
 
+/// Makes an information matrix usable when it is not symmetric positive definite but its
+/// translation block (first `dt` rows/columns) and rotation block (the rest) are: the
+/// cross blocks are dropped (zeroed), which is what SE-Sync's isotropic weights assume
+/// anyway. Returns `None` when even the diagonal blocks are not positive definite. The
+/// input is returned unchanged when it is already positive definite.
+pub fn repair_information(info: &[f64], dim: usize, dt: usize) -> Option<Vec<f64>> {
+    use crate::graph::lie::cholesky_lower;
+    if info.len() != dim * dim || info.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let symmetric = (0..dim).all(|r| {
+        (0..dim).all(|c| {
+            let (a, b) = (info[r * dim + c], info[c * dim + r]);
+            (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0)
+        })
+    });
+    if symmetric && cholesky_lower(info, dim).is_some() {
+        return Some(info.to_vec());
+    }
+    let mut m = info.to_vec();
+    for r in 0..dim {
+        for c in 0..dim {
+            if (r < dt) != (c < dt) {
+                m[r * dim + c] = 0.0;
+            } else {
+                let avg = 0.5 * (info[r * dim + c] + info[c * dim + r]);
+                m[r * dim + c] = avg;
+            }
+        }
+    }
+    cholesky_lower(&m, dim).map(|_| m)
+}
+
+/// Vertices, edges and fixed ids of one dimension, as parsed.
+struct RawPart<P> {
+    vertices: BTreeMap<i64, P>,
+    edges: Vec<(i64, i64, P, Vec<f64>, usize)>,
+}
+
+fn build_part<P: crate::graph::Pose>(
+    part: RawPart<P>,
+    fixed: &BTreeSet<i64>,
+    first_vertex_line: &BTreeMap<i64, usize>,
+    path: &Path,
+) -> Result<(crate::graph::PoseGraph<P>, bool, Vec<usize>), IoError> {
+    let gerr = |line: usize, e: GraphError| IoError::parse(path, line, e.to_string());
+    let mut ids: BTreeSet<i64> = part.vertices.keys().copied().collect();
+    let before = ids.len();
+    for (i, j, ..) in &part.edges {
+        ids.insert(*i);
+        ids.insert(*j);
+    }
+    let missing = ids.len() > before;
+    if ids.is_empty() {
+        return Err(IoError::Empty {
+            path: path.into(),
+            message: "no vertices or edges".into(),
+        });
+    }
+    let mut g = crate::graph::PoseGraph::<P>::new();
+    for id in &ids {
+        let p = part.vertices.get(id).copied().unwrap_or_else(P::identity);
+        g.add_vertex(*id, p)
+            .map_err(|e| gerr(first_vertex_line.get(id).copied().unwrap_or(0), e))?;
+    }
+    for f in fixed {
+        if let Some(k) = g.index_of(*f) {
+            g.fixed[k] = true;
+        }
+    }
+    let dim = <P as crate::graph::Manifold>::DIM;
+    let dt = if dim == 3 { 2 } else { 3 };
+    let mut repaired = Vec::new();
+    for (i, j, z, info, line) in part.edges {
+        let info = match repair_information(&info, dim, dt) {
+            Some(m) if m != info => {
+                repaired.push(line);
+                m
+            }
+            Some(m) => m,
+            // Not repairable: let the graph report it with the edge's ids.
+            None => info,
+        };
+        g.add_edge(i, j, z, info).map_err(|e| gerr(line, e))?;
+    }
+    if missing {
+        g.initialize_spanning_tree().map_err(|e| IoError::Empty {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+    }
+    Ok((g, missing, repaired))
+}
+
 impl RawGraph {
     pub(crate) fn build(self, path: &Path) -> Result<G2oFile, IoError> {
         let is3 = !self.vertices3.is_empty() || !self.edges3.is_empty();
@@ -122,82 +220,29 @@ impl RawGraph {
                 message: "mixes 2D and 3D vertices/edges".into(),
             });
         }
-        let gerr = |line: usize, e: GraphError| IoError::parse(path, line, e.to_string());
         if is3 {
-            let mut ids: BTreeSet<i64> = self.vertices3.keys().copied().collect();
-            let before = ids.len();
-            for (i, j, ..) in &self.edges3 {
-                ids.insert(*i);
-                ids.insert(*j);
-            }
-            let missing = ids.len() > before;
-            if ids.is_empty() {
-                return Err(IoError::Empty {
-                    path: path.into(),
-                    message: "no vertices or edges".into(),
-                });
-            }
-            let mut g = PoseGraph3::new();
-            for id in &ids {
-                let p = self.vertices3.get(id).copied().unwrap_or(Se3::IDENTITY);
-                g.add_vertex(*id, p)
-                    .map_err(|e| gerr(self.first_vertex_line.get(id).copied().unwrap_or(0), e))?;
-            }
-            for f in &self.fixed {
-                if let Some(k) = g.index_of(*f) {
-                    g.fixed[k] = true;
-                }
-            }
-            for (i, j, z, info, line) in self.edges3 {
-                g.add_edge(i, j, z, info).map_err(|e| gerr(line, e))?;
-            }
-            if missing {
-                g.initialize_spanning_tree().map_err(|e| IoError::Empty {
-                    path: path.into(),
-                    message: e.to_string(),
-                })?;
-            }
+            let part = RawPart {
+                vertices: self.vertices3,
+                edges: self.edges3,
+            };
+            let (g, missing, repaired) =
+                build_part(part, &self.fixed, &self.first_vertex_line, path)?;
             Ok(G2oFile {
                 graph: LoadedGraph::Se3(g),
                 spanning_tree_initialised: missing,
+                repaired_information: repaired,
             })
         } else {
-            let mut ids: BTreeSet<i64> = self.vertices2.keys().copied().collect();
-            let before = ids.len();
-            for (i, j, ..) in &self.edges2 {
-                ids.insert(*i);
-                ids.insert(*j);
-            }
-            let missing = ids.len() > before;
-            if ids.is_empty() {
-                return Err(IoError::Empty {
-                    path: path.into(),
-                    message: "no vertices or edges".into(),
-                });
-            }
-            let mut g = PoseGraph2::new();
-            for id in &ids {
-                let p = self.vertices2.get(id).copied().unwrap_or(Se2::IDENTITY);
-                g.add_vertex(*id, p)
-                    .map_err(|e| gerr(self.first_vertex_line.get(id).copied().unwrap_or(0), e))?;
-            }
-            for f in &self.fixed {
-                if let Some(k) = g.index_of(*f) {
-                    g.fixed[k] = true;
-                }
-            }
-            for (i, j, z, info, line) in self.edges2 {
-                g.add_edge(i, j, z, info).map_err(|e| gerr(line, e))?;
-            }
-            if missing {
-                g.initialize_spanning_tree().map_err(|e| IoError::Empty {
-                    path: path.into(),
-                    message: e.to_string(),
-                })?;
-            }
+            let part = RawPart {
+                vertices: self.vertices2,
+                edges: self.edges2,
+            };
+            let (g, missing, repaired) =
+                build_part(part, &self.fixed, &self.first_vertex_line, path)?;
             Ok(G2oFile {
                 graph: LoadedGraph::Se2(g),
                 spanning_tree_initialised: missing,
+                repaired_information: repaired,
             })
         }
     }
@@ -382,6 +427,28 @@ mod tests {
 
     const SMALL2: &str =
         "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0.1\nEDGE_SE2 0 1 1 0 0.1 10 0 0 10 0 100\n";
+
+    /// An edge of the cubicle benchmark (line 5753): its z-roll and z-pitch couplings make
+    /// the full matrix indefinite while both diagonal blocks are positive definite.
+    #[test]
+    fn indefinite_information_with_definite_blocks_is_repaired() {
+        let line = "EDGE_SE3:QUAT 1 2 -0.000106623 0.000270013 0 0 0 0.000126644 1 2.46483e+06 \
+                    5.3553e+06 0 0 0 0 1.52034e+07 0 0 0 0 10 84022.3 132748 0 10 0 0 10 0 91520.2\n";
+        let f = parse_g2o(line, Path::new("c.g2o")).unwrap();
+        assert_eq!(f.repaired_information, vec![1]);
+        let LoadedGraph::Se3(g) = f.graph else {
+            panic!("3D expected")
+        };
+        let m = &g.edges[0].information;
+        assert_eq!(m[2 * 6 + 3], 0.0);
+        assert_eq!(m[3 * 6 + 2], 0.0);
+        assert_eq!(m[0], 2.46483e6);
+        assert_eq!(m[5 * 6 + 5], 91520.2);
+        // A matrix whose diagonal blocks are indefinite too is still an error with its line.
+        let bad = "EDGE_SE2 0 1 1 0 0 1 5 0 1 0 1\n";
+        let err = parse_g2o(bad, Path::new("d.g2o")).unwrap_err();
+        assert!(err.to_string().starts_with("d.g2o:1:"), "{err}");
+    }
 
     #[test]
     fn round_trip_2d() {

@@ -123,7 +123,7 @@ pub struct ScaleFilter {
 }
 
 /// A standard normal sample by Box-Muller (keeps the dependency list short).
-pub(crate) fn standard_normal<R: Rng>(rng: &mut R) -> f64 {
+pub fn standard_normal<R: Rng>(rng: &mut R) -> f64 {
     let u1: f64 = rng.random::<f64>().max(1e-300);
     let u2: f64 = rng.random::<f64>();
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()

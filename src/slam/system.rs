@@ -142,6 +142,8 @@ pub struct Slam {
     /// Accumulated covariance of the current reference relative to the keyframe.
     chain_covariance: [[f64; 6]; 6],
     lost: bool,
+    /// Time stamp (s) and front-end pose of the last frame with a pose, for the speed check.
+    last_pose: Option<(f64, Se3)>,
     frames: Vec<FrameRecord>,
     tx: Option<SyncSender<ToBackend>>,
     handle: Option<JoinHandle<Result<Backend, SlamError>>>,
@@ -208,6 +210,7 @@ impl Slam {
             buffer: std::collections::VecDeque::new(),
             chain_covariance: [[0.0; 6]; 6],
             lost: map_keyframes > 0,
+            last_pose: None,
             frames: Vec::new(),
             tx: Some(tx),
             handle: Some(handle),
@@ -333,6 +336,32 @@ impl Slam {
         }
     }
 
+    /// Whether the motion from the last posed frame to `world_from_camera` is within the
+    /// configured speed bounds (true when there is no previous pose or no time difference).
+    fn plausible_motion(&self, index: usize, timestamp: f64, world_from_camera: &Se3) -> bool {
+        let Some((t0, p0)) = self.last_pose else {
+            return true;
+        };
+        let dt = timestamp - t0;
+        if !(dt > 0.0 && dt.is_finite()) {
+            return true;
+        }
+        let rel = p0.inverse() * *world_from_camera;
+        let speed = rel.translation.length() / dt;
+        let angular = crate::geometry::so3_log(rel.rotation).length() / dt;
+        let ok =
+            speed <= self.config.lost_max_speed && angular <= self.config.lost_max_angular_speed;
+        if !ok {
+            log::warn!(
+                "frame {index}: implausible motion ({speed:.2} m/s, {angular:.2} rad/s; bounds \
+                 {} m/s, {} rad/s): treated as a tracking failure",
+                self.config.lost_max_speed,
+                self.config.lost_max_angular_speed
+            );
+        }
+        ok
+    }
+
     /// Tries to relocalise `frame`; on success the odometry restarts there.
     fn try_relocalise(
         &mut self,
@@ -385,6 +414,7 @@ impl Slam {
             self.odometry.reset(Se3::IDENTITY);
             let r = self.odometry.track(frame)?;
             let id = self.start_keyframe(index, frame, r.world_from_camera, KeyframeLink::First)?;
+            self.last_pose = Some((frame.timestamp, r.world_from_camera));
             record.status = FrameStatus::NewKeyframe;
             record.frontworld_from_camera = Some(r.world_from_camera);
             record.keyframe = Some((id, Se3::IDENTITY));
@@ -398,6 +428,7 @@ impl Slam {
             if index.is_multiple_of(every) {
                 if let Some(p) = self.try_relocalise(index, frame)? {
                     self.lost = false;
+                    self.last_pose = Some((frame.timestamp, p));
                     record.status = FrameStatus::Relocalised;
                     record.frontworld_from_camera = Some(p);
                     record.keyframe = self.current.as_ref().map(|c| (c.id, Se3::IDENTITY));
@@ -421,12 +452,14 @@ impl Slam {
             r.stats.covisibility >= self.config.lost_covisibility
                 && r.stats.condition_number <= self.config.lost_condition
                 && r.world_from_camera.is_finite()
+                && self.plausible_motion(index, frame.timestamp, &r.world_from_camera)
         });
         let Some(r) = tracked.filter(|_| ok) else {
             // Lost: the current keyframe is finished and the frame gets no pose.
             self.finish_keyframe()?;
             self.buffer.clear();
             self.lost = true;
+            self.last_pose = None;
             record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
             return Ok(self.report(record));
         };
@@ -447,6 +480,7 @@ impl Slam {
         }
         let frontworld_from_camera = r.world_from_camera;
         record.frontworld_from_camera = Some(frontworld_from_camera);
+        self.last_pose = Some((frame.timestamp, frontworld_from_camera));
         let cur = self
             .current
             .as_ref()
