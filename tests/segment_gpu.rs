@@ -70,6 +70,7 @@ fn gpu_normals_match_the_cpu_mirror() {
         let params = NormalParams {
             step,
             jump_tolerance: 0.02,
+            ..Default::default()
         };
         let cpu = normals_cpu(&rho, &cam, &params);
         let gpu = kernel.compute(&rho, &cam, &params).unwrap();

@@ -10,21 +10,83 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::io::tum::{OpenOptions, TumSequence};
-use rgbid::segment::{self, GpuNormals, SegmentConfig};
+use rgbid::segment::experiment::{run_change_experiment, ChangeExperimentConfig};
+use rgbid::segment::{self, GpuNormals, NormalParams, SegmentConfig};
 
-/// Arguments of `rgbid segment`.
+/// `rgbid segment SEQ ...` segments frames of a sequence; `experiment` is a subcommand.
 #[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true)]
 pub struct Args {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+/// Subcommands of `rgbid segment`.
+#[derive(clap::Subcommand)]
+pub enum Command {
+    /// The thesis' changed-environment experiments (figs. 5.6 and 5.10) on generated loops:
+    /// ROC AUC of each superjut feature for changed vs static superjuts (moved-object masks as
+    /// ground truth), and ORB matching between sessions with and without neg-entropy masks
+    /// (precision and recall of RANSAC-verified matches against the true relative pose).
+    Experiment(ExperimentArgs),
+}
+
+/// Options of `rgbid segment experiment`.
+#[derive(clap::Args)]
+pub struct ExperimentArgs {
+    /// Scene presets.
+    #[arg(long, value_delimiter = ',', default_value = "office,kitchen,lab")]
+    scenes: Vec<String>,
+    /// Scene seeds (each scene with each seed).
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    seeds: Vec<u64>,
+    /// Changed sessions 1..=N compared with session 0.
+    #[arg(long, default_value_t = 2)]
+    sessions: u32,
+    /// Frames per lap of the loop (30 fps).
+    #[arg(long, default_value_t = 300)]
+    lap_frames: usize,
+    /// Use every STEP-th frame.
+    #[arg(long, default_value_t = 20)]
+    step: usize,
+    /// The changed-session frame is OFFSET frames after the reference frame.
+    #[arg(long, default_value_t = 4)]
+    offset: usize,
+    /// Image width in pixels (height 3/4 of it).
+    #[arg(long, default_value_t = 320)]
+    width: u32,
+    /// Neg-entropy thresholds of the masks (an unmasked run is always added).
+    #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.6,0.7,0.8,0.9")]
+    thresholds: Vec<f64>,
+    /// Finite-difference step of the normals, pixels.
+    #[arg(long, default_value_t = NormalParams::default().step)]
+    normal_step: u32,
+    /// Half-width of the edge-aware inverse-depth smoothing before the normals (0 = none).
+    #[arg(long, default_value_t = NormalParams::default().smooth_radius)]
+    smooth_radius: u32,
+    /// Where the frames are rendered.
+    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
+    backend: BackendChoice,
+    /// Also write the report as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+/// Options of segmenting frames of a sequence.
+#[derive(clap::Args)]
+pub struct RunArgs {
     /// Sequence folder in TUM layout (`rgb.txt` + `depth.txt`, optional `calib.txt`),
     /// read with `rgbid::io::tum::TumSequence`.
-    pub seq: PathBuf,
+    pub seq: Option<PathBuf>,
     /// Frames to segment: a comma-separated list of indices and ranges `a..b` or `a..b:step`
     /// (end exclusive), e.g. `0,10,20..100:20`.
     #[arg(long, default_value = "0")]
     pub frames: String,
     /// Output folder (created if missing).
     #[arg(long)]
-    pub out: PathBuf,
+    pub out: Option<PathBuf>,
     /// Neg-entropy thresholds of the masks.
     #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.7")]
     pub thresholds: Vec<f64>,
@@ -35,8 +97,12 @@ pub struct Args {
     #[arg(long, default_value_t = 200)]
     pub min_size: usize,
     /// Finite-difference step of the normals, pixels.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = NormalParams::default().step)]
     pub normal_step: u32,
+    /// Half-width of the edge-aware inverse-depth smoothing before the normals, pixels
+    /// (0 = none).
+    #[arg(long, default_value_t = NormalParams::default().smooth_radius)]
+    pub smooth_radius: u32,
     /// Up direction in the camera frame for horizontality, `x,y,z` (normalised).
     #[arg(
         long,
@@ -91,10 +157,88 @@ fn save_gray(path: &Path, w: usize, h: usize, data: Vec<u8>) -> Result<()> {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
-    let seq = TumSequence::open(&args.seq, &OpenOptions::default())?;
+    match args.command {
+        Some(Command::Experiment(e)) => run_experiment(&e),
+        None => run_segment(&args.run),
+    }
+}
+
+fn run_experiment(a: &ExperimentArgs) -> Result<()> {
+    let mut config = ChangeExperimentConfig {
+        scenes: a.scenes.clone(),
+        seeds: a.seeds.clone(),
+        sessions: a.sessions,
+        lap_frames: a.lap_frames,
+        step: a.step,
+        offset: a.offset,
+        width: a.width,
+        thresholds: a.thresholds.clone(),
+        ..Default::default()
+    };
+    config.segment.normals.step = a.normal_step;
+    config.segment.normals.smooth_radius = a.smooth_radius;
+    config.validate()?;
+    let backend = select_backend(a.backend, None)?;
+    let bar = indicatif::ProgressBar::new(0);
+    let report = run_change_experiment(&config, &backend, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "{} frame pairs ({} see changed objects); superjuts: {} changed, {} static",
+        report.pairs, report.pairs_with_changes, report.changed_superjuts, report.static_superjuts
+    );
+    println!("\nSeparability (ROC AUC, higher value = static; 0.5 = chance):");
+    println!("| feature | AUC |\n|---|---|");
+    for f in &report.features {
+        println!("| {} | {:.3} |", f.feature, f.auc);
+    }
+    println!("\nMatching session 0 against changed sessions (RANSAC-verified matches):");
+    println!(
+        "| neg-entropy mask | kept keypoints | matches | on changed objects | verified | inlier ratio | correct | precision | recall | pairs with pose ok |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for r in &report.matching {
+        let t = r
+            .threshold
+            .map_or("none".to_string(), |t| format!(">= {t:.2}"));
+        println!(
+            "| {t} | {:.2} | {} | {} ({:.1} %) | {} | {:.3} | {} | {:.3} | {:.3} | {} |",
+            r.kept_keypoints,
+            r.matches,
+            r.matches_on_changed,
+            100.0 * r.matches_on_changed as f64 / r.matches.max(1) as f64,
+            r.verified,
+            r.inlier_ratio,
+            r.correct,
+            r.precision,
+            r.recall,
+            r.pairs_pose_ok
+        );
+    }
+    println!(
+        "\nmedian per frame: segmentation {:.1} ms, ORB {:.1} ms ({}x{})",
+        report.segment_ms,
+        report.orb_ms,
+        a.width,
+        a.width * 3 / 4
+    );
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}
+
+fn run_segment(args: &RunArgs) -> Result<()> {
+    let (Some(seq_dir), Some(out)) = (&args.seq, &args.out) else {
+        bail!("usage: rgbid segment SEQ --out DIR [--frames ...] (or rgbid segment experiment)");
+    };
+    let seq = TumSequence::open(seq_dir, &OpenOptions::default())?;
     log::info!(
         "{}: {} frames, camera from {}",
-        args.seq.display(),
+        seq_dir.display(),
         seq.len(),
         seq.camera_source
     );
@@ -122,6 +266,7 @@ pub fn run(args: Args) -> Result<()> {
         ..SegmentConfig::default()
     };
     cfg.normals.step = args.normal_step;
+    cfg.normals.smooth_radius = args.smooth_radius;
     cfg.up = [args.up[0] / ul, args.up[1] / ul, args.up[2] / ul];
     cfg.validate()?;
     let backend = select_backend(args.backend, None)?;
@@ -130,9 +275,8 @@ pub fn run(args: Args) -> Result<()> {
         ComputeBackend::Gpu(ctx) => Some(GpuNormals::new(ctx.clone())?),
         ComputeBackend::Cpu => None,
     };
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    let csv_path = args.out.join("superjuts.csv");
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let csv_path = out.join("superjuts.csv");
     let mut csv = std::io::BufWriter::new(
         std::fs::File::create(&csv_path)
             .with_context(|| format!("creating {}", csv_path.display()))?,
@@ -159,7 +303,7 @@ pub fn run(args: Args) -> Result<()> {
         let stem = format!("frame_{f:05}");
         image::RgbImage::from_raw(w as u32, h as u32, juts.colour_image())
             .context("image buffer size")?
-            .save(args.out.join(format!("{stem}_segments.png")))?;
+            .save(out.join(format!("{stem}_segments.png")))?;
         let ne = juts
             .neg_entropy_image()
             .data
@@ -172,15 +316,10 @@ pub fn run(args: Args) -> Result<()> {
                 }
             })
             .collect();
-        save_gray(&args.out.join(format!("{stem}_negentropy.png")), w, h, ne)?;
+        save_gray(&out.join(format!("{stem}_negentropy.png")), w, h, ne)?;
         for &th in &args.thresholds {
             let m = juts.mask(th);
-            save_gray(
-                &args.out.join(format!("{stem}_mask_{th:.2}.png")),
-                w,
-                h,
-                m.data,
-            )?;
+            save_gray(&out.join(format!("{stem}_mask_{th:.2}.png")), w, h, m.data)?;
         }
         for s in &juts.segments {
             writeln!(
@@ -210,7 +349,7 @@ pub fn run(args: Args) -> Result<()> {
     println!(
         "segmented {} frames into {}: median {:.1} ms per frame (normals + segmentation + features, {})",
         frames.len(),
-        args.out.display(),
+        out.display(),
         times[times.len() / 2],
         backend.name()
     );

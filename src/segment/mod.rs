@@ -25,6 +25,7 @@
 //! # Ok::<(), SegmentError>(())
 //! ```
 
+pub mod experiment;
 pub mod features;
 mod gpu;
 pub mod graph;
@@ -35,7 +36,9 @@ pub use features::{golden_spiral, SphereBins, Superjut};
 pub use gpu::GpuNormals;
 pub use graph::NO_SEGMENT;
 pub use mesh::TriMesh;
-pub use normals::{normals_cpu, points_from_inverse_depth, NormalMap, NormalParams};
+pub use normals::{
+    normals_cpu, points_from_inverse_depth, smooth_inverse_depth, NormalMap, NormalParams,
+};
 
 use crate::camera::{CameraError, PinholeCamera};
 use crate::gpu::GpuError;
@@ -349,9 +352,22 @@ pub fn segment_with_normals(
     .into_iter()
     .map(|(x, y, r)| (y as usize * w + x as usize, r))
     .collect();
+    // Features from the normals of the inverse depth smoothed within each superjut (where they
+    // exist), so sensor noise does not masquerade as curvature; the graph used the raw normals.
+    let feature_normals =
+        smooth_inverse_depth(inverse_depth, &config.normals, Some(&labels)).map(|s| {
+            let smooth = normals_cpu(&s, camera, &config.normals);
+            let mut data = smooth.data;
+            for (i, n) in data.iter_mut().enumerate() {
+                if *n == [0.0; 3] {
+                    *n = normals.data[i];
+                }
+            }
+            data
+        });
     let segments = features::superjut_features(
         &labels,
-        &normals.data,
+        feature_normals.as_deref().unwrap_or(&normals.data),
         &points,
         count,
         &bins,

@@ -19,12 +19,23 @@ use crate::image::ImageF32;
 
 /// Parameters of the image-domain normal estimator.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct NormalParams {
     /// Distance in pixels of the finite differences (1 = adjacent pixels; larger smooths noise).
     pub step: u32,
     /// Relative disagreement of the two one-sided inverse-depth differences, as a fraction of
     /// the centre inverse depth, above which the pixel is treated as a depth discontinuity.
     pub jump_tolerance: f32,
+    /// Half-width in pixels of the edge-aware smoothing of the inverse depth from which the
+    /// normals of the superjut *features* (histogram, entropy, horizontality) are computed
+    /// (0 = none; the segmentation graph always uses the unsmoothed normals, so creases stay
+    /// sharp). Kinect-like depth is quantised in disparity: without smoothing the normals of a
+    /// wall scatter over tens of degrees and its neg-entropy drops from ~1 to ~0.25 (measured
+    /// on generated sequences), which makes neg-entropy thresholds meaningless.
+    pub smooth_radius: u32,
+    /// Neighbours whose inverse depth differs from the centre's by more than this fraction of
+    /// it are left out of the smoothing (depth discontinuities are kept).
+    pub smooth_tolerance: f32,
 }
 
 impl Default for NormalParams {
@@ -32,8 +43,87 @@ impl Default for NormalParams {
         Self {
             step: 2,
             jump_tolerance: 0.02,
+            smooth_radius: 3,
+            smooth_tolerance: 0.05,
         }
     }
+}
+
+/// One edge-aware box pass along x or y: the mean of the centre and the symmetric pairs of
+/// neighbours at distance `1..=radius`, stopping at the first pair with an invalid member or
+/// one further than `tolerance * centre` from the centre. The window stays symmetric, so an
+/// inverse depth that is affine along the line (any plane) is reproduced exactly, borders and
+/// discontinuities included.
+fn smooth_pass(
+    rho: &ImageF32,
+    radius: usize,
+    tolerance: f32,
+    labels: Option<&[u32]>,
+    along_x: bool,
+) -> ImageF32 {
+    let (w, h) = (rho.width, rho.height);
+    let mut out = vec![0.0f32; w * h];
+    if w > 0 {
+        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let index = |x: usize, k: usize| if along_x { y * w + k } else { k * w + x };
+            for (x, o) in row.iter_mut().enumerate() {
+                let c = rho.data[y * w + x];
+                if c.is_nan() || c <= 0.0 {
+                    continue;
+                }
+                let tol = tolerance * c;
+                let label = labels.map(|l| l[y * w + x]);
+                let ok = |i: usize| {
+                    let v = rho.data[i];
+                    v > 0.0
+                        && (v - c).abs() <= tol
+                        && label.is_none_or(|l| labels_at(labels, i) == l)
+                };
+                let (pos, len) = if along_x { (x, w) } else { (y, h) };
+                let (mut sum, mut n) = (c, 1.0f32);
+                for k in 1..=radius {
+                    if k > pos || pos + k >= len {
+                        break;
+                    }
+                    let (a, b) = (index(x, pos - k), index(x, pos + k));
+                    if !(ok(a) && ok(b)) {
+                        break;
+                    }
+                    sum += rho.data[a] + rho.data[b];
+                    n += 2.0;
+                }
+                *o = sum / n;
+            }
+        });
+    }
+    ImageF32 {
+        width: w,
+        height: h,
+        data: out,
+    }
+}
+
+#[inline]
+fn labels_at(labels: Option<&[u32]>, i: usize) -> u32 {
+    labels.map_or(0, |l| l[i])
+}
+
+/// Edge-aware smoothing of an inverse-depth map (1/m, 0 = invalid) as [`NormalParams`] asks:
+/// two separable passes (x then y); invalid pixels stay invalid. With `labels` (row-major, one
+/// per pixel) only pixels of the centre's label are averaged, so the smoothing never crosses a
+/// segment boundary (a crease). `None` when no smoothing is asked.
+pub fn smooth_inverse_depth(
+    inverse_depth: &ImageF32,
+    params: &NormalParams,
+    labels: Option<&[u32]>,
+) -> Option<ImageF32> {
+    if params.smooth_radius == 0 {
+        return None;
+    }
+    let r = params.smooth_radius as usize;
+    let t = params.smooth_tolerance;
+    let x = smooth_pass(inverse_depth, r, t, labels, true);
+    Some(smooth_pass(&x, r, t, labels, false))
 }
 
 /// A unit-normal image in the camera frame (x right, y down, z forward), normals facing the
@@ -192,4 +282,48 @@ pub fn points_from_inverse_depth(
         });
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plane's inverse depth is affine in the pixel coordinates; the symmetric windows keep
+    /// it exactly (borders included), while a step (a discontinuity) is not smeared.
+    #[test]
+    fn smoothing_keeps_planes_and_steps() {
+        let (w, h) = (40, 30);
+        let mut rho = ImageF32::filled(w, h, 0.0);
+        for y in 0..h {
+            for x in 0..w {
+                let v = 0.5 + 0.004 * x as f32 - 0.003 * y as f32;
+                rho.data[y * w + x] = if x < 20 { v } else { v + 0.3 };
+            }
+        }
+        rho.data[5 * w + 5] = 0.0; // a hole stays a hole
+        let p = NormalParams::default();
+        let s = smooth_inverse_depth(&rho, &p, None).unwrap();
+        assert_eq!(s.data[5 * w + 5], 0.0);
+        for i in 0..w * h {
+            assert!((s.data[i] - rho.data[i]).abs() < 1e-5, "pixel {i}");
+        }
+        // Labels stop the smoothing too: noise on label 1 does not leak into label 0.
+        let labels: Vec<u32> = (0..w * h).map(|i| u32::from(i % w >= 10)).collect();
+        let mut noisy = rho.clone();
+        for y in 0..h {
+            noisy.data[y * w + 10] += 0.01;
+        }
+        let s = smooth_inverse_depth(&noisy, &p, Some(&labels)).unwrap();
+        for y in 0..h {
+            for x in 0..10 {
+                let i = y * w + x;
+                assert!((s.data[i] - noisy.data[i]).abs() < 1e-5, "pixel {x},{y}");
+            }
+        }
+        let off = NormalParams {
+            smooth_radius: 0,
+            ..p
+        };
+        assert!(smooth_inverse_depth(&rho, &off, None).is_none());
+    }
 }
