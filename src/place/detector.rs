@@ -257,8 +257,7 @@ pub fn keypoints_inside(features: &OrbFeatures, mask: &ImageF32) -> Vec<bool> {
         .keypoints
         .iter()
         .map(|k| {
-            let x = (k.uv.x.round().max(0.0) as usize).min(mask.width.saturating_sub(1));
-            let y = (k.uv.y.round().max(0.0) as usize).min(mask.height.saturating_sub(1));
+            let (x, y) = k.nearest_pixel(mask.width, mask.height);
             mask.at(x, y) > 0.0
         })
         .collect()

@@ -77,6 +77,15 @@ pub struct KeyPoint {
     pub size: f32,
 }
 
+impl KeyPoint {
+    /// The nearest pixel `(x, y)` of the keypoint, clamped into a `width x height` image.
+    pub fn nearest_pixel(&self, width: usize, height: usize) -> (usize, usize) {
+        let x = (self.uv.x.round().max(0.0) as usize).min(width.saturating_sub(1));
+        let y = (self.uv.y.round().max(0.0) as usize).min(height.saturating_sub(1));
+        (x, y)
+    }
+}
+
 /// ORB extraction parameters (defaults as ORB-SLAM).
 #[derive(Clone, Debug, PartialEq)]
 pub struct OrbParams {

@@ -288,8 +288,7 @@ fn prepare(
         .keypoints
         .iter()
         .map(|k| {
-            let x = (k.uv.x.round().max(0.0) as usize).min(w.saturating_sub(1));
-            let y = (k.uv.y.round().max(0.0) as usize).min(juts.height.saturating_sub(1));
+            let (x, y) = k.nearest_pixel(w, juts.height);
             juts.segments
                 .get(juts.labels[y * w + x] as usize)
                 .map_or(f64::NEG_INFINITY, |s| s.neg_entropy)
@@ -382,9 +381,7 @@ fn match_pair(
         pa.push(point(a, ia));
         pb.push(point(b, ib));
         if let Some(mask) = &b.frame.frame.moved_mask {
-            let uv = b.features.keypoints[ib].uv;
-            let x = (uv.x.round().max(0.0) as usize).min(w.saturating_sub(1));
-            let y = (uv.y.round().max(0.0) as usize).min(b.juts.height.saturating_sub(1));
+            let (x, y) = b.features.keypoints[ib].nearest_pixel(w, b.juts.height);
             acc.on_changed += usize::from(mask[y * w + x]);
         }
     }

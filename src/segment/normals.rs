@@ -72,12 +72,9 @@ fn smooth_pass(
                     continue;
                 }
                 let tol = tolerance * c;
-                let label = labels.map(|l| l[y * w + x]);
                 let ok = |i: usize| {
                     let v = rho.data[i];
-                    v > 0.0
-                        && (v - c).abs() <= tol
-                        && label.is_none_or(|l| labels_at(labels, i) == l)
+                    v > 0.0 && (v - c).abs() <= tol && labels.is_none_or(|l| l[i] == l[y * w + x])
                 };
                 let (pos, len) = if along_x { (x, w) } else { (y, h) };
                 let (mut sum, mut n) = (c, 1.0f32);
@@ -101,11 +98,6 @@ fn smooth_pass(
         height: h,
         data: out,
     }
-}
-
-#[inline]
-fn labels_at(labels: Option<&[u32]>, i: usize) -> u32 {
-    labels.map_or(0, |l| l[i])
 }
 
 /// Edge-aware smoothing of an inverse-depth map (1/m, 0 = invalid) as [`NormalParams`] asks:
