@@ -20,6 +20,9 @@
 
 use std::time::Instant;
 
+use faer::linalg::matmul::triangular::{self, BlockStructure};
+use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+use faer::{Accum, Mat, MatMut, Par, Side};
 use glam::{DVec2, DVec3};
 use nalgebra::{DMatrix, DVector, SMatrix};
 use rand::{Rng, SeedableRng};
@@ -127,6 +130,58 @@ pub struct FrameReport {
     pub landmarks: usize,
     /// Per-stage times, milliseconds.
     pub times: StageTimes,
+}
+
+/// A landmark added this frame whose covariance is not in the state yet: the Jacobian of
+/// its parameters with respect to the camera pose `[r, theta]` and its own 6x6 block.
+type NewLandmark = (SMatrix<f64, 6, 6>, SMatrix<f64, 6, 6>);
+
+/// Pixels taken by landmarks, bucketed by squares of the minimum feature distance, so that
+/// "is every taken pixel farther than `min_distance`" looks at 3x3 buckets only.
+struct Occupancy {
+    cell: f64,
+    min_distance2: f64,
+    cols: usize,
+    rows: usize,
+    buckets: Vec<Vec<DVec2>>,
+}
+
+impl Occupancy {
+    fn new(width: usize, height: usize, min_distance: f64) -> Occupancy {
+        let cell = min_distance.max(1.0);
+        let cols = (width as f64 / cell).ceil() as usize + 1;
+        let rows = (height as f64 / cell).ceil() as usize + 1;
+        Occupancy {
+            cell,
+            min_distance2: min_distance * min_distance,
+            cols,
+            rows,
+            buckets: vec![Vec::new(); cols * rows],
+        }
+    }
+
+    fn bucket(&self, uv: DVec2) -> (usize, usize) {
+        let bx = (uv.x / self.cell).floor().max(0.0) as usize;
+        let by = (uv.y / self.cell).floor().max(0.0) as usize;
+        (bx.min(self.cols - 1), by.min(self.rows - 1))
+    }
+
+    fn insert(&mut self, uv: DVec2) {
+        let (bx, by) = self.bucket(uv);
+        self.buckets[by * self.cols + bx].push(uv);
+    }
+
+    /// True when every taken pixel is farther than the minimum distance from `uv`.
+    fn is_free(&self, uv: DVec2) -> bool {
+        let (bx, by) = self.bucket(uv);
+        (by.saturating_sub(1)..(by + 2).min(self.rows)).all(|y| {
+            (bx.saturating_sub(1)..(bx + 2).min(self.cols)).all(|x| {
+                self.buckets[y * self.cols + x]
+                    .iter()
+                    .all(|t| (*t - uv).length_squared() > self.min_distance2)
+            })
+        })
+    }
 }
 
 /// A match found by active search.
@@ -501,24 +556,22 @@ impl MonoSlam {
             (pred.uv.y + ry).ceil() as i64,
         );
         let (bw, bh) = ((x1 - x0 + 1) as usize, (y1 - y0 + 1) as usize);
-        let mut scores = vec![f64::NEG_INFINITY; bw * bh];
+        let mut scores = template.correlate_window(image, x0, y0, x1, y1);
         let mut best = (f64::NEG_INFINITY, 0usize, 0usize);
-        for y in y0..=y1 {
-            for x in x0..=x1 {
+        for by in 0..bh {
+            for bx in 0..bw {
+                let (x, y) = (x0 + bx as i64, y0 + by as i64);
                 let d = nalgebra::Vector2::new(x as f64 - pred.uv.x, y as f64 - pred.uv.y);
+                let score = &mut scores[by * bw + bx];
                 // Outside the ellipse, except the pixels next to the prediction.
                 if (d.transpose() * si * d)[(0, 0)] > CHI2_95_2DOF
                     && !(d.x.abs() < 1.0 && d.y.abs() < 1.0)
                 {
+                    *score = f64::NEG_INFINITY;
                     continue;
                 }
-                let Some(c) = template.correlate_at(image, x, y) else {
-                    continue;
-                };
-                let (bx, by) = ((x - x0) as usize, (y - y0) as usize);
-                scores[by * bw + bx] = c;
-                if c > best.0 {
-                    best = (c, bx, by);
+                if *score > best.0 {
+                    best = (*score, bx, by);
                 }
             }
         }
@@ -619,6 +672,11 @@ impl MonoSlam {
     }
 
     /// EKF update with a batch of matches (eq. 2.37-2.43).
+    ///
+    /// With `S = L L^T` and `W = P H^T L^-T`: `K nu = W (L^-1 nu)` and
+    /// `P - K S K^T = P - W W^T`, a symmetric rank-2m update. The dense steps (Cholesky,
+    /// triangular solve, the lower triangle of `W W^T`) are blocked faer kernels on the
+    /// rayon pool; only the lower triangle is updated, then mirrored tile by tile.
     fn update(&mut self, batch: &[Match]) -> Result<(), MonoError> {
         let n = self.cov.nrows();
         let m2 = 2 * batch.len();
@@ -634,109 +692,149 @@ impl MonoSlam {
         if preds.len() != batch.len() {
             return Ok(());
         }
-        let mut pht = DMatrix::zeros(n, m2);
+        // P H^T, n x m2: column 2j+r is sum_q H_j[r, q] P[:, idx_j(q)] (12 columns of P).
+        let mut pht = Mat::<f64>::zeros(n, m2);
+        let cov = self.cov.as_slice();
         for (j, (b, p)) in batch.iter().zip(&preds).enumerate() {
-            pht.columns_mut(2 * j, 2)
-                .copy_from(&self.p_ht(b.feature, p));
+            let o = landmark_offset(b.feature);
+            let h = Self::stacked_jacobian(p);
+            for r in 0..2 {
+                let Some(dst) = pht.col_mut(2 * j + r).try_as_col_major_mut() else {
+                    continue;
+                };
+                let dst = dst.as_slice_mut();
+                for q in 0..12 {
+                    let col = if q < 6 { q } else { o + q - 6 };
+                    let hq = h[(r, q)];
+                    for (v, c) in dst.iter_mut().zip(&cov[col * n..(col + 1) * n]) {
+                        *v += hq * c;
+                    }
+                }
+            }
         }
-        let mut s = DMatrix::zeros(m2, m2);
+        // S = H P H^T + R, from the rows of P H^T at each measurement's 12 state indices.
+        let r_pix = self.config.sigma_pixel * self.config.sigma_pixel;
+        let mut s = Mat::<f64>::zeros(m2, m2);
         for (j, (b, p)) in batch.iter().zip(&preds).enumerate() {
             let o = landmark_offset(b.feature);
             let h = Self::stacked_jacobian(p);
             for c in 0..m2 {
+                let col = pht.col(c);
                 for rr in 0..2 {
                     let mut acc = 0.0;
                     for q in 0..12 {
-                        let row = if q < 6 { q } else { o + q - 6 };
-                        acc += h[(rr, q)] * pht[(row, c)];
+                        let idx = if q < 6 { q } else { o + q - 6 };
+                        acc += h[(rr, q)] * col[idx];
                     }
                     s[(2 * j + rr, c)] = acc;
                 }
             }
         }
-        let r = self.config.sigma_pixel * self.config.sigma_pixel;
-        for d in 0..m2 {
-            s[(d, d)] += r;
+        for c in 0..m2 {
+            for r in 0..c {
+                let v = 0.5 * (s[(r, c)] + s[(c, r)]);
+                s[(r, c)] = v;
+                s[(c, r)] = v;
+            }
+            s[(c, c)] += r_pix;
         }
-        let s = (&s + s.transpose()) * 0.5;
-        let Some(chol) = s.cholesky() else {
+        let Ok(llt) = s.llt(Side::Lower) else {
             return Err(MonoError::Diverged(
                 "innovation covariance is not positive definite".into(),
             ));
         };
-        let mut nu = DVector::zeros(m2);
+        let l = llt.L();
+        let par = if n * m2 > 20_000 {
+            Par::rayon(0)
+        } else {
+            Par::Seq
+        };
+        // W^T = L^-1 (P H^T)^T, in place in the transposed view of P H^T.
+        let mut wt = pht;
+        solve_lower_triangular_in_place(l, wt.as_mut().transpose_mut(), par);
+        let mut lnu = Mat::<f64>::zeros(m2, 1);
         for (j, (b, p)) in batch.iter().zip(&preds).enumerate() {
-            nu[2 * j] = b.z.x - p.uv.x;
-            nu[2 * j + 1] = b.z.y - p.uv.y;
+            lnu[(2 * j, 0)] = b.z.x - p.uv.x;
+            lnu[(2 * j + 1, 0)] = b.z.y - p.uv.y;
         }
-        // With S = L L^T and W = P H^T L^-T: K nu = W L^-1 nu and
-        // P - K S K^T = P - W W^T, a symmetric rank-2m update (the O(n^2 m) step): only the
-        // lower triangle is computed, by blocks of columns in parallel, then mirrored.
-        let l = chol.l();
-        let Some(wt) = l.solve_lower_triangular(&pht.transpose()) else {
+        solve_lower_triangular_in_place(l, lnu.as_mut(), Par::Seq);
+        let dx: Mat<f64> = &wt * &lnu;
+        if !(0..n).all(|k| dx[(k, 0)].is_finite()) {
             return Err(MonoError::Diverged("singular innovation covariance".into()));
-        };
-        let Some(lnu) = l.solve_lower_triangular(&nu) else {
-            return Err(MonoError::Diverged("singular innovation covariance".into()));
-        };
-        let dx = wt.transpose() * lnu;
-        let w = wt.transpose();
-        let block = n.div_ceil(8 * rayon::current_num_threads().max(1)).max(16);
-        self.cov
-            .as_mut_slice()
-            .par_chunks_mut(n * block)
-            .enumerate()
-            .for_each(|(b, chunk)| {
-                let c0 = b * block;
-                let nc = chunk.len() / n;
-                let mut view = nalgebra::DMatrixViewMut::from_slice(chunk, n, nc);
-                let mut lower = view.rows_mut(c0, n - c0);
-                lower.gemm(-1.0, &w.rows(c0, n - c0), &wt.columns(c0, nc), 1.0);
-            });
-        for c in 0..n {
-            for r in 0..c {
-                self.cov[(r, c)] = self.cov[(c, r)];
-            }
         }
-        self.state = self.state.corrected(&dx.as_slice()[..CAMERA_DIM]);
+        {
+            let p = MatMut::from_column_major_slice_mut(self.cov.as_mut_slice(), n, n);
+            triangular::matmul(
+                p,
+                BlockStructure::TriangularLower,
+                Accum::Add,
+                wt.as_ref(),
+                BlockStructure::Rectangular,
+                wt.transpose(),
+                BlockStructure::Rectangular,
+                -1.0,
+                par,
+            );
+        }
+        mirror_lower(self.cov.as_mut_slice(), n);
+        let dx: Vec<f64> = (0..n).map(|k| dx[(k, 0)]).collect();
+        self.state = self.state.corrected(&dx[..CAMERA_DIM]);
         for (i, f) in self.features.iter_mut().enumerate() {
             let o = landmark_offset(i);
-            f.landmark = f.landmark.corrected(&dx.as_slice()[o..o + 6]);
+            f.landmark = f.landmark.corrected(&dx[o..o + 6]);
         }
         Ok(())
     }
 
-    /// Removes landmark `i` from the state, moving it to the fixed map when it is a point.
-    fn remove_feature(&mut self, i: usize) {
-        if self.is_point(i) {
-            if let Some(p) = self.features[i].landmark.point() {
-                self.fixed_map.push(p);
-                self.stats.map_points += 1;
-            } else {
-                self.stats.rays_dropped += 1;
-            }
-        } else {
-            self.stats.rays_dropped += 1;
-        }
-        let o = landmark_offset(i);
-        let cov = std::mem::replace(&mut self.cov, DMatrix::zeros(0, 0));
-        self.cov = cov
-            .remove_rows(o, LANDMARK_DIM)
-            .remove_columns(o, LANDMARK_DIM);
-        self.features.remove(i);
-    }
-
+    /// Removes the landmarks that were lost (unmatched for more than `max_unmatched_frames`)
+    /// or unreliable (matched in fewer than half of at least 10 attempts). A removed point
+    /// joins the fixed map, a ray is dropped. The covariance is compacted in one pass.
     fn manage_map(&mut self) {
-        let mut i = self.features.len();
-        while i > 0 {
-            i -= 1;
-            let f = &self.features[i];
-            let lost = f.frames_unmatched > self.config.max_unmatched_frames;
-            let unreliable = f.attempts >= 10 && 2 * f.matches < f.attempts;
-            if lost || unreliable {
-                self.remove_feature(i);
+        let remove: Vec<bool> = self
+            .features
+            .iter()
+            .map(|f| {
+                let lost = f.frames_unmatched > self.config.max_unmatched_frames;
+                let unreliable = f.attempts >= 10 && 2 * f.matches < f.attempts;
+                lost || unreliable
+            })
+            .collect();
+        if !remove.iter().any(|&r| r) {
+            return;
+        }
+        for (i, _) in remove.iter().enumerate().filter(|(_, &r)| r) {
+            match self.features[i].landmark.point() {
+                Some(p) if self.is_point(i) => {
+                    self.fixed_map.push(p);
+                    self.stats.map_points += 1;
+                }
+                _ => self.stats.rays_dropped += 1,
             }
         }
+        // The kept state entries as runs of consecutive indices: the camera, then each run
+        // of kept landmarks.
+        let mut runs: Vec<std::ops::Range<usize>> = Vec::new();
+        runs.push(0..CAMERA_DIM);
+        for (i, _) in remove.iter().enumerate().filter(|(_, &r)| !r) {
+            let o = landmark_offset(i);
+            match runs.last_mut() {
+                Some(last) if last.end == o => last.end = o + LANDMARK_DIM,
+                _ => runs.push(o..o + LANDMARK_DIM),
+            }
+        }
+        let n = self.cov.nrows();
+        let k: usize = runs.iter().map(|r| r.len()).sum();
+        let old = self.cov.as_slice();
+        let mut data = Vec::with_capacity(k * k);
+        for c in runs.iter().flat_map(|r| r.clone()) {
+            let col = &old[c * n..(c + 1) * n];
+            for r in &runs {
+                data.extend_from_slice(&col[r.clone()]);
+            }
+        }
+        self.cov = DMatrix::from_vec(k, k, data);
+        let mut flags = remove.into_iter();
+        self.features.retain(|_| !flags.next().unwrap_or(false));
     }
 
     /// Initialises new landmarks at FAST corners in cells without predicted landmarks.
@@ -780,9 +878,12 @@ impl MonoSlam {
         // Emptiest cells first, ties in random order; one feature per cell per round.
         let mut order: Vec<(usize, u64)> = (0..gx * gy).map(|c| (c, self.rng.random())).collect();
         order.sort_by_key(|&(c, r)| (counts[c], r));
-        let min_dist2 = self.config.min_feature_distance.powi(2);
-        let mut taken: Vec<DVec2> = predicted;
+        let mut taken = Occupancy::new(w, h, self.config.min_feature_distance);
+        for uv in &predicted {
+            taken.insert(*uv);
+        }
         let mut added = 0;
+        let mut pending = Vec::new();
         loop {
             let before = added;
             for &(c, _) in &order {
@@ -820,14 +921,10 @@ impl MonoSlam {
                 let Some(list) = cells[c].as_mut() else {
                     continue;
                 };
-                while let Some(pos) = list.iter().position(|uv| {
-                    taken
-                        .iter()
-                        .all(|t| (*t - *uv).length_squared() > min_dist2)
-                }) {
+                while let Some(pos) = list.iter().position(|uv| taken.is_free(*uv)) {
                     let uv = list.remove(pos);
-                    if self.add_feature(image, uv) {
-                        taken.push(uv);
+                    if self.add_feature(image, uv, &mut pending) {
+                        taken.insert(uv);
                         added += 1;
                         break;
                     }
@@ -837,11 +934,60 @@ impl MonoSlam {
                 break;
             }
         }
+        self.extend_covariance(&pending);
         added
     }
 
-    /// Adds a landmark at pixel `uv` with its covariance (eq. 2.44-2.50).
-    fn add_feature(&mut self, image: &ImageF32, uv: DVec2) -> bool {
+    /// Grows the covariance by the landmarks in `pending` (in the order they were pushed to
+    /// `features`), in one allocation. Each new landmark `y_j = g(camera pose, pixel_j,
+    /// rho_j)` has `cov(y_j, x) = J_j P[pose, x]` with every old state entry `x`,
+    /// `cov(y_j, y_i) = J_j P_pose J_i^T` with another new landmark, and its own block.
+    fn extend_covariance(&mut self, pending: &[NewLandmark]) {
+        if pending.is_empty() {
+            return;
+        }
+        let n = self.cov.nrows();
+        let total = n + LANDMARK_DIM * pending.len();
+        let pcc = SMatrix::<f64, 6, 6>::from_fn(|r, c| self.cov[(r, c)]);
+        let old = self.cov.as_slice();
+        let mut data = vec![0.0f64; total * total];
+        for c in 0..n {
+            data[c * total..c * total + n].copy_from_slice(&old[c * n..(c + 1) * n]);
+        }
+        for (j, (jc_j, block)) in pending.iter().enumerate() {
+            let o = n + LANDMARK_DIM * j;
+            // Rows o..o+6 against the old state: J_j P[0..6, c] for every old column c.
+            for c in 0..n {
+                let p = SMatrix::<f64, 6, 1>::from_fn(|r, _| old[c * n + r]);
+                let v = jc_j * p;
+                for r in 0..LANDMARK_DIM {
+                    data[c * total + o + r] = v[r];
+                    data[(o + r) * total + c] = v[r];
+                }
+            }
+            for (i, (jc_i, _)) in pending.iter().enumerate().take(j) {
+                let oi = n + LANDMARK_DIM * i;
+                let cross = jc_j * pcc * jc_i.transpose();
+                for r in 0..LANDMARK_DIM {
+                    for c in 0..LANDMARK_DIM {
+                        data[(oi + c) * total + o + r] = cross[(r, c)];
+                        data[(o + r) * total + oi + c] = cross[(r, c)];
+                    }
+                }
+            }
+            for r in 0..LANDMARK_DIM {
+                for c in 0..LANDMARK_DIM {
+                    data[(o + c) * total + o + r] = block[(r, c)];
+                }
+            }
+        }
+        self.cov = DMatrix::from_vec(total, total, data);
+    }
+
+    /// Adds a landmark at pixel `uv` (eq. 2.44-2.50). Its initialisation Jacobian with
+    /// respect to the camera pose and its own covariance block go to `pending`; the
+    /// covariance grows by [`Self::extend_covariance`] once all of a frame's landmarks are in.
+    fn add_feature(&mut self, image: &ImageF32, uv: DVec2, pending: &mut Vec<NewLandmark>) -> bool {
         let Some(patch) = FeaturePatch::new(
             image,
             &self.camera,
@@ -862,24 +1008,14 @@ impl MonoSlam {
         ) else {
             return false;
         };
-        let n = self.cov.nrows();
-        let jc = DMatrix::from_iterator(6, 6, init.d_camera.iter().copied());
-        let ju = DMatrix::from_iterator(6, 2, init.d_pixel.iter().copied());
-        let jr = DMatrix::from_iterator(6, 1, init.d_rho.iter().copied());
-        // Cross covariance with everything: J_c P[cam, :].
-        let p_cam_all = self.cov.rows(0, 6).clone_owned();
-        let cross = &jc * &p_cam_all; // 6 x n
-        let pcc = self.cov.view((0, 0), (6, 6)).clone_owned();
+        let jc = SMatrix::<f64, 6, 6>::from_iterator(init.d_camera.iter().copied());
+        let ju = SMatrix::<f64, 6, 2>::from_iterator(init.d_pixel.iter().copied());
+        let jr = SMatrix::<f64, 6, 1>::from_iterator(init.d_rho.iter().copied());
+        let pcc = SMatrix::<f64, 6, 6>::from_fn(|r, c| self.cov[(r, c)]);
         let sp = self.config.sigma_pixel * self.config.sigma_pixel;
         let sr = self.config.sigma_inverse_depth * self.config.sigma_inverse_depth;
-        let block =
-            &jc * pcc * jc.transpose() + &ju * ju.transpose() * sp + &jr * jr.transpose() * sr;
-        let mut cov = DMatrix::zeros(n + 6, n + 6);
-        cov.view_mut((0, 0), (n, n)).copy_from(&self.cov);
-        cov.view_mut((n, 0), (6, n)).copy_from(&cross);
-        cov.view_mut((0, n), (n, 6)).copy_from(&cross.transpose());
-        cov.view_mut((n, n), (6, 6)).copy_from(&block);
-        self.cov = cov;
+        let block = jc * pcc * jc.transpose() + ju * ju.transpose() * sp + jr * jr.transpose() * sr;
+        pending.push((jc, block));
         self.features.push(Feature {
             id: self.next_id,
             landmark: init.landmark,
@@ -894,6 +1030,136 @@ impl MonoSlam {
     }
 }
 
+/// Copies the strict lower triangle of the column-major `n x n` matrix in `data` onto the
+/// upper one, by square tiles so that both the reads and the writes stay in cache.
+fn mirror_lower(data: &mut [f64], n: usize) {
+    const TILE: usize = 64;
+    let mut tile = [0.0f64; TILE * TILE];
+    for cb in (0..n).step_by(TILE) {
+        let ce = (cb + TILE).min(n);
+        for rb in (cb..n).step_by(TILE) {
+            let re = (rb + TILE).min(n);
+            // Gather the tile (rows rb..re, columns cb..ce) of the lower triangle by columns,
+            // transposed, then write it as the tile (rows cb..ce, columns rb..re) of the upper
+            // one, column by column: contiguous reads and writes.
+            for c in cb..ce {
+                for (r, v) in (rb..re).zip(&data[c * n + rb..c * n + re]) {
+                    tile[(r - rb) * TILE + c - cb] = *v;
+                }
+            }
+            for r in rb..re {
+                // Upper entries (c, r) with c < r only; the diagonal tile keeps its lower half.
+                let cend = ce.min(r);
+                if cend <= cb {
+                    continue;
+                }
+                let src = &tile[(r - rb) * TILE..(r - rb) * TILE + cend - cb];
+                data[r * n + cb..r * n + cend].copy_from_slice(src);
+            }
+        }
+    }
+}
+
 fn ms(t0: Instant) -> f64 {
     t0.elapsed().as_secs_f64() * 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lcg(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (*state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    }
+
+    #[test]
+    fn mirror_lower_makes_the_matrix_symmetric_from_its_lower_triangle() {
+        let mut state = 3;
+        for n in [1usize, 2, 63, 64, 65, 130, 200] {
+            let lower: Vec<f64> = (0..n * n).map(|_| lcg(&mut state)).collect();
+            let mut data = lower.clone();
+            mirror_lower(&mut data, n);
+            for c in 0..n {
+                for r in 0..n {
+                    let want = if r >= c {
+                        lower[c * n + r]
+                    } else {
+                        lower[r * n + c]
+                    };
+                    assert_eq!(data[c * n + r], want, "n {n} ({r}, {c})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn occupancy_agrees_with_the_brute_force_distance_test() {
+        let mut state = 5;
+        let mut occ = Occupancy::new(200, 150, 12.0);
+        let mut taken: Vec<DVec2> = Vec::new();
+        for _ in 0..60 {
+            let uv = DVec2::new(
+                (lcg(&mut state) + 0.5) * 199.0,
+                (lcg(&mut state) + 0.5) * 149.0,
+            );
+            occ.insert(uv);
+            taken.push(uv);
+        }
+        for _ in 0..5000 {
+            let uv = DVec2::new(
+                (lcg(&mut state) + 0.5) * 199.0,
+                (lcg(&mut state) + 0.5) * 149.0,
+            );
+            let brute = taken.iter().all(|t| (*t - uv).length_squared() > 144.0);
+            assert_eq!(occ.is_free(uv), brute, "{uv:?}");
+        }
+    }
+
+    #[test]
+    fn batched_landmark_insertion_is_the_linearised_joint_covariance() {
+        // Old state: camera (12) + 2 landmarks; three new landmarks y_j = J_j x_pose + e_j,
+        // cov(e_j) = N_j. The batched covariance must equal G diag(P, N_1, N_2, N_3) G^T.
+        let camera = UnifiedCamera::new(0.0, 100.0, 39.5, 29.5, 80, 60);
+        let mut slam = MonoSlam::new(camera, MonoConfig::default()).unwrap();
+        let mut state = 11;
+        let n = CAMERA_DIM + 2 * LANDMARK_DIM;
+        let a = DMatrix::from_fn(n, n, |_, _| lcg(&mut state));
+        let p = &a * a.transpose() + DMatrix::identity(n, n);
+        slam.cov = p.clone();
+        let pcc = SMatrix::<f64, 6, 6>::from_fn(|r, c| p[(r, c)]);
+        let mut pending = Vec::new();
+        let mut noises = Vec::new();
+        for _ in 0..3 {
+            let jc = SMatrix::<f64, 6, 6>::from_fn(|_, _| lcg(&mut state));
+            let b = SMatrix::<f64, 6, 6>::from_fn(|_, _| lcg(&mut state));
+            let noise = b * b.transpose() + SMatrix::<f64, 6, 6>::identity() * 0.1;
+            pending.push((jc, jc * pcc * jc.transpose() + noise));
+            noises.push(noise);
+        }
+        slam.extend_covariance(&pending);
+        let total = n + 18;
+        let mut g = DMatrix::zeros(total, total);
+        let mut aug = DMatrix::zeros(total, total);
+        aug.view_mut((0, 0), (n, n)).copy_from(&p);
+        for k in 0..n {
+            g[(k, k)] = 1.0;
+        }
+        for (j, ((jc, _), noise)) in pending.iter().zip(&noises).enumerate() {
+            let o = n + 6 * j;
+            for r in 0..6 {
+                for c in 0..6 {
+                    g[(o + r, c)] = jc[(r, c)];
+                    aug[(o + r, o + c)] = noise[(r, c)];
+                }
+                g[(o + r, o + r)] = 1.0;
+            }
+        }
+        let want = &g * aug * g.transpose();
+        assert_eq!(slam.cov.nrows(), total);
+        let err = (&slam.cov - &want).abs().max();
+        assert!(err < 1e-9 * want.abs().max(), "{err}");
+    }
 }

@@ -125,6 +125,185 @@ impl Template {
         // The template has zero mean, so the image mean drops out of the cross term.
         Some(st / var.sqrt())
     }
+
+    /// ZNCC at every integer pixel of the window `[x0, x1] x [y0, y1]` (inclusive), row-major
+    /// with `x1 - x0 + 1` columns; `NEG_INFINITY` where the patch leaves the image.
+    ///
+    /// Equal, bit for bit, to [`Template::correlate_at`] at each pixel (the same sums in the
+    /// same order), but computed a window row at a time with the template sweeping whole
+    /// rows, which the compiler vectorises.
+    pub fn correlate_window(&self, img: &ImageF32, x0: i64, y0: i64, x1: i64, y1: i64) -> Vec<f64> {
+        let (bw, bh) = ((x1 - x0 + 1).max(0) as usize, (y1 - y0 + 1).max(0) as usize);
+        let mut out = vec![f64::NEG_INFINITY; bw * bh];
+        let h = self.half as i64;
+        let (w, hh) = (img.width as i64, img.height as i64);
+        let (vx0, vx1) = (x0.max(h), x1.min(w - 1 - h));
+        let (vy0, vy1) = (y0.max(h), y1.min(hh - 1 - h));
+        if vx0 > vx1 || vy0 > vy1 {
+            return out;
+        }
+        let vw = (vx1 - vx0 + 1) as usize;
+        for y in vy0..=vy1 {
+            let top = (y - h) as usize * img.width + (vx0 - h) as usize;
+            let base = (y - y0) as usize * bw + (vx0 - x0) as usize;
+            zncc_row(
+                &img.data,
+                img.width,
+                top,
+                &self.values,
+                self.half,
+                &mut out[base..base + vw],
+            );
+        }
+        out
+    }
+}
+
+/// Positions per step of [`zncc_row_avx2`]: their three sums stay in registers.
+const LANES: usize = 8;
+
+/// ZNCC of the zero-mean unit-norm `values` (side `2 half + 1`) against the image patches
+/// whose top-left corners are `data[top + k]`, `k < out.len()`, in an image `width` wide.
+fn zncc_row(data: &[f32], width: usize, top: usize, values: &[f64], half: usize, out: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports the feature enabled on `zncc_row_avx2`.
+            unsafe { zncc_row_avx2(data, width, top, values, half, out) };
+            return;
+        }
+    }
+    zncc_row_body(data, width, top, values, half, out);
+}
+
+/// AVX2 copy of [`zncc_row_body`]: [`LANES`] positions per step; a tail shorter than that
+/// is covered by one more step ending at the last position (lanes are independent, so the
+/// positions computed twice get the same values).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn zncc_row_avx2(
+    data: &[f32],
+    width: usize,
+    top: usize,
+    values: &[f64],
+    half: usize,
+    out: &mut [f64],
+) {
+    let len = out.len();
+    if len < LANES {
+        zncc_row_body(data, width, top, values, half, out);
+        return;
+    }
+    let mut k0 = 0;
+    loop {
+        let start = k0.min(len - LANES);
+        let mut block = [0.0f64; LANES];
+        if !zncc_block_avx2(data, width, top + start, values, half, &mut block) {
+            zncc_row_body(data, width, top + start, values, half, &mut out[start..]);
+            return;
+        }
+        out[start..start + LANES].copy_from_slice(&block);
+        k0 += LANES;
+        if start + LANES == len {
+            return;
+        }
+    }
+}
+
+/// ZNCC at the [`LANES`] positions whose patches start at `data[top..top + LANES]`, in
+/// four-lane registers with separate multiplies and adds (no FMA), so that every sum rounds
+/// as in [`zncc_row_body`]. False (and nothing written) when a patch would leave `data`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn zncc_block_avx2(
+    data: &[f32],
+    width: usize,
+    top: usize,
+    values: &[f64],
+    half: usize,
+    out: &mut [f64; LANES],
+) -> bool {
+    use std::arch::x86_64::{
+        _mm256_add_pd, _mm256_castps256_ps128, _mm256_cvtps_pd, _mm256_extractf128_ps,
+        _mm256_loadu_ps, _mm256_mul_pd, _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd,
+    };
+    let side = 2 * half + 1;
+    if values.len() < side * side || top + (side - 1) * (width + 1) + LANES > data.len() {
+        return false;
+    }
+    let z = _mm256_setzero_pd();
+    let (mut s0, mut s1, mut q0, mut q1, mut t0, mut t1) = (z, z, z, z, z, z);
+    for j in 0..side {
+        let row = top + j * width;
+        for (i, t) in values[j * side..(j + 1) * side].iter().enumerate() {
+            // SAFETY: row + i + LANES <= data.len() by the check above.
+            let v = unsafe { _mm256_loadu_ps(data.as_ptr().add(row + i)) };
+            let lo = _mm256_cvtps_pd(_mm256_castps256_ps128(v));
+            let hi = _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
+            let tv = _mm256_set1_pd(*t);
+            s0 = _mm256_add_pd(s0, lo);
+            s1 = _mm256_add_pd(s1, hi);
+            q0 = _mm256_add_pd(q0, _mm256_mul_pd(lo, lo));
+            q1 = _mm256_add_pd(q1, _mm256_mul_pd(hi, hi));
+            t0 = _mm256_add_pd(t0, _mm256_mul_pd(lo, tv));
+            t1 = _mm256_add_pd(t1, _mm256_mul_pd(hi, tv));
+        }
+    }
+    let (mut s, mut ss, mut st) = ([0.0f64; LANES], [0.0f64; LANES], [0.0f64; LANES]);
+    // SAFETY: each array holds LANES = 8 f64: two stores of 4.
+    unsafe {
+        _mm256_storeu_pd(s.as_mut_ptr(), s0);
+        _mm256_storeu_pd(s.as_mut_ptr().add(4), s1);
+        _mm256_storeu_pd(ss.as_mut_ptr(), q0);
+        _mm256_storeu_pd(ss.as_mut_ptr().add(4), q1);
+        _mm256_storeu_pd(st.as_mut_ptr(), t0);
+        _mm256_storeu_pd(st.as_mut_ptr().add(4), t1);
+    }
+    let n = (side * side) as f64;
+    for l in 0..LANES {
+        out[l] = zncc_score(s[l], ss[l], st[l], n);
+    }
+    true
+}
+
+/// ZNCC from the sums of a patch of `n` pixels against a zero-mean unit-norm template.
+#[inline(always)]
+fn zncc_score(s: f64, ss: f64, st: f64, n: f64) -> f64 {
+    let var = ss - s * s / n;
+    if var <= 1e-9 * n {
+        0.0
+    } else {
+        st / var.sqrt()
+    }
+}
+
+/// The sums of [`Template::correlate_at`] (same terms, same order), one position at a time.
+fn zncc_row_body(
+    data: &[f32],
+    width: usize,
+    top: usize,
+    values: &[f64],
+    half: usize,
+    out: &mut [f64],
+) {
+    let side = 2 * half + 1;
+    let n = (side * side) as f64;
+    for (k, o) in out.iter_mut().enumerate() {
+        let (mut s, mut ss, mut st) = (0.0f64, 0.0f64, 0.0f64);
+        for j in 0..side {
+            let row = top + j * width + k;
+            for (p, t) in data[row..row + side]
+                .iter()
+                .zip(&values[j * side..(j + 1) * side])
+            {
+                let p = f64::from(*p);
+                s += p;
+                ss += p * p;
+                st += p * t;
+            }
+        }
+        *o = zncc_score(s, ss, st, n);
+    }
 }
 
 /// The big patch kept from a feature's initialisation.
@@ -248,6 +427,43 @@ mod tests {
             }
         }
         img
+    }
+
+    #[test]
+    fn window_correlation_equals_pointwise_correlation_bit_for_bit() {
+        // Noisy non-integer intensities, windows inside, across every border and wider than
+        // one AVX2 step with tails of every length.
+        let (w, h) = (53, 41);
+        let mut img = textured(w, h);
+        let mut state = 12345u32;
+        for v in &mut img.data {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            *v += (state >> 8) as f32 / (1u32 << 24) as f32 * 7.3;
+        }
+        for half in [1usize, 2, 5] {
+            let side = 2 * half + 1;
+            let patch: Vec<f32> = (0..side * side)
+                .map(|k| img.data[(10 + k / side) * w + 7 + k % side])
+                .collect();
+            let t = Template::new(&patch, half).unwrap();
+            for &(x0, y0, x1, y1) in &[
+                (-4i64, -3i64, 20i64, 9i64),
+                (10, 10, 10, 10),
+                (3, 5, 19, 6),
+                (30, 28, 60, 50),
+                (0, 0, 52, 40),
+                (5, 7, 5 + 8, 8),
+                (6, 2, 6 + 22, 30),
+            ] {
+                let got = t.correlate_window(&img, x0, y0, x1, y1);
+                let bw = (x1 - x0 + 1) as usize;
+                for (k, g) in got.iter().enumerate() {
+                    let (x, y) = (x0 + (k % bw) as i64, y0 + (k / bw) as i64);
+                    let want = t.correlate_at(&img, x, y).unwrap_or(f64::NEG_INFINITY);
+                    assert_eq!(g.to_bits(), want.to_bits(), "half {half} at ({x}, {y})");
+                }
+            }
+        }
     }
 
     #[test]
