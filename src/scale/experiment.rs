@@ -2,14 +2,19 @@
 //!
 //! For each sequence (head / chest mount with pace changes and stops, frequent stops, stairs)
 //! and seed: the ground truth comes from [`crate::synth::Trajectory::walking`] at `fps`; the
-//! monocular estimate from [`emulate_monocular`] (pose noise, unknown global scale drawn
-//! log-uniformly in [0.2, 5] metres per unit, log-scale random walk); then four variants are
+//! monocular estimate either from [`emulate_monocular`] (pose noise, unknown global scale
+//! drawn log-uniformly in [0.2, 5] metres per unit, log-scale random walk) or, with
+//! [`Estimator::Monocular`], from the monocular EKF ([`crate::mono::MonoSlam`]) run on the
+//! catadioptric images the generator renders along the walk (its own scale drift; the same
+//! random global unit is applied on top). Then four variants are
 //! evaluated on keyframes (every `keyframe_stride`-th frame) by normalised arc length:
 //! `unscaled` (the estimate), `optimSim3` (loop closure only), `dynScale` (Algorithm 1) and
 //! `dynScale+optimSim3` (loop closure on the rescaled estimate, keeping its metric scale by
 //! weak per-second scale priors). Also measured: step
 //! frequency error in windows of steady walking, stop detection, and the scale error of each
 //! walking section against the true local scale (geometric mean over its window).
+
+use std::sync::Arc;
 
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -19,9 +24,13 @@ use super::dynscale::{DynScale, DynScaleConfig, DynScaleResult};
 use super::loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
 use super::metric::{arc_length_error, ArcLengthError};
 use super::ScaleError;
+use crate::camera::UnifiedCamera;
+use crate::geometry::Se3;
 use crate::io::trajectory::TimedPose;
+use crate::mono::{MonoConfig, MonoSlam};
 use crate::synth::trajectory::{Mount, PaceSegment, WalkingParams};
-use crate::synth::{Scene, Trajectory};
+use crate::synth::Trajectory;
+use crate::synth::{CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig};
 
 /// A generated walking sequence.
 #[derive(Clone, Debug)]
@@ -87,9 +96,41 @@ pub fn standard_sequences(duration: f64) -> Vec<SequenceSpec> {
     ]
 }
 
+/// Where the monocular estimate of a walk comes from.
+#[derive(Clone, Debug)]
+pub enum Estimator {
+    /// Ground truth with emulated drift ([`ExperimentConfig::drift`]).
+    Emulated,
+    /// The monocular EKF on rendered catadioptric images.
+    Monocular(MonoEstimator),
+}
+
+/// Settings of [`Estimator::Monocular`].
+#[derive(Clone, Debug)]
+pub struct MonoEstimator {
+    /// Side of the square catadioptric image ([`UnifiedCamera::catadioptric`]), pixels.
+    pub size: u32,
+    /// The filter's settings.
+    pub config: MonoConfig,
+    /// Kinect-like sensor noise on the rendered images (false: noiseless).
+    pub noise: bool,
+}
+
+impl Default for MonoEstimator {
+    fn default() -> Self {
+        MonoEstimator {
+            size: 400,
+            config: MonoConfig::default(),
+            noise: true,
+        }
+    }
+}
+
 /// Settings of one experiment run.
 #[derive(Clone, Debug)]
 pub struct ExperimentConfig {
+    /// Source of the monocular estimate.
+    pub estimator: Estimator,
     /// Frame rate, frames per second.
     pub fps: f64,
     /// Keyframe stride for the pose graph and the error metric.
@@ -112,6 +153,7 @@ pub struct ExperimentConfig {
 impl Default for ExperimentConfig {
     fn default() -> Self {
         ExperimentConfig {
+            estimator: Estimator::Emulated,
             fps: 30.0,
             keyframe_stride: 3,
             scene: "office".into(),
@@ -134,7 +176,7 @@ pub struct RunReport {
     pub sequence: String,
     /// Seed.
     pub seed: u64,
-    /// The unknown global scale of the emulated estimate, metres per unit.
+    /// The unknown global scale of the estimate at its first frame, metres per unit.
     pub initial_scale: f64,
     /// Number of loop closures.
     pub loops: usize,
@@ -158,27 +200,215 @@ pub struct RunReport {
     pub true_frequency: Vec<(f64, f64)>,
 }
 
-/// Runs one sequence with one seed.
+/// Runs one sequence with one seed: [`estimate_sequence`] then [`evaluate_run`].
 pub fn run_sequence(
     spec: &SequenceSpec,
     seed: u64,
     cfg: &ExperimentConfig,
 ) -> Result<RunReport, ScaleError> {
+    let run = estimate_sequence(spec, seed, cfg, &mut |_, _| {})?;
+    evaluate_run(spec, seed, run, cfg)
+}
+
+/// The ground truth and the monocular estimate of one sequence and seed (by
+/// [`ExperimentConfig::estimator`]). `progress(frame, frames)` is called per frame by the
+/// monocular estimator.
+pub fn estimate_sequence(
+    spec: &SequenceSpec,
+    seed: u64,
+    cfg: &ExperimentConfig,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EmulatedRun, ScaleError> {
     let scene = Scene::preset(&cfg.scene, seed).map_err(|e| ScaleError::InvalidParameter {
         name: "scene",
         why: e.to_string(),
     })?;
     let traj = Trajectory::walking(&scene, spec.params.clone(), spec.duration, seed);
     let frames = (spec.duration * cfg.fps).floor() as usize;
-    let gt = traj.sample(frames, cfg.fps, 0.0);
     let mut rng = Pcg64::seed_from_u64(seed ^ 0x51ca);
     let initial_scale = 10f64.powf(rng.random_range(-0.7..0.7));
-    let drift = DriftModel {
-        initial_scale,
+    match &cfg.estimator {
+        Estimator::Emulated => {
+            let gt = traj.sample(frames, cfg.fps, 0.0);
+            let drift = DriftModel {
+                initial_scale,
+                seed,
+                ..cfg.drift.clone()
+            };
+            Ok(emulate_monocular(&gt, &drift))
+        }
+        Estimator::Monocular(m) => {
+            let run = monocular_run(scene, traj, frames, cfg.fps, seed, m, progress)?;
+            // A random unit on top of the filter's own (its nominal scale is set by the
+            // initial inverse depth): the scale must be found, not assumed.
+            let unit = initial_scale / run.true_scale[0];
+            Ok(EmulatedRun {
+                est: run
+                    .est
+                    .iter()
+                    .map(|p| TimedPose {
+                        timestamp: p.timestamp,
+                        world_from_camera: Se3::new(
+                            p.world_from_camera.rotation,
+                            p.world_from_camera.translation / unit,
+                        ),
+                    })
+                    .collect(),
+                true_scale: run.true_scale.iter().map(|s| s * unit).collect(),
+                gt: run.gt,
+            })
+        }
+    }
+}
+
+/// Renders `frames` catadioptric images along `traj` and runs the monocular EKF on them.
+/// The true local scale of each estimated pose is measured against the ground truth by
+/// [`local_scale`].
+fn monocular_run(
+    scene: Scene,
+    traj: Trajectory,
+    frames: usize,
+    fps: f64,
+    seed: u64,
+    m: &MonoEstimator,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EmulatedRun, ScaleError> {
+    let camera = UnifiedCamera::catadioptric(m.size, m.size);
+    let config = SequenceConfig {
+        frames,
+        fps,
+        start_time: 0.0,
+        sensor: if m.noise {
+            SensorModel::kinect()
+        } else {
+            SensorModel::noiseless()
+        },
         seed,
-        ..cfg.drift.clone()
+        exposure_changes: false,
+        motion_blur: 0,
+        exposure_time: 1.0 / 60.0,
     };
-    let run = emulate_monocular(&gt, &drift);
+    let mono_err = |what: String| ScaleError::Monocular(what);
+    let mut seq = Sequence::new(
+        Arc::new(scene),
+        CameraModel::Unified(camera),
+        traj,
+        config,
+        &RenderBackend::Cpu,
+    )
+    .map_err(|e| mono_err(format!("renderer: {e}")))?;
+    let mut slam = MonoSlam::new(camera, m.config.clone()).map_err(|e| mono_err(e.to_string()))?;
+    let (mut gt, mut est) = (Vec::with_capacity(frames), Vec::with_capacity(frames));
+    for i in 0..frames {
+        let f = seq
+            .render_frame(i)
+            .map_err(|e| mono_err(format!("rendering frame {i}: {e}")))?;
+        let r = slam
+            .process(f.timestamp, &f.frame.intensity)
+            .map_err(|e| mono_err(format!("frame {i} ({:.2} s): {e}", f.timestamp)))?;
+        gt.push(TimedPose {
+            timestamp: f.timestamp,
+            world_from_camera: f.world_from_camera,
+        });
+        est.push(TimedPose {
+            timestamp: f.timestamp,
+            world_from_camera: r.world_from_camera,
+        });
+        progress(i + 1, frames);
+    }
+    let true_scale = local_scale(&gt, &est, 2.0)?;
+    Ok(EmulatedRun {
+        gt,
+        est,
+        true_scale,
+    })
+}
+
+/// The local scale of an estimate, metres per estimate unit, at each pose: the ground truth's
+/// path length over the estimate's within `half_window` seconds either side, both measured
+/// on positions 0.5 s apart (so that per-frame noise does not add length). Poses whose window
+/// moves less than 0.3 m (standing) take the value of the nearest pose that moved.
+pub fn local_scale(
+    gt: &[TimedPose],
+    est: &[TimedPose],
+    half_window: f64,
+) -> Result<Vec<f64>, ScaleError> {
+    if gt.len() != est.len() || gt.len() < 2 {
+        return Err(ScaleError::InvalidParameter {
+            name: "trajectories",
+            why: format!(
+                "need two equally long trajectories of >= 2 poses (gt {}, est {})",
+                gt.len(),
+                est.len()
+            ),
+        });
+    }
+    let n = gt.len();
+    let t = |k: usize| gt[k].timestamp;
+    let path = |v: &[TimedPose], a: usize, b: usize| {
+        let (mut len, mut last) = (0.0, a);
+        for k in a + 1..=b {
+            if t(k) - t(last) >= 0.5 || k == b {
+                len += (v[k].world_from_camera.translation - v[last].world_from_camera.translation)
+                    .length();
+                last = k;
+            }
+        }
+        len
+    };
+    let (mut a, mut b) = (0usize, 0usize);
+    let mut raw: Vec<Option<f64>> = Vec::with_capacity(n);
+    for k in 0..n {
+        while t(k) - t(a) > half_window {
+            a += 1;
+        }
+        while b + 1 < n && t(b + 1) - t(k) <= half_window {
+            b += 1;
+        }
+        let (lg, le) = (path(gt, a, b), path(est, a, b));
+        raw.push((lg >= 0.3 && le > 1e-12 && (lg / le).is_finite()).then(|| lg / le));
+    }
+    if raw.iter().all(Option::is_none) {
+        return Err(ScaleError::NoWalking { windows: n });
+    }
+    // Fill the standing poses from the nearest moving pose (earlier one on ties).
+    let mut prev: Vec<Option<(usize, f64)>> = Vec::with_capacity(n);
+    let mut last = None;
+    for (k, r) in raw.iter().enumerate() {
+        if let Some(v) = r {
+            last = Some((k, *v));
+        }
+        prev.push(last);
+    }
+    let mut out = vec![0.0; n];
+    let mut next: Option<(usize, f64)> = None;
+    for k in (0..n).rev() {
+        if let Some(v) = raw[k] {
+            next = Some((k, v));
+        }
+        out[k] = match (prev[k], next) {
+            (Some((i, v)), Some((j, w))) => {
+                if k - i <= j - k {
+                    v
+                } else {
+                    w
+                }
+            }
+            (Some((_, v)), None) | (None, Some((_, v))) => v,
+            (None, None) => 1.0,
+        };
+    }
+    Ok(out)
+}
+
+/// Evaluates one estimated run of `spec` (the four variants, frequency, stops, scale).
+pub fn evaluate_run(
+    spec: &SequenceSpec,
+    seed: u64,
+    run: EmulatedRun,
+    cfg: &ExperimentConfig,
+) -> Result<RunReport, ScaleError> {
+    let initial_scale = run.true_scale.first().copied().unwrap_or(f64::NAN);
     let mut dcfg = cfg.dynscale.clone();
     dcfg.fps = cfg.fps;
     dcfg.seed = seed ^ 0xf11e;

@@ -83,6 +83,9 @@ pub enum ScaleError {
     /// Non-finite values in the input.
     #[error("non-finite value in {0}")]
     NonFinite(String),
+    /// The monocular estimator (rendering or the EKF) failed.
+    #[error("monocular estimate: {0}")]
+    Monocular(String),
     /// The Sim(3) pose-graph optimisation failed.
     #[error("pose graph: {0}")]
     Graph(#[from] crate::graph::GraphError),
