@@ -9,8 +9,8 @@ use rgbid::scale::experiment::{
     local_scale, run_sequence, standard_sequences, Estimator, ExperimentConfig, MonoEstimator,
 };
 use rgbid::scale::{
-    emulate_monocular, DriftModel, DynScale, DynScaleConfig, HighPass, ScaleError, SpectrumConfig,
-    StepAnalysis,
+    emulate_monocular, DriftModel, DynScale, DynScaleConfig, HighPass, LiveDynScale, ScaleError,
+    SpectrumConfig, StepAnalysis, UpAxis,
 };
 use rgbid::synth::{Scene, Trajectory};
 
@@ -80,6 +80,61 @@ fn walk(seed: u64, duration: f64) -> (Vec<TimedPose>, rgbid::synth::trajectory::
         traj.sample((duration * 30.0) as usize, 30.0, 0.0),
         spec.params.clone(),
     )
+}
+
+#[test]
+fn live_scale_reports_the_offline_sections_as_they_close() {
+    // A standing start (the head sequence stands from 16 to 24 s; start at 18 s), then walking.
+    let (gt, _) = walk(6, 40.0);
+    let run = emulate_monocular(
+        &gt,
+        &DriftModel {
+            initial_scale: 0.6,
+            seed: 6,
+            ..DriftModel::default()
+        },
+    );
+    let est: Vec<TimedPose> = run.est[18 * 30..].to_vec();
+    let mut cfg = DynScaleConfig::new(1.80, 30.0);
+    cfg.filter.particles = 1000;
+    let offline = DynScale::new(cfg.clone()).unwrap().run(&est).unwrap();
+    let mut live = LiveDynScale::new(cfg.clone()).unwrap();
+    let mut reported = Vec::new();
+    let mut first_scale_at = None;
+    for p in &est {
+        let closed = live.push(*p).unwrap();
+        if first_scale_at.is_none() && live.scale().is_some_and(f64::is_finite) {
+            first_scale_at = Some(p.timestamp);
+        }
+        reported.extend(closed);
+    }
+    // Every section is reported once, in order, with the offline flags; once a scale exists
+    // it is the offline one, bit for bit.
+    let full: Vec<_> = offline
+        .sections
+        .iter()
+        .filter(|s| reported.iter().any(|r| r.t_end == s.t_end))
+        .collect();
+    assert!(reported.len() >= 15, "{} sections", reported.len());
+    assert_eq!(full.len(), reported.len());
+    for (r, o) in reported.iter().zip(&full) {
+        assert_eq!(r.walking, o.walking, "at {} s", r.t_end);
+        if r.scale.is_finite() && r.walking {
+            assert_eq!(r.scale, o.scale, "at {} s", r.t_end);
+        }
+    }
+    // Standing for 6 s: no scale before walking starts (24 s).
+    let first = first_scale_at.unwrap();
+    assert!(
+        first > 24.0 && first < 24.0 + 6.0,
+        "first scale at {first} s"
+    );
+    assert!(live.scaled_pose().is_some());
+    // Bad input is an error, not a panic, and the estimator keeps its state.
+    let last = *est.last().unwrap();
+    assert!(matches!(live.push(last), Err(ScaleError::BadTimestamps(_))));
+    cfg.up = UpAxis::Auto;
+    assert!(LiveDynScale::new(cfg).is_err());
 }
 
 #[test]

@@ -323,6 +323,17 @@ impl DynScale {
     /// Runs Algorithm 1 over `traj` (`world_from_camera`, time stamps in seconds, strictly
     /// increasing) and returns the sections and the scaled trajectory.
     pub fn run(&self, traj: &[TimedPose]) -> Result<DynScaleResult, ScaleError> {
+        let (sections, scales, up) = self.analyse(traj)?;
+        self.finish(traj, sections, scales, up)
+    }
+
+    /// The sections of Algorithm 1 (analysis, walking, filter update) with the filter's
+    /// estimate after each (`None` before the first update), and the up axis; the sections'
+    /// `scale` and origins are not set yet.
+    fn analyse(
+        &self,
+        traj: &[TimedPose],
+    ) -> Result<(Vec<Section>, Vec<Option<f64>>, DVec3), ScaleError> {
         check_trajectory(traj)?;
         let c = &self.cfg;
         let t0 = traj[0].timestamp;
@@ -419,6 +430,21 @@ impl DynScale {
             t_prev = t_end;
             j += 1;
         }
+        Ok((sections, scales, up))
+    }
+
+    /// Sets the sections' scales (backfilled before the first update) and origins, adds the
+    /// tail after the last update, and scales the trajectory.
+    fn finish(
+        &self,
+        traj: &[TimedPose],
+        mut sections: Vec<Section>,
+        mut scales: Vec<Option<f64>>,
+        up: DVec3,
+    ) -> Result<DynScaleResult, ScaleError> {
+        let t0 = traj[0].timestamp;
+        let span = traj[traj.len() - 1].timestamp - t0;
+        let t_prev = sections.last().map_or(t0, |s| s.t_end);
         let windows = sections.len();
         let first = scales
             .iter()
@@ -477,5 +503,120 @@ impl DynScale {
             })
             .collect();
         Ok(result)
+    }
+}
+
+/// Algorithm 1 fed one pose at a time, for a live monocular system: every `t_upd` seconds
+/// of input (once one `t_DFT` window is in) it closes a section and reports its scale.
+///
+/// Each update re-runs [`DynScale::run`] over the poses so far. Everything in it is causal
+/// (resampling from the first time stamp, the forward high-pass, windows that end at the
+/// update time, a seeded particle filter updated in time order), so the sections reported
+/// live are exactly those of an offline run over the whole trajectory. The cost of an update
+/// grows with the length of the walk (one FFT per past section: about 0.1 s of CPU per
+/// update after an hour). The up axis must be fixed: an automatic one would change as the
+/// trajectory grows.
+#[derive(Clone, Debug)]
+pub struct LiveDynScale {
+    estimator: DynScale,
+    poses: Vec<TimedPose>,
+    sections_reported: usize,
+    latest: Option<DynScaleResult>,
+}
+
+impl LiveDynScale {
+    /// A live estimator; `cfg.up` must be [`UpAxis::Fixed`].
+    pub fn new(cfg: DynScaleConfig) -> Result<LiveDynScale, ScaleError> {
+        if matches!(cfg.up, UpAxis::Auto) {
+            return Err(ScaleError::InvalidParameter {
+                name: "up",
+                why: "live scale needs a fixed up axis (auto changes as the trajectory grows)"
+                    .into(),
+            });
+        }
+        Ok(LiveDynScale {
+            estimator: DynScale::new(cfg)?,
+            poses: Vec::new(),
+            sections_reported: 0,
+            latest: None,
+        })
+    }
+
+    /// Adds the next pose (`world_from_camera`, SLAM units; time stamps strictly increasing).
+    /// Returns the sections closed by it (usually none, one per `t_upd` seconds), with their
+    /// walking flag and scale (metres per SLAM unit; before the first walking window the
+    /// scale is NaN and nothing is scaled yet).
+    pub fn push(&mut self, pose: TimedPose) -> Result<Vec<Section>, ScaleError> {
+        if !pose.timestamp.is_finite()
+            || !pose.world_from_camera.translation.is_finite()
+            || !pose.world_from_camera.rotation.is_finite()
+        {
+            return Err(ScaleError::NonFinite(format!(
+                "pose at {} s",
+                pose.timestamp
+            )));
+        }
+        if let Some(last) = self.poses.last() {
+            if pose.timestamp <= last.timestamp {
+                return Err(ScaleError::BadTimestamps(format!(
+                    "{} s after {} s",
+                    pose.timestamp, last.timestamp
+                )));
+            }
+        }
+        self.poses.push(pose);
+        let cfg = self.estimator.config();
+        let t0 = self.poses[0].timestamp;
+        let span = pose.timestamp - t0;
+        if span < cfg.window {
+            return Ok(Vec::new());
+        }
+        // Sections end at t0 + window + j update; the one after the last reported is due?
+        let next_end = t0 + cfg.window + self.sections_reported as f64 * cfg.update;
+        if pose.timestamp + 1e-9 < next_end {
+            return Ok(Vec::new());
+        }
+        let (sections, scales, up) = self.estimator.analyse(&self.poses)?;
+        let new: Vec<Section> = sections[self.sections_reported.min(sections.len())..]
+            .iter()
+            .zip(&scales[self.sections_reported.min(scales.len())..])
+            .map(|(sec, sc)| Section {
+                scale: sc.unwrap_or(f64::NAN),
+                ..*sec
+            })
+            .collect();
+        self.sections_reported = sections.len();
+        if scales.iter().any(Option::is_some) {
+            self.latest = Some(self.estimator.finish(&self.poses, sections, scales, up)?);
+        }
+        Ok(new)
+    }
+
+    /// The latest full result (sections and the scaled trajectory so far); `None` until the
+    /// first walking window.
+    pub fn result(&self) -> Option<&DynScaleResult> {
+        self.latest.as_ref()
+    }
+
+    /// The scale in effect now (metres per SLAM unit); `None` until the first walking window.
+    pub fn scale(&self) -> Option<f64> {
+        self.latest
+            .as_ref()
+            .and_then(|r| r.sections.last())
+            .map(|s| s.scale)
+    }
+
+    /// The latest pose scaled to metres (eq. 3.31-3.32); `None` until the first walking
+    /// window.
+    pub fn scaled_pose(&self) -> Option<TimedPose> {
+        let r = self.latest.as_ref()?;
+        let p = self.poses.last()?;
+        Some(TimedPose {
+            timestamp: p.timestamp,
+            world_from_camera: Se3::new(
+                p.world_from_camera.rotation,
+                r.scale_position(p.timestamp, p.world_from_camera.translation),
+            ),
+        })
     }
 }

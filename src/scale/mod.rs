@@ -38,7 +38,7 @@ pub mod spectrum;
 pub mod walking;
 
 pub use drift::{emulate_monocular, DriftModel, EmulatedRun};
-pub use dynscale::{DynScale, DynScaleConfig, DynScaleResult, Section, UpAxis};
+pub use dynscale::{DynScale, DynScaleConfig, DynScaleResult, LiveDynScale, Section, UpAxis};
 pub use metric::{arc_length_error, ArcLengthError};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
 pub use spectrum::{HighPass, SpectrumConfig, StepAnalysis};

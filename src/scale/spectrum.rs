@@ -177,7 +177,8 @@ pub struct StepAnalysis {
     /// Oscillation amplitude `sqrt(2 peak_power)`, SLAM units.
     pub amplitude: f64,
     /// `peak_power` over the power from the band's bottom up to the Nyquist frequency, in
-    /// [0, 1].
+    /// [0, 1]; 0 when the band's maximum is not a local maximum of the PSD (at a band edge
+    /// with the PSD rising beyond it: no gait peak).
     pub concentration: f64,
 }
 
@@ -218,6 +219,10 @@ impl StepAnalysis {
                 kmax = k;
             }
         }
+        // A gait peak is a local maximum of the PSD; at a band edge, with the PSD still rising
+        // outside the band (the 1/f^2 tail of a drifting estimate at the bottom), there is none.
+        let local_max = (kmax == 0 || psd[kmax] > psd[kmax - 1])
+            && (kmax + 1 >= psd.len() || psd[kmax] > psd[kmax + 1]);
         // Parabolic refinement on the log PSD.
         let mut frequency = kmax as f64 * df;
         if kmax > 0 && kmax + 1 < psd.len() {
@@ -244,7 +249,7 @@ impl StepAnalysis {
         // a 4 s window's power with the EKF) says nothing about steps; broadband noise above
         // it (standing still) spreads the power and keeps the share low.
         let above = sum(cfg.band.0, sample_rate_hz / 2.0);
-        let concentration = if above > 0.0 {
+        let concentration = if above > 0.0 && local_max {
             (peak_power / above).clamp(0.0, 1.0)
         } else {
             0.0
