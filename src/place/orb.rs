@@ -27,10 +27,6 @@ use crate::image::ImageF32;
 /// `sqrt(2) * 13 < 19` pixels from the centre.
 pub const EDGE_THRESHOLD: usize = 19;
 const HALF_PATCH: i32 = 15;
-/// Border (level pixels) inside which no corner is detected, as OpenCV's default
-/// `edgeThreshold`: corners nearer the image edge are less often seen again (the grid of
-/// [`OrbParams::distribute`] and levels too small for it use [`EDGE_THRESHOLD`]).
-const DETECT_BORDER: usize = 31;
 
 /// A 256-bit binary descriptor. Bit `i` (bit `i % 64` of word `i / 64`) is the `i`-th
 /// intensity test of the pattern; the little-endian byte layout equals OpenCV's.
@@ -424,17 +420,6 @@ fn fast_score_exact(vals: &[u8; 16], p: u8) -> u8 {
     bright.max(-dark).clamp(0, 255) as u8
 }
 
-/// The detection border of a `w x h` level: [`DETECT_BORDER`] (OpenCV's) where the level is
-/// large enough, else, and always with the grid of [`OrbParams::distribute`] (ORB-SLAM's),
-/// [`EDGE_THRESHOLD`].
-fn detect_border(w: usize, h: usize, distribute: bool) -> usize {
-    if !distribute && w > 2 * DETECT_BORDER && h > 2 * DETECT_BORDER {
-        DETECT_BORDER
-    } else {
-        EDGE_THRESHOLD
-    }
-}
-
 /// Harris corner response (OpenCV's ORB: 7x7 block of 3x3 Sobel gradients, `k = 0.04`) at
 /// `(x, y)`, which must be at least 4 pixels inside the image.
 fn harris_response(img: &Gray, x: usize, y: usize) -> f32 {
@@ -659,7 +644,7 @@ fn fast_row(
 }
 
 /// FAST corners (score `> t`) of one level inside the keypoint region
-/// `[e, w - e) x [e, h - e)` (`e >= 4`, from [`detect_border`]), after 3x3 non-maximum
+/// `[e, w - e) x [e, h - e)` (`e >= 4`; [`EDGE_THRESHOLD`]), after 3x3 non-maximum
 /// suppression and the mask.
 fn fast_corners(
     img: &Gray,
@@ -754,7 +739,7 @@ fn detect_level(
     mask: Option<&ImageF32>,
 ) -> Vec<Candidate> {
     let (w, h) = (img.width, img.height);
-    let e = detect_border(w, h, params.distribute);
+    let e = EDGE_THRESHOLD;
     if w < 2 * e + 1 || h < 2 * e + 1 || budget == 0 {
         return Vec::new();
     }
@@ -1154,7 +1139,7 @@ mod tests {
             height: h,
             data,
         };
-        let all = fast_corners(&img, 20, DETECT_BORDER, 1.0, None);
+        let all = fast_corners(&img, 20, EDGE_THRESHOLD, 1.0, None);
         let near_strong = |c: &Candidate| {
             strong_squares
                 .iter()
