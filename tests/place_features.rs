@@ -189,9 +189,20 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
         n_features: 400,
         ..Default::default()
     };
+    // The default keeps each level's strongest corners (OpenCV); the grid (ORB-SLAM) spreads
+    // them, so every quadrant gets a share.
+    let default = extract_orb(&img, None, &params).unwrap();
+    assert!(
+        default.len() >= 300 && default.len() <= 400,
+        "{} keypoints",
+        default.len()
+    );
+    let params = OrbParams {
+        distribute: true,
+        ..params
+    };
     let f = extract_orb(&img, None, &params).unwrap();
     assert!(f.len() >= 300 && f.len() <= 400, "{} keypoints", f.len());
-    // Every quadrant gets a share.
     for (qx, qy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
         let n = f
             .keypoints
@@ -209,6 +220,9 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
     // Several pyramid levels are used.
     let levels: std::collections::BTreeSet<u8> = f.keypoints.iter().map(|k| k.level).collect();
     assert!(levels.len() >= 5, "levels used: {levels:?}");
+    let levels: std::collections::BTreeSet<u8> =
+        default.keypoints.iter().map(|k| k.level).collect();
+    assert!(levels.len() >= 5, "levels used by default: {levels:?}");
     // Mask: left half only.
     let mut mask = ImageF32::filled(w, h, 0.0);
     for y in 0..h {
@@ -216,12 +230,18 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
             mask.data[y * w + x] = 1.0;
         }
     }
-    let fm = extract_orb(&img, Some(&mask), &params).unwrap();
-    assert!(fm.len() > 100);
-    assert!(
-        fm.keypoints.iter().all(|k| k.uv.x.round() < (w / 2) as f64),
-        "a keypoint escaped the mask"
-    );
+    for distribute in [false, true] {
+        let params = OrbParams {
+            distribute,
+            ..params.clone()
+        };
+        let fm = extract_orb(&img, Some(&mask), &params).unwrap();
+        assert!(fm.len() > 100);
+        assert!(
+            fm.keypoints.iter().all(|k| k.uv.x.round() < (w / 2) as f64),
+            "a keypoint escaped the mask"
+        );
+    }
 }
 
 #[test]

@@ -2,6 +2,10 @@
 """Compare rgbid's ORB with OpenCV's on a real TUM pair: repeatability under the true motion,
 descriptor-matching precision, and speed per image, measured in the same run.
 
+CASE_DIR holds img_prev.png, img_curr.png, dep_prev.png (16-bit), pose_prev.txt and
+pose_curr.txt (`tx ty tz qx qy qz qw`, camera-to-world), and optionally calib.txt
+(`fx fy cx cy depth_factor`; default: the TUM Kinect intrinsics, depth factor 5000).
+
 usage: /work/.venv-peers/bin/python tests/place_opencv_compare.py [RGBID_BIN] [CASE_DIR]
 (default: target/debug/rgbid, ../shared/data/rgbd/tum_pairs/case_1)
 """
@@ -18,8 +22,13 @@ here = os.path.dirname(os.path.abspath(__file__))
 root = os.path.dirname(here)
 binary = sys.argv[1] if len(sys.argv) > 1 else os.path.join(root, "target/debug/rgbid")
 case = sys.argv[2] if len(sys.argv) > 2 else os.path.join(root, "../shared/data/rgbd/tum_pairs/case_1")
+# Intrinsics and depth factor: CASE_DIR/calib.txt (`fx fy cx cy depth_factor`) if present, else
+# the TUM Kinect defaults of tum_pairs.
 fx = fy = 525.0
 cx, cy = 319.5, 239.5
+depth_factor = 5000.0
+if os.path.exists(os.path.join(case, "calib.txt")):
+    fx, fy, cx, cy, depth_factor = [float(x) for x in open(os.path.join(case, "calib.txt")).read().split()[:5]]
 
 
 def quat_to_mat(qx, qy, qz, qw):
@@ -41,7 +50,7 @@ def pose(path):
 world_from_prev = pose(os.path.join(case, "pose_prev.txt"))
 world_from_curr = pose(os.path.join(case, "pose_curr.txt"))
 curr_from_prev = np.linalg.inv(world_from_curr) @ world_from_prev
-depth_prev = cv2.imread(os.path.join(case, "dep_prev.png"), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000.0
+depth_prev = cv2.imread(os.path.join(case, "dep_prev.png"), cv2.IMREAD_UNCHANGED).astype(np.float64) / depth_factor
 img_prev = os.path.join(case, "img_prev.png")
 img_curr = os.path.join(case, "img_curr.png")
 h, w = depth_prev.shape

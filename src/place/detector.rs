@@ -12,7 +12,9 @@ use crate::image::ImageF32;
 /// Parameters of [`LoopDetector`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct LoopDetectorParams {
-    /// ORB extraction.
+    /// ORB extraction. Default: corners spread over a grid of cells
+    /// ([`OrbParams::distribute`]), as ORB-SLAM's place recognition: a keyframe's bag of words
+    /// then describes the whole view, not only its most textured objects.
     pub orb: OrbParams,
     /// Database query.
     pub query: QueryParams,
@@ -27,7 +29,10 @@ pub struct LoopDetectorParams {
 impl Default for LoopDetectorParams {
     fn default() -> Self {
         Self {
-            orb: OrbParams::default(),
+            orb: OrbParams {
+                distribute: true,
+                ..OrbParams::default()
+            },
             query: QueryParams::default(),
             verify: VerifyParams::default(),
             direct_index_depth: 2,

@@ -134,6 +134,10 @@ impl Default for SlamConfig {
     fn default() -> Self {
         let mut detector = LoopDetectorParams::default();
         detector.query.min_separation = 8;
+        // Each level's strongest corners (OpenCV's selection), not the place-recognition
+        // default's grid: with the grid, relocalisation after a covered sensor failed on the
+        // generated `office` loop (tests/slam_system.rs), with this it succeeds.
+        detector.orb.distribute = false;
         // The odometry's defaults: four pyramid levels (a wide basin for fast motion: the
         // generated `lab` loop at 0.95 m/s diverged with three) and no level wider than 320.
         let odometry = OdometryConfig::default();
