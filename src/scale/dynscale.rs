@@ -263,6 +263,9 @@ impl DynScaleResult {
     }
 }
 
+/// Sections of Algorithm 1, the filter's estimate after each, and the up axis.
+type Analysis = (Vec<Section>, Vec<Option<f64>>, DVec3);
+
 /// The dynamic scale estimator (Algorithm 1).
 #[derive(Clone, Debug)]
 pub struct DynScale {
@@ -333,7 +336,7 @@ impl DynScale {
     fn analyse(
         &self,
         traj: &[TimedPose],
-    ) -> Result<(Vec<Section>, Vec<Option<f64>>, DVec3), ScaleError> {
+    ) -> Result<Analysis, ScaleError> {
         check_trajectory(traj)?;
         let c = &self.cfg;
         let t0 = traj[0].timestamp;
