@@ -333,10 +333,7 @@ impl DynScale {
     /// The sections of Algorithm 1 (analysis, walking, filter update) with the filter's
     /// estimate after each (`None` before the first update), and the up axis; the sections'
     /// `scale` and origins are not set yet.
-    fn analyse(
-        &self,
-        traj: &[TimedPose],
-    ) -> Result<Analysis, ScaleError> {
+    fn analyse(&self, traj: &[TimedPose]) -> Result<Analysis, ScaleError> {
         check_trajectory(traj)?;
         let c = &self.cfg;
         let t0 = traj[0].timestamp;
