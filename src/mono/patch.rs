@@ -104,26 +104,11 @@ impl Template {
         if x - h < 0 || y - h < 0 || x + h >= img.width as i64 || y + h >= img.height as i64 {
             return None;
         }
-        let side = 2 * self.half + 1;
-        let (mut s, mut ss, mut st) = (0.0f64, 0.0f64, 0.0f64);
-        for j in 0..side {
-            let row = ((y - h) as usize + j) * img.width + (x - h) as usize;
-            let pix = &img.data[row..row + side];
-            let tv = &self.values[j * side..(j + 1) * side];
-            for (p, t) in pix.iter().zip(tv) {
-                let p = f64::from(*p);
-                s += p;
-                ss += p * p;
-                st += p * t;
-            }
-        }
-        let n = (side * side) as f64;
-        let var = ss - s * s / n;
-        if var <= 1e-9 * n {
-            return Some(0.0);
-        }
         // The template has zero mean, so the image mean drops out of the cross term.
-        Some(st / var.sqrt())
+        let top = (y - h) as usize * img.width + (x - h) as usize;
+        let mut out = [0.0f64];
+        zncc_row_body(&img.data, img.width, top, &self.values, self.half, &mut out);
+        Some(out[0])
     }
 
     /// ZNCC at every integer pixel of the window `[x0, x1] x [y0, y1]` (inclusive), row-major
@@ -277,7 +262,8 @@ fn zncc_score(s: f64, ss: f64, st: f64, n: f64) -> f64 {
     }
 }
 
-/// The sums of [`Template::correlate_at`] (same terms, same order), one position at a time.
+/// ZNCC of the zero-mean unit-norm `values` at consecutive positions, one position at a
+/// time (the reference for [`zncc_row_avx2`] and [`Template::correlate_at`]).
 fn zncc_row_body(
     data: &[f32],
     width: usize,

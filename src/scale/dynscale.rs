@@ -509,7 +509,7 @@ impl DynScale {
 /// Algorithm 1 fed one pose at a time, for a live monocular system: every `t_upd` seconds
 /// of input (once one `t_DFT` window is in) it closes a section and reports its scale.
 ///
-/// Each update re-runs [`DynScale::run`] over the poses so far. Everything in it is causal
+/// Each update re-runs the analysis of [`DynScale::run`] over the poses so far. It is causal
 /// (resampling from the first time stamp, the forward high-pass, windows that end at the
 /// update time, a seeded particle filter updated in time order), so the sections reported
 /// live are exactly those of an offline run over the whole trajectory. The cost of an update
