@@ -10,9 +10,15 @@
 //!   (2 sigma_l^2))` with `sigma_l = sigma_Vwalk / (V_walk ln 10)` (the first-order image of
 //!   `sigma_Vwalk` at the measured speed; a Gaussian in `V` with a prior uniform in `log s`
 //!   biases the geometric mean low by about `(sigma_Vwalk / V)^2`, ~3 % here);
-//! - consistency test: if no particle predicts `V_walk` within `consistency_sigmas`
-//!   `sigma_l`, the measurement is rejected (no update); after `max_inconsistent`
-//!   rejections in a row the filter re-initialises around the measured ratio;
+//! - consistency test on the predictive distribution: with `m`, `v` the mean and variance of
+//!   the predicted `l_i`, the measured log-ratio `log10(V_walk / V_SLAM)` must lie within
+//!   `consistency_sigmas` standard deviations `sqrt(v + sigma_l^2 + (r / ln 10)^2)` of `m`
+//!   (and some particle within `consistency_sigmas sigma_l`); otherwise the measurement is
+//!   rejected (no update). Testing only the best of 5000 particles would let a false step
+//!   detection (a standstill wobble of the estimate read as slow steps) drag the whole
+//!   posterior onto the prior's tail. After `max_inconsistent` rejections in a row whose
+//!   log-ratios agree with each other (spread within `consistency_sigmas sigma_l`) the
+//!   filter re-initialises around their mean: the scale really jumped;
 //! - 95 % tail trimming: particles outside the central 95 % of the weighted distribution of
 //!   `l` get weight 0;
 //! - multinomial resampling; the estimate is the geometric mean of the scale,
@@ -42,9 +48,11 @@ pub struct ParticleConfig {
     pub sigma_vslam_rel: f64,
     /// Central probability mass kept by the tail trimming (thesis: 0.95).
     pub keep_mass: f64,
-    /// A measurement further than this many `sigma_Vwalk` from every particle is inconsistent.
+    /// A measurement is inconsistent when its log-ratio lies further than this many standard
+    /// deviations from the predicted log-scales, or this many `sigma_l` from every particle.
     pub consistency_sigmas: f64,
-    /// Re-initialise after this many inconsistent measurements in a row.
+    /// Re-initialise after this many inconsistent measurements in a row that agree with each
+    /// other (their log-ratios within `consistency_sigmas sigma_l`).
     pub max_inconsistent: usize,
 }
 
@@ -87,6 +95,9 @@ impl ParticleConfig {
                 format!("{v} must be >= 0")
             })?;
         }
+        check_param("max_inconsistent", self.max_inconsistent >= 1, || {
+            format!("{} must be >= 1", self.max_inconsistent)
+        })?;
         check_param("prior_log10", self.prior_log10.is_finite(), || {
             "must be finite".into()
         })?;
@@ -119,7 +130,8 @@ pub struct ScaleFilter {
     v_slam: Vec<f64>,
     log_scale: Vec<f64>,
     initialised: bool,
-    inconsistent_run: usize,
+    /// Log-ratios `log10(V_walk / V_SLAM)` and `sigma_l` of the current run of rejections.
+    rejected: Vec<(f64, f64)>,
 }
 
 /// A standard normal sample by Box-Muller (keeps the dependency list short).
@@ -142,7 +154,7 @@ impl ScaleFilter {
             v_slam: Vec::new(),
             log_scale: Vec::new(),
             initialised: false,
-            inconsistent_run: 0,
+            rejected: Vec::new(),
             cfg,
         })
     }
@@ -174,7 +186,7 @@ impl ScaleFilter {
             .collect();
         self.v_slam = vec![0.0; n];
         self.initialised = true;
-        self.inconsistent_run = 0;
+        self.rejected.clear();
     }
 
     /// One update with the measured SLAM speed `v_slam` (SLAM units/s, > 0), the walking speed
@@ -215,16 +227,36 @@ impl ScaleFilter {
             .map(|i| loglik(self.log_scale[i], self.v_slam[i]))
             .collect();
         let best = w.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-        let gate = -0.5 * self.cfg.consistency_sigmas.powi(2);
-        if best < gate {
-            self.inconsistent_run += 1;
-            if self.inconsistent_run >= self.cfg.max_inconsistent {
-                // The scale jumped (or the prior was far off): restart around the measurement.
-                self.initialise((v_walk / v_slam).log10());
-                return self.update(v_slam, v_walk, 0.0).map(|mut u| {
-                    u.initialised = true;
-                    u
-                });
+        let k = self.cfg.consistency_sigmas;
+        let gate = -0.5 * k.powi(2);
+        let ratio = (v_walk / v_slam).log10();
+        let mean = self.log_scale.iter().sum::<f64>() / n as f64;
+        let var = self
+            .log_scale
+            .iter()
+            .map(|l| (l - mean).powi(2))
+            .sum::<f64>()
+            / n as f64;
+        let noise = sigma_l.powi(2) + (self.cfg.sigma_vslam_rel / std::f64::consts::LN_10).powi(2);
+        let predicted = (ratio - mean).abs() <= k * (var + noise).sqrt();
+        if best < gate || !predicted {
+            self.rejected.push((ratio, sigma_l));
+            let m = self.cfg.max_inconsistent;
+            if self.rejected.len() >= m {
+                let last = &self.rejected[self.rejected.len() - m..];
+                let lo = last.iter().map(|r| r.0).fold(f64::INFINITY, f64::min);
+                let hi = last.iter().map(|r| r.0).fold(f64::NEG_INFINITY, f64::max);
+                let sig = last.iter().map(|r| r.1).fold(0.0, f64::max);
+                if hi - lo <= k * sig {
+                    // The scale jumped (or the prior was far off), and the rejected
+                    // measurements agree: restart around them.
+                    let center = last.iter().map(|r| r.0).sum::<f64>() / m as f64;
+                    self.initialise(center);
+                    return self.update(v_slam, v_walk, 0.0).map(|mut u| {
+                        u.initialised = true;
+                        u
+                    });
+                }
             }
             return Ok(FilterUpdate {
                 scale: self.estimate().unwrap_or(1.0),
@@ -233,7 +265,7 @@ impl ScaleFilter {
                 initialised,
             });
         }
-        self.inconsistent_run = 0;
+        self.rejected.clear();
         for v in w.iter_mut() {
             *v = (*v - best).exp();
         }
@@ -305,5 +337,55 @@ mod tests {
         let u = last.unwrap();
         assert!((u.scale / truth - 1.0).abs() < 0.15, "{u:?}");
         assert!(f.update(-1.0, 1.0, 1.0).is_err());
+    }
+
+    fn converged(truth: f64) -> ScaleFilter {
+        let mut f = ScaleFilter::new(ParticleConfig::default(), 3).unwrap();
+        for _ in 0..20 {
+            f.update(1.3 / truth, 1.3, 1.0).unwrap();
+        }
+        f
+    }
+
+    #[test]
+    fn a_lone_outlier_is_rejected_and_moves_nothing() {
+        // A standstill wobble read as slow steps: V_walk 0.64 m/s from 1.1 Hz against a tiny
+        // SLAM speed, i.e. a scale 7.5x the truth, four seconds after the last update.
+        let mut f = converged(3.6);
+        let before = f.estimate().unwrap();
+        let u = f.update(0.024, 0.64, 4.0).unwrap();
+        assert!(!u.consistent, "{u:?}");
+        // Only the drift of the prediction step moves it.
+        assert!((f.estimate().unwrap() / before - 1.0).abs() < 0.05);
+        // Good measurements are still used afterwards.
+        let u = f.update(1.3 / 3.6, 1.3, 1.0).unwrap();
+        assert!(u.consistent && (u.scale / 3.6 - 1.0).abs() < 0.1, "{u:?}");
+    }
+
+    #[test]
+    fn agreeing_rejections_reinitialise_scattered_ones_do_not() {
+        let mut f = converged(3.6);
+        // Scattered outliers (implied scales 30, 0.3, 30, 0.3): never a restart.
+        for (i, v) in [0.043, 4.3, 0.043, 4.3].into_iter().enumerate() {
+            let u = f.update(v, 1.3, 1.0).unwrap();
+            assert!(!u.consistent && !u.initialised, "{i}: {u:?}");
+        }
+        assert!((f.estimate().unwrap() / 3.6 - 1.0).abs() < 0.15);
+        // The scale really jumped to 40 (a decade): three agreeing rejections restart the
+        // filter there.
+        let mut f = converged(3.6);
+        let mut updates = Vec::new();
+        for _ in 0..3 {
+            updates.push(f.update(1.3 / 40.0, 1.3, 1.0).unwrap());
+        }
+        assert!(
+            !updates[0].consistent && !updates[1].consistent,
+            "{updates:?}"
+        );
+        let u = updates[2];
+        assert!(
+            u.initialised && (u.scale / 40.0 - 1.0).abs() < 0.15,
+            "{u:?}"
+        );
     }
 }

@@ -139,8 +139,12 @@ pub struct Slam {
     next_keyframe_id: usize,
     /// Frames since the last keyframe: inverse depth and front-end pose.
     buffer: std::collections::VecDeque<(ImageF32, Se3)>,
-    /// Accumulated covariance of the current reference relative to the keyframe.
+    /// Covariance of the current keyframe relative to the chain's anchor (the newest odometry
+    /// reference since the keyframe started), as a right perturbation in the anchor's frame
+    /// (`[v; w]`, m and rad).
     chain_covariance: [[f64; 6]; 6],
+    /// Front-end pose of the chain's anchor.
+    frontworld_from_anchor: Se3,
     lost: bool,
     /// Time stamp (s) and front-end pose of the last frame with a pose, for the speed check.
     last_pose: Option<(f64, Se3)>,
@@ -158,6 +162,26 @@ fn add_cov(a: &mut [[f64; 6]; 6], b: &[[f64; 6]; 6]) {
             a[i][j] += b[i][j];
         }
     }
+}
+
+/// Moves the covariance of a right perturbation of `x_from_a` (in frame `a`) to frame `b`,
+/// given `a_from_b`: `x_from_a exp(d) a_from_b = x_from_a a_from_b exp(Ad(b_from_a) d)`, so
+/// the result is `Ad(b_from_a) cov Ad(b_from_a)^T`.
+fn transport_covariance(cov: &[[f64; 6]; 6], a_from_b: &Se3) -> [[f64; 6]; 6] {
+    let ad = a_from_b.inverse().adjoint();
+    let mut t = [[0.0; 6]; 6];
+    for i in 0..6 {
+        for j in 0..6 {
+            t[i][j] = (0..6).map(|k| ad[i][k] * cov[k][j]).sum();
+        }
+    }
+    let mut out = [[0.0; 6]; 6];
+    for i in 0..6 {
+        for j in 0..6 {
+            out[i][j] = (0..6).map(|k| t[i][k] * ad[j][k]).sum();
+        }
+    }
+    out
 }
 
 fn default_cov() -> [[f64; 6]; 6] {
@@ -209,6 +233,7 @@ impl Slam {
             next_keyframe_id: map_keyframes,
             buffer: std::collections::VecDeque::new(),
             chain_covariance: [[0.0; 6]; 6],
+            frontworld_from_anchor: Se3::IDENTITY,
             lost: map_keyframes > 0,
             last_pose: None,
             frames: Vec::new(),
@@ -289,6 +314,7 @@ impl Slam {
             link,
         });
         self.chain_covariance = [[0.0; 6]; 6];
+        self.frontworld_from_anchor = frontworld_from_camera;
         Ok(id)
     }
 
@@ -473,12 +499,19 @@ impl Slam {
             iterations: r.stats.iterations,
         };
         record.status = FrameStatus::Tracking;
+        let frontworld_from_camera = r.world_from_camera;
+        // The odometry covariance is a left perturbation of cur_from_ref, i.e. a right
+        // perturbation of ref_from_cur in the current frame: the chain is carried to that
+        // frame by the adjoint before it is added (a first-order composition).
+        let anchor_from_camera = self.frontworld_from_anchor.inverse() * frontworld_from_camera;
         if r.stats.new_reference {
+            self.chain_covariance =
+                transport_covariance(&self.chain_covariance, &anchor_from_camera);
             if let Some(c) = &r.covariance {
                 add_cov(&mut self.chain_covariance, c);
             }
+            self.frontworld_from_anchor = frontworld_from_camera;
         }
-        let frontworld_from_camera = r.world_from_camera;
         record.frontworld_from_camera = Some(frontworld_from_camera);
         self.last_pose = Some((frame.timestamp, frontworld_from_camera));
         let cur = self
@@ -495,7 +528,11 @@ impl Slam {
         record.keyframe_covisibility = counts.covisibility();
         record.keyframe = Some((kf_id, kf_from_camera));
         if counts.covisibility() < self.config.keyframe_covisibility {
-            let mut covariance = self.chain_covariance;
+            let mut covariance = if r.stats.new_reference {
+                self.chain_covariance
+            } else {
+                transport_covariance(&self.chain_covariance, &anchor_from_camera)
+            };
             if !r.stats.new_reference {
                 if let Some(c) = &r.covariance {
                     add_cov(&mut covariance, c);
@@ -682,4 +719,73 @@ fn optimise_frames(
             })
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn gaussian(rng: &mut impl Rng) -> f64 {
+        let u: f64 = rng.random::<f64>().max(1e-300);
+        let v: f64 = rng.random();
+        (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+    }
+
+    /// First-order composition of two noisy relative poses against Monte Carlo:
+    /// `a_from_c = a_from_b exp(d1) b_from_c exp(d2)` has the right-perturbation covariance
+    /// `Ad(c_from_b) C1 Ad(c_from_b)^T + C2` in frame `c`.
+    #[test]
+    fn chain_covariance_follows_the_adjoint() {
+        let a_from_b = Se3::exp(&[0.3, -0.1, 0.5, 0.2, -0.4, 0.3]);
+        let b_from_c = Se3::exp(&[0.8, 0.2, -0.3, -0.3, 0.5, 0.1]);
+        let sd1 = [0.01, 0.02, 0.005, 0.004, 0.01, 0.002];
+        let sd2 = [0.003, 0.001, 0.002, 0.001, 0.002, 0.003];
+        let diag = |s: &[f64; 6]| {
+            let mut c = [[0.0; 6]; 6];
+            for i in 0..6 {
+                c[i][i] = s[i] * s[i];
+            }
+            c
+        };
+        let mut predicted = transport_covariance(&diag(&sd1), &b_from_c);
+        add_cov(&mut predicted, &diag(&sd2));
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let n = 40_000;
+        let mut acc = [[0.0; 6]; 6];
+        let mean = a_from_b * b_from_c;
+        for _ in 0..n {
+            let mut d1 = [0.0; 6];
+            let mut d2 = [0.0; 6];
+            for i in 0..6 {
+                let g1 = gaussian(&mut rng);
+                let g2 = gaussian(&mut rng);
+                d1[i] = g1 * sd1[i];
+                d2[i] = g2 * sd2[i];
+            }
+            let x = a_from_b * Se3::exp(&d1) * b_from_c * Se3::exp(&d2);
+            let e = (mean.inverse() * x).log();
+            for i in 0..6 {
+                for j in 0..6 {
+                    acc[i][j] += e[i] * e[j] / n as f64;
+                }
+            }
+        }
+        // Without the adjoint (the old sum C1 + C2) the prediction is far off.
+        let mut naive = diag(&sd1);
+        add_cov(&mut naive, &diag(&sd2));
+        let err = |c: &[[f64; 6]; 6]| -> f64 {
+            let mut num = 0.0;
+            let mut den = 0.0;
+            for i in 0..6 {
+                for j in 0..6 {
+                    num += (c[i][j] - acc[i][j]).powi(2);
+                    den += acc[i][j].powi(2);
+                }
+            }
+            (num / den).sqrt()
+        };
+        assert!(err(&predicted) < 0.05, "adjoint {}", err(&predicted));
+        assert!(err(&naive) > 0.3, "naive {}", err(&naive));
+    }
 }
