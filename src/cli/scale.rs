@@ -552,6 +552,10 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         );
     }
     println!("\nSensitivity to walking-model errors (head + chest): s/s_true per section, dynScale relative error");
+    if sens.iter().all(|(_, ratios, _)| ratios.is_empty()) {
+        println!("  (not run: it needs the head or chest sequence)");
+        return Ok(());
+    }
     let expected = |fa: f64, db: f64| fa * 1.6f64.powf(db);
     for ((label, ratios, rel), (_, fa, db)) in sens.iter().zip(&variants) {
         println!(

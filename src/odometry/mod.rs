@@ -19,6 +19,7 @@
 pub mod config;
 pub mod cpu;
 pub mod gpu;
+pub mod inspect;
 pub mod kernel;
 pub mod robust;
 mod rows;
@@ -26,6 +27,7 @@ mod solver;
 mod tracker;
 
 pub use config::{GeometricParam, OdometryConfig, Terms};
+pub use inspect::{residual_images, ResidualImages, RobustScales};
 pub use robust::{Estimator, ScaleMethod};
 pub use tracker::{Alignment, FrameStats, LevelStats, Odometry, StageTimes, TrackResult};
 

@@ -30,7 +30,9 @@ use crate::io::trajectory::TimedPose;
 use crate::mono::{MonoConfig, MonoSlam};
 use crate::synth::trajectory::{Mount, PaceSegment, WalkingParams};
 use crate::synth::Trajectory;
-use crate::synth::{CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig};
+use crate::synth::{
+    CameraModel, RenderBackend, Scene, SceneParams, SensorModel, Sequence, SequenceConfig,
+};
 
 /// A generated walking sequence.
 #[derive(Clone, Debug)]
@@ -219,10 +221,18 @@ pub fn estimate_sequence(
     cfg: &ExperimentConfig,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<EmulatedRun, ScaleError> {
-    let scene = Scene::preset(&cfg.scene, seed).map_err(|e| ScaleError::InvalidParameter {
+    let scene_error = |e: crate::synth::SynthError| ScaleError::InvalidParameter {
         name: "scene",
         why: e.to_string(),
-    })?;
+    };
+    let mut scene_params = SceneParams::preset(&cfg.scene).map_err(scene_error)?;
+    if let Some((_, steps, rise)) = spec.params.stairs {
+        // The scenes have no stairs: raise the ceiling by the climb so that the camera stays
+        // inside the room (the rendered images of a walker climbing through the ceiling
+        // would be meaningless to the monocular estimator).
+        scene_params.size[2] += steps as f64 * rise;
+    }
+    let scene = Scene::generate(&scene_params, seed).map_err(scene_error)?;
     let traj = Trajectory::walking(&scene, spec.params.clone(), spec.duration, seed);
     let frames = (spec.duration * cfg.fps).floor() as usize;
     let mut rng = Pcg64::seed_from_u64(seed ^ 0x51ca);

@@ -75,6 +75,9 @@ pub struct OdometryDiagnostics {
     pub condition_number: f64,
     /// Gauss-Newton iterations over all levels.
     pub iterations: usize,
+    /// Whether this frame became the odometry's reference (the frames after it are aligned
+    /// to it until the next switch).
+    pub new_reference: bool,
 }
 
 /// What [`Slam::process`] returns for one frame.
@@ -497,6 +500,7 @@ impl Slam {
             nu: r.stats.nu,
             condition_number: r.stats.condition_number,
             iterations: r.stats.iterations,
+            new_reference: r.stats.new_reference,
         };
         record.status = FrameStatus::Tracking;
         let frontworld_from_camera = r.world_from_camera;

@@ -26,6 +26,10 @@ struct Textures {
     inverse_depth: Option<TextureHandle>,
     superjuts: Option<TextureHandle>,
     neg_entropy: Option<TextureHandle>,
+    residual_photo: Option<TextureHandle>,
+    residual_geo: Option<TextureHandle>,
+    weight_photo: Option<TextureHandle>,
+    weight_geo: Option<TextureHandle>,
 }
 
 /// Pace choices (multiples of 30 fps; 0 = as fast as possible).
@@ -444,52 +448,97 @@ impl ViewerApp {
                 .as_ref()
                 .map(|n| images::neg_entropy_overlay(n, p.keyframe_intensity.as_ref())),
         );
+        let r = p.residuals.as_ref();
+        set(
+            &mut self.textures.residual_photo,
+            "photometric residual",
+            r.map(|r| images::signed_image(&r.photometric, None)),
+        );
+        set(
+            &mut self.textures.residual_geo,
+            "geometric residual",
+            r.map(|r| images::signed_image(&r.geometric, None)),
+        );
+        set(
+            &mut self.textures.weight_photo,
+            "photometric weight",
+            r.map(|r| images::weight_image(&r.photometric_weight)),
+        );
+        set(
+            &mut self.textures.weight_geo,
+            "geometric weight",
+            r.map(|r| images::weight_image(&r.geometric_weight)),
+        );
     }
 
-    /// The image panels.
+    /// The image panels, two per row: the frame (intensity, inverse depth), its residuals
+    /// against the odometry reference and their IRLS weights, the latest keyframe's superjuts
+    /// and neg-entropy.
     pub fn images_ui(&mut self, ui: &mut egui::Ui) {
         self.refresh_textures(ui.ctx());
-        let width = ui.available_width().max(64.0);
+        let width = ((ui.available_width() - 8.0) / 2.0).max(64.0);
         let show = |ui: &mut egui::Ui, title: &str, tex: &Option<TextureHandle>| {
-            ui.label(RichText::new(title).strong());
-            match tex {
-                Some(t) => {
-                    let [w, h] = t.size();
-                    let size = Vec2::new(width, width * h as f32 / w.max(1) as f32);
-                    ui.image((t.id(), size));
+            ui.vertical(|ui| {
+                ui.set_width(width);
+                ui.label(RichText::new(title).strong());
+                match tex {
+                    Some(t) => {
+                        let [w, h] = t.size();
+                        let size = Vec2::new(width, width * h as f32 / w.max(1) as f32);
+                        ui.image((t.id(), size));
+                    }
+                    None => {
+                        ui.label("(none yet)");
+                    }
                 }
-                None => {
-                    ui.label("(none yet)");
-                }
-            }
+            });
         };
-        show(ui, "intensity", &self.textures.intensity);
-        show(
-            ui,
-            "inverse depth (turbo, near = red)",
-            &self.textures.inverse_depth,
-        );
-        show(
-            ui,
-            "superjuts of the latest keyframe",
-            &self.textures.superjuts,
-        );
-        show(
-            ui,
-            "neg-entropy of the latest keyframe",
-            &self.textures.neg_entropy,
-        );
+        let t = &self.textures;
+        let rows: [[(&str, &Option<TextureHandle>); 2]; 4] = [
+            [
+                ("intensity", &t.intensity),
+                ("inverse depth (near = red)", &t.inverse_depth),
+            ],
+            [
+                ("photometric residual (+ red, - blue)", &t.residual_photo),
+                ("geometric residual", &t.residual_geo),
+            ],
+            [
+                ("photometric IRLS weight (0 blue, 1 red)", &t.weight_photo),
+                ("geometric IRLS weight", &t.weight_geo),
+            ],
+            [
+                ("superjuts (latest keyframe)", &t.superjuts),
+                ("neg-entropy (latest keyframe)", &t.neg_entropy),
+            ],
+        ];
+        egui::ScrollArea::vertical().show(ui, |ui| {
+            for row in rows {
+                ui.horizontal_top(|ui| {
+                    for (title, tex) in row {
+                        show(ui, title, tex);
+                    }
+                });
+            }
+        });
     }
 
-    /// The plots: time per stage, covisibility, position error.
+    /// The plots: time per stage, covisibility, robust scales, condition number, position
+    /// error.
     pub fn plots_ui(&mut self, ui: &mut egui::Ui) {
         let stages = &self.state.stages;
         let height = (ui.available_height() - 24.0).max(80.0);
+        // Unknown values (NaN: lost frames, the first frame's diagnostics) are left out; the
+        // tessellator must not see them.
         let series = |f: fn(&StageRow) -> f64| -> PlotPoints<'static> {
-            stages.iter().map(|r| [r.index as f64, f(r)]).collect()
+            stages
+                .iter()
+                .map(|r| [r.index as f64, f(r)])
+                .filter(|p| p[1].is_finite())
+                .collect()
         };
         let has_error = !self.state.position_error.is_empty();
-        let n = if has_error { 3 } else { 2 };
+        let n = if has_error { 5 } else { 4 };
         ui.columns(n, |cols| {
             cols[0].label(RichText::new("time per stage (ms)").strong());
             Plot::new("stage_times")
@@ -518,15 +567,40 @@ impl ViewerApp {
                     p.hline(HLine::new("reference switch 0.9", 0.9));
                     p.hline(HLine::new("keyframe switch 0.7", 0.7));
                 });
+            cols[2].label(RichText::new("robust estimator (finest level)").strong());
+            Plot::new("robust")
+                .height(height)
+                .legend(Legend::default())
+                .x_axis_label("frame")
+                .include_y(0.0)
+                .show(&mut cols[2], |p| {
+                    p.line(Line::new("sigma_I", series(|r| r.sigma_photo)));
+                    p.line(Line::new(
+                        "sigma_W x1000 (1/m)",
+                        series(|r| 1e3 * r.sigma_geo),
+                    ));
+                    p.line(Line::new("nu", series(|r| r.nu)));
+                });
+            cols[3].label(RichText::new("Hessian condition (log10)").strong());
+            Plot::new("condition")
+                .height(height)
+                .legend(Legend::default())
+                .x_axis_label("frame")
+                .show(&mut cols[3], |p| {
+                    p.line(Line::new(
+                        "log10 cond",
+                        series(|r| r.condition_number.log10()),
+                    ));
+                });
             if has_error {
-                cols[2].label(RichText::new("position error vs ground truth (m)").strong());
+                cols[4].label(RichText::new("position error vs ground truth (m)").strong());
                 let pts: PlotPoints<'static> = self.state.position_error.iter().copied().collect();
                 Plot::new("position_error")
                     .height(height)
                     .legend(Legend::default())
                     .x_axis_label("frame")
                     .include_y(0.0)
-                    .show(&mut cols[2], |p| {
+                    .show(&mut cols[4], |p| {
                         p.line(Line::new("first-pose aligned", pts));
                     });
             }

@@ -70,6 +70,51 @@ pub fn inverse_depth_image(img: &ImageF32, max: Option<f32>) -> ColorImage {
     ColorImage::new([img.width, img.height], pixels)
 }
 
+/// Signed residuals on a blue-white-red scale saturating at `+-scale` (red positive);
+/// pixels without a residual (NaN) are black. With `scale = None` the 95th percentile of
+/// the absolute residuals is used.
+pub fn signed_image(img: &ImageF32, scale: Option<f32>) -> ColorImage {
+    let abs: Vec<f32> = img.data.iter().map(|v| v.abs()).collect();
+    let s = scale
+        .or_else(|| quantile_positive(&abs, 0.95))
+        .filter(|s| *s > 0.0)
+        .unwrap_or(1.0);
+    let pixels = img
+        .data
+        .iter()
+        .map(|&r| {
+            if !r.is_finite() {
+                return Color32::BLACK;
+            }
+            let t = (r / s).clamp(-1.0, 1.0);
+            let fade = |a: f32| (255.0 * (1.0 - a)).round() as u8;
+            if t >= 0.0 {
+                Color32::from_rgb(255, fade(t), fade(t))
+            } else {
+                Color32::from_rgb(fade(-t), fade(-t), 255)
+            }
+        })
+        .collect();
+    ColorImage::new([img.width, img.height], pixels)
+}
+
+/// IRLS weights in [0, 1] through the turbo map (0 = blue, outliers; 1 = red); pixels
+/// without a residual (NaN) are black.
+pub fn weight_image(img: &ImageF32) -> ColorImage {
+    let pixels = img
+        .data
+        .iter()
+        .map(|&w| {
+            if w.is_finite() {
+                turbo(w)
+            } else {
+                Color32::BLACK
+            }
+        })
+        .collect();
+    ColorImage::new([img.width, img.height], pixels)
+}
+
 /// RGB8 row-major bytes as an image; `None` when the size does not match.
 pub fn rgb_image(width: usize, height: usize, rgb: &[u8]) -> Option<ColorImage> {
     (rgb.len() == width * height * 3).then(|| ColorImage::from_rgb([width, height], rgb))
@@ -131,6 +176,19 @@ mod tests {
         assert_eq!(c.pixels[4], turbo(1.0));
         assert_eq!(quantile_positive(&img.data, 1.0), Some(2.0));
         assert_eq!(quantile_positive(&[0.0, -1.0], 0.5), None);
+    }
+
+    #[test]
+    fn residual_and_weight_colours() {
+        let img = ImageF32::from_vec(4, 1, vec![f32::NAN, 0.0, 2.0, -4.0]).unwrap();
+        let c = signed_image(&img, Some(2.0));
+        assert_eq!(c.pixels[0], Color32::BLACK);
+        assert_eq!(c.pixels[1], Color32::WHITE);
+        assert_eq!(c.pixels[2], Color32::from_rgb(255, 0, 0));
+        assert_eq!(c.pixels[3], Color32::from_rgb(0, 0, 255));
+        let w = weight_image(&ImageF32::from_vec(2, 1, vec![1.0, f32::NAN]).unwrap());
+        assert_eq!(w.pixels[0], turbo(1.0));
+        assert_eq!(w.pixels[1], Color32::BLACK);
     }
 
     #[test]

@@ -33,6 +33,15 @@ pub struct StageRow {
     pub covisibility: f64,
     /// Covisibility of the keyframe with the frame.
     pub keyframe_covisibility: f64,
+    /// Photometric residual scale sigma_I at the finest level, intensity levels (NaN when
+    /// unknown: lost frames, older timing files).
+    pub sigma_photo: f64,
+    /// Geometric residual scale sigma_W at the finest level, 1/m (NaN when unknown).
+    pub sigma_geo: f64,
+    /// Student-t degrees of freedom (NaN when unknown).
+    pub nu: f64,
+    /// Condition number of the final Hessian (NaN when unknown).
+    pub condition_number: f64,
 }
 
 impl StageRow {
@@ -49,11 +58,25 @@ impl StageRow {
             fusion_ms: r.fusion_ms,
             covisibility: r.covisibility,
             keyframe_covisibility: r.keyframe_covisibility,
+            sigma_photo: known(r.diagnostics.sigma_photo),
+            sigma_geo: known(r.diagnostics.sigma_geo),
+            nu: known(r.diagnostics.nu),
+            condition_number: known(r.diagnostics.condition_number),
         }
     }
 }
 
-/// Parses timing.csv as written by `rgbid slam` (header line, then one line per frame).
+/// A diagnostic value, NaN where the front-end did not fill it (0 on lost frames).
+fn known(v: f64) -> f64 {
+    if v > 0.0 && v.is_finite() {
+        v
+    } else {
+        f64::NAN
+    }
+}
+
+/// Parses timing.csv as written by `rgbid slam` (header line, then one line per frame; the
+/// diagnostic columns sigma_photo, sigma_geo, nu and condition_number are optional).
 pub fn parse_timing_csv(text: &str) -> Result<Vec<StageRow>> {
     let mut rows = Vec::new();
     for (n, line) in text.lines().enumerate().skip(1) {
@@ -83,6 +106,26 @@ pub fn parse_timing_csv(text: &str) -> Result<Vec<StageRow>> {
             fusion_ms: num(9)?,
             covisibility: num(10)?,
             keyframe_covisibility: num(11)?,
+            sigma_photo: if f.len() > 12 {
+                known(num(12)?)
+            } else {
+                f64::NAN
+            },
+            sigma_geo: if f.len() > 13 {
+                known(num(13)?)
+            } else {
+                f64::NAN
+            },
+            nu: if f.len() > 14 {
+                known(num(14)?)
+            } else {
+                f64::NAN
+            },
+            condition_number: if f.len() > 15 {
+                known(num(15)?)
+            } else {
+                f64::NAN
+            },
         });
     }
     Ok(rows)
@@ -348,6 +391,13 @@ mod tests {
         let rows = parse_timing_csv(t).unwrap();
         assert_eq!(rows.len(), 1);
         assert_eq!(rows[0].fusion_ms, 0.6);
+        assert!(rows[0].sigma_photo.is_nan());
+        let t2 = "h\n3,0.1,Tracking,1,0.1,0.2,0.3,0.4,0.5,0.6,0.9,0.8,4.5,0.002,5.5,1200,14\n";
+        let rows = parse_timing_csv(t2).unwrap();
+        assert_eq!(
+            (rows[0].sigma_photo, rows[0].nu, rows[0].condition_number),
+            (4.5, 5.5, 1200.0)
+        );
         assert!(parse_timing_csv("h\n1,2,3\n").is_err());
         let l = "query,candidate,inliers,a,b,c,accepted,relocalisation,reason\n9,2,40,0.01,0.01,0.8,true,false,\"ok\"\n9,3,40,0.01,0.01,0.8,false,false,\"x\"\n";
         assert_eq!(parse_loops_csv(l).unwrap(), vec![(9, 2)]);

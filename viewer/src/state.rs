@@ -7,6 +7,7 @@ use glam::DVec3;
 use rgbid::geometry::Se3;
 use rgbid::image::ImageF32;
 use rgbid::io::trajectory::TimedPose;
+use rgbid::odometry::ResidualImages;
 use rgbid::slam::FrameStatus;
 
 use crate::output::{OutputFolder, StageRow};
@@ -43,6 +44,9 @@ pub struct Panels {
     pub superjuts: Option<(usize, usize, Vec<u8>)>,
     /// Latest keyframe's neg-entropy.
     pub neg_entropy: Option<ImageF32>,
+    /// Residuals and IRLS weights of the latest frame against its odometry reference, on the
+    /// finest optimised pyramid level.
+    pub residuals: Option<ResidualImages>,
     /// Bumped whenever an image changes (the UI re-uploads its textures).
     pub version: u64,
 }
@@ -175,6 +179,7 @@ impl ViewerState {
         }
         self.panels.intensity = Some(f.intensity);
         self.panels.inverse_depth = Some(f.inverse_depth);
+        self.panels.residuals = f.residuals;
         self.panels.version += 1;
     }
 

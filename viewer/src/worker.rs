@@ -12,6 +12,7 @@ use rgbid::camera::PinholeCamera;
 use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::image::{ImageF32, RgbdFrame};
 use rgbid::io::trajectory::TimedPose;
+use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
 use rgbid::place::Vocabulary;
 use rgbid::segment::{segment_keyframe, SegmentConfig};
 use rgbid::slam::{
@@ -39,6 +40,9 @@ pub struct RunConfig {
     pub voxel: f64,
     /// Start playing at once (otherwise paused on the first frame).
     pub autoplay: bool,
+    /// Compute residual and weight images of every frame (a CPU pass over one pyramid
+    /// level, a few ms per frame).
+    pub residuals: bool,
 }
 
 impl RunConfig {
@@ -53,6 +57,7 @@ impl RunConfig {
             point_step: 2,
             voxel: 0.01,
             autoplay: true,
+            residuals: true,
         }
     }
 }
@@ -96,6 +101,10 @@ pub struct FrameUpdate {
     pub inverse_depth: ImageF32,
     /// What SLAM said.
     pub report: FrameReport,
+    /// Residuals and IRLS weights against the odometry reference at the pose SLAM found
+    /// (finest optimised level); `None` for the first frame, lost frames, or when
+    /// [`RunConfig::residuals`] is off.
+    pub residuals: Option<ResidualImages>,
     /// Wall time of loading the frame, milliseconds.
     pub load_ms: f64,
 }
@@ -228,6 +237,38 @@ pub fn frame_points(
     out
 }
 
+/// Residual images of `frame` against the odometry `reference` (frame and front-end pose) at
+/// the pose the front-end found, on the finest level the odometry optimises.
+fn frame_residuals(
+    frame: &RgbdFrame,
+    report: &FrameReport,
+    reference: Option<&(RgbdFrame, rgbid::geometry::Se3)>,
+    camera: &PinholeCamera,
+    odometry: &OdometryConfig,
+) -> Option<ResidualImages> {
+    let (ref_frame, frontworld_from_ref) = reference?;
+    let frontworld_from_cur = report.record.frontworld_from_camera?;
+    let d = &report.record.diagnostics;
+    let level = odometry.finest_level(camera.width as usize);
+    let scales = RobustScales {
+        sigma_photo: d.sigma_photo,
+        sigma_geo: d.sigma_geo,
+        nu: d.nu,
+    };
+    let cur_from_ref = frontworld_from_cur.inverse() * *frontworld_from_ref;
+    residual_images(
+        ref_frame,
+        frame,
+        camera,
+        &cur_from_ref,
+        odometry,
+        scales,
+        level,
+    )
+    .map_err(|e| log::debug!("residual images of frame {}: {e}", report.record.index))
+    .ok()
+}
+
 enum Pace {
     Paused,
     Playing,
@@ -246,6 +287,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     if !config.masks {
         slam_config.mask_thresholds.clear();
     }
+    let odometry_config = slam_config.odometry.clone();
+    let mut reference: Option<(RgbdFrame, rgbid::geometry::Se3)> = None;
     let mut slam = Slam::new(
         slam_config,
         camera,
@@ -300,6 +343,27 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         let frame = source.load(i)?;
         let load_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = slam.process(&frame)?;
+        let residuals = if config.residuals {
+            frame_residuals(
+                &frame,
+                &report,
+                reference.as_ref(),
+                &camera,
+                &odometry_config,
+            )
+        } else {
+            None
+        };
+        if report.record.diagnostics.new_reference
+            || (reference.is_none() && report.record.frontworld_from_camera.is_some())
+        {
+            reference = report
+                .record
+                .frontworld_from_camera
+                .map(|pose| (frame.clone(), pose));
+        } else if report.record.frontworld_from_camera.is_none() {
+            reference = None;
+        }
         let keyframe = if report.status == FrameStatus::NewKeyframe {
             report.world_from_camera.map(|world_from_keyframe| {
                 let points = frame_points(&frame, &camera, &world_from_keyframe, config.point_step);
@@ -333,6 +397,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
             intensity: frame.intensity,
             inverse_depth: frame.inverse_depth,
             report,
+            residuals,
             load_ms,
         })))?;
         if let Some(k) = keyframe {

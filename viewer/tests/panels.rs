@@ -60,6 +60,32 @@ fn worker_streams_frames_keyframes_and_finishes_accurately() {
         "superjut image of the keyframe"
     );
     assert!(state.panels.neg_entropy.is_some());
+    // Residuals of the last frame against its reference at the pose found: most reference
+    // pixels warp into the frame, and on a static scene most keep a high IRLS weight.
+    let res = state.panels.residuals.as_ref().expect("residual images");
+    assert!(
+        res.photometric_coverage() > 0.5,
+        "{}",
+        res.photometric_coverage()
+    );
+    assert!(
+        res.mean_photometric_weight() > 0.6,
+        "{}",
+        res.mean_photometric_weight()
+    );
+    assert!(
+        res.mean_geometric_weight() > 0.6,
+        "{}",
+        res.mean_geometric_weight()
+    );
+    assert!(
+        state
+            .stages
+            .iter()
+            .filter(|r| r.sigma_photo.is_finite())
+            .count()
+            >= FRAMES - 1
+    );
     let run = state.finished.as_ref().expect("finished");
     assert_eq!(run.trajectory.len(), FRAMES);
     assert!(!run.model.is_empty());
