@@ -155,18 +155,45 @@ fn accumulate(acc: ptr<function, Acc>, jt: vec3<f32>, jr: vec3<f32>, r: f32, wt:
     (*acc).a6 += vec4<f32>(w3 * r, w4 * r, w5 * r, wt * r * r);
 }
 
-var<workgroup> shv: array<vec4<f32>, 1024>; // 8 * WG
+// Pixel of residual sample k of `count` over `n` pixels: floor(k * n / count) without 32-bit
+// overflow (k * n can exceed 2^32).
+fn sample_pixel(k: u32, n: u32, count: u32) -> u32 {
+    let q = n / count;
+    let r = n % count;
+    return k * q + (k * r) / count;
+}
 
-@compute @workgroup_size(128)
-fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
-                    @builtin(workgroup_id) wid: vec3<u32>,
-                    @builtin(num_workgroups) nwg: vec3<u32>) {
+// The sample index whose pixel is i, or `count` when i is not sampled. sample_pixel is strictly
+// increasing in k (count <= n), and the f32 estimate is off by at most one.
+fn sample_slot(i: u32, n: u32, count: u32) -> u32 {
+    var k = min(u32(f32(i) * f32(count) / f32(n)), count - 1u);
+    if (sample_pixel(k, n, count) > i) {
+        k -= 1u;
+    } else if (k + 1u < count && sample_pixel(k + 1u, n, count) <= i) {
+        k += 1u;
+    }
+    if (sample_pixel(k, n, count) == i) { return k; }
+    return count;
+}
+
+// One invocation's share of the normal equations: pixels first, first + stride, ... With
+// P.dims.w > 0 it also writes the residual sample at this pose (as sample_residuals would,
+// from the same pixel_terms) at P.flags.w, so no second warp of the sampled pixels is needed.
+fn accumulate_pixels(first: u32, stride: u32) -> Acc {
     var acc: Acc;
     let n = P.dims.x * P.dims.y;
-    let stride = nwg.x * WG;
     let est = P.flags.x;
-    for (var i = wid.x * WG + lid.x; i < n; i += stride) {
+    let count = min(P.dims.w, n);
+    let o = P.flags.w;
+    for (var i = first; i < n; i += stride) {
         let t = pixel_terms(i, true);
+        if (count > 0u) {
+            let k = sample_slot(i, n, count);
+            if (k < count) {
+                out[o + 2u * k] = select(INVALID_RESIDUAL, t.r_photo, t.photo_ok);
+                out[o + 2u * k + 1u] = select(INVALID_RESIDUAL, t.r_geo, t.geo_ok);
+            }
+        }
         if (t.photo_ok) {
             let s = P.robust.x;
             let wt = robust_weight(est, t.r_photo / s, P.robust.z) / (s * s);
@@ -180,6 +207,18 @@ fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
             acc.a7.y += 1.0;
         }
     }
+    return acc;
+}
+
+var<workgroup> shv: array<vec4<f32>, 1024>; // 8 * WG
+
+// Shared-memory tree reduction, one partial per workgroup (devices without subgroups; the
+// subgroup variant is in odometry_subgroup.wgsl).
+@compute @workgroup_size(128)
+fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
+                    @builtin(workgroup_id) wid: vec3<u32>,
+                    @builtin(num_workgroups) nwg: vec3<u32>) {
+    let acc = accumulate_pixels(wid.x * WG + lid.x, nwg.x * WG);
     let l = lid.x;
     shv[l] = acc.a0; shv[WG + l] = acc.a1; shv[2u * WG + l] = acc.a2; shv[3u * WG + l] = acc.a3;
     shv[4u * WG + l] = acc.a4; shv[5u * WG + l] = acc.a5; shv[6u * WG + l] = acc.a6; shv[7u * WG + l] = acc.a7;
@@ -208,11 +247,7 @@ fn sample_residuals(@builtin(global_invocation_id) id: vec3<u32>) {
     let count = P.dims.w;
     if (id.x >= count) { return; }
     let n = P.dims.x * P.dims.y;
-    // i = floor(k * n / count) without 32-bit overflow: k * n can exceed 2^32.
-    let q = n / count;
-    let r = n % count;
-    let i = id.x * q + (id.x * r) / count;
-    let t = pixel_terms(i, false);
+    let t = pixel_terms(sample_pixel(id.x, n, count), false);
     // flags.w: where the sample starts in `out` (after the normal-equation partials when both
     // run in one submission).
     let o = P.flags.w;
@@ -238,21 +273,26 @@ fn covisible(i: u32) -> u32 {
     return 1u;
 }
 
-@compute @workgroup_size(128)
-fn covisibility(@builtin(local_invocation_id) lid: vec3<u32>,
-                @builtin(workgroup_id) wid: vec3<u32>,
-                @builtin(num_workgroups) nwg: vec3<u32>) {
+// One invocation's (pixels with depth, covisible pixels) over first, first + stride, ...
+fn count_covisible(first: u32, stride: u32) -> vec2<f32> {
     var with_depth = 0.0;
     var seen = 0.0;
     let n = P.dims.x * P.dims.y;
-    let stride = nwg.x * WG;
-    for (var i = wid.x * WG + lid.x; i < n; i += stride) {
+    for (var i = first; i < n; i += stride) {
         let c = covisible(i);
         if (c >= 1u) { with_depth += 1.0; }
         if (c == 2u) { seen += 1.0; }
     }
-    sh[lid.x] = with_depth;
-    sh[WG + lid.x] = seen;
+    return vec2<f32>(with_depth, seen);
+}
+
+@compute @workgroup_size(128)
+fn covisibility(@builtin(local_invocation_id) lid: vec3<u32>,
+                @builtin(workgroup_id) wid: vec3<u32>,
+                @builtin(num_workgroups) nwg: vec3<u32>) {
+    let c = count_covisible(wid.x * WG + lid.x, nwg.x * WG);
+    sh[lid.x] = c.x;
+    sh[WG + lid.x] = c.y;
     workgroupBarrier();
     for (var s = WG / 2u; s > 0u; s = s / 2u) {
         if (lid.x < s) {

@@ -48,6 +48,33 @@ fn downsample(@builtin(global_invocation_id) id: vec3<u32>) {
     geo[d] = vec4<f32>(r, 0.0, 0.0, 0.0);
 }
 
+// Level 1 straight from the level-0 input planes, for frames whose level 0 is neither
+// optimised nor read: the values are those of `pack_level0` then `downsample` (same
+// sanitising, same sums in the same order), without writing level 0.
+@compute @workgroup_size(16, 16)
+fn downsample_input(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let sw = P.src.x;
+    let n0 = sw * P.src.y;
+    let k = 2u * id.y * sw + 2u * id.x;
+    let i = 0.25 * (input[k] + input[k + 1u] + input[k + sw] + input[k + sw + 1u]);
+    var s = 0.0;
+    var n = 0.0;
+    let r4 = vec4<f32>(input[n0 + k], input[n0 + k + 1u], input[n0 + k + sw], input[n0 + k + sw + 1u]);
+    for (var j = 0u; j < 4u; j++) {
+        // pack_level0's test: NaN, infinities and non-positive values are invalid.
+        let rho = r4[j];
+        if (rho > 0.0 && rho < 1e30) { s += rho; n += 1.0; }
+    }
+    var r = 0.0;
+    if (n > 0.0) { r = s / n; }
+    let d = P.dims.z + id.y * w + id.x;
+    photo[d] = vec4<f32>(i, 0.0, 0.0, 0.0);
+    geo[d] = vec4<f32>(r, 0.0, 0.0, 0.0);
+}
+
 fn one_axis(l: f32, c: f32, r: f32, has_l: bool, has_r: bool) -> f32 {
     let lv = has_l && l > 0.0;
     let rv = has_r && r > 0.0;
@@ -80,6 +107,10 @@ fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
     if (rc > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD && abs(gdx) <= lim && abs(gdy) <= lim) {
         gg = vec2<f32>(gdx, gdy);
     }
-    photo[c] = vec4<f32>(photo[c].x, gx, gy, 0.0);
-    geo[c] = vec4<f32>(rc, gg.x, gg.y, 0.0);
+    // Only the gradient lanes: .x is the level's value and .w was zeroed when the level was
+    // written (each stored scalar is a per-lane loop on SIMD CPU drivers such as llvmpipe).
+    photo[c].y = gx;
+    photo[c].z = gy;
+    geo[c].y = gg.x;
+    geo[c].z = gg.y;
 }

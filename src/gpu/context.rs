@@ -389,7 +389,9 @@ impl GpuContext {
     /// Workgroup count for a reduction over `items` items with `threads` threads per group:
     /// few large groups on software adapters, enough to fill a real GPU otherwise.
     pub fn reduction_groups(&self, items: usize, threads: usize) -> u32 {
-        let per_thread = if self.is_software { 64 } else { 8 };
+        // Software: at least ~16 pixels per invocation, but several groups even on small
+        // levels so that every driver thread gets work (80x60: 3 groups, not 1).
+        let per_thread = if self.is_software { 16 } else { 8 };
         let groups = items.div_ceil(threads * per_thread).max(1);
         let cap = if self.is_software { 16 } else { 1024 };
         groups.min(cap) as u32

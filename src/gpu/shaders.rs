@@ -8,6 +8,10 @@ pub const ALL: &[(&str, &str)] = &[
     ("common.wgsl", include_str!("../../shaders/common.wgsl")),
     ("pyramid.wgsl", include_str!("../../shaders/pyramid.wgsl")),
     ("odometry.wgsl", include_str!("../../shaders/odometry.wgsl")),
+    (
+        "odometry_subgroup.wgsl",
+        include_str!("../../shaders/odometry_subgroup.wgsl"),
+    ),
     ("raycast.wgsl", include_str!("../../shaders/raycast.wgsl")),
     ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
     ("fuse.wgsl", include_str!("../../shaders/fuse.wgsl")),

@@ -33,6 +33,7 @@ pub struct GpuOdometry {
     pack: wgpu::ComputePipeline,
     down: wgpu::ComputePipeline,
     grad: wgpu::ComputePipeline,
+    down_input: wgpu::ComputePipeline,
     normal: wgpu::ComputePipeline,
     sample: wgpu::ComputePipeline,
     covis: wgpu::ComputePipeline,
@@ -41,6 +42,8 @@ pub struct GpuOdometry {
     out: wgpu::Buffer,
     staging: wgpu::Buffer,
     out_len: usize,
+    /// Partials written per workgroup (subgroups per workgroup, or 1).
+    slots: usize,
     next_id: u64,
     bind_cache: Option<(u64, u64, wgpu::BindGroup)>,
 }
@@ -53,30 +56,49 @@ fn source(name: &str) -> Result<String, GpuError> {
 }
 
 impl GpuOdometry {
-    /// Compiles the kernels on `ctx`.
+    /// Compiles the kernels on `ctx` (subgroup reductions where the device has them).
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        let subgroups = ctx.has_subgroups;
+        Self::with_reduction(ctx, subgroups)
+    }
+
+    /// Compiles the kernels on `ctx` with subgroup reductions (`subgroups`, ignored where the
+    /// device lacks them) or the shared-memory fallback (to test and time both on one device).
+    pub fn with_reduction(ctx: Arc<GpuContext>, subgroups: bool) -> Result<Self, GpuError> {
         let pyr_layout = ctx.buffer_layout("pyramid", &[true, false, false]);
         let warp_layout = ctx.buffer_layout("warp", &[true, true, true, true, false]);
         let p = ctx.compute_pipelines_with_layout(
             "pyramid.wgsl",
             &source("pyramid.wgsl")?,
-            &["pack_level0", "downsample", "gradients"],
+            &["pack_level0", "downsample", "gradients", "downsample_input"],
             Some(&pyr_layout),
         )?;
-        let o = ctx.compute_pipelines_with_layout(
-            "odometry.wgsl",
-            &source("odometry.wgsl")?,
-            &["normal_equations", "sample_residuals", "covisibility"],
-            Some(&warp_layout),
-        )?;
-        let [pack, down, grad]: [wgpu::ComputePipeline; 3] = p
+        // With subgroups, one partial per subgroup and no barrier (odometry_subgroup.wgsl);
+        // otherwise one per workgroup from a shared-memory tree.
+        let (file, entries, slots) = if subgroups && ctx.has_subgroups {
+            let min = (ctx.info.subgroup_min_size as usize).clamp(1, WG);
+            (
+                "odometry_subgroup.wgsl",
+                ["normal_equations_sg", "sample_residuals", "covisibility_sg"],
+                WG / min,
+            )
+        } else {
+            (
+                "odometry.wgsl",
+                ["normal_equations", "sample_residuals", "covisibility"],
+                1,
+            )
+        };
+        let o =
+            ctx.compute_pipelines_with_layout(file, &source(file)?, &entries, Some(&warp_layout))?;
+        let [pack, down, grad, down_input]: [wgpu::ComputePipeline; 4] = p
             .try_into()
             .map_err(|_| GpuError::Validation("pipeline count".into()))?;
         let [normal, sample, covis]: [wgpu::ComputePipeline; 3] = o
             .try_into()
             .map_err(|_| GpuError::Validation("pipeline count".into()))?;
         let warp_uniform = ctx.uniform("warp params", std::mem::size_of::<WarpParams>() as u64);
-        let out_len = 2 * 19200 + 16;
+        let out_len = (2 * 19200 + 16 * slots * PARTIAL_LEN).next_power_of_two();
         let out = ctx.storage("odometry out", (out_len * 4) as u64);
         let staging = ctx.staging("odometry staging", (out_len * 4) as u64);
         Ok(Self {
@@ -86,6 +108,7 @@ impl GpuOdometry {
             pack,
             down,
             grad,
+            down_input,
             normal,
             sample,
             covis,
@@ -94,6 +117,7 @@ impl GpuOdometry {
             out,
             staging,
             out_len,
+            slots,
             next_id: 1,
             bind_cache: None,
         })
@@ -121,6 +145,23 @@ impl GpuOdometry {
         &mut self,
         frame: &RgbdFrame,
         levels: usize,
+        recycle: Option<GpuPyramid>,
+    ) -> Result<GpuPyramid, GpuError> {
+        self.build_levels(frame, levels, 0, 0, recycle)
+    }
+
+    /// Like [`Self::build`], for a tracker that reads only some levels: levels finer than
+    /// `first_stored` are not written (their contents are unspecified; level 1 is then
+    /// downsampled straight from the input, with the same values), and gradients are computed
+    /// from level `max(first_gradient, first_stored)` on (finer stored levels keep zero
+    /// gradients, as [`super::cpu::CpuPyramid::build_reusing`] leaves them). On lavapipe the
+    /// full-resolution level of a 640x480 frame costs most of a full build.
+    pub fn build_levels(
+        &mut self,
+        frame: &RgbdFrame,
+        levels: usize,
+        first_stored: usize,
+        first_gradient: usize,
         recycle: Option<GpuPyramid>,
     ) -> Result<GpuPyramid, GpuError> {
         let layout = pyramid_layout(frame.width(), frame.height(), levels);
@@ -186,22 +227,31 @@ impl GpuOdometry {
             pass.dispatch_workgroups(w.div_ceil(16) as u32, h.div_ceil(16) as u32, 1);
         };
         let l0 = layout[0];
-        dispatch(
-            &mut enc,
-            &self.pack,
-            PyrParams {
-                dims: [l0.width as u32, l0.height as u32, 0, 0],
-                src: [0; 4],
-            },
-            l0.width,
-            l0.height,
-            &mut u,
-        );
+        // Level 0 is needed when it is read, or as the source of a level finer than level 1.
+        let first_stored = first_stored.min(layout.len().saturating_sub(1));
+        let skip0 = first_stored >= 1;
+        if !skip0 {
+            dispatch(
+                &mut enc,
+                &self.pack,
+                PyrParams {
+                    dims: [l0.width as u32, l0.height as u32, 0, 0],
+                    src: [0; 4],
+                },
+                l0.width,
+                l0.height,
+                &mut u,
+            );
+        }
         for l in 1..layout.len() {
             let (s, d) = (layout[l - 1], layout[l]);
             dispatch(
                 &mut enc,
-                &self.down,
+                if l == 1 && skip0 {
+                    &self.down_input
+                } else {
+                    &self.down
+                },
                 PyrParams {
                     dims: [
                         d.width as u32,
@@ -216,7 +266,7 @@ impl GpuOdometry {
                 &mut u,
             );
         }
-        for d in &layout {
+        for d in layout.iter().skip(first_gradient.max(first_stored)) {
             dispatch(
                 &mut enc,
                 &self.grad,
@@ -263,21 +313,24 @@ impl GpuOdometry {
         reference: &GpuPyramid,
         current: &GpuPyramid,
         groups: u32,
-        read: usize,
+        io: Io,
     ) -> Result<Vec<f32>, GpuError> {
-        self.run_many(&[(pipe, groups)], params, reference, current, read)
+        self.run_many(&[(pipe, groups)], params, reference, current, io)
     }
 
     /// Runs `dispatches` (pipeline, workgroups) in one submission with the same parameters and
-    /// reads back the first `read` floats of the output buffer (one round trip).
+    /// reads back the first `io.read` floats of the output buffer (one round trip); the first
+    /// `io.clear` floats are zeroed before the dispatches (partial slots a subgroup may not
+    /// write).
     fn run_many(
         &mut self,
         dispatches: &[(Pipe, u32)],
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
-        read: usize,
+        io: Io,
     ) -> Result<Vec<f32>, GpuError> {
+        let Io { read, clear } = io;
         self.ensure_out(read);
         let bg = self.bind(reference, current);
         self.ctx
@@ -289,6 +342,9 @@ impl GpuOdometry {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("warp"),
             });
+        if self.slots > 1 && clear > 0 {
+            enc.clear_buffer(&self.out, 0, Some((clear * 4).next_multiple_of(4) as u64));
+        }
         for &(pipe, groups) in dispatches {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: None,
@@ -318,18 +374,26 @@ impl GpuOdometry {
         let n = (params.dims[0] * params.dims[1]) as usize;
         let groups = self.ctx.reduction_groups(n, WG);
         let count = params.dims[3] as usize;
-        let offset = groups as usize * PARTIAL_LEN;
+        let offset = groups as usize * self.slots * PARTIAL_LEN;
         let mut p = *params;
         p.flags[3] = offset as u32;
+        // The normal-equation kernel writes the sample itself (dims.w > 0) when it has at most
+        // one entry per pixel; a larger sample (pixels repeated) takes the separate pass.
+        let sample_pass = (Pipe::Sample, count.div_ceil(WG) as u32);
+        let dispatches: &[(Pipe, u32)] = if count <= n {
+            &[(Pipe::Normal, groups)]
+        } else {
+            &[(Pipe::Normal, groups), sample_pass]
+        };
         let v = self.run_many(
-            &[
-                (Pipe::Normal, groups),
-                (Pipe::Sample, count.div_ceil(WG) as u32),
-            ],
+            dispatches,
             &p,
             reference,
             current,
-            offset + 2 * count,
+            Io {
+                read: offset + 2 * count,
+                clear: offset,
+            },
         )?;
         let parts = v[..offset]
             .chunks_exact(PARTIAL_LEN)
@@ -348,13 +412,19 @@ impl GpuOdometry {
     ) -> Result<Vec<[f32; PARTIAL_LEN]>, GpuError> {
         let n = (params.dims[0] * params.dims[1]) as usize;
         let groups = self.ctx.reduction_groups(n, WG);
+        // No residual sample from this pass.
+        let mut p = *params;
+        p.dims[3] = 0;
         let v = self.run(
             Pipe::Normal,
-            params,
+            &p,
             reference,
             current,
             groups,
-            groups as usize * PARTIAL_LEN,
+            Io {
+                read: groups as usize * self.slots * PARTIAL_LEN,
+                clear: groups as usize * self.slots * PARTIAL_LEN,
+            },
         )?;
         Ok(v.chunks_exact(PARTIAL_LEN)
             .map(|c| c.try_into().unwrap_or([0.0; PARTIAL_LEN]))
@@ -375,7 +445,10 @@ impl GpuOdometry {
             reference,
             current,
             count.div_ceil(WG) as u32,
-            2 * count,
+            Io {
+                read: 2 * count,
+                clear: 0,
+            },
         )?;
         Ok(v.chunks_exact(2).map(|c| [c[0], c[1]]).collect())
     }
@@ -395,7 +468,10 @@ impl GpuOdometry {
             reference,
             current,
             groups,
-            2 * groups as usize,
+            Io {
+                read: 2 * groups as usize * self.slots,
+                clear: 2 * groups as usize * self.slots,
+            },
         )?;
         let mut a = 0u64;
         let mut b = 0u64;
@@ -422,6 +498,13 @@ impl GpuOdometry {
         };
         Ok((to4(photo), to4(geo)))
     }
+}
+
+/// Floats of the output buffer a submission reads back, and how many it zeroes first.
+#[derive(Clone, Copy)]
+struct Io {
+    read: usize,
+    clear: usize,
 }
 
 #[derive(Clone, Copy)]

@@ -240,7 +240,12 @@ impl Odometry {
                     Some(Pyramid::Gpu(p)) => Some(p),
                     _ => None,
                 };
-                Pyramid::Gpu(g.build(frame, levels, recycle)?)
+                // Levels finer than both the finest optimised level and the covisibility level
+                // are never read: the GPU does not write them (the CPU keeps packing level 0,
+                // which costs it little).
+                let first = self.config.finest_level(self.camera.width as usize);
+                let stored = first.min(self.config.covisibility_level.min(levels - 1));
+                Pyramid::Gpu(g.build_levels(frame, levels, stored, first, recycle)?)
             }
         })
     }
