@@ -70,7 +70,7 @@ fn cube_coords(n: [f32; 3]) -> (usize, f32, f32) {
 fn cube_direction(face: usize, u: f64, v: f64) -> [f64; 3] {
     let axis = face / 2;
     let mut d = [0.0; 3];
-    d[axis] = if face % 2 == 0 { 1.0 } else { -1.0 };
+    d[axis] = if face.is_multiple_of(2) { 1.0 } else { -1.0 };
     d[(axis + 1) % 3] = u;
     d[(axis + 2) % 3] = v;
     let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
