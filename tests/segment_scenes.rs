@@ -272,11 +272,9 @@ fn segmentation_is_deterministic_across_thread_counts() {
     assert!(a.segments.len() > 2);
     assert_eq!(a.labels, b.labels);
     assert_eq!(a.labels, c.labels);
-    for (x, y) in a.segments.iter().zip(&b.segments) {
-        assert_eq!(x.histogram, y.histogram);
-        assert_eq!(x.size, y.size);
-        assert!((x.planarity - y.planarity).abs() < 1e-9 && (x.texture - y.texture).abs() < 1e-9);
-    }
+    // Features too, to the bit: the sums run in pixel order whatever the thread count.
+    assert_eq!(a.segments, b.segments);
+    assert_eq!(a.segments, c.segments);
 }
 
 #[test]

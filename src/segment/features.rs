@@ -24,13 +24,62 @@ pub fn golden_spiral(m: usize) -> Vec<[f32; 3]> {
 
 /// Nearest-point binning of unit vectors onto a set of sphere points.
 ///
-/// Bins are sorted by `z`, so only points whose `z` lies within the angular search radius of
-/// the query's `z` are examined: exact nearest point, a fraction of the brute-force cost.
+/// A unit vector is looked up in a cube map of the sphere (6 faces of
+/// [`CUBE_GRID`]` x `[`CUBE_GRID`] cells): each cell lists, in index order, the only bins that
+/// can be nearest to a direction inside it, so a query costs a few dot products and returns
+/// exactly what a brute-force search would (the lowest index among exact ties). Other vectors
+/// (not of unit length, or not finite) use a search pruned by `z`: bins are sorted by `z`, so
+/// only points whose `z` lies within the angular search radius of the query's `z` are examined.
 #[derive(Clone, Debug)]
 pub struct SphereBins {
     points: Vec<[f32; 3]>,
     /// Upper bound of the angular radius (radians) of every Voronoi cell.
     max_radius: f32,
+    /// Start of each cube-map cell's candidate list in `cell_bins` (one more than cells).
+    cell_start: Vec<u32>,
+    /// Candidate bins of every cube-map cell, in increasing index order.
+    cell_bins: Vec<u32>,
+}
+
+/// Cells per side of each cube-map face of [`SphereBins`].
+pub const CUBE_GRID: usize = 16;
+
+/// Angular margin (radians) of the cube-map candidate lists: far above f32 rounding (a bin
+/// left out is at least this much farther than the nearest one, so its dot product is
+/// smaller by more than `margin^2 / 2 = 5e-5`, ~100x the rounding error of a dot product).
+const CUBE_MARGIN: f64 = 0.01;
+
+/// The cube face (`2 * axis + negative`) and cell coordinates `(u, v)` in `[-1, 1]` of a
+/// direction with a non-zero component.
+#[inline]
+fn cube_coords(n: [f32; 3]) -> (usize, f32, f32) {
+    let (ax, ay, az) = (n[0].abs(), n[1].abs(), n[2].abs());
+    let axis = if ax >= ay && ax >= az {
+        0
+    } else if ay >= az {
+        1
+    } else {
+        2
+    };
+    let d = n[axis].abs();
+    let face = 2 * axis + usize::from(n[axis] < 0.0);
+    (face, n[(axis + 1) % 3] / d, n[(axis + 2) % 3] / d)
+}
+
+/// The direction (not normalised) of cube-face coordinates `(u, v)` on `face`.
+fn cube_direction(face: usize, u: f64, v: f64) -> [f64; 3] {
+    let axis = face / 2;
+    let mut d = [0.0; 3];
+    d[axis] = if face.is_multiple_of(2) { 1.0 } else { -1.0 };
+    d[(axis + 1) % 3] = u;
+    d[(axis + 2) % 3] = v;
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    [d[0] / l, d[1] / l, d[2] / l]
+}
+
+#[inline]
+fn cube_cell(u: f32) -> usize {
+    (((u + 1.0) * (0.5 * CUBE_GRID as f32)) as usize).min(CUBE_GRID - 1)
 }
 
 impl SphereBins {
@@ -39,8 +88,8 @@ impl SphereBins {
         Self::from_points(golden_spiral(m.max(1)))
     }
 
-    /// Bins at arbitrary unit `points` (must be sorted by decreasing `z` for the pruned
-    /// search; other orders still give correct results, just without pruning).
+    /// Bins at arbitrary unit `points` (sorted by decreasing `z`, the pruned search of
+    /// non-unit queries is faster; other orders still give correct results).
     pub fn from_points(points: Vec<[f32; 3]>) -> Self {
         // Covering radius: estimate by dense sampling, then add margin.
         let probe = golden_spiral(4_000);
@@ -55,7 +104,13 @@ impl SphereBins {
         } else {
             std::f32::consts::PI
         };
-        Self { points, max_radius }
+        let (cell_start, cell_bins) = cube_candidates(&points);
+        Self {
+            points,
+            max_radius,
+            cell_start,
+            cell_bins,
+        }
     }
 
     /// Number of bins.
@@ -73,9 +128,36 @@ impl SphereBins {
         &self.points
     }
 
-    /// Index of the nearest bin centre to unit vector `n`.
+    /// Index of the nearest bin centre to unit vector `n` (the largest dot product; the lowest
+    /// index among exact ties; 0 when there are no bins). Vectors not of unit length take the
+    /// search pruned by `z` (a NaN component gives 0).
     #[inline]
     pub fn bin(&self, n: [f32; 3]) -> usize {
+        let l2 = dot(n, n);
+        if !(l2 > 0.999 && l2 < 1.001) {
+            return self.bin_pruned(n);
+        }
+        let (face, u, v) = cube_coords(n);
+        let cell = (face * CUBE_GRID + cube_cell(u)) * CUBE_GRID + cube_cell(v);
+        let (s, e) = (
+            self.cell_start[cell] as usize,
+            self.cell_start[cell + 1] as usize,
+        );
+        let mut best = 0usize;
+        let mut best_d = f32::NEG_INFINITY;
+        for &k in &self.cell_bins[s..e] {
+            let d = dot(self.points[k as usize], n);
+            if d > best_d {
+                best_d = d;
+                best = k as usize;
+            }
+        }
+        best
+    }
+
+    /// [`Self::bin`] by a search pruned by `z` (exact for unit vectors, given the bins'
+    /// covering radius), with a full search as fallback.
+    fn bin_pruned(&self, n: [f32; 3]) -> usize {
         let m = self.points.len();
         // z range of candidates: |z_p - z_n| <= sin-free bound via angle: the polar angle of
         // the nearest point differs by at most max_radius.
@@ -113,6 +195,60 @@ impl SphereBins {
         }
         best
     }
+}
+
+/// Candidate lists of the cube-map cells: for a cell with centre direction `c` and angular
+/// radius `r` (to its farthest corner), every direction `q` in it has its nearest bin within
+/// `d(c, b_c) + r` (`b_c` nearest to `c`), so only bins `b` with `d(c, b) <= d(c, b_c) + 2r`
+/// can be nearest to `q`; the list keeps those (plus [`CUBE_MARGIN`]) in index order.
+fn cube_candidates(points: &[[f32; 3]]) -> (Vec<u32>, Vec<u32>) {
+    let cells = 6 * CUBE_GRID * CUBE_GRID;
+    let mut start = Vec::with_capacity(cells + 1);
+    let mut list = Vec::new();
+    let pts: Vec<[f64; 3]> = points
+        .iter()
+        .map(|p| [f64::from(p[0]), f64::from(p[1]), f64::from(p[2])])
+        .collect();
+    let dot64 = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let g = CUBE_GRID as f64;
+    let at = |i: usize| -1.0 + 2.0 * i as f64 / g;
+    for face in 0..6 {
+        for iu in 0..CUBE_GRID {
+            for iv in 0..CUBE_GRID {
+                start.push(list.len() as u32);
+                let c = cube_direction(
+                    face,
+                    0.5 * (at(iu) + at(iu + 1)),
+                    0.5 * (at(iv) + at(iv + 1)),
+                );
+                let r = [(iu, iv), (iu + 1, iv), (iu, iv + 1), (iu + 1, iv + 1)]
+                    .iter()
+                    .map(|&(a, b)| {
+                        dot64(c, cube_direction(face, at(a), at(b)))
+                            .clamp(-1.0, 1.0)
+                            .acos()
+                    })
+                    .fold(0.0f64, f64::max);
+                let dc = pts
+                    .iter()
+                    .map(|&p| dot64(c, p))
+                    .fold(-2.0f64, f64::max)
+                    .clamp(-1.0, 1.0)
+                    .acos();
+                let reach = dc + 2.0 * r + CUBE_MARGIN;
+                let min_dot = if reach >= std::f64::consts::PI {
+                    f64::NEG_INFINITY
+                } else {
+                    reach.cos()
+                };
+                list.extend(
+                    (0..pts.len() as u32).filter(|&k| dot64(c, pts[k as usize]) >= min_dot),
+                );
+            }
+        }
+    }
+    start.push(list.len() as u32);
+    (start, list)
 }
 
 #[inline]
@@ -180,9 +316,11 @@ pub fn eigen_transform_samples(
                     }
                 }
                 // Singular values = sqrt of eigenvalues of A^T A (only the top-left block is used).
+                // (The eigenvalues alone: the same arithmetic as `SymmetricEigen::new`, without
+                // accumulating eigenvectors.)
                 let ata = a.transpose() * a;
-                let eig = SymmetricEigen::new(ata);
-                let mut ev: Vec<f64> = eig.eigenvalues.iter().copied().collect();
+                let mut ev = [0.0f64; W];
+                ev.copy_from_slice(ata.symmetric_eigenvalues().as_slice());
                 ev.sort_by(|p, q| q.total_cmp(p));
                 let ev = &ev[..window];
                 let s: f64 = ev[first - 1..].iter().map(|&l| l.max(0.0).sqrt()).sum();
@@ -248,25 +386,14 @@ impl Acc {
             tex_n: 0,
         }
     }
-    fn merge(&mut self, o: &Acc) {
-        self.count += o.count;
-        for k in 0..3 {
-            self.sum[k] += o.sum[k];
-        }
-        for k in 0..6 {
-            self.outer[k] += o.outer[k];
-        }
-        self.horiz += o.horiz;
-        self.tex += o.tex;
-        self.tex_n += o.tex_n;
-    }
 }
 
 /// Computes [`Superjut`] features for `count` segments from per-sample labels, unit normals
 /// and points (camera frame, metres; samples labelled [`NO_SEGMENT`] are skipped).
 ///
 /// `up` is the unit up direction in the camera frame (e.g. `[0, -1, 0]` for an upright camera,
-/// whose y axis points down). `texture` holds `(sample index, response)` pairs.
+/// whose y axis points down). `texture` holds `(sample index, response)` pairs. Sums run in
+/// sample order, so the result does not depend on the number of threads.
 pub fn superjut_features(
     labels: &[u32],
     normals: &[[f32; 3]],
@@ -277,50 +404,36 @@ pub fn superjut_features(
     texture: &[(usize, f32)],
 ) -> Vec<Superjut> {
     let m = bins.len();
-    let chunk = 4096;
-    let (hist, mut accs) = labels
-        .par_chunks(chunk)
-        .enumerate()
-        .fold(
-            || (vec![0u32; count * m], vec![Acc::new(); count]),
-            |(mut hist, mut accs), (ci, ls)| {
-                for (j, &l) in ls.iter().enumerate() {
-                    if l == NO_SEGMENT || l as usize >= count {
-                        continue;
-                    }
-                    let i = ci * chunk + j;
-                    let n = normals[i];
-                    let p = points[i];
-                    hist[l as usize * m + bins.bin(n)] += 1;
-                    let a = &mut accs[l as usize];
-                    a.count += 1;
-                    let (x, y, z) = (f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-                    a.sum[0] += x;
-                    a.sum[1] += y;
-                    a.sum[2] += z;
-                    a.outer[0] += x * x;
-                    a.outer[1] += x * y;
-                    a.outer[2] += x * z;
-                    a.outer[3] += y * y;
-                    a.outer[4] += y * z;
-                    a.outer[5] += z * z;
-                    a.horiz += f64::from(dot(n, up).abs());
-                }
-                (hist, accs)
-            },
-        )
-        .reduce(
-            || (vec![0u32; count * m], vec![Acc::new(); count]),
-            |(mut h1, mut a1), (h2, a2)| {
-                for (x, y) in h1.iter_mut().zip(&h2) {
-                    *x += y;
-                }
-                for (x, y) in a1.iter_mut().zip(&a2) {
-                    x.merge(y);
-                }
-                (h1, a1)
-            },
-        );
+    let in_range = |l: u32| l != NO_SEGMENT && (l as usize) < count;
+    // The bin of every labelled sample (the costly part) in parallel; the sums below in sample
+    // order, so every superjut's features are the same whatever the thread count.
+    let bin_of: Vec<u32> = labels
+        .par_iter()
+        .zip(normals)
+        .with_min_len(4096)
+        .map(|(&l, &n)| if in_range(l) { bins.bin(n) as u32 } else { 0 })
+        .collect();
+    let mut hist = vec![0u32; count * m];
+    let mut accs = vec![Acc::new(); count];
+    for ((&l, &b), (&n, &p)) in labels.iter().zip(&bin_of).zip(normals.iter().zip(points)) {
+        if !in_range(l) {
+            continue;
+        }
+        hist[l as usize * m + b as usize] += 1;
+        let a = &mut accs[l as usize];
+        a.count += 1;
+        let (x, y, z) = (f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        a.sum[0] += x;
+        a.sum[1] += y;
+        a.sum[2] += z;
+        a.outer[0] += x * x;
+        a.outer[1] += x * y;
+        a.outer[2] += x * z;
+        a.outer[3] += y * y;
+        a.outer[4] += y * z;
+        a.outer[5] += z * z;
+        a.horiz += f64::from(dot(n, up).abs());
+    }
     for &(i, r) in texture {
         if let Some(&l) = labels.get(i) {
             if l != NO_SEGMENT && (l as usize) < count {
@@ -397,6 +510,68 @@ mod tests {
             let got = bins.bin(q);
             let (db, dg) = (dot(bins.points[brute], q), dot(bins.points[got], q));
             assert!((db - dg).abs() < 1e-6, "{q:?}: {brute} vs {got}");
+        }
+    }
+
+    /// The cube-map lookup gives exactly the brute-force nearest bin (lowest index among exact
+    /// ties), as does the z-pruned search it replaced; non-unit vectors take the pruned path.
+    #[test]
+    fn cube_map_binning_equals_brute_force() {
+        let brute = |bins: &SphereBins, q: [f32; 3]| {
+            let mut best = (0, f32::NEG_INFINITY);
+            for (k, p) in bins.points.iter().enumerate() {
+                let d = dot(*p, q);
+                if d > best.1 {
+                    best = (k, d);
+                }
+            }
+            best.0
+        };
+        let mut s = 0x2545_f491_4f6c_dd1du64;
+        let mut uniform = || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        for m in [2, 7, 80, 300] {
+            let bins = SphereBins::golden(m);
+            let mut queries: Vec<[f32; 3]> = golden_spiral(20_000);
+            // Random directions, and directions on cube-map cell borders and bin midpoints.
+            for _ in 0..100_000 {
+                let v = [uniform(), uniform(), uniform()];
+                let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                if l > 1e-3 {
+                    queries.push([(v[0] / l) as f32, (v[1] / l) as f32, (v[2] / l) as f32]);
+                }
+            }
+            for i in 0..=CUBE_GRID {
+                for j in 0..=CUBE_GRID {
+                    let (u, v) = (
+                        -1.0 + 2.0 * i as f64 / CUBE_GRID as f64,
+                        -1.0 + 2.0 * j as f64 / CUBE_GRID as f64,
+                    );
+                    for face in 0..6 {
+                        let d = cube_direction(face, u, v);
+                        queries.push([d[0] as f32, d[1] as f32, d[2] as f32]);
+                    }
+                }
+            }
+            for p in bins.points.windows(2) {
+                let c = [p[0][0] + p[1][0], p[0][1] + p[1][1], p[0][2] + p[1][2]];
+                let l = dot(c, c).sqrt();
+                if l > 1e-3 {
+                    queries.push([c[0] / l, c[1] / l, c[2] / l]);
+                }
+            }
+            for q in queries {
+                let want = brute(&bins, q);
+                assert_eq!(bins.bin(q), want, "m {m} {q:?}");
+                assert_eq!(bins.bin_pruned(q), want, "m {m} {q:?} (pruned)");
+            }
+            assert_eq!(bins.bin([f32::NAN, 0.0, 1.0]), 0);
+            let half = [0.0, 0.0, 0.5];
+            assert_eq!(bins.bin(half), bins.bin_pruned(half));
         }
     }
 

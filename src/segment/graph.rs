@@ -1,6 +1,9 @@
 //! Graph segmentation: convex/concave edge weights (thesis eq. 5.1 / 6.26) and
 //! Felzenszwalb-Huttenlocher merging with sorted edges and union-find.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+
 use rayon::prelude::*;
 
 /// Label of a vertex/pixel that belongs to no segment (no depth or no normal).
@@ -38,6 +41,10 @@ pub fn convexity_weight(pi: [f32; 3], ni: [f32; 3], pj: [f32; 3], nj: [f32; 3]) 
     }
 }
 
+/// Union-find with path halving and union by size (ties: the first argument's root wins),
+/// holding the merge threshold `Int(C) + k/|C|` of each root. The parent pointers, which
+/// every lookup walks, are an array of their own (1.2 MB for 640x480, so they stay in cache);
+/// sizes and thresholds are only read at roots.
 struct UnionFind {
     parent: Vec<u32>,
     size: Vec<u32>,
@@ -54,7 +61,7 @@ impl UnionFind {
     }
     #[inline]
     fn find(&mut self, mut x: u32) -> u32 {
-        // Path halving.
+        // Path halving (the store is unconditional: cheaper than a mispredicted branch).
         while self.parent[x as usize] != x {
             let p = self.parent[x as usize];
             self.parent[x as usize] = self.parent[p as usize];
@@ -62,6 +69,7 @@ impl UnionFind {
         }
         x
     }
+    /// Joins roots `a` and `b`; returns the new root.
     #[inline]
     fn union(&mut self, a: u32, b: u32) -> u32 {
         let (big, small) = if self.size[a as usize] >= self.size[b as usize] {
@@ -75,12 +83,240 @@ impl UnionFind {
     }
 }
 
-/// Sorts edges by weight with a stable radix sort (`radsort`): ties keep their input order.
-/// [`image_edges`] and [`crate::segment::TriMesh::weighted_edges`] emit edges sorted by
-/// `(a, b)`, so the result is the order by `(w, a, b)` and segmentation is deterministic
-/// (about 5x faster than a comparison sort of the 1.2 M edges of a 640x480 image).
+/// The radix key of an edge weight: its IEEE bits mapped so that unsigned order is the float
+/// total order (the same map as `radsort`): non-negative floats get the sign bit set,
+/// negative ones are inverted.
+#[inline]
+fn weight_key(w: f32) -> u32 {
+    let b = w.to_bits();
+    if b & 0x8000_0000 != 0 {
+        !b
+    } else {
+        b ^ 0x8000_0000
+    }
+}
+
+/// Bits of the most significant digit (the first, bucketing pass of [`sort_edges`]).
+const TOP_BITS: u32 = 12;
+const TOP_BUCKETS: usize = 1 << TOP_BITS;
+/// Bits of each of the two lower digits, sorted per bucket from least significant.
+const LOW_BITS: u32 = 10;
+const LOW_BUCKETS: usize = 1 << LOW_BITS;
+const LOW_MASK: u32 = (1 << LOW_BITS) - 1;
+/// Below this many edges a comparison sort is faster than a radix pass.
+const SMALL_SORT: usize = 96;
+const ZERO_EDGE: Edge = Edge { w: 0.0, a: 0, b: 0 };
+
+/// The top 12 bits of an edge's radix key.
+#[inline]
+fn top_digit(e: &Edge) -> usize {
+    (weight_key(e.w) >> (32 - TOP_BITS)) as usize
+}
+
+/// Sorts edges by weight, stably: ties keep their input order. [`image_edges`] and
+/// [`crate::segment::TriMesh::weighted_edges`] emit edges sorted by `(a, b)`, so the result is
+/// the order by `(w, a, b)` and segmentation is deterministic. Weights are ordered as by
+/// [`f32::total_cmp`] (negative NaN first, positive NaN last).
+///
+/// A radix sort on the 32 bits of the weight: one parallel pass groups the edges by the top
+/// 12 bits (an eighth of an octave), then each group is sorted, in parallel, by the low 20
+/// bits in two least-significant-digit passes of 10 bits while it is hot in cache; passes
+/// whose digit is the same for every edge of a group are skipped.
 pub fn sort_edges(edges: &mut [Edge]) {
-    radsort::sort_by_key(edges, |e| e.w);
+    if edges.len() <= SMALL_SORT {
+        edges.sort_by_key(|e| weight_key(e.w));
+        return;
+    }
+    let pieces: Vec<(&[Edge], Vec<u32>)> = edges
+        .par_chunks(1 << 15)
+        .map(|c| (c, top_histogram(c)))
+        .collect();
+    let (mut grouped, sizes) = group_by_top_digit(&pieces);
+    let mut buckets = Vec::new();
+    let mut rest = &mut grouped[..];
+    for &c in sizes.iter().filter(|&&c| c > 0) {
+        let (b, tail) = rest.split_at_mut(c);
+        buckets.push(b);
+        rest = tail;
+    }
+    // Largest first, for load balance.
+    buckets.sort_by_key(|b| std::cmp::Reverse(b.len()));
+    buckets
+        .into_par_iter()
+        .with_max_len(1)
+        .for_each_init(Vec::new, |scratch, b| sort_bucket(b, scratch));
+    edges.copy_from_slice(&grouped);
+}
+
+/// Histogram of the top digits of `edges`.
+fn top_histogram(edges: &[Edge]) -> Vec<u32> {
+    let mut h = vec![0u32; TOP_BUCKETS];
+    for e in edges {
+        h[top_digit(e)] += 1;
+    }
+    h
+}
+
+/// The edges of `pieces` (each with the histogram of its top digits), grouped by top digit
+/// in one buffer, stably (pieces in order); and the size of every group. The pieces scatter
+/// in parallel, each into its own part of every group.
+fn group_by_top_digit<S: AsRef<[Edge]> + Sync>(
+    pieces: &[(S, Vec<u32>)],
+) -> (Vec<Edge>, Vec<usize>) {
+    let mut sizes = vec![0usize; TOP_BUCKETS];
+    for (_, h) in pieces {
+        for (s, &c) in sizes.iter_mut().zip(h) {
+            *s += c as usize;
+        }
+    }
+    let mut out = vec![ZERO_EDGE; sizes.iter().sum()];
+    // Every piece's part of every group, in group-major order.
+    let mut parts: Vec<Vec<&mut [Edge]>> = pieces
+        .iter()
+        .map(|_| Vec::with_capacity(TOP_BUCKETS))
+        .collect();
+    let mut rest = &mut out[..];
+    for k in 0..TOP_BUCKETS {
+        for ((_, h), p) in pieces.iter().zip(parts.iter_mut()) {
+            let (part, tail) = rest.split_at_mut(h[k] as usize);
+            p.push(part);
+            rest = tail;
+        }
+    }
+    pieces
+        .par_iter()
+        .zip(parts.into_par_iter())
+        .for_each(|((edges, _), mut parts)| {
+            let mut next = vec![0usize; TOP_BUCKETS];
+            for e in edges.as_ref() {
+                let k = top_digit(e);
+                if let Some(slot) = parts[k].get_mut(next[k]) {
+                    *slot = *e;
+                }
+                next[k] += 1;
+            }
+        });
+    (out, sizes)
+}
+
+/// Sorts a group of edges (sharing the top digit) in place by the low 20 key bits, stably,
+/// with `scratch` as the second buffer.
+fn sort_bucket(v: &mut [Edge], scratch: &mut Vec<Edge>) {
+    let n = v.len();
+    if n <= SMALL_SORT {
+        v.sort_by_key(|e| weight_key(e.w));
+        return;
+    }
+    let mut h0 = [0u32; LOW_BUCKETS];
+    let mut h1 = [0u32; LOW_BUCKETS];
+    for e in v.iter() {
+        let k = weight_key(e.w);
+        h0[(k & LOW_MASK) as usize] += 1;
+        h1[((k >> LOW_BITS) & LOW_MASK) as usize] += 1;
+    }
+    if scratch.len() < n {
+        scratch.resize(n, ZERO_EDGE);
+    }
+    let tmp = &mut scratch[..n];
+    let trivial = |h: &[u32; LOW_BUCKETS]| h.iter().any(|&c| c as usize == n);
+    match (trivial(&h0), trivial(&h1)) {
+        (true, true) => {}
+        (false, true) => {
+            scatter(v, tmp, &h0, 0);
+            v.copy_from_slice(tmp);
+        }
+        (true, false) => {
+            scatter(v, tmp, &h1, LOW_BITS);
+            v.copy_from_slice(tmp);
+        }
+        (false, false) => {
+            scatter(v, tmp, &h0, 0);
+            scatter(tmp, v, &h1, LOW_BITS);
+        }
+    }
+}
+
+/// One stable counting-sort pass of `src` into `dst` by the digit at `shift`, whose histogram
+/// is `hist`.
+fn scatter(src: &[Edge], dst: &mut [Edge], hist: &[u32; LOW_BUCKETS], shift: u32) {
+    let mut next = [0u32; LOW_BUCKETS];
+    let mut sum = 0u32;
+    for (o, &c) in next.iter_mut().zip(hist) {
+        *o = sum;
+        sum += c;
+    }
+    for e in src {
+        let d = ((weight_key(e.w) >> shift) & LOW_MASK) as usize;
+        dst[next[d] as usize] = *e;
+        next[d] += 1;
+    }
+}
+
+/// Sorts the groups (consecutive parts of `grouped` of the given sizes, in increasing top
+/// digit) and calls `consume` on each, in order, while later groups are being sorted on
+/// another thread (if the pool has one): the union-find pass, which is sequential, starts on
+/// the lightest edges before the heavier ones are sorted.
+///
+/// Groups are claimed in order from a shared counter by a helper task and by the consumer
+/// whenever the next group is not sorted yet, so nothing waits on a task that cannot run
+/// (a pool of one thread sorts everything on the consumer's thread).
+fn for_each_sorted_bucket(
+    grouped: &mut [Edge],
+    sizes: &[usize],
+    mut consume: impl FnMut(&[Edge]) + Send,
+) {
+    struct Slot<'a> {
+        edges: &'a mut [Edge],
+        sorted: bool,
+    }
+    let mut slots = Vec::new();
+    let mut rest = grouped;
+    for &c in sizes.iter().filter(|&&c| c > 0) {
+        let (edges, tail) = rest.split_at_mut(c);
+        slots.push(Mutex::new(Slot {
+            edges,
+            sorted: false,
+        }));
+        rest = tail;
+    }
+    let next = AtomicUsize::new(0);
+    let claim_and_sort = |scratch: &mut Vec<Edge>| -> bool {
+        let Some(slot) = slots.get(next.fetch_add(1, Ordering::Relaxed)) else {
+            return false;
+        };
+        // A poisoned lock means a sort panicked; that panic leaves the scope below.
+        let Ok(mut s) = slot.lock() else {
+            return false;
+        };
+        sort_bucket(s.edges, scratch);
+        s.sorted = true;
+        true
+    };
+    rayon::scope(|sc| {
+        sc.spawn(|_| {
+            let mut scratch = Vec::new();
+            while claim_and_sort(&mut scratch) {}
+        });
+        let mut scratch = Vec::new();
+        for slot in &slots {
+            loop {
+                {
+                    let Ok(s) = slot.lock() else {
+                        // The helper panicked sorting this group: stop, its panic propagates.
+                        return;
+                    };
+                    if s.sorted {
+                        consume(s.edges);
+                        break;
+                    }
+                }
+                if !claim_and_sort(&mut scratch) {
+                    // Claimed by the helper, which is about to lock and sort it.
+                    std::thread::yield_now();
+                }
+            }
+        }
+    });
 }
 
 /// Felzenszwalb-Huttenlocher segmentation of a graph with `n` vertices.
@@ -89,7 +325,8 @@ pub fn sort_edges(edges: &mut [Edge]) {
 /// weight `w` merge when `w <= min(Int(C1) + k/|C1|, Int(C2) + k/|C2|)`, `Int` being the
 /// largest weight of the component's minimum spanning tree. Afterwards, components smaller
 /// than `min_size` vertices merge along the remaining edges in weight order. `active[i]` false
-/// marks vertices that belong to no segment (they get [`NO_SEGMENT`]).
+/// marks vertices that belong to no segment (they get [`NO_SEGMENT`]). Edges with a vertex
+/// `>= n` are ignored.
 ///
 /// Returns one label per vertex, numbered `0..count` in order of first appearance, and `count`.
 pub fn felzenszwalb(
@@ -99,19 +336,62 @@ pub fn felzenszwalb(
     min_size: usize,
     active: &[bool],
 ) -> (Vec<u32>, usize) {
-    let mut uf = UnionFind::new(n, k);
-    for e in edges {
-        let a = uf.find(e.a);
-        let b = uf.find(e.b);
-        if a != b && e.w <= uf.thresh[a as usize] && e.w <= uf.thresh[b as usize] {
-            let r = uf.union(a, b);
-            uf.thresh[r as usize] = e.w + k / uf.size[r as usize] as f32;
+    let mut merger = Merger::new(n, k, min_size);
+    merger.add(edges);
+    merger.finish(active)
+}
+
+/// Felzenszwalb-Huttenlocher merging fed with edges in weight order, in pieces.
+struct Merger {
+    uf: UnionFind,
+    n: usize,
+    k: f32,
+    min_size: usize,
+    /// Edges that joined two components, or whose ends were already joined, stay inside one
+    /// component for good: only the rejected ones matter to the minimum-size pass, which
+    /// visits them in the same (weight) order.
+    rejected: Vec<(u32, u32)>,
+}
+
+impl Merger {
+    fn new(n: usize, k: f32, min_size: usize) -> Self {
+        Self {
+            uf: UnionFind::new(n, k),
+            n,
+            k,
+            min_size,
+            rejected: Vec::new(),
         }
     }
-    if min_size > 1 {
+
+    /// The merging pass over the next edges in weight order.
+    fn add(&mut self, edges: &[Edge]) {
+        let (n, k) = (self.n, self.k);
+        let uf = &mut self.uf;
         for e in edges {
+            if e.a as usize >= n || e.b as usize >= n {
+                continue;
+            }
             let a = uf.find(e.a);
             let b = uf.find(e.b);
+            if a == b {
+                continue;
+            }
+            if e.w <= uf.thresh[a as usize] && e.w <= uf.thresh[b as usize] {
+                let r = uf.union(a, b) as usize;
+                uf.thresh[r] = e.w + k / uf.size[r] as f32;
+            } else if self.min_size > 1 {
+                self.rejected.push((e.a, e.b));
+            }
+        }
+    }
+
+    /// The minimum-size pass and the labels (see [`felzenszwalb`]).
+    fn finish(mut self, active: &[bool]) -> (Vec<u32>, usize) {
+        let (uf, min_size, n) = (&mut self.uf, self.min_size, self.n);
+        for &(ea, eb) in &self.rejected {
+            let a = uf.find(ea);
+            let b = uf.find(eb);
             if a != b
                 && ((uf.size[a as usize] as usize) < min_size
                     || (uf.size[b as usize] as usize) < min_size)
@@ -119,27 +399,54 @@ pub fn felzenszwalb(
                 uf.union(a, b);
             }
         }
-    }
-    let mut map = vec![NO_SEGMENT; n];
-    let mut labels = vec![NO_SEGMENT; n];
-    let mut count = 0u32;
-    for i in 0..n {
-        if !active.get(i).copied().unwrap_or(false) {
-            continue;
+        let mut map = vec![NO_SEGMENT; n];
+        let mut labels = vec![NO_SEGMENT; n];
+        let mut count = 0u32;
+        for (i, label) in labels.iter_mut().enumerate() {
+            if !active.get(i).copied().unwrap_or(false) {
+                continue;
+            }
+            let r = uf.find(i as u32) as usize;
+            if map[r] == NO_SEGMENT {
+                map[r] = count;
+                count += 1;
+            }
+            *label = map[r];
         }
-        let r = uf.find(i as u32) as usize;
-        if map[r] == NO_SEGMENT {
-            map[r] = count;
-            count += 1;
-        }
-        labels[i] = map[r];
+        (labels, count as usize)
     }
-    (labels, count as usize)
+}
+
+/// Felzenszwalb-Huttenlocher segmentation of the 8-connected image graph: the same labels as
+/// [`felzenszwalb`]`(width * height, e, k, min_size, active)` with `e` the edges of
+/// [`image_edges`] sorted by [`sort_edges`], computed without the whole sorted edge list:
+/// bands of rows emit their edges grouped by the top digit of the weight, and the union-find
+/// pass consumes the groups as they are sorted, overlapping the sort of the heavier edges.
+#[allow(clippy::too_many_arguments)]
+pub fn segment_image_graph(
+    width: usize,
+    height: usize,
+    points: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    inverse_depth: &[f32],
+    jump_ratio: f32,
+    k: f32,
+    min_size: usize,
+    active: &[bool],
+) -> (Vec<u32>, usize) {
+    let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
+    let (mut grouped, sizes) = group_by_top_digit(&bands);
+    drop(bands);
+    let mut merger = Merger::new(width * height, k, min_size);
+    for_each_sorted_bucket(&mut grouped, &sizes, |b| merger.add(b));
+    merger.finish(active)
 }
 
 /// Edges of the 8-connected image graph between pixels with normals, weighted by
 /// [`convexity_weight`], or [`JUMP_WEIGHT`] where the inverse depth of the two pixels differs
 /// by more than `jump_ratio` of the larger (per pixel of distance).
+///
+/// Edges come out sorted by `(a, b)` (which [`sort_edges`] relies on for its ties).
 pub fn image_edges(
     width: usize,
     height: usize,
@@ -148,58 +455,84 @@ pub fn image_edges(
     inverse_depth: &[f32],
     jump_ratio: f32,
 ) -> Vec<Edge> {
+    let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
+    let mut edges = Vec::with_capacity(bands.iter().map(|b| b.0.len()).sum());
+    for (b, _) in bands {
+        edges.extend(b);
+    }
+    edges
+}
+
+/// Rows per band of [`image_edge_bands`].
+const BAND_ROWS: usize = 16;
+
+/// The edges of [`image_edges`] in bands of [`BAND_ROWS`] rows (of the first vertex), in
+/// parallel, each with the histogram of its top digits.
+fn image_edge_bands(
+    width: usize,
+    height: usize,
+    points: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    inverse_depth: &[f32],
+    jump_ratio: f32,
+) -> Vec<(Vec<Edge>, Vec<u32>)> {
+    let n = width * height;
+    if n == 0 || points.len() < n || normals.len() < n || inverse_depth.len() < n {
+        return Vec::new();
+    }
     let valid = |i: usize| {
-        let n = normals[i];
-        n[0] != 0.0 || n[1] != 0.0 || n[2] != 0.0
+        let v = normals[i];
+        v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0
     };
-    let rows: Vec<Vec<Edge>> = (0..height)
+    (0..height.div_ceil(BAND_ROWS))
         .into_par_iter()
-        .map(|y| {
-            let mut out = Vec::with_capacity(width * 4);
-            for x in 0..width {
-                let i = y * width + x;
-                if !valid(i) {
-                    continue;
-                }
-                let mut push = |j: usize, dist: f32| {
-                    if !valid(j) {
-                        return;
+        .map(|band| {
+            let rows = band * BAND_ROWS..((band + 1) * BAND_ROWS).min(height);
+            let mut out = Vec::with_capacity(rows.len() * width * 4);
+            let mut hist = vec![0u32; TOP_BUCKETS];
+            for y in rows {
+                for x in 0..width {
+                    let i = y * width + x;
+                    if !valid(i) {
+                        continue;
                     }
-                    let (ri, rj) = (inverse_depth[i], inverse_depth[j]);
-                    let w = if (ri - rj).abs() > jump_ratio * dist * ri.max(rj) {
-                        JUMP_WEIGHT
-                    } else {
-                        convexity_weight(points[i], normals[i], points[j], normals[j])
+                    let mut push = |j: usize, dist: f32| {
+                        if !valid(j) {
+                            return;
+                        }
+                        let (ri, rj) = (inverse_depth[i], inverse_depth[j]);
+                        let w = if (ri - rj).abs() > jump_ratio * dist * ri.max(rj) {
+                            JUMP_WEIGHT
+                        } else {
+                            convexity_weight(points[i], normals[i], points[j], normals[j])
+                        };
+                        let e = Edge {
+                            w,
+                            a: i as u32,
+                            b: j as u32,
+                        };
+                        hist[top_digit(&e)] += 1;
+                        out.push(e);
                     };
-                    out.push(Edge {
-                        w,
-                        a: i as u32,
-                        b: j as u32,
-                    });
-                };
-                // In increasing order of the other vertex, so the edges come out sorted by
-                // (a, b), which [`sort_edges`] relies on for its ties.
-                if x + 1 < width {
-                    push(i + 1, 1.0);
-                }
-                if y + 1 < height {
-                    if x > 0 {
-                        push(i + width - 1, std::f32::consts::SQRT_2);
-                    }
-                    push(i + width, 1.0);
+                    // In increasing order of the other vertex, so the edges come out sorted
+                    // by (a, b), which [`sort_edges`] relies on for its ties.
                     if x + 1 < width {
-                        push(i + width + 1, std::f32::consts::SQRT_2);
+                        push(i + 1, 1.0);
+                    }
+                    if y + 1 < height {
+                        if x > 0 {
+                            push(i + width - 1, std::f32::consts::SQRT_2);
+                        }
+                        push(i + width, 1.0);
+                        if x + 1 < width {
+                            push(i + width + 1, std::f32::consts::SQRT_2);
+                        }
                     }
                 }
             }
-            out
+            (out, hist)
         })
-        .collect();
-    let mut edges = Vec::with_capacity(rows.iter().map(Vec::len).sum());
-    for r in rows {
-        edges.extend(r);
-    }
-    edges
+        .collect()
 }
 
 #[cfg(test)]
@@ -224,6 +557,247 @@ mod tests {
         let convex2 = convexity_weight(pl, [-0.2, 0.0, -c], pr, [0.2, 0.0, -c]);
         let concave2 = convexity_weight(pl, [0.2, 0.0, -c], pr, [-0.2, 0.0, -c]);
         assert!(convex2 < 0.5 * concave2, "{convex2} {concave2}");
+    }
+
+    /// xorshift64 in [0, 1).
+    fn rng(seed: u64) -> impl FnMut() -> f64 {
+        let mut s = seed;
+        move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// The radix sort gives exactly the order of a stable comparison sort by
+    /// `f32::total_cmp` (ties in input order), for weights with many ties, signed zeros,
+    /// negatives, infinities and NaNs, at sizes around the small-sort cut-off and large ones.
+    #[test]
+    fn radix_sort_equals_stable_sort() {
+        let mut r = rng(7);
+        let special = [
+            0.0,
+            -0.0,
+            2.0,
+            -1.5,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+            f32::MIN_POSITIVE,
+            1e-30,
+        ];
+        for n in [0, 1, 2, 95, 96, 97, 500, 5_000, 100_000, 400_000] {
+            for kind in 0..4 {
+                let edges: Vec<Edge> = (0..n as u32)
+                    .map(|i| {
+                        let u = r();
+                        let w = match kind {
+                            // Few distinct values: long runs of ties.
+                            0 => (u * 8.0).floor() as f32 * 0.25,
+                            // Weights of real graphs: d or d^2 over many magnitudes.
+                            1 => (u * 2.0).powi(1 + (i % 7) as i32) as f32,
+                            // Anything, specials included.
+                            2 => {
+                                if u < 0.1 {
+                                    special[(u * 100.0) as usize % special.len()]
+                                } else {
+                                    f32::from_bits((r() * u32::MAX as f64) as u32)
+                                }
+                            }
+                            // One top digit for all (only the low bits differ).
+                            _ => 1.0 + (u * 1e-3) as f32,
+                        };
+                        Edge { w, a: i, b: i + 1 }
+                    })
+                    .collect();
+                let mut want = edges.clone();
+                want.sort_by(|p, q| p.w.total_cmp(&q.w));
+                let mut got = edges;
+                sort_edges(&mut got);
+                let same = got
+                    .iter()
+                    .zip(&want)
+                    .all(|(g, w)| g.w.to_bits() == w.w.to_bits() && g.a == w.a && g.b == w.b);
+                assert!(same && got.len() == want.len(), "n {n} kind {kind}");
+            }
+        }
+    }
+
+    /// The union-find implementation before the compact nodes and the rejected-edge list, kept
+    /// as the reference.
+    fn felzenszwalb_reference(
+        n: usize,
+        edges: &[Edge],
+        k: f32,
+        min_size: usize,
+        active: &[bool],
+    ) -> (Vec<u32>, usize) {
+        let mut parent: Vec<u32> = (0..n as u32).collect();
+        let mut size = vec![1u32; n];
+        let mut thresh = vec![k; n];
+        fn find(parent: &mut [u32], mut x: u32) -> u32 {
+            while parent[x as usize] != x {
+                let p = parent[x as usize];
+                parent[x as usize] = parent[p as usize];
+                x = parent[x as usize];
+            }
+            x
+        }
+        let union = |parent: &mut [u32], size: &mut [u32], a: u32, b: u32| {
+            let (big, small) = if size[a as usize] >= size[b as usize] {
+                (a, b)
+            } else {
+                (b, a)
+            };
+            parent[small as usize] = big;
+            size[big as usize] += size[small as usize];
+            big
+        };
+        for e in edges {
+            let a = find(&mut parent, e.a);
+            let b = find(&mut parent, e.b);
+            if a != b && e.w <= thresh[a as usize] && e.w <= thresh[b as usize] {
+                let r = union(&mut parent, &mut size, a, b);
+                thresh[r as usize] = e.w + k / size[r as usize] as f32;
+            }
+        }
+        if min_size > 1 {
+            for e in edges {
+                let a = find(&mut parent, e.a);
+                let b = find(&mut parent, e.b);
+                if a != b
+                    && ((size[a as usize] as usize) < min_size
+                        || (size[b as usize] as usize) < min_size)
+                {
+                    union(&mut parent, &mut size, a, b);
+                }
+            }
+        }
+        let mut map = vec![NO_SEGMENT; n];
+        let mut labels = vec![NO_SEGMENT; n];
+        let mut count = 0u32;
+        for i in 0..n {
+            if !active[i] {
+                continue;
+            }
+            let r = find(&mut parent, i as u32) as usize;
+            if map[r] == NO_SEGMENT {
+                map[r] = count;
+                count += 1;
+            }
+            labels[i] = map[r];
+        }
+        (labels, count as usize)
+    }
+
+    /// Same labels as the reference on 8-connected grids with piecewise-smooth random
+    /// weights (regions, noise, ties), holes and several `k` / minimum sizes.
+    #[test]
+    fn felzenszwalb_equals_reference() {
+        let mut r = rng(11);
+        let (w, h) = (97, 61);
+        for trial in 0..6 {
+            let active: Vec<bool> = (0..w * h).map(|_| r() > 0.05).collect();
+            let region = |i: usize| (i % w) / 17 + 7 * ((i / w) / 13);
+            let mut edges = Vec::new();
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    let mut nb = vec![];
+                    if x + 1 < w {
+                        nb.push(i + 1);
+                    }
+                    if y + 1 < h {
+                        if x > 0 {
+                            nb.push(i + w - 1);
+                        }
+                        nb.push(i + w);
+                        if x + 1 < w {
+                            nb.push(i + w + 1);
+                        }
+                    }
+                    for j in nb {
+                        if !(active[i] && active[j]) {
+                            continue;
+                        }
+                        let base = if region(i) == region(j) { 0.02 } else { 0.8 };
+                        let wt = if trial % 2 == 0 {
+                            (base * r()) as f32
+                        } else {
+                            // Quantised: many ties.
+                            ((base * r() * 20.0).round() / 20.0) as f32
+                        };
+                        edges.push(Edge {
+                            w: wt,
+                            a: i as u32,
+                            b: j as u32,
+                        });
+                    }
+                }
+            }
+            sort_edges(&mut edges);
+            for (k, min_size) in [(0.6, 200), (0.05, 1), (2.0, 30), (0.3, 0)] {
+                let got = felzenszwalb(w * h, &edges, k, min_size, &active);
+                let want = felzenszwalb_reference(w * h, &edges, k, min_size, &active);
+                if min_size <= 1 && trial % 2 == 0 {
+                    assert!(got.1 > 1, "trial {trial} k {k}: {} segments", got.1);
+                }
+                assert_eq!(got, want, "trial {trial} k {k} min {min_size}");
+            }
+        }
+    }
+
+    /// The fused image path (row buckets, pipelined sort and merging) gives the labels of
+    /// `felzenszwalb` on the sorted `image_edges`, on any number of threads.
+    #[test]
+    fn image_graph_equals_separate_stages() {
+        let mut r = rng(3);
+        let (w, h) = (160, 120);
+        let n = w * h;
+        // Piecewise planes with noise, holes and depth steps; quantised normals give ties.
+        let mut rho = vec![0.0f32; n];
+        let mut normals = vec![[0.0f32; 3]; n];
+        let mut points = vec![[0.0f32; 3]; n];
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if r() < 0.03 {
+                    continue;
+                }
+                let patch = (x / 40 + 4 * (y / 30)) as f64;
+                rho[i] = (0.3 + 0.02 * patch + 0.001 * r()) as f32;
+                let q = |v: f64| ((v * 16.0).round() / 16.0) as f32;
+                let nx = q(0.3 * (patch * 0.7).sin() + 0.05 * r());
+                let ny = q(0.3 * (patch * 1.3).cos() + 0.05 * r());
+                let nz = -(1.0 - nx * nx - ny * ny).sqrt();
+                normals[i] = [nx, ny, nz];
+                let z = 1.0 / rho[i];
+                points[i] = [
+                    (x as f32 - 80.0) / 100.0 * z,
+                    (y as f32 - 60.0) / 100.0 * z,
+                    z,
+                ];
+            }
+        }
+        let active: Vec<bool> = normals.iter().map(|v| v[2] != 0.0).collect();
+        let mut edges = image_edges(w, h, &points, &normals, &rho, 0.03);
+        sort_edges(&mut edges);
+        for (k, min_size) in [(0.6, 200), (0.05, 1), (0.3, 20)] {
+            let want = felzenszwalb(n, &edges, k, min_size, &active);
+            assert!(want.1 > 3, "{} segments", want.1);
+            for threads in [1, 2, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let got = pool.install(|| {
+                    segment_image_graph(w, h, &points, &normals, &rho, 0.03, k, min_size, &active)
+                });
+                assert_eq!(got, want, "k {k} min {min_size} threads {threads}");
+            }
+        }
     }
 
     #[test]

@@ -8,7 +8,8 @@
 //!    thesis eq. 5.2) or from a triangle mesh ([`mesh`]; thesis 5.3.1);
 //! 2. an 8-connected pixel graph (or the mesh edges) weighted by the convex/concave
 //!    criterion ([`graph::convexity_weight`], eq. 5.1 / 6.26) and Felzenszwalb-Huttenlocher
-//!    merging with `k = 0.6` and a minimum segment size ([`graph::felzenszwalb`]);
+//!    merging with `k = 0.6` and a minimum segment size ([`graph::felzenszwalb`]; for images
+//!    [`graph::segment_image_graph`], which overlaps the edge sort with the merging);
 //! 3. per superjut ([`Superjut`]): histogram of normals over `M = 80` golden-section-spiral
 //!    bins, Shannon entropy, neg-entropy `1 - H / ln M` (5.4), planarity, horizontality with
 //!    respect to a configurable up axis, and the eigen-transform texture response;
@@ -330,28 +331,38 @@ pub fn segment_with_normals(
             got_h: normals.height,
         });
     }
-    let points = points_from_inverse_depth(inverse_depth, camera);
-    let mut edges = graph::image_edges(
-        w,
-        h,
-        &points,
-        &normals.data,
-        &inverse_depth.data,
-        config.jump_ratio,
+    // The eigen-transform needs only the intensity: it runs beside the graph stages, whose
+    // union-find pass is sequential.
+    let ((points, labels, count), texture) = rayon::join(
+        || {
+            let points = points_from_inverse_depth(inverse_depth, camera);
+            let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
+            let (labels, count) = graph::segment_image_graph(
+                w,
+                h,
+                &points,
+                &normals.data,
+                &inverse_depth.data,
+                config.jump_ratio,
+                config.k,
+                config.min_size,
+                &active,
+            );
+            (points, labels, count)
+        },
+        || {
+            features::eigen_transform_samples(
+                intensity,
+                config.texture_window,
+                config.texture_first,
+                config.texture_stride,
+            )
+            .into_iter()
+            .map(|(x, y, r)| (y as usize * w + x as usize, r))
+            .collect::<Vec<(usize, f32)>>()
+        },
     );
-    graph::sort_edges(&mut edges);
-    let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
-    let (labels, count) = graph::felzenszwalb(w * h, &edges, config.k, config.min_size, &active);
     let bins = SphereBins::golden(config.bins);
-    let texture: Vec<(usize, f32)> = features::eigen_transform_samples(
-        intensity,
-        config.texture_window,
-        config.texture_first,
-        config.texture_stride,
-    )
-    .into_iter()
-    .map(|(x, y, r)| (y as usize * w + x as usize, r))
-    .collect();
     // Features from the normals of the inverse depth smoothed within each superjut (where they
     // exist), so sensor noise does not masquerade as curvature; the graph used the raw normals.
     let feature_normals =

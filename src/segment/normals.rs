@@ -61,32 +61,48 @@ fn smooth_pass(
     labels: Option<&[u32]>,
     along_x: bool,
 ) -> ImageF32 {
+    match (labels, along_x) {
+        (Some(l), true) => smooth_pass_with::<true>(rho, radius, tolerance, |a, b| l[a] == l[b]),
+        (Some(l), false) => smooth_pass_with::<false>(rho, radius, tolerance, |a, b| l[a] == l[b]),
+        (None, true) => smooth_pass_with::<true>(rho, radius, tolerance, |_, _| true),
+        (None, false) => smooth_pass_with::<false>(rho, radius, tolerance, |_, _| true),
+    }
+}
+
+/// [`smooth_pass`] for one direction and one same-segment test `same(neighbour, centre)`
+/// (monomorphised, so the inner loop has neither branch on them).
+fn smooth_pass_with<const ALONG_X: bool>(
+    rho: &ImageF32,
+    radius: usize,
+    tolerance: f32,
+    same: impl Fn(usize, usize) -> bool + Sync,
+) -> ImageF32 {
     let (w, h) = (rho.width, rho.height);
     let mut out = vec![0.0f32; w * h];
+    let data = &rho.data[..w * h];
+    let stride = if ALONG_X { 1 } else { w };
     if w > 0 {
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            let index = |x: usize, k: usize| if along_x { y * w + k } else { k * w + x };
             for (x, o) in row.iter_mut().enumerate() {
-                let c = rho.data[y * w + x];
+                let i = y * w + x;
+                let c = data[i];
                 if c.is_nan() || c <= 0.0 {
                     continue;
                 }
                 let tol = tolerance * c;
-                let ok = |i: usize| {
-                    let v = rho.data[i];
-                    v > 0.0 && (v - c).abs() <= tol && labels.is_none_or(|l| l[i] == l[y * w + x])
+                let ok = |j: usize| {
+                    let v = data[j];
+                    v > 0.0 && (v - c).abs() <= tol && same(j, i)
                 };
-                let (pos, len) = if along_x { (x, w) } else { (y, h) };
+                let (pos, len) = if ALONG_X { (x, w) } else { (y, h) };
+                let reach = radius.min(pos).min(len - 1 - pos);
                 let (mut sum, mut n) = (c, 1.0f32);
-                for k in 1..=radius {
-                    if k > pos || pos + k >= len {
-                        break;
-                    }
-                    let (a, b) = (index(x, pos - k), index(x, pos + k));
+                for k in 1..=reach {
+                    let (a, b) = (i - k * stride, i + k * stride);
                     if !(ok(a) && ok(b)) {
                         break;
                     }
-                    sum += rho.data[a] + rho.data[b];
+                    sum += data[a] + data[b];
                     n += 2.0;
                 }
                 *o = sum / n;
