@@ -372,7 +372,20 @@ impl DynScale {
             }
             let e = (((t_end - t0) * c.fps).round() as usize).min(n - 1);
             let s = (e + 1).saturating_sub(nw);
-            let analysis = StepAnalysis::analyze(&hp[s..=e], c.fps, &c.spectrum)?;
+            // The step frequency the walking model expects at the window's mean horizontal
+            // speed and the current scale (none before the first estimate).
+            let hint = filter.estimate().map(|scale| {
+                let t_start = t0 + s as f64 / c.fps;
+                let pieces = ((t_end - t_start) / 0.1).ceil().max(1.0) as usize;
+                let mut d = 0.0;
+                for q in 0..pieces {
+                    let ta = t_start + (t_end - t_start) * q as f64 / pieces as f64;
+                    let tb = t_start + (t_end - t_start) * (q + 1) as f64 / pieces as f64;
+                    d += (horizontal(tb) - horizontal(ta)).length();
+                }
+                c.model.frequency(scale * d / (t_end - t_start).max(1e-9))
+            });
+            let analysis = StepAnalysis::analyze_with_hint(&hp[s..=e], c.fps, &c.spectrum, hint)?;
             let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
             let (mut v_slam, mut v_walk, mut consistent, mut log10_std) =
                 (0.0, 0.0, false, f64::NAN);

@@ -33,6 +33,15 @@ pub struct SpectrumConfig {
     pub amplitude_bounds: (f64, f64),
     /// Minimum FFT length after zero padding (a power of two is used).
     pub min_fft_len: usize,
+    /// Peaks in the band with at least this share of the strongest peak's density are
+    /// candidates for the step frequency when a predicted frequency is known
+    /// ([`StepAnalysis::analyze_with_hint`]).
+    #[serde(default = "default_candidate_ratio")]
+    pub candidate_ratio: f64,
+}
+
+fn default_candidate_ratio() -> f64 {
+    0.5
 }
 
 impl Default for SpectrumConfig {
@@ -43,6 +52,7 @@ impl Default for SpectrumConfig {
             min_concentration: 0.35,
             amplitude_bounds: (0.005, 0.10),
             min_fft_len: 4096,
+            candidate_ratio: default_candidate_ratio(),
         }
     }
 }
@@ -64,6 +74,11 @@ impl SpectrumConfig {
             "amplitude_bounds",
             self.amplitude_bounds.0 >= 0.0 && self.amplitude_bounds.1 > self.amplitude_bounds.0,
             || format!("{:?} must be 0 <= low < high", self.amplitude_bounds),
+        )?;
+        check_param(
+            "candidate_ratio",
+            self.candidate_ratio > 0.0 && self.candidate_ratio <= 1.0,
+            || format!("{} must be in (0, 1]", self.candidate_ratio),
         )?;
         check_param(
             "min_concentration",
@@ -189,6 +204,20 @@ impl StepAnalysis {
         sample_rate_hz: f64,
         cfg: &SpectrumConfig,
     ) -> Result<StepAnalysis, ScaleError> {
+        Self::analyze_with_hint(signal, sample_rate_hz, cfg, None)
+    }
+
+    /// Like [`Self::analyze`], but when the band holds several PSD peaks of comparable power
+    /// (local maxima with at least `cfg.candidate_ratio` of the strongest one's density), the
+    /// one closest to `hint` (Hz, in ratio) is taken. The hint is the step frequency the
+    /// walking model predicts from the current scale and the trajectory's speed: a monocular
+    /// estimate can carry a wobble of its own near 1 Hz as strong as the gait peak.
+    pub fn analyze_with_hint(
+        signal: &[f64],
+        sample_rate_hz: f64,
+        cfg: &SpectrumConfig,
+        hint: Option<f64>,
+    ) -> Result<StepAnalysis, ScaleError> {
         cfg.validate()?;
         check_param(
             "sample_rate_hz",
@@ -216,6 +245,20 @@ impl StepAnalysis {
         let mut kmax = lo;
         for k in lo..=hi {
             if psd[k] > psd[kmax] {
+                kmax = k;
+            }
+        }
+        if let Some(fh) = hint.filter(|f| f.is_finite() && *f > 0.0) {
+            let peaks: Vec<usize> = (lo.max(1)..=hi.min(psd.len() - 2))
+                .filter(|&k| psd[k] > psd[k - 1] && psd[k] >= psd[k + 1])
+                .collect();
+            let strongest = peaks.iter().map(|&k| psd[k]).fold(0.0, f64::max);
+            let dist = |k: usize| ((k as f64 * df) / fh).ln().abs();
+            if let Some(&k) = peaks
+                .iter()
+                .filter(|&&k| psd[k] >= cfg.candidate_ratio * strongest)
+                .min_by(|&&a, &&b| dist(a).total_cmp(&dist(b)))
+            {
                 kmax = k;
             }
         }
@@ -302,6 +345,40 @@ mod tests {
         );
         let mean = tail.iter().sum::<f64>() / tail.len() as f64;
         assert!(mean.abs() < 1e-3, "ramp left a DC offset {mean}");
+    }
+
+    #[test]
+    fn hint_chooses_among_comparable_peaks_only() {
+        let fs = 30.0;
+        let sig = |a2: f64| -> Vec<f64> {
+            (0..120)
+                .map(|i| {
+                    let t = i as f64 / fs;
+                    (2.0 * PI * 1.1 * t).sin() + a2 * (2.0 * PI * 2.0 * t + 0.3).sin()
+                })
+                .collect()
+        };
+        let cfg = SpectrumConfig::default();
+        let f = |x: &[f64], h: Option<f64>| {
+            StepAnalysis::analyze_with_hint(x, fs, &cfg, h)
+                .unwrap()
+                .frequency
+        };
+        let two = sig(0.9);
+        assert!((f(&two, None) - 1.1).abs() < 0.05, "{}", f(&two, None));
+        assert!(
+            (f(&two, Some(1.9)) - 2.0).abs() < 0.05,
+            "{}",
+            f(&two, Some(1.9))
+        );
+        assert!((f(&two, Some(1.2)) - 1.1).abs() < 0.05);
+        // A weak second peak (power 0.09 of the first) is never chosen.
+        let weak = sig(0.3);
+        assert!(
+            (f(&weak, Some(2.0)) - 1.1).abs() < 0.05,
+            "{}",
+            f(&weak, Some(2.0))
+        );
     }
 
     #[test]

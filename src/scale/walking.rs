@@ -51,6 +51,15 @@ impl WalkingModel {
             0.0
         }
     }
+    /// Step frequency in steps/s of a walk at `speed` m/s (the inverse of [`Self::speed`];
+    /// 0 for `speed <= 0`).
+    pub fn frequency(&self, speed: f64) -> f64 {
+        if speed > 0.0 {
+            (speed / (self.alpha * self.height)).powf(1.0 / self.beta)
+        } else {
+            0.0
+        }
+    }
 }
 
 /// One calibration walk: a straight walk of known length at a steady pace.
