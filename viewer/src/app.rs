@@ -30,6 +30,7 @@ struct Textures {
     residual_geo: Option<TextureHandle>,
     weight_photo: Option<TextureHandle>,
     weight_geo: Option<TextureHandle>,
+    keypoints: Option<TextureHandle>,
 }
 
 /// Pace choices (multiples of 30 fps; 0 = as fast as possible).
@@ -448,6 +449,14 @@ impl ViewerApp {
                 .as_ref()
                 .map(|n| images::neg_entropy_overlay(n, p.keyframe_intensity.as_ref())),
         );
+        set(
+            &mut self.textures.keypoints,
+            "keypoints",
+            p.keyframe_intensity
+                .as_ref()
+                .filter(|_| !p.keypoints.is_empty())
+                .map(|i| images::keypoints_overlay(i, &p.keypoints)),
+        );
         let r = p.residuals.as_ref();
         set(
             &mut self.textures.residual_photo,
@@ -494,28 +503,32 @@ impl ViewerApp {
             });
         };
         let t = &self.textures;
-        let rows: [[(&str, &Option<TextureHandle>); 2]; 4] = [
-            [
+        let rows: [&[(&str, &Option<TextureHandle>)]; 5] = [
+            &[
                 ("intensity", &t.intensity),
                 ("inverse depth (near = red)", &t.inverse_depth),
             ],
-            [
+            &[
                 ("photometric residual (+ red, - blue)", &t.residual_photo),
                 ("geometric residual", &t.residual_geo),
             ],
-            [
+            &[
                 ("photometric IRLS weight (0 blue, 1 red)", &t.weight_photo),
                 ("geometric IRLS weight", &t.weight_geo),
             ],
-            [
+            &[
                 ("superjuts (latest keyframe)", &t.superjuts),
                 ("neg-entropy (latest keyframe)", &t.neg_entropy),
             ],
+            &[(
+                "ORB keypoints (latest keyframe; green: kept by the neg-entropy mask)",
+                &t.keypoints,
+            )],
         ];
         egui::ScrollArea::vertical().show(ui, |ui| {
             for row in rows {
                 ui.horizontal_top(|ui| {
-                    for (title, tex) in row {
+                    for &(title, tex) in row {
                         show(ui, title, tex);
                     }
                 });

@@ -3,6 +3,8 @@
 use egui::{Color32, ColorImage};
 use rgbid::image::ImageF32;
 
+use crate::worker::KeypointMark;
+
 /// The "turbo" colour map (polynomial approximation by Google), `t` in [0, 1].
 pub fn turbo(t: f32) -> Color32 {
     let t = t.clamp(0.0, 1.0);
@@ -115,6 +117,32 @@ pub fn weight_image(img: &ImageF32) -> ColorImage {
     ColorImage::new([img.width, img.height], pixels)
 }
 
+/// The intensity image with each keypoint drawn as a circle (2.5 px at pyramid level 0,
+/// growing with the detection scale): green where `kept`, orange where a mask drops it.
+pub fn keypoints_overlay(intensity: &ImageF32, keypoints: &[KeypointMark]) -> ColorImage {
+    let mut img = intensity_image(intensity);
+    let (w, h) = (intensity.width as i64, intensity.height as i64);
+    for k in keypoints {
+        let colour = if k.kept {
+            Color32::from_rgb(60, 230, 90)
+        } else {
+            Color32::from_rgb(255, 140, 30)
+        };
+        // 2.5 px at level 0, growing with the detection scale (31 px patch at level 0).
+        let r = 2.5 * f64::from(k.size) / 31.0;
+        let steps = (2.0 * std::f64::consts::PI * r).ceil().max(8.0) as usize;
+        for s in 0..steps {
+            let a = s as f64 / steps as f64 * std::f64::consts::TAU;
+            let x = (f64::from(k.x) + r * a.cos()).round() as i64;
+            let y = (f64::from(k.y) + r * a.sin()).round() as i64;
+            if x >= 0 && y >= 0 && x < w && y < h {
+                img.pixels[(y * w + x) as usize] = colour;
+            }
+        }
+    }
+    img
+}
+
 /// RGB8 row-major bytes as an image; `None` when the size does not match.
 pub fn rgb_image(width: usize, height: usize, rgb: &[u8]) -> Option<ColorImage> {
     (rgb.len() == width * height * 3).then(|| ColorImage::from_rgb([width, height], rgb))
@@ -189,6 +217,29 @@ mod tests {
         let w = weight_image(&ImageF32::from_vec(2, 1, vec![1.0, f32::NAN]).unwrap());
         assert_eq!(w.pixels[0], turbo(1.0));
         assert_eq!(w.pixels[1], Color32::BLACK);
+    }
+
+    #[test]
+    fn keypoints_are_drawn_inside_the_image_only() {
+        let img = ImageF32::from_vec(20, 20, vec![100.0; 400]).unwrap();
+        let kp = [
+            KeypointMark {
+                x: 10.0,
+                y: 10.0,
+                size: 24.8,
+                kept: true,
+            },
+            KeypointMark {
+                x: 0.0,
+                y: 19.0,
+                size: 24.8,
+                kept: false,
+            },
+        ];
+        let c = keypoints_overlay(&img, &kp);
+        assert_eq!(c.pixels[10 * 20 + 12], Color32::from_rgb(60, 230, 90));
+        assert_eq!(c.pixels[10 * 20 + 10], Color32::from_gray(100));
+        assert!(c.pixels.contains(&Color32::from_rgb(255, 140, 30)));
     }
 
     #[test]

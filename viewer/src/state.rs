@@ -12,7 +12,7 @@ use rgbid::slam::FrameStatus;
 
 use crate::output::{OutputFolder, StageRow};
 use crate::scene3d::{Geometry, Vertex};
-use crate::worker::{FinishedRun, FrameUpdate, KeyframeUpdate, StartInfo, Update};
+use crate::worker::{FinishedRun, FrameUpdate, KeyframeUpdate, KeypointMark, StartInfo, Update};
 
 /// Colours of the 3D view (RGBA8).
 pub mod colours {
@@ -44,6 +44,8 @@ pub struct Panels {
     pub superjuts: Option<(usize, usize, Vec<u8>)>,
     /// Latest keyframe's neg-entropy.
     pub neg_entropy: Option<ImageF32>,
+    /// Latest keyframe's ORB keypoints.
+    pub keypoints: Vec<KeypointMark>,
     /// Residuals and IRLS weights of the latest frame against its odometry reference, on the
     /// finest optimised pyramid level.
     pub residuals: Option<ResidualImages>,
@@ -189,6 +191,7 @@ impl ViewerState {
         self.panels.keyframe_intensity = self.panels.intensity.clone();
         self.panels.superjuts = k.superjuts;
         self.panels.neg_entropy = k.neg_entropy;
+        self.panels.keypoints = k.keypoints;
         self.panels.version += 1;
         self.geometry_dirty = true;
         self.points_dirty = true;

@@ -13,6 +13,7 @@ use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::image::{ImageF32, RgbdFrame};
 use rgbid::io::trajectory::TimedPose;
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
+use rgbid::place::orb::{extract_orb, OrbParams};
 use rgbid::place::Vocabulary;
 use rgbid::segment::{segment_keyframe, SegmentConfig};
 use rgbid::slam::{
@@ -122,8 +123,25 @@ pub struct KeyframeUpdate {
     pub superjuts: Option<(usize, usize, Vec<u8>)>,
     /// Neg-entropy per pixel, if segmentation is on and succeeded.
     pub neg_entropy: Option<ImageF32>,
+    /// ORB keypoints of the keyframe as SLAM's back-end extracts them: level-0 pixel `(x, y)`,
+    /// patch diameter (pixels), and whether the first neg-entropy mask keeps it (empty when
+    /// segmentation is off).
+    pub keypoints: Vec<KeypointMark>,
     /// Segmentation time, milliseconds.
     pub segment_ms: f64,
+}
+
+/// One ORB keypoint for the keyframe panel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KeypointMark {
+    /// Level-0 pixel coordinates.
+    pub x: f32,
+    /// Level-0 pixel coordinates.
+    pub y: f32,
+    /// Descriptor patch diameter, pixels.
+    pub size: f32,
+    /// Kept by the first neg-entropy mask threshold (or no mask configured).
+    pub kept: bool,
 }
 
 /// What a finished run produced.
@@ -269,6 +287,34 @@ fn frame_residuals(
     .ok()
 }
 
+/// ORB keypoints of a keyframe, flagged by whether the neg-entropy mask at `threshold` keeps
+/// them (all kept without a threshold); empty when extraction fails.
+fn keyframe_keypoints(
+    intensity: &ImageF32,
+    neg_entropy: &ImageF32,
+    params: &OrbParams,
+    threshold: Option<f64>,
+) -> Vec<KeypointMark> {
+    let Ok(f) = extract_orb(intensity, None, params)
+        .map_err(|e| log::warn!("ORB for the keyframe panel: {e}"))
+    else {
+        return Vec::new();
+    };
+    f.keypoints
+        .iter()
+        .map(|k| {
+            let (x, y) = k.nearest_pixel(neg_entropy.width, neg_entropy.height);
+            let v = neg_entropy.data.get(y * neg_entropy.width + x).copied();
+            KeypointMark {
+                x: k.uv.x as f32,
+                y: k.uv.y as f32,
+                size: k.size,
+                kept: threshold.is_none_or(|t| v.is_some_and(|v| f64::from(v) >= t)),
+            }
+        })
+        .collect()
+}
+
 enum Pace {
     Paused,
     Playing,
@@ -288,6 +334,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         slam_config.mask_thresholds.clear();
     }
     let odometry_config = slam_config.odometry.clone();
+    let orb_params = slam_config.detector.orb.clone();
+    let mask_threshold = slam_config.mask_thresholds.first().copied();
     let mut reference: Option<(RgbdFrame, rgbid::geometry::Se3)> = None;
     let mut slam = Slam::new(
         slam_config,
@@ -380,8 +428,20 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                 } else {
                     None
                 };
+                let keypoints = seg
+                    .as_ref()
+                    .map(|s| {
+                        keyframe_keypoints(
+                            &frame.intensity,
+                            &s.neg_entropy_image(),
+                            &orb_params,
+                            mask_threshold,
+                        )
+                    })
+                    .unwrap_or_default();
                 KeyframeUpdate {
                     frame_index: i,
+                    keypoints,
                     world_from_keyframe,
                     points,
                     superjuts: seg.as_ref().map(|s| (s.width, s.height, s.colour_image())),

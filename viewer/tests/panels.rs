@@ -60,6 +60,11 @@ fn worker_streams_frames_keyframes_and_finishes_accurately() {
         "superjut image of the keyframe"
     );
     assert!(state.panels.neg_entropy.is_some());
+    let kp = &state.panels.keypoints;
+    assert!(kp.len() > 50, "{} keypoints", kp.len());
+    assert!(kp
+        .iter()
+        .all(|k| k.x >= 0.0 && k.x < 160.0 && k.y >= 0.0 && k.y < 120.0));
     // Residuals of the last frame against its reference at the pose found: most reference
     // pixels warp into the frame, and on a static scene most keep a high IRLS weight.
     let res = state.panels.residuals.as_ref().expect("residual images");
