@@ -126,8 +126,9 @@ pub fn residual_images(
         ));
     }
     let levels = level + 1;
-    let r = CpuPyramid::build(reference, levels);
-    let c = CpuPyramid::build(current, levels);
+    // Gradients only on the level asked for (the finer ones only feed the downsampling).
+    let r = CpuPyramid::build_reusing(reference, levels, level, None);
+    let c = CpuPyramid::build_reusing(current, levels, level, None);
     let lay = r.levels[level];
     let cam = camera.at_level(level);
     let mut p = WarpParams {

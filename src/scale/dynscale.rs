@@ -358,6 +358,17 @@ impl DynScale {
             let p = grid[i].lerp(grid[(i + 1).min(n - 1)], x - i as f64);
             p - p.dot(up) * up
         };
+        // Horizontal arc length over the `duration` seconds ending at `t_hi`, as `pieces`
+        // chords (summed from the end backwards).
+        let path = |t_hi: f64, duration: f64, pieces: usize| -> f64 {
+            (0..pieces)
+                .map(|q| {
+                    let ta = t_hi - duration * (q + 1) as f64 / pieces as f64;
+                    let tb = t_hi - duration * q as f64 / pieces as f64;
+                    (horizontal(tb) - horizontal(ta)).length()
+                })
+                .sum()
+        };
         let nw = (c.window * c.fps).round() as usize;
         let mut filter = ScaleFilter::new(c.filter.clone(), c.seed)?;
         let mut sections: Vec<Section> = Vec::new();
@@ -375,15 +386,10 @@ impl DynScale {
             // The step frequency the walking model expects at the window's mean horizontal
             // speed and the current scale (none before the first estimate).
             let hint = filter.estimate().map(|scale| {
-                let t_start = t0 + s as f64 / c.fps;
-                let pieces = ((t_end - t_start) / 0.1).ceil().max(1.0) as usize;
-                let mut d = 0.0;
-                for q in 0..pieces {
-                    let ta = t_start + (t_end - t_start) * q as f64 / pieces as f64;
-                    let tb = t_start + (t_end - t_start) * (q + 1) as f64 / pieces as f64;
-                    d += (horizontal(tb) - horizontal(ta)).length();
-                }
-                c.model.frequency(scale * d / (t_end - t_start).max(1e-9))
+                let duration = (t_end - (t0 + s as f64 / c.fps)).max(1e-9);
+                let pieces = (duration / 0.1).ceil().max(1.0) as usize;
+                c.model
+                    .frequency(scale * path(t_end, duration, pieces) / duration)
             });
             let analysis = StepAnalysis::analyze_with_hint(&hp[s..=e], c.fps, &c.spectrum, hint)?;
             let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
@@ -397,14 +403,8 @@ impl DynScale {
                 let sub = ((stride / 0.1).ceil() as usize).max(1);
                 let mut stride_speeds = Vec::with_capacity(k);
                 for m in 0..k {
-                    let mut d = 0.0;
                     let t_hi = t_end - m as f64 * stride;
-                    for q in 0..sub {
-                        let ta = t_hi - stride * (q + 1) as f64 / sub as f64;
-                        let tb = t_hi - stride * q as f64 / sub as f64;
-                        d += (horizontal(tb) - horizontal(ta)).length();
-                    }
-                    stride_speeds.push(d / stride);
+                    stride_speeds.push(path(t_hi, stride, sub) / stride);
                 }
                 v_slam = stride_speeds.iter().sum::<f64>() / k as f64;
                 let vmin = stride_speeds.iter().cloned().fold(f64::INFINITY, f64::min);

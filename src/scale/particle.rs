@@ -173,10 +173,18 @@ impl ScaleFilter {
         Some(10f64.powf(self.log_scale.iter().sum::<f64>() / n))
     }
 
-    fn spread(&self) -> f64 {
+    /// Mean and variance of the particles' `log10 s`.
+    fn moments(&self) -> (f64, f64) {
         let n = self.log_scale.len() as f64;
         let m = self.log_scale.iter().sum::<f64>() / n;
-        (self.log_scale.iter().map(|l| (l - m).powi(2)).sum::<f64>() / n).sqrt()
+        (
+            m,
+            self.log_scale.iter().map(|l| (l - m).powi(2)).sum::<f64>() / n,
+        )
+    }
+
+    fn spread(&self) -> f64 {
+        self.moments().1.sqrt()
     }
 
     fn initialise(&mut self, center: f64) {
@@ -230,13 +238,7 @@ impl ScaleFilter {
         let k = self.cfg.consistency_sigmas;
         let gate = -0.5 * k.powi(2);
         let ratio = (v_walk / v_slam).log10();
-        let mean = self.log_scale.iter().sum::<f64>() / n as f64;
-        let var = self
-            .log_scale
-            .iter()
-            .map(|l| (l - mean).powi(2))
-            .sum::<f64>()
-            / n as f64;
+        let (mean, var) = self.moments();
         let noise = sigma_l.powi(2) + (self.cfg.sigma_vslam_rel / std::f64::consts::LN_10).powi(2);
         let predicted = (ratio - mean).abs() <= k * (var + noise).sqrt();
         if best < gate || !predicted {
