@@ -384,3 +384,73 @@ fn recursive_scaling_is_continuous_and_landmarks_follow_their_anchor() {
     let b = r.scale_position(t, x);
     assert_eq!(a, b);
 }
+
+#[test]
+fn longer_stationary_window_steadies_the_frequency_but_not_across_a_pace_change() {
+    use rand::{Rng, SeedableRng};
+    // Walk along x at 1.2 m/s; vertical bob (up = -y) of 2 cm at 1.6 steps/s for 30 s, then
+    // 2.0 steps/s (phase continuous), plus white noise of 1.2 cm: a noisy estimate.
+    let fs = 30.0;
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+    let (mut phase, mut traj) = (0.0, Vec::new());
+    for k in 0..(60.0 * fs) as usize {
+        let t = k as f64 / fs;
+        let f = if t < 30.0 { 1.6 } else { 2.0 };
+        phase += f / fs;
+        let y = -0.02 * (2.0 * PI * phase).cos()
+            + 0.012 * (rng.random::<f64>() * 2.0 - 1.0) * 3f64.sqrt();
+        traj.push(TimedPose {
+            timestamp: t,
+            world_from_camera: Se3::new(DQuat::IDENTITY, DVec3::new(1.2 * t, y, 0.0)),
+        });
+    }
+    let run = |frequency_window: f64| {
+        let mut cfg = DynScaleConfig::new(1.80, fs);
+        cfg.frequency_window = frequency_window;
+        DynScale::new(cfg).unwrap().run(&traj).unwrap()
+    };
+    let errors = |r: &rgbid::scale::DynScaleResult| -> Vec<f64> {
+        r.sections
+            .iter()
+            .filter(|s| s.walking && s.t_end - s.window_start > 3.9)
+            .filter(|s| s.window_start >= 30.0 || s.t_end <= 30.0)
+            .map(|s| (s.analysis.frequency - if s.t_end <= 30.0 { 1.6 } else { 2.0 }).abs())
+            .collect()
+    };
+    let (plain, long) = (run(0.0), run(8.0));
+    let (e4, e6) = (errors(&plain), errors(&long));
+    assert!(
+        e4.len() > 40 && e6.len() == e4.len(),
+        "{} {}",
+        e4.len(),
+        e6.len()
+    );
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(
+        mean(&e6) < 0.8 * mean(&e4),
+        "up to 8 s: mean error {:.4} Hz against {:.4} Hz with 4 s",
+        mean(&e6),
+        mean(&e4)
+    );
+    assert!(plain.sections.iter().all(|s| s.frequency_span < 4.1));
+    let used = long
+        .sections
+        .iter()
+        .filter(|s| s.frequency_span > 5.9)
+        .count();
+    assert!(used > 30, "long window used in {used} windows");
+    // Windows whose long span could cross the change must not be pulled towards the old pace.
+    for s in long
+        .sections
+        .iter()
+        .filter(|s| s.walking && s.t_end > 31.0 && s.t_end < 38.5)
+    {
+        assert!(
+            (s.analysis.frequency - 2.0).abs() < 0.08 || s.window_start < 30.0,
+            "window ending {:.1} s (span {} s): {:.3} Hz",
+            s.t_end,
+            s.frequency_span,
+            s.analysis.frequency
+        );
+    }
+}

@@ -6,8 +6,9 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::scale::experiment::{
-    estimate_sequence, evaluate_run, median, percentile, standard_sequences, Estimator,
-    ExperimentConfig, MonoEstimator, RunReport, METHODS,
+    estimate_sequence, evaluate_run, load_run, median, percentile, run_cache_name, save_run,
+    standard_sequences, Estimator, ExperimentConfig, MonoEstimator, RunReport, SequenceSpec,
+    METHODS,
 };
 use rgbid::scale::plot::{plot_panels, Series};
 use rgbid::scale::walking::{GRIEVE_ALPHA, GRIEVE_BETA};
@@ -123,6 +124,16 @@ pub struct ExperimentArgs {
     /// sequence.
     #[arg(long)]
     out_dir: Option<PathBuf>,
+    /// Folder caching the monocular EKF runs (`--estimator mono`): a run found there (same
+    /// sequence, seed, duration, image size) is read instead of rendered and filtered again;
+    /// a missing one is computed and written. Lets the analysis be re-run in seconds.
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// CSV file with one row per analysis window of every run: true and estimated step
+    /// frequency, spectral concentration, amplitude, walking / steady / consistent flags,
+    /// estimated and true scale (for residual plots of the frequency and stop detection).
+    #[arg(long)]
+    windows: Option<PathBuf>,
 }
 
 /// Runs `rgbid scale`.
@@ -341,6 +352,58 @@ fn stats_line(label: &str, v: &[f64]) -> String {
     )
 }
 
+/// Writes the per-window CSV of `rgbid scale experiment --windows`.
+fn write_windows(
+    path: &Path,
+    seqs: &[SequenceSpec],
+    reports: &[RunReport],
+    fps: f64,
+) -> Result<()> {
+    use std::fmt::Write as _;
+    let mut out = String::from(
+        "sequence,seed,window_start,t_end,f_true_mean,f_true_min,f_true_max,f_est,frequency_span,concentration,amplitude,walking,steady,consistent,scale,true_scale\n",
+    );
+    for r in reports {
+        let Some(spec) = seqs.iter().find(|s| s.name == r.sequence) else {
+            continue;
+        };
+        let t0 = r.run.est.first().map_or(0.0, |p| p.timestamp);
+        for s in &r.dynscale.sections {
+            let n = ((s.t_end - s.window_start) * fps).round() as usize + 1;
+            let f: Vec<f64> = (0..n)
+                .map(|i| spec.params.frequency_at(s.window_start + i as f64 / fps))
+                .collect();
+            let mean = f.iter().sum::<f64>() / n as f64;
+            let fmin = f.iter().cloned().fold(f64::INFINITY, f64::min);
+            let fmax = f.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            let i = (((s.t_end - t0) * fps).round().max(0.0) as usize)
+                .min(r.run.true_scale.len().saturating_sub(1));
+            let true_scale = r.run.true_scale.get(i).copied().unwrap_or(f64::NAN);
+            let _ = writeln!(
+                out,
+                "{},{},{:.3},{:.3},{:.4},{:.4},{:.4},{:.4},{:.1},{:.4},{:.6},{},{},{},{:.6},{:.6}",
+                r.sequence,
+                r.seed,
+                s.window_start,
+                s.t_end,
+                mean,
+                fmin,
+                fmax,
+                s.analysis.frequency,
+                s.frequency_span,
+                s.analysis.concentration,
+                s.analysis.amplitude,
+                u8::from(s.walking),
+                u8::from(s.steady),
+                u8::from(s.consistent),
+                s.scale,
+                true_scale
+            );
+        }
+    }
+    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+}
+
 fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     let mut seqs = standard_sequences(a.duration);
     if !a.sequences.is_empty() {
@@ -377,7 +440,7 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    if let Some(d) = &a.out_dir {
+    for d in [&a.out_dir, &a.cache].into_iter().flatten() {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
     let mut reports: Vec<RunReport> = Vec::new();
@@ -386,12 +449,25 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         for seed in 0..a.seeds {
             bar.set_message(format!("{} seed {seed}", spec.name));
             let done = bar.position();
-            let run = estimate_sequence(spec, seed, &cfg, &mut |i, _| {
-                if per_run > 1 {
-                    bar.set_position(done + i as u64);
+            let cached = match (&a.cache, run_cache_name(spec, seed, &cfg)) {
+                (Some(d), Some(name)) => Some(d.join(name)),
+                _ => None,
+            };
+            let run = match &cached {
+                Some(p) if p.exists() => load_run(p)?,
+                _ => {
+                    let run = estimate_sequence(spec, seed, &cfg, &mut |i, _| {
+                        if per_run > 1 {
+                            bar.set_position(done + i as u64);
+                        }
+                    })
+                    .with_context(|| format!("{} seed {seed}", spec.name))?;
+                    if let Some(p) = &cached {
+                        save_run(p, &run)?;
+                    }
+                    run
                 }
-            })
-            .with_context(|| format!("{} seed {seed}", spec.name))?;
+            };
             bar.set_position(done + per_run);
             let r = evaluate_run(spec, seed, run.clone(), &cfg)
                 .with_context(|| format!("{} seed {seed}", spec.name))?;
@@ -415,6 +491,9 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
             }
             reports.push(r);
         }
+    }
+    if let Some(path) = &a.windows {
+        write_windows(path, &seqs, &reports, cfg.fps)?;
     }
     // Sensitivity to alpha / beta errors on head and chest walks.
     let mut sens: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();

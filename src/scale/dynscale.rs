@@ -144,6 +144,29 @@ pub struct DynScaleConfig {
     pub max_speed_ratio: f64,
     /// Seed of the particle filter.
     pub seed: u64,
+    /// Longest window for the step frequency alone, seconds (`<= window`: off). The
+    /// frequency of a walking window is re-read from the longest window ending at the same
+    /// time, from this length down in steps of `window / 2`, over which the pace was
+    /// stationary: the `window`-long window at the start of the longer one and the longer
+    /// one itself must both agree with the current frequency within three standard
+    /// deviations of the difference of two short-window estimates
+    /// ([`StepAnalysis::frequency_std`]), and at most `stationary_hz`. The periodogram peak's error falls as `T^-1.5`, so a longer
+    /// window steadies the frequency of a noisy estimate; the test keeps pace changes from
+    /// blurring it. Walking detection, power and amplitude stay those of `window`.
+    #[serde(default = "default_frequency_window")]
+    pub frequency_window: f64,
+    /// Largest frequency difference, Hz, for the pace to count as stationary over
+    /// `frequency_window` (a cap on the noise-based tolerance).
+    #[serde(default = "default_stationary_hz")]
+    pub stationary_hz: f64,
+}
+
+fn default_frequency_window() -> f64 {
+    8.0
+}
+
+fn default_stationary_hz() -> f64 {
+    0.15
 }
 
 impl DynScaleConfig {
@@ -160,6 +183,8 @@ impl DynScaleConfig {
             up: UpAxis::Fixed([0.0, -1.0, 0.0]),
             max_speed_ratio: 1.25,
             seed: 0x5ca1e,
+            frequency_window: default_frequency_window(),
+            stationary_hz: default_stationary_hz(),
         }
     }
     /// Checks every setting.
@@ -179,6 +204,16 @@ impl DynScaleConfig {
             self.update.is_finite() && self.update > 0.0 && self.update <= self.window,
             || format!("{} s must be in (0, window]", self.update),
         )?;
+        check_param(
+            "frequency_window",
+            self.frequency_window.is_finite() && self.frequency_window >= 0.0,
+            || format!("{} s must be finite and >= 0", self.frequency_window),
+        )?;
+        check_param(
+            "stationary_hz",
+            self.stationary_hz.is_finite() && self.stationary_hz >= 0.0,
+            || format!("{} Hz must be finite and >= 0", self.stationary_hz),
+        )?;
         check_param("max_speed_ratio", self.max_speed_ratio >= 1.0, || {
             format!("{} must be >= 1", self.max_speed_ratio)
         })?;
@@ -197,8 +232,12 @@ pub struct Section {
     pub t_end: f64,
     /// Start of the analysis window that ends at `t_end`, seconds.
     pub window_start: f64,
-    /// Spectral analysis of that window.
+    /// Spectral analysis of that window (its `frequency` read from the longer window of
+    /// [`DynScaleConfig::frequency_window`] when the pace was stationary over it).
     pub analysis: StepAnalysis,
+    /// Length of the window the step frequency was read from, seconds.
+    #[serde(default)]
+    pub frequency_span: f64,
     /// Whether the window was detected as walking.
     pub walking: bool,
     /// Whether the per-stride speeds in the window agree within `max_speed_ratio` (only steady
@@ -391,8 +430,22 @@ impl DynScale {
                 c.model
                     .frequency(scale * path(t_end, duration, pieces) / duration)
             });
-            let analysis = StepAnalysis::analyze_with_hint(&hp[s..=e], c.fps, &c.spectrum, hint)?;
+            let mut analysis =
+                StepAnalysis::analyze_with_hint(&hp[s..=e], c.fps, &c.spectrum, hint)?;
             let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
+            let mut frequency_span = (e + 1 - s) as f64 / c.fps;
+            if walking {
+                if let Some((f, span)) = self.stationary_frequency(
+                    &hp,
+                    e,
+                    analysis.frequency,
+                    analysis.frequency_std,
+                    hint,
+                )? {
+                    analysis.frequency = f;
+                    frequency_span = span;
+                }
+            }
             let (mut v_slam, mut v_walk, mut consistent, mut log10_std) =
                 (0.0, 0.0, false, f64::NAN);
             let mut steady = false;
@@ -429,6 +482,7 @@ impl DynScale {
                 t_end,
                 window_start: t0 + s as f64 / c.fps,
                 analysis,
+                frequency_span,
                 walking,
                 steady,
                 v_slam,
@@ -444,6 +498,48 @@ impl DynScale {
             j += 1;
         }
         Ok((sections, scales, up))
+    }
+
+    /// The step frequency from the longest window ending at sample `e` of the high-passed
+    /// vertical signal `hp` over which the pace was stationary
+    /// ([`DynScaleConfig::frequency_window`]): lengths from `frequency_window` down in steps
+    /// of `window / 2`, longer than `window`; a length is taken when both the `window`-long
+    /// analysis at its start and the whole long one are within three standard deviations
+    /// ([`StepAnalysis::frequency_std`] of both short windows; at most `stationary_hz`) of
+    /// the current window's frequency `f` (standard deviation `f_std`). Returns the frequency (Hz) and the length used
+    /// (seconds), or `None` when no longer window passes.
+    fn stationary_frequency(
+        &self,
+        hp: &[f64],
+        e: usize,
+        f: f64,
+        f_std: f64,
+        hint: Option<f64>,
+    ) -> Result<Option<(f64, f64)>, ScaleError> {
+        let c = &self.cfg;
+        let nw = (c.window * c.fps).round() as usize;
+        let step = ((0.5 * c.window * c.fps).round() as usize).max(1);
+        let mut nl = (c.frequency_window * c.fps).round() as usize;
+        let analyse = |a: usize, b: usize| {
+            StepAnalysis::analyze_with_hint(&hp[a..=b], c.fps, &c.spectrum, hint)
+        };
+        while nl > nw {
+            if e + 1 >= nl {
+                let sl = e + 1 - nl;
+                let first = analyse(sl, sl + nw - 1)?;
+                // Two estimates of one stationary pace differ by noise alone: within three
+                // standard deviations of their difference (at most `stationary_hz`).
+                let tolerance = (3.0 * first.frequency_std.hypot(f_std)).min(c.stationary_hz);
+                if (first.frequency - f).abs() <= tolerance {
+                    let f_long = analyse(sl, e)?.frequency;
+                    if (f_long - f).abs() <= tolerance {
+                        return Ok(Some((f_long, nl as f64 / c.fps)));
+                    }
+                }
+            }
+            nl = nl.saturating_sub(step);
+        }
+        Ok(None)
     }
 
     /// Sets the sections' scales (backfilled before the first update) and origins, adds the

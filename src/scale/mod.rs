@@ -89,6 +89,14 @@ pub enum ScaleError {
     /// The Sim(3) pose-graph optimisation failed.
     #[error("pose graph: {0}")]
     Graph(#[from] crate::graph::GraphError),
+    /// A run file of the experiment cache could not be read or written.
+    #[error("run cache {path}: {message}")]
+    Cache {
+        /// The cache file.
+        path: std::path::PathBuf,
+        /// What went wrong (with the line number for parse errors).
+        message: String,
+    },
     /// Writing the plot failed.
     #[error("plot {path}: {message}")]
     Plot {

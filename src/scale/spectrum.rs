@@ -195,6 +195,13 @@ pub struct StepAnalysis {
     /// [0, 1]; 0 when the band's maximum is not a local maximum of the PSD (at a band edge
     /// with the PSD rising beyond it: no gait peak).
     pub concentration: f64,
+    /// Expected standard deviation of `frequency`, Hz: the Cramer-Rao bound of a sinusoid's
+    /// frequency in white noise, `sqrt(3 / (eta N)) / (pi T)`, inflated by the Hann window's
+    /// noise bandwidth (1.5), with the signal-to-noise ratio `eta` of the peak's power over
+    /// the noise density of the rest of the band (taken as white up to Nyquist); 0 for a
+    /// noiseless peak, infinite when the peak has no power.
+    #[serde(default)]
+    pub frequency_std: f64,
 }
 
 impl StepAnalysis {
@@ -297,6 +304,17 @@ impl StepAnalysis {
         } else {
             0.0
         };
+        // Noise density of the band outside the peak's main lobe, then the bound.
+        let width = (cfg.band.1 - cfg.band.0 - 2.0 * lobe).max(df);
+        let noise_variance = (band_power - peak_power).max(0.0) / width * 0.5 * sample_rate_hz;
+        let eta = peak_power / noise_variance;
+        let frequency_std = if eta.is_finite() && eta > 0.0 {
+            (4.5 / (eta * signal.len() as f64)).sqrt() / (PI * t)
+        } else if peak_power > 0.0 {
+            0.0
+        } else {
+            f64::INFINITY
+        };
         Ok(StepAnalysis {
             frequency,
             peak_power,
@@ -304,6 +322,7 @@ impl StepAnalysis {
             total_power,
             amplitude: (2.0 * peak_power).sqrt(),
             concentration,
+            frequency_std,
         })
     }
 
