@@ -175,15 +175,11 @@ pub struct LoopUpdate {
 impl LoopUpdate {
     /// The update of `record`, with keyframe images from `keyframes` (id -> intensity) and,
     /// for relocalisation, `frame` (the frame being relocalised) as the query image.
-    pub fn new(
-        record: &LoopRecord,
-        keyframes: &HashMap<usize, ImageF32>,
-        frame: Option<&ImageF32>,
-    ) -> Self {
+    pub fn new(record: &LoopRecord, keyframes: &KeyframeImages, frame: Option<&ImageF32>) -> Self {
         let query_image = if record.relocalisation {
             frame.cloned()
         } else {
-            keyframes.get(&record.query).cloned()
+            keyframes.get(record.query)
         };
         LoopUpdate {
             query: record.query,
@@ -193,7 +189,7 @@ impl LoopUpdate {
             reason: record.reason.clone(),
             relocalisation: record.relocalisation,
             query_image,
-            candidate_image: keyframes.get(&record.candidate).cloned(),
+            candidate_image: keyframes.get(record.candidate),
             matches: record.matches.clone(),
         }
     }
@@ -372,17 +368,33 @@ fn keyframe_keypoints(
         .collect()
 }
 
-/// A frame's intensity as a keyframe stores it (rounded to 8 bits, as
-/// [`rgbid::slam::Keyframe::pack`]), so keypoints found on it are the back-end's.
-pub fn keyframe_intensity(intensity: &ImageF32) -> ImageF32 {
-    ImageF32 {
-        width: intensity.width,
-        height: intensity.height,
-        data: intensity
+/// Keyframe intensities by keyframe id, as the back-end keeps them: rounded to 8 bits (as
+/// [`rgbid::slam::Keyframe::pack`]), so keypoints found on them are the back-end's, and one
+/// byte per pixel.
+#[derive(Clone, Debug, Default)]
+pub struct KeyframeImages {
+    images: HashMap<usize, (usize, usize, Vec<u8>)>,
+}
+
+impl KeyframeImages {
+    /// Keeps `intensity` (0-255) as keyframe `id`'s image.
+    pub fn insert(&mut self, id: usize, intensity: &ImageF32) {
+        let bytes = intensity
             .data
             .iter()
-            .map(|&v| v.round().clamp(0.0, 255.0))
-            .collect(),
+            .map(|&v| v.round().clamp(0.0, 255.0) as u8)
+            .collect();
+        self.images
+            .insert(id, (intensity.width, intensity.height, bytes));
+    }
+
+    /// Keyframe `id`'s intensity (0-255), if kept.
+    pub fn get(&self, id: usize) -> Option<ImageF32> {
+        self.images.get(&id).map(|(w, h, bytes)| ImageF32 {
+            width: *w,
+            height: *h,
+            data: bytes.iter().map(|&v| f32::from(v)).collect(),
+        })
     }
 }
 
@@ -410,7 +422,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     let mut reference: Option<(RgbdFrame, rgbid::geometry::Se3)> = None;
     // Keyframe images by id as the back-end keeps them (intensity rounded to 8 bits), for
     // the loop panel; loop records seen so far.
-    let mut keyframe_images: HashMap<usize, ImageF32> = HashMap::new();
+    let mut keyframe_images = KeyframeImages::default();
     let mut loops_seen = 0;
     let mut slam = Slam::new(
         slam_config,
@@ -471,7 +483,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
             FrameStatus::NewKeyframe | FrameStatus::Relocalised
         ) {
             if let Some((id, _)) = report.record.keyframe {
-                keyframe_images.insert(id, keyframe_intensity(&frame.intensity));
+                keyframe_images.insert(id, &frame.intensity);
             }
         }
         let new_loops = slam.loops_since(loops_seen);

@@ -496,6 +496,10 @@ fn exports_reopen_as_an_output_folder() {
     assert_eq!(reopened.state.position_error.len(), run.trajectory.len());
     assert!(reopened.state.position_error.iter().all(|e| e[1] < 0.05));
     assert_eq!(reopened.state.point_count(), run.model.len());
+    // An output folder keeps no loop matches or images: the loop panel says so.
+    assert!(reopened.state.panels.loop_accepted.is_none());
+    let note = reopened.state.panels.loop_note.as_deref().unwrap_or("");
+    assert!(note.contains("no inlier matches"), "{note}");
     // Not a folder of rgbid: a clear error, no panic.
     assert!(reopened.open(&dir.join("missing")).is_err());
     std::fs::remove_dir_all(&dir).ok();
