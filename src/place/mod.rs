@@ -27,7 +27,9 @@ pub use matching::{
 };
 pub use orb::{extract_orb, Descriptor, KeyPoint, OrbFeatures, OrbParams};
 pub use ransac::{horn_absolute_orientation, ransac_rigid, RansacParams, RansacResult};
-pub use verify::{convex_hull_area, verify_loop, LoopMatch, VerifyOutcome, VerifyParams};
+pub use verify::{
+    convex_hull_area, verify_loop, LoopMatch, PixelMatch, VerifyOutcome, VerifyParams,
+};
 pub use vocabulary::{BowVector, FeatureVector, Scoring, TrainParams, Vocabulary, Weighting};
 
 use std::path::PathBuf;

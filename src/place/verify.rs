@@ -53,6 +53,39 @@ pub struct LoopMatch {
     pub rms_residual: f64,
 }
 
+/// One inlier correspondence in pixels: `(query (x, y), candidate (x, y))`, level-0 pixel
+/// coordinates of the two keypoints in their own keyframe images (integers are pixel centres).
+pub type PixelMatch = ([f32; 2], [f32; 2]);
+
+impl LoopMatch {
+    /// The inlier pairs as level-0 pixel coordinates of the keypoints in `query` and
+    /// `candidate`, the features this match was verified on (same order as
+    /// [`LoopMatch::inliers`]). An index outside the features (they are not the verified ones)
+    /// is an error.
+    pub fn inlier_pixels(
+        &self,
+        query: &OrbFeatures,
+        candidate: &OrbFeatures,
+    ) -> Result<Vec<PixelMatch>, PlaceError> {
+        let uv = |f: &OrbFeatures, i: usize, which: &'static str| {
+            f.keypoints
+                .get(i)
+                .map(|k| [k.uv.x as f32, k.uv.y as f32])
+                .ok_or_else(|| PlaceError::InvalidParameter {
+                    name: which,
+                    why: format!(
+                        "inlier keypoint {i} of {} features: not the verified features",
+                        f.keypoints.len()
+                    ),
+                })
+        };
+        self.inliers
+            .iter()
+            .map(|&(q, c)| Ok((uv(query, q, "query")?, uv(candidate, c, "candidate")?)))
+            .collect()
+    }
+}
+
 /// Why a candidate was rejected.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Rejection {
@@ -206,4 +239,105 @@ pub fn verify_loop(
         hull_fraction,
         rms_residual: rms,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::{DQuat, DVec3};
+    use rand::{Rng, SeedableRng};
+
+    use super::*;
+    use crate::place::orb::{Descriptor, KeyPoint};
+
+    fn keypoint(x: f64, y: f64) -> KeyPoint {
+        KeyPoint {
+            uv: DVec2::new(x, y),
+            level: 0,
+            angle: 0.0,
+            score: 10.0,
+            size: 31.0,
+        }
+    }
+
+    /// A verified loop's inlier pixels are the keypoints of the same physical points in the
+    /// two keyframes: the candidate's features are the query's, shuffled, moved by a rigid
+    /// motion and placed at other pixels, so a swapped or shifted index shows.
+    #[test]
+    fn inlier_pixels_are_the_keypoints_of_the_verified_pairs() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let n: u64 = 40;
+        let (w, h) = (160, 120);
+        let query_from_candidate = Se3::new(
+            DQuat::from_axis_angle(DVec3::Y, 0.2),
+            DVec3::new(0.1, -0.05, 0.2),
+        );
+        let mut query = OrbFeatures {
+            keypoints: Vec::new(),
+            descriptors: Vec::new(),
+            points: Vec::new(),
+            width: w,
+            height: h,
+        };
+        let mut in_candidate = Vec::new();
+        for i in 0..n {
+            query.keypoints.push(keypoint(
+                rng.random_range(0.0..w as f64),
+                rng.random_range(0.0..h as f64),
+            ));
+            query
+                .descriptors
+                .push(Descriptor([rng.random(), rng.random(), rng.random(), i]));
+            let p = DVec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-0.7..0.7),
+                rng.random_range(1.5..4.0),
+            );
+            query.points.push(Some(p));
+            // Candidate pixel of feature i: any pixel, different from the query's.
+            in_candidate.push((
+                i as usize,
+                keypoint(
+                    rng.random_range(0.0..w as f64),
+                    rng.random_range(0.0..h as f64),
+                ),
+                query_from_candidate.inverse().transform_point(p),
+            ));
+        }
+        // Shuffle the candidate's feature order.
+        for i in (1..in_candidate.len()).rev() {
+            let j = rng.random_range(0..=i);
+            in_candidate.swap(i, j);
+        }
+        let candidate = OrbFeatures {
+            keypoints: in_candidate.iter().map(|c| c.1).collect(),
+            descriptors: in_candidate
+                .iter()
+                .map(|c| query.descriptors[c.0])
+                .collect(),
+            points: in_candidate.iter().map(|c| Some(c.2)).collect(),
+            width: w,
+            height: h,
+        };
+        let m = match verify_loop(&query, &candidate, None, &VerifyParams::default()) {
+            Ok(VerifyOutcome::Accepted(m)) => m,
+            other => panic!("expected an accepted loop, got {other:?}"),
+        };
+        assert_eq!(m.inliers.len(), n as usize);
+        let pixels = m.inlier_pixels(&query, &candidate).expect("pixels");
+        assert_eq!(pixels.len(), m.inliers.len());
+        for (&(q, c), &(pq, pc)) in m.inliers.iter().zip(&pixels) {
+            let feature = in_candidate[c].0;
+            assert_eq!(feature, q, "candidate feature {c} is not query feature {q}");
+            let kq = query.keypoints[feature].uv;
+            assert_eq!(pq, [kq.x as f32, kq.y as f32]);
+            let kc = in_candidate[c].1.uv;
+            assert_eq!(pc, [kc.x as f32, kc.y as f32]);
+        }
+        // Features that were not verified: an error, not a panic.
+        let fewer = OrbFeatures {
+            keypoints: query.keypoints[..3].to_vec(),
+            ..query.clone()
+        };
+        assert!(m.inlier_pixels(&fewer, &candidate).is_err());
+    }
 }

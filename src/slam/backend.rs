@@ -13,7 +13,7 @@ use crate::graph::{PoseGraph3, SolverOptions};
 use crate::image::{ImageF32, RgbdFrame};
 use crate::odometry::Odometry;
 use crate::place::detector::keypoints_inside;
-use crate::place::{KeyframeDescription, LoopDetector, Vocabulary};
+use crate::place::{KeyframeDescription, LoopDetector, PixelMatch, Vocabulary};
 use crate::segment::segment_keyframe;
 
 /// A loop the back-end found (accepted or rejected after verification).
@@ -25,6 +25,12 @@ pub struct LoopRecord {
     pub candidate: usize,
     /// RANSAC inliers of the verification.
     pub inliers: usize,
+    /// The inlier correspondences of the verification, one per inlier: level-0 pixel
+    /// coordinates `(x, y)` of the keypoint in the query image and of its match in the
+    /// candidate keyframe's image (integers are pixel centres). The query image is keyframe
+    /// `query`'s, or for relocalisation the frame that was relocalised. Empty when the record
+    /// does not carry them (e.g. read back from a loops file).
+    pub matches: Vec<PixelMatch>,
     /// `candidate_from_query` after dense refinement (the RANSAC pose if rejected before it).
     pub candidate_from_query: Se3,
     /// Translation change of the dense refinement over the RANSAC pose, metres.
@@ -68,6 +74,8 @@ pub(crate) struct Shared {
     pub keyframes: usize,
     pub loops: usize,
     pub optimisations: usize,
+    /// Every loop record so far (accepted and rejected), in the order they were found.
+    pub loop_records: Vec<LoopRecord>,
 }
 
 /// Answer to a relocalisation request.
@@ -315,10 +323,23 @@ impl Backend {
                     None => (id, id),
                 });
             }
-            self.loops.push(LoopRecord {
+            let matches = match (
+                self.detector.keyframe(id),
+                self.detector.keyframe(d.candidate_id),
+            ) {
+                (Some(q), Some(c)) => d.loop_match.inlier_pixels(&q.features, &c.features)?,
+                _ => {
+                    return Err(SlamError::Internal(format!(
+                        "loop {id} -> {}: keyframe description missing",
+                        d.candidate_id
+                    )))
+                }
+            };
+            self.record_loop(LoopRecord {
                 query: id,
                 candidate: d.candidate_id,
                 inliers: d.loop_match.inliers.len(),
+                matches,
                 candidate_from_query: refined,
                 refine_translation: dt,
                 refine_rotation: dr,
@@ -352,6 +373,14 @@ impl Backend {
         Ok(())
     }
 
+    /// Keeps a loop record (and shares it with the front-end's caller).
+    fn record_loop(&mut self, record: LoopRecord) {
+        if let Ok(mut s) = self.shared.lock() {
+            s.loop_records.push(record.clone());
+        }
+        self.loops.push(record);
+    }
+
     /// Optimises the keyframe graph (if a loop cluster is pending); returns milliseconds.
     pub fn optimise(&mut self) -> Result<f64, SlamError> {
         if self.cluster.take().is_none() {
@@ -383,10 +412,20 @@ impl Backend {
         let (refined, cov, covis) = self.refine(d.candidate_id, frame, guess)?;
         let (dt, dr, reason) = self.check_refined(&guess, &refined, covis);
         let ok = reason.is_empty();
-        self.loops.push(LoopRecord {
+        let candidate = self.detector.keyframe(d.candidate_id).ok_or_else(|| {
+            SlamError::Internal(format!(
+                "relocalisation candidate {} has no description",
+                d.candidate_id
+            ))
+        })?;
+        let matches = d
+            .loop_match
+            .inlier_pixels(&desc.features, &candidate.features)?;
+        self.record_loop(LoopRecord {
             query: self.keyframes.len(),
             candidate: d.candidate_id,
             inliers: d.loop_match.inliers.len(),
+            matches,
             candidate_from_query: refined,
             refine_translation: dt,
             refine_rotation: dr,

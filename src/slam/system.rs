@@ -365,6 +365,19 @@ impl Slam {
         }
     }
 
+    /// Loop records the back-end has made so far (accepted and rejected, relocalisation
+    /// included), from the `first`-th on, in the order they were found (the order of
+    /// [`SlamResult::loops`]). The back-end runs on its own thread: a keyframe's loop shows
+    /// up some frames after the keyframe was finished, and those still pending at the end
+    /// are only in [`SlamResult::loops`]. A relocalisation attempt is answered within
+    /// [`Slam::process`], so its record is there when `process` returns.
+    pub fn loops_since(&self, first: usize) -> Vec<LoopRecord> {
+        self.shared
+            .lock()
+            .map(|s| s.loop_records.get(first..).unwrap_or_default().to_vec())
+            .unwrap_or_default()
+    }
+
     /// Whether the motion from the last posed frame to `world_from_camera` is within the
     /// configured speed bounds (true when there is no previous pose or no time difference).
     fn plausible_motion(&self, index: usize, timestamp: f64, world_from_camera: &Se3) -> bool {

@@ -31,6 +31,8 @@ struct Textures {
     weight_photo: Option<TextureHandle>,
     weight_geo: Option<TextureHandle>,
     keypoints: Option<TextureHandle>,
+    loop_accepted: Option<TextureHandle>,
+    loop_rejected: Option<TextureHandle>,
 }
 
 /// Pace choices (multiples of 30 fps; 0 = as fast as possible).
@@ -457,6 +459,21 @@ impl ViewerApp {
                 .filter(|_| !p.keypoints.is_empty())
                 .map(|i| images::keypoints_overlay(i, &p.keypoints)),
         );
+        let loop_image = |l: &crate::worker::LoopUpdate| match (&l.query_image, &l.candidate_image)
+        {
+            (Some(q), Some(c)) => Some(images::loop_matches_image(q, c, &l.matches)),
+            _ => None,
+        };
+        set(
+            &mut self.textures.loop_accepted,
+            "loop accepted",
+            p.loop_accepted.as_ref().and_then(loop_image),
+        );
+        set(
+            &mut self.textures.loop_rejected,
+            "loop rejected",
+            p.loop_rejected.as_ref().and_then(loop_image),
+        );
         let r = p.residuals.as_ref();
         set(
             &mut self.textures.residual_photo,
@@ -482,7 +499,8 @@ impl ViewerApp {
 
     /// The image panels, two per row: the frame (intensity, inverse depth), its residuals
     /// against the odometry reference and their IRLS weights, the latest keyframe's superjuts
-    /// and neg-entropy.
+    /// and neg-entropy, its ORB keypoints, and the latest accepted and rejected loops with
+    /// their inlier matches.
     pub fn images_ui(&mut self, ui: &mut egui::Ui) {
         self.refresh_textures(ui.ctx());
         let width = ((ui.available_width() - 8.0) / 2.0).max(64.0);
@@ -532,6 +550,75 @@ impl ViewerApp {
                         show(ui, title, tex);
                     }
                 });
+            }
+            self.loop_panels(ui, width);
+        });
+    }
+
+    /// The loop panels, side by side and `width` points wide each: the latest accepted and
+    /// the latest rejected loop, each as the query keyframe above the candidate with a line
+    /// per inlier match, and a caption (ids, inliers, verdict); a placeholder before any loop.
+    pub fn loops_ui(&mut self, ui: &mut egui::Ui) {
+        self.refresh_textures(ui.ctx());
+        let width = ((ui.available_width() - 8.0) / 2.0).max(64.0);
+        self.loop_panels(ui, width);
+    }
+
+    /// [`Self::loops_ui`] with the textures refreshed.
+    fn loop_panels(&self, ui: &mut egui::Ui, width: f32) {
+        let t = &self.textures;
+        let p = &self.state.panels;
+        // Without a loop: why (a finished folder or map), or that none was found yet.
+        let none = p
+            .loop_note
+            .as_deref()
+            .unwrap_or("(no loop yet: loops appear when the camera revisits a place)");
+        let loops = [
+            (
+                "loop matches: latest accepted",
+                &p.loop_accepted,
+                &t.loop_accepted,
+                none,
+            ),
+            (
+                "latest rejected loop",
+                &p.loop_rejected,
+                &t.loop_rejected,
+                if p.loop_note.is_some() {
+                    "(none)"
+                } else {
+                    "(none yet: a verified loop the dense checks reject shows here)"
+                },
+            ),
+        ];
+        let show_loop = |ui: &mut egui::Ui,
+                         title: &str,
+                         l: &Option<crate::worker::LoopUpdate>,
+                         tex: &Option<TextureHandle>,
+                         none: &str| {
+            ui.vertical(|ui| {
+                ui.set_width(width);
+                ui.label(RichText::new(title).strong());
+                let Some(l) = l else {
+                    ui.label(none);
+                    return;
+                };
+                ui.label(loop_caption(l));
+                match tex {
+                    Some(t) => {
+                        let [w, h] = t.size();
+                        let size = Vec2::new(width, width * h as f32 / w.max(1) as f32);
+                        ui.image((t.id(), size));
+                    }
+                    None => {
+                        ui.label("(keyframe images of this loop are not available)");
+                    }
+                }
+            });
+        };
+        ui.horizontal_top(|ui| {
+            for (title, l, tex, none) in loops {
+                show_loop(ui, title, l, tex, none);
             }
         });
     }
@@ -755,6 +842,29 @@ impl ViewerApp {
             ctx2.request_repaint();
         });
     }
+}
+
+/// Caption of a loop panel: ids, inliers, verdict (the images are stacked: query on top).
+pub fn loop_caption(l: &crate::worker::LoopUpdate) -> String {
+    let kind = if l.relocalisation {
+        "relocalised frame, kf"
+    } else {
+        "query kf"
+    };
+    let verdict = if l.accepted {
+        "accepted".to_string()
+    } else {
+        format!("rejected: {}", l.reason)
+    };
+    let matches = if l.matches.is_empty() {
+        " (no matches recorded)"
+    } else {
+        ""
+    };
+    format!(
+        "{kind} {} (top) / candidate kf {} (bottom), {} inliers{matches}, {verdict}",
+        l.query, l.candidate, l.inliers
+    )
 }
 
 fn rgb(c: [u8; 4]) -> Color32 {

@@ -2,6 +2,7 @@
 
 use egui::{Color32, ColorImage};
 use rgbid::image::ImageF32;
+use rgbid::place::PixelMatch;
 
 use crate::worker::KeypointMark;
 
@@ -143,6 +144,71 @@ pub fn keypoints_overlay(intensity: &ImageF32, keypoints: &[KeypointMark]) -> Co
     img
 }
 
+/// Rows of background between the query (top) and candidate (bottom) images of
+/// [`loop_matches_image`], pixels.
+pub const LOOP_GAP: usize = 4;
+
+/// Where [`loop_matches_image`] draws each inlier pair: from the query keypoint (the query
+/// image is on top, unmoved) to the candidate keypoint moved down by the query's height plus
+/// [`LOOP_GAP`]. Pixel coordinates `(x, y)` of the stacked image, same order as `matches`.
+pub fn loop_match_segments(matches: &[PixelMatch], query_height: usize) -> Vec<PixelMatch> {
+    let dy = (query_height + LOOP_GAP) as f32;
+    matches
+        .iter()
+        .map(|&(q, c)| (q, [c[0], c[1] + dy]))
+        .collect()
+}
+
+/// Colour of the `i`-th of `n` loop matches (along the turbo map, so neighbours differ).
+pub fn loop_match_colour(i: usize, n: usize) -> Color32 {
+    turbo(0.1 + 0.8 * ((i * 7919) % n.max(1)) as f32 / n.max(1) as f32)
+}
+
+/// The query image above the candidate image ([`LOOP_GAP`] black rows between them), with a
+/// line for each inlier pair and a 3x3 dot at both of its ends, in
+/// [`loop_match_colour`]s. Parts of lines outside the image are left out.
+pub fn loop_matches_image(
+    query: &ImageF32,
+    candidate: &ImageF32,
+    matches: &[PixelMatch],
+) -> ColorImage {
+    let w = query.width.max(candidate.width);
+    let h = query.height + LOOP_GAP + candidate.height;
+    let mut img = ColorImage::new([w, h], vec![Color32::BLACK; w * h]);
+    for (src, y0) in [(query, 0), (candidate, query.height + LOOP_GAP)] {
+        for y in 0..src.height {
+            for x in 0..src.width {
+                let g = src.data[y * src.width + x].clamp(0.0, 255.0) as u8;
+                img.pixels[(y0 + y) * w + x] = Color32::from_gray(g);
+            }
+        }
+    }
+    let mut put = |x: f32, y: f32, c: Color32| {
+        let (x, y) = (x.round(), y.round());
+        if x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h {
+            img.pixels[y as usize * w + x as usize] = c;
+        }
+    };
+    let segments = loop_match_segments(matches, query.height);
+    let n = segments.len();
+    for (i, (a, b)) in segments.iter().enumerate() {
+        let c = loop_match_colour(i, n);
+        let steps = (b[0] - a[0]).abs().max((b[1] - a[1]).abs()).ceil().max(1.0) as usize;
+        for s in 0..=steps {
+            let t = s as f32 / steps as f32;
+            put(a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), c);
+        }
+        for p in [a, b] {
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    put(p[0] + dx as f32, p[1] + dy as f32, c);
+                }
+            }
+        }
+    }
+    img
+}
+
 /// RGB8 row-major bytes as an image; `None` when the size does not match.
 pub fn rgb_image(width: usize, height: usize, rgb: &[u8]) -> Option<ColorImage> {
     (rgb.len() == width * height * 3).then(|| ColorImage::from_rgb([width, height], rgb))
@@ -240,6 +306,32 @@ mod tests {
         assert_eq!(c.pixels[10 * 20 + 12], Color32::from_rgb(60, 230, 90));
         assert_eq!(c.pixels[10 * 20 + 10], Color32::from_gray(100));
         assert!(c.pixels.contains(&Color32::from_rgb(255, 140, 30)));
+    }
+
+    #[test]
+    fn loop_matches_are_drawn_from_query_to_candidate_keypoints() {
+        let q = ImageF32::from_vec(40, 30, vec![100.0; 1200]).unwrap();
+        let c = ImageF32::from_vec(40, 30, vec![50.0; 1200]).unwrap();
+        let matches = [([5.0, 6.0], [30.0, 20.0]), ([35.0, 25.0], [4.0, 3.0])];
+        let segs = loop_match_segments(&matches, q.height);
+        assert_eq!(segs[0], ([5.0, 6.0], [30.0, 20.0 + 34.0]));
+        assert_eq!(segs[1], ([35.0, 25.0], [4.0, 3.0 + 34.0]));
+        let img = loop_matches_image(&q, &c, &matches);
+        assert_eq!(img.size, [40, 64]);
+        let at = |x: usize, y: usize| img.pixels[y * 40 + x];
+        for (i, (a, b)) in segs.iter().enumerate() {
+            let colour = loop_match_colour(i, 2);
+            assert_eq!(at(a[0] as usize, a[1] as usize), colour);
+            assert_eq!(at(b[0] as usize, b[1] as usize), colour);
+        }
+        assert_ne!(loop_match_colour(0, 2), loop_match_colour(1, 2));
+        // Images where no line passes; the gap stays black.
+        assert_eq!(at(1, 28), Color32::from_gray(100));
+        assert_eq!(at(38, 62), Color32::from_gray(50));
+        assert_eq!(at(38, 31), Color32::BLACK);
+        // Matches outside the image are clipped, not a panic.
+        let far = loop_matches_image(&q, &c, &[([-50.0, 500.0], [90.0, -3.0])]);
+        assert_eq!(far.size, [40, 64]);
     }
 
     #[test]

@@ -12,7 +12,9 @@ use rgbid::slam::FrameStatus;
 
 use crate::output::{OutputFolder, StageRow};
 use crate::scene3d::{Geometry, Vertex};
-use crate::worker::{FinishedRun, FrameUpdate, KeyframeUpdate, KeypointMark, StartInfo, Update};
+use crate::worker::{
+    FinishedRun, FrameUpdate, KeyframeUpdate, KeypointMark, LoopUpdate, StartInfo, Update,
+};
 
 /// Colours of the 3D view (RGBA8).
 pub mod colours {
@@ -49,6 +51,14 @@ pub struct Panels {
     /// Residuals and IRLS weights of the latest frame against its odometry reference, on the
     /// finest optimised pyramid level.
     pub residuals: Option<ResidualImages>,
+    /// The latest accepted loop with its images and inlier matches.
+    pub loop_accepted: Option<LoopUpdate>,
+    /// The latest loop rejected by the checks after verification (dense refinement,
+    /// covisibility), with its reason.
+    pub loop_rejected: Option<LoopUpdate>,
+    /// Why no loop matches can be shown, where that is known (a finished output folder or a
+    /// map holds no loop images or matches).
+    pub loop_note: Option<String>,
     /// Bumped whenever an image changes (the UI re-uploads its textures).
     pub version: u64,
 }
@@ -115,6 +125,11 @@ impl ViewerState {
         s.keyframe_count = folder.run.keyframes.len();
         s.loop_count = folder.run.loops.len();
         s.frames_processed = folder.run.trajectory.len();
+        s.panels.loop_note = Some(format!(
+            "{} accepted loops, but an output folder or map keeps no inlier matches or loop \
+             images: run SLAM in the viewer to see them",
+            folder.run.loops.len()
+        ));
         s.finished = Some(folder.run);
         s.compute_final_error();
         s.geometry_dirty = true;
@@ -140,6 +155,14 @@ impl ViewerState {
             }
             Update::Frame(f) => self.apply_frame(*f),
             Update::Keyframe(k) => self.apply_keyframe(*k),
+            Update::Loop(l) => {
+                if l.accepted {
+                    self.panels.loop_accepted = Some(*l);
+                } else {
+                    self.panels.loop_rejected = Some(*l);
+                }
+                self.panels.version += 1;
+            }
             Update::Finished(r) => {
                 self.finished = Some(*r);
                 self.compute_final_error();

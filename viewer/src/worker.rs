@@ -2,6 +2,7 @@
 //! [`rgbid::slam::Slam`] at the requested pace and sends owned per-frame snapshots to the UI
 //! through a bounded channel (the UI applies back-pressure by draining it once per repaint).
 
+use std::collections::HashMap;
 use std::sync::mpsc::{channel, sync_channel, Receiver, RecvTimeoutError, Sender, SyncSender};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -14,10 +15,10 @@ use rgbid::image::{ImageF32, RgbdFrame};
 use rgbid::io::trajectory::TimedPose;
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
 use rgbid::place::orb::{extract_orb, OrbParams};
-use rgbid::place::Vocabulary;
+use rgbid::place::{PixelMatch, Vocabulary};
 use rgbid::segment::{segment_keyframe, SegmentConfig};
 use rgbid::slam::{
-    build_model, voxel_filter, FrameReport, FrameStatus, ModelParams, Slam, SlamConfig,
+    build_model, voxel_filter, FrameReport, FrameStatus, LoopRecord, ModelParams, Slam, SlamConfig,
 };
 
 use crate::source::{FrameSource, SourceSpec};
@@ -144,6 +145,56 @@ pub struct KeypointMark {
     pub kept: bool,
 }
 
+/// A loop the back-end verified (accepted, or rejected by the dense checks after it), with
+/// the images of both sides and the inlier matches of the verification.
+#[derive(Clone, Debug)]
+pub struct LoopUpdate {
+    /// Query keyframe id (the newer one; for relocalisation the id the relocalised frame's
+    /// keyframe gets).
+    pub query: usize,
+    /// Candidate (older) keyframe id.
+    pub candidate: usize,
+    /// RANSAC inliers of the verification.
+    pub inliers: usize,
+    /// Whether it became a graph edge (or, for relocalisation, was used).
+    pub accepted: bool,
+    /// Why it was rejected (empty when accepted).
+    pub reason: String,
+    /// True when it came from relocalisation rather than loop detection.
+    pub relocalisation: bool,
+    /// Intensity (0-255) of the query side: keyframe `query`, or the relocalised frame;
+    /// `None` when the worker does not have it.
+    pub query_image: Option<ImageF32>,
+    /// Intensity (0-255) of keyframe `candidate`; `None` when the worker does not have it.
+    pub candidate_image: Option<ImageF32>,
+    /// Inlier pairs: level-0 pixel `(x, y)` in the query image and in the candidate image
+    /// ([`LoopRecord::matches`]).
+    pub matches: Vec<PixelMatch>,
+}
+
+impl LoopUpdate {
+    /// The update of `record`, with keyframe images from `keyframes` (id -> intensity) and,
+    /// for relocalisation, `frame` (the frame being relocalised) as the query image.
+    pub fn new(record: &LoopRecord, keyframes: &KeyframeImages, frame: Option<&ImageF32>) -> Self {
+        let query_image = if record.relocalisation {
+            frame.cloned()
+        } else {
+            keyframes.get(record.query)
+        };
+        LoopUpdate {
+            query: record.query,
+            candidate: record.candidate,
+            inliers: record.inliers,
+            accepted: record.accepted,
+            reason: record.reason.clone(),
+            relocalisation: record.relocalisation,
+            query_image,
+            candidate_image: keyframes.get(record.candidate),
+            matches: record.matches.clone(),
+        }
+    }
+}
+
 /// What a finished run produced.
 #[derive(Clone, Debug, Default)]
 pub struct FinishedRun {
@@ -168,6 +219,8 @@ pub enum Update {
     Frame(Box<FrameUpdate>),
     /// The frame just sent started a keyframe.
     Keyframe(Box<KeyframeUpdate>),
+    /// The back-end verified a loop (sent in the order they were found).
+    Loop(Box<LoopUpdate>),
     /// The run finished.
     Finished(Box<FinishedRun>),
     /// The run stopped with an error.
@@ -315,6 +368,36 @@ fn keyframe_keypoints(
         .collect()
 }
 
+/// Keyframe intensities by keyframe id, as the back-end keeps them: rounded to 8 bits (as
+/// [`rgbid::slam::Keyframe::pack`]), so keypoints found on them are the back-end's, and one
+/// byte per pixel.
+#[derive(Clone, Debug, Default)]
+pub struct KeyframeImages {
+    images: HashMap<usize, (usize, usize, Vec<u8>)>,
+}
+
+impl KeyframeImages {
+    /// Keeps `intensity` (0-255) as keyframe `id`'s image.
+    pub fn insert(&mut self, id: usize, intensity: &ImageF32) {
+        let bytes = intensity
+            .data
+            .iter()
+            .map(|&v| v.round().clamp(0.0, 255.0) as u8)
+            .collect();
+        self.images
+            .insert(id, (intensity.width, intensity.height, bytes));
+    }
+
+    /// Keyframe `id`'s intensity (0-255), if kept.
+    pub fn get(&self, id: usize) -> Option<ImageF32> {
+        self.images.get(&id).map(|(w, h, bytes)| ImageF32 {
+            width: *w,
+            height: *h,
+            data: bytes.iter().map(|&v| f32::from(v)).collect(),
+        })
+    }
+}
+
 enum Pace {
     Paused,
     Playing,
@@ -337,6 +420,10 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     let orb_params = slam_config.detector.orb.clone();
     let mask_threshold = slam_config.mask_thresholds.first().copied();
     let mut reference: Option<(RgbdFrame, rgbid::geometry::Se3)> = None;
+    // Keyframe images by id as the back-end keeps them (intensity rounded to 8 bits), for
+    // the loop panel; loop records seen so far.
+    let mut keyframe_images = KeyframeImages::default();
+    let mut loops_seen = 0;
     let mut slam = Slam::new(
         slam_config,
         camera,
@@ -391,6 +478,20 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         let frame = source.load(i)?;
         let load_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = slam.process(&frame)?;
+        if matches!(
+            report.status,
+            FrameStatus::NewKeyframe | FrameStatus::Relocalised
+        ) {
+            if let Some((id, _)) = report.record.keyframe {
+                keyframe_images.insert(id, &frame.intensity);
+            }
+        }
+        let new_loops = slam.loops_since(loops_seen);
+        loops_seen += new_loops.len();
+        let loop_updates: Vec<LoopUpdate> = new_loops
+            .iter()
+            .map(|l| LoopUpdate::new(l, &keyframe_images, Some(&frame.intensity)))
+            .collect();
         let residuals = if config.residuals {
             frame_residuals(
                 &frame,
@@ -463,12 +564,23 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         if let Some(k) = keyframe {
             send(Update::Keyframe(Box::new(k)))?;
         }
+        for l in loop_updates {
+            send(Update::Loop(Box::new(l)))?;
+        }
         if matches!(pace, Pace::Stepping) {
             pace = Pace::Paused;
         }
         i += 1;
     }
     let result = slam.finish()?;
+    // Loops of the last keyframes, verified while the back-end finished.
+    for l in result.loops.iter().skip(loops_seen) {
+        send(Update::Loop(Box::new(LoopUpdate::new(
+            l,
+            &keyframe_images,
+            None,
+        ))))?;
+    }
     let keyframes: Vec<TimedPose> = result
         .keyframes()
         .iter()

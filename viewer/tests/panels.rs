@@ -286,6 +286,113 @@ fn panel_snapshots_rendered_with_wgpu() {
     results.unwrap();
 }
 
+/// One 6 s lap of the generated office (180 frames) and its first 2 s again: the revisit
+/// closes loops.
+fn loop_run() -> RunConfig {
+    let mut cfg = RunConfig::new(SourceSpec::Synth {
+        spec: "office:loop".into(),
+        frames: 240,
+        width: 160,
+        seed: 1,
+        session: 0,
+        lap_seconds: Some(6.0),
+    });
+    cfg.backend = BackendChoice::Cpu;
+    cfg
+}
+
+/// The loop panels after SLAM on [`loop_run`]: the latest accepted loop's inlier matches lie
+/// on ORB keypoints of the two keyframe images (as the back-end extracts them), the drawn
+/// lines join exactly those points, the two keyframes see the same place (ground truth), and
+/// the panels are compared against `tests/snapshots/loops.png`.
+#[test]
+fn loop_panel_snapshots_show_the_inlier_matches_of_a_closed_loop() {
+    let mut app = ViewerApp::new(ViewerState::default(), Some(loop_run()));
+    app.speed = 0.0;
+    app.send_speed();
+    app.wait_until_finished();
+    assert!(app.state.error.is_none(), "{:?}", app.state.error);
+    let state = app.state.clone();
+    let l = state
+        .panels
+        .loop_accepted
+        .as_ref()
+        .expect("an accepted loop on the revisit");
+    assert!(!l.relocalisation && l.accepted && l.reason.is_empty());
+    assert!(l.query > l.candidate, "{} -> {}", l.query, l.candidate);
+    assert!(l.inliers >= 10, "{} inliers", l.inliers);
+    assert_eq!(l.matches.len(), l.inliers);
+    let (q, c) = (
+        l.query_image.as_ref().expect("query keyframe image"),
+        l.candidate_image
+            .as_ref()
+            .expect("candidate keyframe image"),
+    );
+    assert_eq!((q.width, q.height, c.width, c.height), (160, 120, 160, 120));
+    // Every match end is an ORB keypoint of its keyframe image.
+    let orb = rgbid::slam::SlamConfig::default().detector.orb;
+    let keypoints = |img: &rgbid::image::ImageF32| -> Vec<[f32; 2]> {
+        rgbid::place::extract_orb(img, None, &orb)
+            .expect("orb")
+            .keypoints
+            .iter()
+            .map(|k| [k.uv.x as f32, k.uv.y as f32])
+            .collect()
+    };
+    let (kq, kc) = (keypoints(q), keypoints(c));
+    for (a, b) in &l.matches {
+        assert!(kq.contains(a), "query match {a:?} is not a keypoint");
+        assert!(kc.contains(b), "candidate match {b:?} is not a keypoint");
+    }
+    // The drawn lines join those points (candidate image below the query's).
+    let dy = (q.height + rgbid_viewer::images::LOOP_GAP) as f32;
+    let segments = rgbid_viewer::images::loop_match_segments(&l.matches, q.height);
+    for ((a, b), (s, e)) in l.matches.iter().zip(&segments) {
+        assert_eq!((a, [b[0], b[1] + dy]), (s, *e));
+    }
+    // A true revisit: the keyframes' ground-truth positions are close.
+    let run = state.finished.as_ref().expect("finished");
+    let gt = state.groundtruth.as_ref().expect("ground truth");
+    let gt_at = |kf: usize| {
+        let t = run.keyframes[kf].timestamp;
+        gt.iter()
+            .min_by(|x, y| (x.timestamp - t).abs().total_cmp(&(y.timestamp - t).abs()))
+            .expect("gt pose")
+            .world_from_camera
+            .translation
+    };
+    let d = (gt_at(l.query) - gt_at(l.candidate)).length();
+    assert!(d < 0.5, "loop keyframes {d} m apart");
+    eprintln!(
+        "loop {} -> {}: {} inliers; rejected: {:?}",
+        l.query,
+        l.candidate,
+        l.inliers,
+        state
+            .panels
+            .loop_rejected
+            .as_ref()
+            .map(|r| (r.query, r.candidate, r.reason.clone()))
+    );
+
+    let Some(rs) = render_state_or_skip("loop_panel_snapshots") else {
+        return;
+    };
+    let mut h = harness(
+        rs,
+        egui::Vec2::new(360.0, 380.0),
+        ViewerApp::new(state, None),
+        |ui, app| {
+            egui::CentralPanel::default().show(ui, |ui| app.loops_ui(ui));
+        },
+    );
+    h.run_steps(2);
+    let mut results = SnapshotResults::new();
+    h.snapshot_options("loops", &snapshot_options());
+    results.extend_harness(&mut h);
+    results.unwrap();
+}
+
 /// Frame time of the whole UI (egui layout + tessellation + wgpu render + read-back) with a
 /// 1M-point cloud in the 3D view. A measurement, not an assertion on speed: run with
 /// `cargo test -p rgbid-viewer --test panels -- --ignored --nocapture ui_frame_time`.
@@ -389,6 +496,10 @@ fn exports_reopen_as_an_output_folder() {
     assert_eq!(reopened.state.position_error.len(), run.trajectory.len());
     assert!(reopened.state.position_error.iter().all(|e| e[1] < 0.05));
     assert_eq!(reopened.state.point_count(), run.model.len());
+    // An output folder keeps no loop matches or images: the loop panel says so.
+    assert!(reopened.state.panels.loop_accepted.is_none());
+    let note = reopened.state.panels.loop_note.as_deref().unwrap_or("");
+    assert!(note.contains("no inlier matches"), "{note}");
     // Not a folder of rgbid: a clear error, no panic.
     assert!(reopened.open(&dir.join("missing")).is_err());
     std::fs::remove_dir_all(&dir).ok();
