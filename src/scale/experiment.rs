@@ -602,7 +602,8 @@ pub fn save_run(path: &std::path::Path, run: &EmulatedRun) -> Result<(), ScaleEr
 }
 
 /// Reads a run written by [`save_run`]. Errors name the file and line (wrong header,
-/// wrong field count, a field that is not a finite number, a zero quaternion, no poses).
+/// wrong field count, a field that is not a finite number, a quaternion that is not of unit
+/// length, no poses).
 pub fn load_run(path: &std::path::Path) -> Result<EmulatedRun, ScaleError> {
     let cache_err = |message: String| ScaleError::Cache {
         path: path.into(),
@@ -636,12 +637,19 @@ pub fn load_run(path: &std::path::Path) -> Result<EmulatedRun, ScaleError> {
         }
         let pose = |o: usize| -> Result<TimedPose, ScaleError> {
             let q = glam::DQuat::from_xyzw(v[o + 3], v[o + 4], v[o + 5], v[o + 6]);
-            if q.length() < 1e-6 {
-                return Err(at("zero quaternion".into()));
+            if (q.length() - 1.0).abs() > 1e-6 {
+                return Err(at(format!(
+                    "quaternion of length {} is not a rotation",
+                    q.length()
+                )));
             }
+            // Stored as written (already unit length): renormalising would change the last bits.
             Ok(TimedPose {
                 timestamp: v[0],
-                world_from_camera: Se3::new(q, glam::DVec3::new(v[o], v[o + 1], v[o + 2])),
+                world_from_camera: Se3 {
+                    rotation: q,
+                    translation: glam::DVec3::new(v[o], v[o + 1], v[o + 2]),
+                },
             })
         };
         run.gt.push(pose(1)?);
