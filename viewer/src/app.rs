@@ -509,11 +509,7 @@ impl ViewerApp {
                 ui.set_width(width);
                 ui.label(RichText::new(title).strong());
                 match tex {
-                    Some(t) => {
-                        let [w, h] = t.size();
-                        let size = Vec2::new(width, width * h as f32 / w.max(1) as f32);
-                        ui.image((t.id(), size));
-                    }
+                    Some(t) => image_at_width(ui, t, width),
                     None => {
                         ui.label("(none yet)");
                     }
@@ -605,11 +601,7 @@ impl ViewerApp {
                 };
                 ui.label(loop_caption(l));
                 match tex {
-                    Some(t) => {
-                        let [w, h] = t.size();
-                        let size = Vec2::new(width, width * h as f32 / w.max(1) as f32);
-                        ui.image((t.id(), size));
-                    }
+                    Some(t) => image_at_width(ui, t, width),
                     None => {
                         ui.label("(keyframe images of this loop are not available)");
                     }
@@ -904,4 +896,10 @@ impl eframe::App for ViewerApp {
             ui.ctx().request_repaint();
         }
     }
+}
+
+/// Shows texture `t` scaled to `width` points, keeping its aspect ratio.
+fn image_at_width(ui: &mut egui::Ui, t: &TextureHandle, width: f32) {
+    let [w, h] = t.size();
+    ui.image((t.id(), Vec2::new(width, width * h as f32 / w.max(1) as f32)));
 }
