@@ -8,7 +8,7 @@ use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::scale::experiment::{
     estimate_sequence, evaluate_run, load_run, median, percentile, run_cache_name, save_run,
     standard_sequences, Estimator, ExperimentConfig, MonoEstimator, RunReport, SequenceSpec,
-    METHODS,
+    WindowTruth, METHODS,
 };
 use rgbid::scale::plot::{plot_panels, Series};
 use rgbid::scale::walking::{GRIEVE_ALPHA, GRIEVE_BETA};
@@ -369,13 +369,7 @@ fn write_windows(
         };
         let t0 = r.run.est.first().map_or(0.0, |p| p.timestamp);
         for s in &r.dynscale.sections {
-            let n = ((s.t_end - s.window_start) * fps).round() as usize + 1;
-            let f: Vec<f64> = (0..n)
-                .map(|i| spec.params.frequency_at(s.window_start + i as f64 / fps))
-                .collect();
-            let mean = f.iter().sum::<f64>() / n as f64;
-            let fmin = f.iter().cloned().fold(f64::INFINITY, f64::min);
-            let fmax = f.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            let truth = WindowTruth::of(&spec.params, s.window_start, s.t_end, fps);
             let i = (((s.t_end - t0) * fps).round().max(0.0) as usize)
                 .min(r.run.true_scale.len().saturating_sub(1));
             let true_scale = r.run.true_scale.get(i).copied().unwrap_or(f64::NAN);
@@ -386,9 +380,9 @@ fn write_windows(
                 r.seed,
                 s.window_start,
                 s.t_end,
-                mean,
-                fmin,
-                fmax,
+                truth.mean,
+                truth.min,
+                truth.max,
                 s.analysis.frequency,
                 s.frequency_span,
                 s.analysis.concentration,

@@ -150,9 +150,10 @@ pub struct DynScaleConfig {
     /// stationary: the `window`-long window at the start of the longer one and the longer
     /// one itself must both agree with the current frequency within three standard
     /// deviations of the difference of two short-window estimates
-    /// ([`StepAnalysis::frequency_std`]), and at most `stationary_hz`. The periodogram peak's error falls as `T^-1.5`, so a longer
-    /// window steadies the frequency of a noisy estimate; the test keeps pace changes from
-    /// blurring it. Walking detection, power and amplitude stay those of `window`.
+    /// ([`StepAnalysis::frequency_std`]), and at most `stationary_hz`. The periodogram
+    /// peak's error falls as `T^-1.5`, so a longer window steadies the frequency of a noisy
+    /// estimate; the test keeps pace changes from blurring it. Walking detection, power and
+    /// amplitude stay those of `window`.
     #[serde(default = "default_frequency_window")]
     pub frequency_window: f64,
     /// Largest frequency difference, Hz, for the pace to count as stationary over
@@ -506,8 +507,8 @@ impl DynScale {
     /// of `window / 2`, longer than `window`; a length is taken when both the `window`-long
     /// analysis at its start and the whole long one are within three standard deviations
     /// ([`StepAnalysis::frequency_std`] of both short windows; at most `stationary_hz`) of
-    /// the current window's frequency `f` (standard deviation `f_std`). Returns the frequency (Hz) and the length used
-    /// (seconds), or `None` when no longer window passes.
+    /// the current window's frequency `f` (standard deviation `f_std`). Returns the
+    /// frequency (Hz) and the length used (seconds), or `None` when no longer window passes.
     fn stationary_frequency(
         &self,
         hp: &[f64],

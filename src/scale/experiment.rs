@@ -466,23 +466,16 @@ pub fn evaluate_run(
         if s.t_end - s.window_start < dcfg.window * 0.95 {
             continue;
         }
-        let n = ((s.t_end - s.window_start) * cfg.fps).round() as usize + 1;
-        let f: Vec<f64> = (0..n)
-            .map(|i| p.frequency_at(s.window_start + i as f64 / cfg.fps))
-            .collect();
-        let fmin = f.iter().cloned().fold(f64::INFINITY, f64::min);
-        let fmax = f.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-        let standing = f.iter().filter(|&&x| x <= 0.0).count() as f64 / n as f64;
-        if standing >= 0.75 {
+        let truth = WindowTruth::of(p, s.window_start, s.t_end, cfg.fps);
+        if truth.standing >= 0.75 {
             stops.0 += 1;
             stops.1 += usize::from(!s.walking);
         }
-        if fmin > 0.0 {
+        if truth.min > 0.0 {
             walks.0 += 1;
             walks.1 += usize::from(!s.walking);
-            if s.walking && fmax - fmin < 0.02 {
-                let mean = f.iter().sum::<f64>() / n as f64;
-                freq_err.push((s.analysis.frequency - mean).abs());
+            if s.walking && truth.max - truth.min < 0.02 {
+                freq_err.push((s.analysis.frequency - truth.mean).abs());
             }
         }
         if s.walking && s.consistent {
@@ -515,6 +508,37 @@ pub fn evaluate_run(
         run,
         true_frequency,
     })
+}
+
+/// The true step frequency over an analysis window, sampled at `fps` from `window_start` to
+/// `t_end` (seconds): mean, minimum and maximum (steps/s, 0 while standing) and the share of
+/// samples standing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowTruth {
+    /// Mean frequency, Hz.
+    pub mean: f64,
+    /// Lowest frequency, Hz.
+    pub min: f64,
+    /// Highest frequency, Hz.
+    pub max: f64,
+    /// Share of the samples with the walker standing, in [0, 1].
+    pub standing: f64,
+}
+
+impl WindowTruth {
+    /// Samples `params.frequency_at` over `[window_start, t_end]` at `fps`.
+    pub fn of(params: &WalkingParams, window_start: f64, t_end: f64, fps: f64) -> WindowTruth {
+        let n = ((t_end - window_start) * fps).round().max(0.0) as usize + 1;
+        let f: Vec<f64> = (0..n)
+            .map(|i| params.frequency_at(window_start + i as f64 / fps))
+            .collect();
+        WindowTruth {
+            mean: f.iter().sum::<f64>() / n as f64,
+            min: f.iter().cloned().fold(f64::INFINITY, f64::min),
+            max: f.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            standing: f.iter().filter(|&&x| x <= 0.0).count() as f64 / n as f64,
+        }
+    }
 }
 
 /// Median of `v` (NaN when empty).

@@ -103,7 +103,6 @@ pub(crate) struct Backend {
     pub detector: LoopDetector,
     pub graph: PoseGraph3,
     odometry: Odometry,
-    pub loops: Vec<LoopRecord>,
     /// Open loop cluster: ids of its first and last query keyframes.
     cluster: Option<(usize, usize)>,
     pub timings: Vec<KeyframeTiming>,
@@ -140,7 +139,6 @@ impl Backend {
             mask_flags: Vec::new(),
             graph: PoseGraph3::new(),
             odometry,
-            loops: Vec::new(),
             cluster: None,
             timings: Vec::new(),
             shared,
@@ -366,19 +364,21 @@ impl Backend {
         if let Ok(mut s) = self.shared.lock() {
             s.correction = correction;
             s.keyframes = self.keyframes.len();
-            s.loops = self.loops.iter().filter(|l| l.accepted).count();
+            s.loops = s.loop_records.iter().filter(|l| l.accepted).count();
         }
         timing.total_ms = t0.elapsed().as_secs_f64() * 1e3;
         self.timings.push(timing);
         Ok(())
     }
 
-    /// Keeps a loop record (and shares it with the front-end's caller).
+    /// Keeps a loop record in the state shared with the front-end's caller (the only copy;
+    /// a poisoned lock still takes it, so no record is lost).
     fn record_loop(&mut self, record: LoopRecord) {
-        if let Ok(mut s) = self.shared.lock() {
-            s.loop_records.push(record.clone());
-        }
-        self.loops.push(record);
+        self.shared
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .loop_records
+            .push(record);
     }
 
     /// Optimises the keyframe graph (if a loop cluster is pending); returns milliseconds.

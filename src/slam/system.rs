@@ -618,7 +618,13 @@ impl Slam {
             trajectory,
             odometry,
             keyframe_poses,
-            loops: std::mem::take(&mut back.loops),
+            loops: std::mem::take(
+                &mut self
+                    .shared
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .loop_records,
+            ),
             timings,
             map,
             final_optimise_ms,
