@@ -30,10 +30,14 @@ fn main() {
             let mut odo = Odometry::new(cfg.clone(), cam, &ComputeBackend::Cpu).unwrap();
             let a = odo.align(&prev, &cur, Se3::IDENTITY).unwrap();
             let err = truth.inverse() * a.cur_from_ref.inverse();
+            let w = err.log();
             println!(
-                "{cfg_path} {case}: {:.2} mm {:.3} deg",
+                "{cfg_path} {case}: {:.2} mm {:.3} deg (error rotation vector, deg: {:+.3} {:+.3} {:+.3})",
                 err.translation.length() * 1e3,
-                err.angle().to_degrees()
+                err.angle().to_degrees(),
+                w[3].to_degrees(),
+                w[4].to_degrees(),
+                w[5].to_degrees()
             );
         }
     }

@@ -84,33 +84,102 @@ fn one_axis(l: f32, c: f32, r: f32, has_l: bool, has_r: bool) -> f32 {
     return INVALID_GRAD;
 }
 
-@compute @workgroup_size(16, 16)
-fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
-    if (id.x >= w || id.y >= h) { return; }
-    let o = P.dims.z;
-    let x = id.x;
-    let y = id.y;
+// Central-difference gradients of the values in `lane` (0: the level's own values; 3: the
+// bilateral-filtered ones) at (x, y) of the level at offset `o`: (dI/du, dI/dv, drho/du,
+// drho/dv), INVALID_GRAD for inverse depth across discontinuities or holes
+// (mirror: kernel.rs `gradients_of_lane`).
+fn level_gradients(o: u32, w: u32, h: u32, x: u32, y: u32, lane: u32) -> vec4<f32> {
     let xl = select(x - 1u, 0u, x == 0u);
     let xr = min(x + 1u, w - 1u);
     let yu = select(y - 1u, 0u, y == 0u);
     let yd = min(y + 1u, h - 1u);
-    let c = o + y * w + x;
-    let gx = 0.5 * (photo[o + y * w + xr].x - photo[o + y * w + xl].x);
-    let gy = 0.5 * (photo[o + yd * w + x].x - photo[o + yu * w + x].x);
-    let rc = geo[c].x;
-    let gdx = one_axis(geo[o + y * w + xl].x, rc, geo[o + y * w + xr].x, x > 0u, x + 1u < w);
-    let gdy = one_axis(geo[o + yu * w + x].x, rc, geo[o + yd * w + x].x, y > 0u, y + 1u < h);
+    let gx = 0.5 * (photo[o + y * w + xr][lane] - photo[o + y * w + xl][lane]);
+    let gy = 0.5 * (photo[o + yd * w + x][lane] - photo[o + yu * w + x][lane]);
+    let rc = geo[o + y * w + x][lane];
+    let gdx = one_axis(geo[o + y * w + xl][lane], rc, geo[o + y * w + xr][lane], x > 0u, x + 1u < w);
+    let gdy = one_axis(geo[o + yu * w + x][lane], rc, geo[o + yd * w + x][lane], y > 0u, y + 1u < h);
     var gg = vec2<f32>(INVALID_GRAD, INVALID_GRAD);
     let lim = MAX_REL_GRAD * rc;
     if (rc > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD && abs(gdx) <= lim && abs(gdy) <= lim) {
         gg = vec2<f32>(gdx, gdy);
     }
+    return vec4<f32>(gx, gy, gg.x, gg.y);
+}
+
+@compute @workgroup_size(16, 16)
+fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let c = P.dims.z + id.y * w + id.x;
+    let g = level_gradients(P.dims.z, w, h, id.x, id.y, 0u);
     // Only the gradient lanes: .x is the level's value and .w was zeroed when the level was
     // written (each stored scalar is a per-lane loop on SIMD CPU drivers such as llvmpipe).
-    photo[c].y = gx;
-    photo[c].z = gy;
-    geo[c].y = gg.x;
-    geo[c].z = gg.y;
+    photo[c].y = g.x;
+    photo[c].z = g.y;
+    geo[c].y = g.z;
+    geo[c].z = g.w;
+}
+
+// The covariance pass (thesis 6.20, 6.21) works on a copy of one level: `bilateral` writes
+// the bilateral-filtered intensity and inverse depth into .w (reading only .x), then
+// `filtered_gradients` writes their gradients into .y/.z. The uniform is `FilterParams`
+// (kernel.rs): dims = (w, h, offset, 0), src.y/.z = bit patterns of 1/(2 sigma^2) for
+// intensity and inverse depth (flat spatial kernel, Cauchy range kernel).
+const BILATERAL_RADIUS: u32 = 2u;
+
+@compute @workgroup_size(16, 16)
+fn bilateral(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let o = P.dims.z;
+    let inv_i = bitcast<f32>(P.src.y);
+    let inv_r = bitcast<f32>(P.src.z);
+    let c = o + id.y * w + id.x;
+    let ic = photo[c].x;
+    let rc = geo[c].x;
+    var si = 0.0;
+    var wi = 0.0;
+    var sr = 0.0;
+    var wr = 0.0;
+    let r = BILATERAL_RADIUS;
+    let y0 = select(id.y - r, 0u, id.y < r);
+    let x0 = select(id.x - r, 0u, id.x < r);
+    let y1 = min(id.y + r + 1u, h);
+    let x1 = min(id.x + r + 1u, w);
+    for (var v = y0; v < y1; v++) {
+        for (var u = x0; u < x1; u++) {
+            let k = o + v * w + u;
+            let ik = photo[k].x;
+            let di = ik - ic;
+            let a = 1.0 / (1.0 + inv_i * di * di);
+            si += a * ik;
+            wi += a;
+            let rk = geo[k].x;
+            if (rc > 0.0 && rk > 0.0) {
+                let dr = rk - rc;
+                let b = 1.0 / (1.0 + inv_r * dr * dr);
+                sr += b * rk;
+                wr += b;
+            }
+        }
+    }
+    var rf = 0.0;
+    if (rc > 0.0 && wr > 0.0) { rf = sr / wr; }
+    photo[c].w = si / wi;
+    geo[c].w = rf;
+}
+
+@compute @workgroup_size(16, 16)
+fn filtered_gradients(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = P.dims.x;
+    let h = P.dims.y;
+    if (id.x >= w || id.y >= h) { return; }
+    let c = P.dims.z + id.y * w + id.x;
+    let g = level_gradients(P.dims.z, w, h, id.x, id.y, 3u);
+    photo[c].y = g.x;
+    photo[c].z = g.y;
+    geo[c].y = g.z;
+    geo[c].z = g.w;
 }

@@ -6,7 +6,7 @@ mod common;
 use rgbid::geometry::Se3;
 use rgbid::odometry::cpu::{self, CpuPyramid};
 use rgbid::odometry::gpu::GpuOdometry;
-use rgbid::odometry::kernel::{WarpParams, INVALID_RESIDUAL};
+use rgbid::odometry::kernel::{FilterParams, WarpParams, INVALID_RESIDUAL};
 
 fn params(w: u32, h: u32, off: u32, level: usize, pose: &Se3, est: u32, param: u32) -> WarpParams {
     let s = 0.5f32.powi(level as i32);
@@ -73,6 +73,34 @@ fn gpu_matches_cpu_mirror() {
             }
         }
         assert!(worst < 1e-5, "pyramid differs by {worst}");
+
+        // The covariance pass's bilateral-filtered level (all four lanes: raw value, filtered
+        // gradients, filtered value), on levels 0 and 1.
+        for level in 0..2 {
+            let l = ca.levels[level];
+            let f = FilterParams::new(l.width, l.height, l.offset, 4.0, 0.004);
+            let cf = ca.filtered_level(level, &f, None);
+            let gf = g
+                .filtered_level(&ga, level, &f, None)
+                .expect("gpu filtered level");
+            let (photo, geo) = g.read_pyramid(&gf).expect("read back");
+            let mut worst = 0.0f32;
+            let mut smoothed = 0usize;
+            for k in l.offset..l.offset + l.width * l.height {
+                for c in 0..4 {
+                    worst = worst
+                        .max((photo[k][c] - cf.photo[k][c]).abs() / (1.0 + cf.photo[k][c].abs()));
+                    worst =
+                        worst.max((geo[k][c] - cf.geo[k][c]).abs() / (1.0 + cf.geo[k][c].abs()));
+                }
+                smoothed += usize::from(cf.photo[k][3] != cf.photo[k][0]);
+            }
+            assert!(worst < 1e-5, "filtered level {level} differs by {worst}");
+            assert!(
+                smoothed > l.width * l.height / 2,
+                "the filter changed only {smoothed} pixels"
+            );
+        }
 
         let pose = Se3::exp(&[0.02, -0.01, 0.03, 0.01, -0.02, 0.005]);
         for level in 0..3 {

@@ -7,7 +7,7 @@ use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
 use rgbid::image::RgbdFrame;
-use rgbid::odometry::{Estimator, Odometry, OdometryConfig};
+use rgbid::odometry::{CovarianceGradients, Estimator, Odometry, OdometryConfig};
 use rgbid::synth::trajectory::camera_pose;
 use rgbid::synth::{render_pinhole, Scene, SensorModel};
 
@@ -146,4 +146,36 @@ fn tracking_a_rendered_sequence_switches_references_and_stays_accurate() {
     println!("after 30 frames: drift {mm:.2} mm {deg:.3} deg, {switches} reference frames");
     assert!((2..30).contains(&switches), "{switches} reference frames");
     assert!(mm < 15.0 && deg < 0.5, "{mm} mm {deg} deg");
+}
+
+#[test]
+fn bilateral_covariance_pass_changes_the_covariance_not_the_pose() {
+    let (a, b, truth) = views(&MOTION, true);
+    for backend in backends() {
+        let mut out = Vec::new();
+        for covariance in [CovarianceGradients::Raw, CovarianceGradients::Bilateral] {
+            let cfg = OdometryConfig {
+                covariance,
+                ..Default::default()
+            };
+            let mut odo = Odometry::new(cfg, camera(), &backend).expect("odometry");
+            let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
+            let c = al.covariance.expect("covariance");
+            let trace = (0..6).map(|i| c[i][i]).sum::<f64>();
+            println!(
+                "{} {covariance:?}: trace {trace:.3e}, condition {:.3e}, covariance pass {:.2} ms",
+                backend.name(),
+                al.condition_number,
+                al.times.covariance_ms
+            );
+            assert!(al.condition_number.is_finite());
+            out.push((al.cur_from_ref, trace));
+        }
+        // Same estimate (the pass only evaluates the Hessian), and smoothed gradients carry
+        // less information: a larger covariance.
+        assert_eq!(out[0].0.log(), out[1].0.log());
+        assert!(out[1].1 > out[0].1, "{} vs {}", out[1].1, out[0].1);
+        let (mm, deg) = errors(&out[1].0, &truth);
+        assert!(mm < 1.0 && deg < 0.05, "{mm} mm {deg} deg");
+    }
 }

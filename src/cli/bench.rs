@@ -183,7 +183,7 @@ struct Row {
     ms_p90: f64,
     ate_rmse: Option<f64>,
     rpe_rmse_per_s: Option<f64>,
-    stages: Option<[f64; 5]>,
+    stages: Option<[f64; 6]>,
     peak_rss_mib: Option<f64>,
 }
 
@@ -261,7 +261,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
         );
         bar.set_message(label.clone());
         let mut totals = Vec::new();
-        let mut stages: [Vec<f64>; 5] = Default::default();
+        let mut stages: [Vec<f64>; 6] = Default::default();
         let mut load_ms = Vec::new();
         let mut poses = Vec::new();
         let mut rss_early = None;
@@ -290,6 +290,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
                     s.reduce_ms,
                     s.solve_ms,
                     s.covisibility_ms,
+                    s.covariance_ms,
                 ]
                 .into_iter()
                 .enumerate()
@@ -313,15 +314,17 @@ fn odometry(a: OdometryBench) -> Result<()> {
             median(&mut stages[2]),
             median(&mut stages[3]),
             median(&mut stages[4]),
+            median(&mut stages[5]),
         ];
         println!(
-            "rgbid {label}: per-frame median {:.2} ms (pyramid {:.2}, scale {:.2}, reduce {:.2}, solve {:.2}, covisibility {:.2}); decode {:.2} ms/frame (not counted)",
+            "rgbid {label}: per-frame median {:.2} ms (pyramid {:.2}, scale {:.2}, reduce {:.2}, solve {:.2}, covisibility {:.2}, covariance {:.2}); decode {:.2} ms/frame (not counted)",
             median(&mut totals.clone()),
             st[0],
             st[1],
             st[2],
             st[3],
             st[4],
+            st[5],
             median(&mut load_ms)
         );
         if let (Some(e), Some(l)) = (rss_early, rss_end) {

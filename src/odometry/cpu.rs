@@ -4,7 +4,8 @@
 use rayon::prelude::*;
 
 use super::kernel::{
-    covisible, downsample, gradients, pack_level0, WarpParams, INVALID_RESIDUAL, PARTIAL_LEN,
+    bilateral, covisible, downsample, gradients, gradients_of_lane, pack_level0, FilterParams,
+    WarpParams, INVALID_RESIDUAL, PARTIAL_LEN,
 };
 use super::rows::{accumulate_rows, first_sample_at, sample_range, SampleWalk, Warp};
 use crate::image::RgbdFrame;
@@ -136,6 +137,67 @@ impl CpuPyramid {
         }
     }
 
+    /// A copy of level `level` whose gradients are those of its bilateral-filtered intensity
+    /// and inverse depth (`f` gives the level's size and offset and the filter's scales), for
+    /// the covariance pass of the odometry (thesis 6.20, 6.21). The result has this pyramid's
+    /// layout; within `level` each pixel holds `(I, dIf/du, dIf/dv, If)` and
+    /// `(rho, drhof/du, drhof/dv, rhof)`, with `If`, `rhof` the filtered values (the raw values
+    /// stay in `.x`, so residuals and IRLS weights are unchanged). Other levels are
+    /// unspecified; use it only as the *current* pyramid of a normal-equation pass. Reuses
+    /// `recycle`'s buffers when the layout matches. Mirror of `GpuOdometry::filtered_level`.
+    pub fn filtered_level(
+        &self,
+        level: usize,
+        f: &FilterParams,
+        recycle: Option<CpuPyramid>,
+    ) -> CpuPyramid {
+        let total = self.photo.len();
+        let (mut photo, mut geo) = match recycle {
+            Some(r) if r.levels == self.levels && r.photo.len() == total => (r.photo, r.geo),
+            _ => (vec![[0.0f32; 4]; total], vec![[0.0f32; 4]; total]),
+        };
+        let Some(l) = self.levels.get(level).copied() else {
+            return CpuPyramid {
+                levels: self.levels.clone(),
+                photo,
+                geo,
+            };
+        };
+        let range = l.offset..l.offset + l.width * l.height;
+        let (sp, sg) = self.level(level);
+        photo[range.clone()]
+            .par_chunks_mut(l.width)
+            .zip(geo[range.clone()].par_chunks_mut(l.width))
+            .enumerate()
+            .for_each(|(y, (rp, rg))| {
+                for x in 0..l.width {
+                    let (i, r) = bilateral(f, sp, sg, x, y);
+                    rp[x] = [sp[y * l.width + x][0], 0.0, 0.0, i];
+                    rg[x] = [sg[y * l.width + x][0], 0.0, 0.0, r];
+                }
+            });
+        let src_p: Vec<[f32; 4]> = photo[range.clone()].to_vec();
+        let src_g: Vec<[f32; 4]> = geo[range.clone()].to_vec();
+        photo[range.clone()]
+            .par_chunks_mut(l.width)
+            .zip(geo[range].par_chunks_mut(l.width))
+            .enumerate()
+            .for_each(|(y, (rp, rg))| {
+                for x in 0..l.width {
+                    let (gp, gg) = gradients_of_lane(&src_p, &src_g, l.width, l.height, x, y, 3);
+                    rp[x][1] = gp[0];
+                    rp[x][2] = gp[1];
+                    rg[x][1] = gg[0];
+                    rg[x][2] = gg[1];
+                }
+            });
+        CpuPyramid {
+            levels: self.levels.clone(),
+            photo,
+            geo,
+        }
+    }
+
     fn level(&self, l: usize) -> (&[[f32; 4]], &[[f32; 4]]) {
         let lv = self.levels[l];
         let r = lv.offset..lv.offset + lv.width * lv.height;
@@ -252,4 +314,71 @@ pub fn covisibility_counts(
             _ => (1, 1),
         })
         .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::ImageF32;
+
+    /// A vertical step edge (intensity 60 -> 180, inverse depth 0.5 -> 1.0 1/m at x = 40) with
+    /// deterministic pseudo-random noise (intensity +-3, inverse depth +-0.002).
+    fn noisy_step(w: usize, h: usize) -> RgbdFrame {
+        let mut state = 7u32;
+        let mut noise = move || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32 * 2.0 - 1.0
+        };
+        let (mut i, mut r) = (Vec::new(), Vec::new());
+        for _y in 0..h {
+            for x in 0..w {
+                let left = x < 40;
+                i.push(if left { 60.0 } else { 180.0 } + 3.0 * noise());
+                r.push(if left { 0.5 } else { 1.0 } + 0.002 * noise());
+            }
+        }
+        RgbdFrame {
+            timestamp: 0.0,
+            intensity: ImageF32::from_vec(w, h, i).unwrap(),
+            inverse_depth: ImageF32::from_vec(w, h, r).unwrap(),
+        }
+    }
+
+    #[test]
+    fn bilateral_gradients_keep_edges_and_damp_noise() {
+        let (w, h) = (80, 60);
+        let pyr = CpuPyramid::build(&noisy_step(w, h), 1);
+        let f = FilterParams::new(w, h, 0, 3.0 * 1.7, 3.0 * 0.0012);
+        let filt = pyr.filtered_level(0, &f, None);
+        // Raw values are kept for the residuals.
+        for k in 0..w * h {
+            assert_eq!(filt.photo[k][0], pyr.photo[k][0]);
+            assert_eq!(filt.geo[k][0], pyr.geo[k][0]);
+        }
+        // Mean squared gradient away from the edge (noise only) and across it.
+        let energy = |p: &CpuPyramid, flat: bool| {
+            let (mut s, mut n) = (0.0f64, 0usize);
+            for y in 3..h - 3 {
+                for x in 3..w - 3 {
+                    let near = (38..=41).contains(&x);
+                    if near == flat {
+                        continue;
+                    }
+                    let g = p.photo[y * w + x];
+                    s += f64::from(g[1] * g[1] + g[2] * g[2]);
+                    n += 1;
+                }
+            }
+            s / n as f64
+        };
+        let (raw_flat, bil_flat) = (energy(&pyr, true), energy(&filt, true));
+        let (raw_edge, bil_edge) = (energy(&pyr, false), energy(&filt, false));
+        assert!(bil_flat < 0.3 * raw_flat, "noise {raw_flat} -> {bil_flat}");
+        assert!(bil_edge > 0.8 * raw_edge, "edge {raw_edge} -> {bil_edge}");
+        // The inverse-depth step stays a discontinuity (no geometric gradient across it),
+        // and flat inverse depth keeps valid gradients.
+        let row = 30 * w;
+        assert_eq!(filt.geo[row + 39][1], super::super::kernel::INVALID_GRAD);
+        assert!(filt.geo[row + 20][1].abs() < 0.002);
+    }
 }

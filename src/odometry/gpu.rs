@@ -5,7 +5,7 @@
 use std::sync::Arc;
 
 use super::cpu::{pyramid_layout, LevelLayout};
-use super::kernel::{PyrParams, WarpParams, PARTIAL_LEN};
+use super::kernel::{FilterParams, PyrParams, WarpParams, PARTIAL_LEN};
 use crate::gpu::{shaders, GpuContext, GpuError};
 use crate::image::RgbdFrame;
 
@@ -34,6 +34,8 @@ pub struct GpuOdometry {
     down: wgpu::ComputePipeline,
     grad: wgpu::ComputePipeline,
     down_input: wgpu::ComputePipeline,
+    bilateral: wgpu::ComputePipeline,
+    filtered_grad: wgpu::ComputePipeline,
     normal: wgpu::ComputePipeline,
     sample: wgpu::ComputePipeline,
     covis: wgpu::ComputePipeline,
@@ -70,7 +72,14 @@ impl GpuOdometry {
         let p = ctx.compute_pipelines_with_layout(
             "pyramid.wgsl",
             &source("pyramid.wgsl")?,
-            &["pack_level0", "downsample", "gradients", "downsample_input"],
+            &[
+                "pack_level0",
+                "downsample",
+                "gradients",
+                "downsample_input",
+                "bilateral",
+                "filtered_gradients",
+            ],
             Some(&pyr_layout),
         )?;
         // With subgroups, one partial per subgroup and no barrier (odometry_subgroup.wgsl);
@@ -91,9 +100,9 @@ impl GpuOdometry {
         };
         let o =
             ctx.compute_pipelines_with_layout(file, &source(file)?, &entries, Some(&warp_layout))?;
-        let [pack, down, grad, down_input]: [wgpu::ComputePipeline; 4] = p
-            .try_into()
-            .map_err(|_| GpuError::Validation("pipeline count".into()))?;
+        let [pack, down, grad, down_input, bilateral, filtered_grad]: [wgpu::ComputePipeline; 6] =
+            p.try_into()
+                .map_err(|_| GpuError::Validation("pipeline count".into()))?;
         let [normal, sample, covis]: [wgpu::ComputePipeline; 3] = o
             .try_into()
             .map_err(|_| GpuError::Validation("pipeline count".into()))?;
@@ -109,6 +118,8 @@ impl GpuOdometry {
             down,
             grad,
             down_input,
+            bilateral,
+            filtered_grad,
             normal,
             sample,
             covis,
@@ -282,6 +293,76 @@ impl GpuOdometry {
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check()?;
         Ok(pyr)
+    }
+
+    /// A copy of `level` of `src` whose gradients are those of its bilateral-filtered
+    /// intensity and inverse depth, for the covariance pass (thesis 6.20, 6.21): the same
+    /// values as [`super::cpu::CpuPyramid::filtered_level`] (which documents the layout).
+    /// `f.dims` must describe `level`; reuses `recycle`'s buffers when the layout matches.
+    pub fn filtered_level(
+        &mut self,
+        src: &GpuPyramid,
+        level: usize,
+        f: &FilterParams,
+        recycle: Option<GpuPyramid>,
+    ) -> Result<GpuPyramid, GpuError> {
+        let total = src
+            .levels
+            .last()
+            .map(|l| l.offset + l.width * l.height)
+            .unwrap_or(0);
+        let Some(l) = src.levels.get(level).copied() else {
+            return Err(GpuError::Validation(format!(
+                "filtered_level: level {level} is not in the pyramid"
+            )));
+        };
+        let mut dst = match recycle {
+            Some(p) if p.levels == src.levels => p,
+            _ => GpuPyramid {
+                levels: src.levels.clone(),
+                input: self.ctx.storage("filtered input (unused)", 16),
+                photo: self.ctx.storage("filtered photo", (total * 16) as u64),
+                geo: self.ctx.storage("filtered geo", (total * 16) as u64),
+                id: 0,
+            },
+        };
+        dst.id = self.next_id;
+        self.next_id += 1;
+        while self.pyr_uniforms.is_empty() {
+            self.pyr_uniforms.push(
+                self.ctx
+                    .uniform("pyr params", std::mem::size_of::<PyrParams>() as u64),
+            );
+        }
+        // FilterParams has PyrParams' size and layout (the floats travel as bit patterns).
+        let ub = &self.pyr_uniforms[0];
+        self.ctx.queue.write_buffer(ub, 0, bytemuck::bytes_of(f));
+        let bg = self.ctx.bind_buffers(
+            "filtered level",
+            &self.pyr_layout,
+            &[ub, &dst.input, &dst.photo, &dst.geo],
+        );
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("filtered level"),
+            });
+        let (at, bytes) = ((l.offset * 16) as u64, (l.width * l.height * 16) as u64);
+        enc.copy_buffer_to_buffer(&src.photo, at, &dst.photo, at, bytes);
+        enc.copy_buffer_to_buffer(&src.geo, at, &dst.geo, at, bytes);
+        for pipe in [&self.bilateral, &self.filtered_grad] {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: None,
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipe);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(l.width.div_ceil(16) as u32, l.height.div_ceil(16) as u32, 1);
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check()?;
+        Ok(dst)
     }
 
     fn bind(&mut self, reference: &GpuPyramid, current: &GpuPyramid) -> wgpu::BindGroup {

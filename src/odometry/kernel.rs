@@ -110,15 +110,43 @@ pub fn gradients(
     x: usize,
     y: usize,
 ) -> ([f32; 2], [f32; 2]) {
+    gradients_of_lane(photo, geo, w, h, x, y, 0)
+}
+
+/// [`gradients`] of the values in `lane` of each pixel (0: the level's own values; 3: the
+/// bilateral-filtered values written by [`bilateral`]). Mirror of `level_gradients` in
+/// `pyramid.wgsl`.
+#[inline]
+pub fn gradients_of_lane(
+    photo: &[[f32; 4]],
+    geo: &[[f32; 4]],
+    w: usize,
+    h: usize,
+    x: usize,
+    y: usize,
+    lane: usize,
+) -> ([f32; 2], [f32; 2]) {
     let xl = x.saturating_sub(1);
     let xr = (x + 1).min(w - 1);
     let yu = y.saturating_sub(1);
     let yd = (y + 1).min(h - 1);
-    let gx = 0.5 * (photo[y * w + xr][0] - photo[y * w + xl][0]);
-    let gy = 0.5 * (photo[yd * w + x][0] - photo[yu * w + x][0]);
-    let c = geo[y * w + x][0];
-    let gdx = one_axis(geo[y * w + xl][0], c, geo[y * w + xr][0], x > 0, x + 1 < w);
-    let gdy = one_axis(geo[yu * w + x][0], c, geo[yd * w + x][0], y > 0, y + 1 < h);
+    let gx = 0.5 * (photo[y * w + xr][lane] - photo[y * w + xl][lane]);
+    let gy = 0.5 * (photo[yd * w + x][lane] - photo[yu * w + x][lane]);
+    let c = geo[y * w + x][lane];
+    let gdx = one_axis(
+        geo[y * w + xl][lane],
+        c,
+        geo[y * w + xr][lane],
+        x > 0,
+        x + 1 < w,
+    );
+    let gdy = one_axis(
+        geo[yu * w + x][lane],
+        c,
+        geo[yd * w + x][lane],
+        y > 0,
+        y + 1 < h,
+    );
     let lim = MAX_REL_GRAD * c;
     if c > 0.0 && gdx != INVALID_GRAD && gdy != INVALID_GRAD && gdx.abs() <= lim && gdy.abs() <= lim
     {
@@ -126,6 +154,74 @@ pub fn gradients(
     } else {
         ([gx, gy], [INVALID_GRAD, INVALID_GRAD])
     }
+}
+
+/// Radius (pixels) of the bilateral filter of [`bilateral`]: a 5x5 window.
+pub const BILATERAL_RADIUS: usize = 2;
+
+/// Uniform parameters of the bilateral-gradient kernels (mirrors `FilterParams` in
+/// `pyramid.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+pub struct FilterParams {
+    /// width, height, level offset (pixels), unused.
+    pub dims: [u32; 4],
+    /// unused, `1 / (2 sigma_I^2)` (1/intensity^2), `1 / (2 sigma_rho^2)` (m^2), unused.
+    pub inv2: [f32; 4],
+}
+
+impl FilterParams {
+    /// Parameters for a `w x h` level at `offset` with photometric range scale `sigma_photo`
+    /// (intensity levels) and inverse-depth range scale `sigma_rho` (1/m).
+    pub fn new(w: usize, h: usize, offset: usize, sigma_photo: f64, sigma_rho: f64) -> Self {
+        let inv2 = |s: f64| (0.5 / (s * s).max(1e-30)) as f32;
+        Self {
+            dims: [w as u32, h as u32, offset as u32, 0],
+            inv2: [0.0, inv2(sigma_photo), inv2(sigma_rho), 0.0],
+        }
+    }
+}
+
+// The GPU writes `FilterParams` into a `PyrParams` uniform.
+const _: () = assert!(std::mem::size_of::<FilterParams>() == std::mem::size_of::<PyrParams>());
+
+/// Bilateral filter at (x, y) of one level, over a `(2 BILATERAL_RADIUS + 1)^2` window clamped
+/// to the image, with a flat spatial kernel and the Cauchy range kernel
+/// `1 / (1 + d^2 / (2 sigma^2))` (no transcendental per tap: the filter runs once per frame on
+/// the finest level used): intensity weighted by its difference to the centre, inverse depth
+/// by its difference over valid (> 0) neighbours only (0 where the pixel itself has no
+/// depth). Returns `(I_filtered, rho_filtered)`. Mirror of `bilateral` in `pyramid.wgsl`.
+#[inline]
+pub fn bilateral(
+    f: &FilterParams,
+    photo: &[[f32; 4]],
+    geo: &[[f32; 4]],
+    x: usize,
+    y: usize,
+) -> (f32, f32) {
+    let (w, h) = (f.dims[0] as usize, f.dims[1] as usize);
+    let c = y * w + x;
+    let (ic, rc) = (photo[c][0], geo[c][0]);
+    let (mut si, mut wi, mut sr, mut wr) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
+    let r = BILATERAL_RADIUS;
+    for v in y.saturating_sub(r)..(y + r + 1).min(h) {
+        for u in x.saturating_sub(r)..(x + r + 1).min(w) {
+            let k = v * w + u;
+            let di = photo[k][0] - ic;
+            let a = 1.0 / (1.0 + f.inv2[1] * di * di);
+            si += a * photo[k][0];
+            wi += a;
+            let rk = geo[k][0];
+            if rc > 0.0 && rk > 0.0 {
+                let dr = rk - rc;
+                let b = 1.0 / (1.0 + f.inv2[2] * dr * dr);
+                sr += b * rk;
+                wr += b;
+            }
+        }
+    }
+    // The centre's own weight is 1, so both sums are positive where they are used.
+    (si / wi, if rc > 0.0 && wr > 0.0 { sr / wr } else { 0.0 })
 }
 
 /// Derivative of inverse depth along one axis: central if both neighbours are valid, one-sided

@@ -2,10 +2,11 @@
 
 use std::time::Instant;
 
+use super::config::CovarianceGradients;
 use super::config::OdometryConfig;
 use super::cpu::{self, CpuPyramid};
 use super::gpu::{GpuOdometry, GpuPyramid};
-use super::kernel::{WarpParams, INVALID_RESIDUAL, PARTIAL_LEN};
+use super::kernel::{FilterParams, WarpParams, INVALID_RESIDUAL, PARTIAL_LEN};
 use super::robust::{estimate_scale, update_scale, ScaleMethod, NU_DEFAULT};
 use super::solver::NormalEquations;
 use super::OdometryError;
@@ -27,6 +28,8 @@ pub struct StageTimes {
     pub solve_ms: f64,
     /// Covisibility ratio.
     pub covisibility_ms: f64,
+    /// Covariance pass (bilateral filter and one normal-equation pass), if enabled.
+    pub covariance_ms: f64,
     /// Everything for this frame.
     pub total_ms: f64,
 }
@@ -57,8 +60,10 @@ pub struct LevelStats {
 pub struct Alignment {
     /// The estimated `cur_from_ref`.
     pub cur_from_ref: Se3,
-    /// Covariance of the estimate (left twist of `cur_from_ref`, `[v; w]`, m and rad), the
-    /// inverse of the final Hessian on the finest level used.
+    /// Covariance of the estimate (left twist of `cur_from_ref`, `[v; w]`, m and rad): the
+    /// inverse of the Hessian on the finest level used, from the covariance pass at the final
+    /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`], the
+    /// default) or from the last Gauss-Newton iteration ([`CovarianceGradients::Raw`]).
     pub covariance: Option<[[f64; 6]; 6]>,
     /// Condition number of that Hessian.
     pub condition_number: f64,
@@ -144,6 +149,8 @@ pub struct Odometry {
     last: Option<(Se3, Se3)>,
     initial_pose: Se3,
     spare: Option<Pyramid>,
+    /// Buffers of the covariance pass's filtered level, recycled.
+    filtered: Option<Pyramid>,
     frames: usize,
 }
 
@@ -178,6 +185,7 @@ impl Odometry {
             last: None,
             initial_pose: Se3::IDENTITY,
             spare: None,
+            filtered: None,
             frames: 0,
         })
     }
@@ -454,6 +462,37 @@ impl Odometry {
         })
     }
 
+    /// The covariance pass's copy of `level` of `c` with bilateral-filtered gradients.
+    fn filtered_level(
+        &mut self,
+        c: &Pyramid,
+        level: usize,
+        f: &FilterParams,
+    ) -> Result<Pyramid, OdometryError> {
+        let recycle = self.filtered.take();
+        Ok(match (&mut self.engine, c) {
+            (Engine::Cpu, Pyramid::Cpu(c)) => {
+                let recycle = match recycle {
+                    Some(Pyramid::Cpu(p)) => Some(p),
+                    _ => None,
+                };
+                Pyramid::Cpu(c.filtered_level(level, f, recycle))
+            }
+            (Engine::Gpu(g), Pyramid::Gpu(c)) => {
+                let recycle = match recycle {
+                    Some(Pyramid::Gpu(p)) => Some(p),
+                    _ => None,
+                };
+                Pyramid::Gpu(g.filtered_level(c, level, f, recycle)?)
+            }
+            _ => {
+                return Err(OdometryError::InvalidConfig(
+                    "pyramid from another backend".into(),
+                ))
+            }
+        })
+    }
+
     fn partials(
         &mut self,
         p: &WarpParams,
@@ -511,6 +550,8 @@ impl Odometry {
         let mut times = StageTimes::default();
         let mut levels = Vec::new();
         let mut last_ne: Option<NormalEquations> = None;
+        // The level and parameters (scales) of the last normal equations solved.
+        let mut last_params: Option<(usize, WarpParams)> = None;
         let mut any_update = false;
         let finest = cfg.finest_level(self.camera.width as usize);
         for level in (finest..cfg.levels).rev() {
@@ -630,6 +671,7 @@ impl Odometry {
                     ne.n_geo
                 );
                 level_ne = Some(ne);
+                last_params = Some((level, p));
                 if norm < cfg.convergence {
                     break;
                 }
@@ -643,6 +685,32 @@ impl Odometry {
             return Err(OdometryError::TrackingFailed(
                 "no pyramid level had enough valid, well-conditioned residuals (no depth or no overlap)".into(),
             ));
+        }
+        if cfg.covariance == CovarianceGradients::Bilateral {
+            if let Some((level, mut p)) = last_params {
+                let tc = Instant::now();
+                p.set_pose(&cur_from_ref);
+                p.dims[3] = 0;
+                let sigma_rho = match cfg.geometric {
+                    super::GeometricParam::InverseDepth => f64::from(p.robust[1]),
+                    super::GeometricParam::Depth => cfg.fixed_sigma_geo,
+                };
+                let f = FilterParams::new(
+                    p.dims[0] as usize,
+                    p.dims[1] as usize,
+                    p.dims[2] as usize,
+                    cfg.bilateral_range * f64::from(p.robust[0]),
+                    cfg.bilateral_range * sigma_rho,
+                );
+                let filtered = self.filtered_level(c, level, &f)?;
+                let parts = self.partials(&p, r, &filtered, level);
+                self.filtered = Some(filtered);
+                let ne = NormalEquations::from_partials(&parts?);
+                if ne.n_photo + ne.n_geo >= 12 {
+                    last_ne = Some(ne);
+                }
+                times.covariance_ms += tc.elapsed().as_secs_f64() * 1e3;
+            }
         }
         let (covariance, condition_number) = match last_ne.as_ref().and_then(|ne| ne.covariance()) {
             Some((c, k)) => (Some(c), k),
