@@ -3,7 +3,8 @@
 //! estimation error squared NEES = e^T C^-1 e of the error twist e = log(true * est^-1)
 //! (the covariance's left perturbation) with the covariance from raw gradients and from the
 //! bilateral-filtered covariance pass. A consistent 6-dof covariance has mean NEES 6.
-//! `cargo run --release --example odo_covariance -- [PAIRS] [--width W] [--config X.json]`.
+//! `cargo run --release --example odo_covariance -- [PAIRS] [--width W] [--config X.json] [--noiseless]`
+//! (`--noiseless`: views without sensor noise, to see the estimator's bias).
 
 use glam::DVec3;
 use rgbid::camera::PinholeCamera;
@@ -26,9 +27,12 @@ fn main() -> anyhow::Result<()> {
     let mut pairs = 24usize;
     let mut width = 320u32;
     let mut base = OdometryConfig::default();
+    let mut noiseless = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
-        if a == "--width" {
+        if a == "--noiseless" {
+            noiseless = true;
+        } else if a == "--width" {
             width = args.next().unwrap_or_default().parse()?;
         } else if a == "--config" {
             let path = args.next().unwrap_or_default();
@@ -75,7 +79,11 @@ fn main() -> anyhow::Result<()> {
             0.015 * uni(),
         ];
         let world_from_cur = world_from_ref * Se3::exp(&motion);
-        let sensor = SensorModel::kinect();
+        let sensor = if noiseless {
+            SensorModel::noiseless()
+        } else {
+            SensorModel::kinect()
+        };
         let a =
             render_pinhole(&scene, &cam, &world_from_ref, &sensor, 2 * k as u64).to_rgbd_frame(0.0);
         let b = render_pinhole(&scene, &cam, &world_from_cur, &sensor, 2 * k as u64 + 1)

@@ -115,11 +115,16 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
         let g = cur_geo[o + yn * w + xn];
         if (g.x > 0.0 && g.y != INVALID_GRAD) {
             var res: f32; var gu: f32; var gv: f32; var dz: f32;
-            if (P.flags.z == 1u) {
-                let ig2 = 1.0 / (g.x * g.x);
-                res = 1.0 / g.x - q.z; gu = -g.y * ig2; gv = -g.z * ig2; dz = -1.0;
+            // Nearest sample, or (flags.z bit 1) its first-order extension to (u, v).
+            var rho = g.x;
+            if ((P.flags.z & 2u) != 0u) {
+                rho = g.x + g.y * (u - f32(xn)) + g.z * (v - f32(yn));
+            }
+            if ((P.flags.z & 1u) != 0u) {
+                let ig2 = 1.0 / (rho * rho);
+                res = 1.0 / rho - q.z; gu = -g.y * ig2; gv = -g.z * ig2; dz = -1.0;
             } else {
-                res = g.x - iz; gu = g.y; gv = g.z; dz = iz * iz;
+                res = rho - iz; gu = g.y; gv = g.z; dz = iz * iz;
             }
             t.geo_ok = true;
             t.r_geo = res;

@@ -105,7 +105,8 @@ fn gpu_matches_cpu_mirror() {
         let pose = Se3::exp(&[0.02, -0.01, 0.03, 0.01, -0.02, 0.005]);
         for level in 0..3 {
             let l = ca.levels[level];
-            for (est, param) in [(3u32, 0u32), (1, 1), (2, 0), (0, 0)] {
+            // param: bit 0 depth parametrisation, bit 1 first-order inverse-depth sampling.
+            for (est, param) in [(3u32, 0u32), (1, 1), (2, 0), (0, 0), (3, 2), (2, 3)] {
                 let p = params(
                     l.width as u32,
                     l.height as u32,

@@ -7,7 +7,7 @@
 //! out on the *reference* frame's pixel grid of that level: pixel `x` holds the residual of
 //! the reference pixel `x` warped into the current frame by `cur_from_ref`.
 
-use super::config::{GeometricParam, OdometryConfig};
+use super::config::OdometryConfig;
 use super::cpu::CpuPyramid;
 use super::kernel::{pixel_terms, WarpParams};
 use super::robust::weight;
@@ -144,10 +144,7 @@ pub fn residual_images(
         flags: [
             config.estimator.code(),
             config.terms.mask(),
-            match config.geometric {
-                GeometricParam::InverseDepth => 0,
-                GeometricParam::Depth => 1,
-            },
+            config.geometric_code(),
             0,
         ],
     };

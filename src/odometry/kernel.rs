@@ -41,8 +41,9 @@ pub struct WarpParams {
     pub rot: [[f32; 4]; 3],
     /// sigma_I, sigma_W, nu_I, nu_W.
     pub robust: [f32; 4],
-    /// estimator code, term mask (1 photometric, 2 geometric), geometric parametrisation
-    /// (0 inverse depth, 1 depth), offset of the residual sample in the GPU output buffer.
+    /// estimator code, term mask (1 photometric, 2 geometric), geometric code (bit 0: depth
+    /// instead of inverse depth; bit 1: first-order instead of nearest inverse-depth
+    /// sampling), offset of the residual sample in the GPU output buffer.
     pub flags: [u32; 4],
 }
 
@@ -350,12 +351,17 @@ pub fn pixel_terms(
         let yn = (v + 0.5).floor() as usize;
         let g = cur_geo[yn * w + xn];
         if g[0] > 0.0 && g[1] != INVALID_GRAD {
-            let depth_param = p.flags[2] == 1;
-            let (res, gu, gv, dz) = if depth_param {
-                let ig2 = 1.0 / (g[0] * g[0]);
-                (1.0 / g[0] - q[2], -g[1] * ig2, -g[2] * ig2, -1.0)
+            let depth_param = p.flags[2] & 1 == 1;
+            let rho = if p.flags[2] & 2 == 2 {
+                g[0] + g[1] * (u - xn as f32) + g[2] * (v - yn as f32)
             } else {
-                (g[0] - iz, g[1], g[2], iz * iz)
+                g[0]
+            };
+            let (res, gu, gv, dz) = if depth_param {
+                let ig2 = 1.0 / (rho * rho);
+                (1.0 / rho - q[2], -g[1] * ig2, -g[2] * ig2, -1.0)
+            } else {
+                (rho - iz, g[1], g[2], iz * iz)
             };
             out.r_geo = Some(res);
             if want_jacobians {

@@ -26,7 +26,7 @@ mod rows;
 mod solver;
 mod tracker;
 
-pub use config::{CovarianceGradients, GeometricParam, OdometryConfig, Terms};
+pub use config::{CovarianceGradients, GeometricParam, GeometricSampling, OdometryConfig, Terms};
 pub use inspect::{residual_images, ResidualImages, RobustScales};
 pub use robust::{Estimator, ScaleMethod};
 pub use tracker::{Alignment, FrameStats, LevelStats, Odometry, StageTimes, TrackResult};

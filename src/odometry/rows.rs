@@ -23,6 +23,7 @@ pub(crate) struct Warp {
     photo: bool,
     geo: bool,
     depth_param: bool,
+    linear_geo: bool,
     est: u32,
     sigma: [f32; 2],
     nu: [f32; 2],
@@ -46,7 +47,8 @@ impl Warp {
             r: p.rot,
             photo: p.flags[1] & 1 != 0,
             geo: p.flags[1] & 2 != 0,
-            depth_param: p.flags[2] == 1,
+            depth_param: p.flags[2] & 1 == 1,
+            linear_geo: p.flags[2] & 2 == 2,
             est: p.flags[0],
             sigma: [p.robust[0], p.robust[1]],
             nu: [p.robust[2], p.robust[3]],
@@ -116,11 +118,18 @@ fn terms<const JAC: bool>(
         let (xn, yn) = ((u + 0.5) as i32 as usize, (v + 0.5) as i32 as usize);
         let g = cur_geo[yn * k.w + xn];
         if g[0] > 0.0 && g[1] != INVALID_GRAD {
-            let (res, gu, gv, dz) = if k.depth_param {
-                let ig2 = 1.0 / (g[0] * g[0]);
-                (1.0 / g[0] - qz, -g[1] * ig2, -g[2] * ig2, -1.0)
+            // Nearest sample, or its first-order extension to (u, v) along the stored
+            // gradient (`GeometricSampling::Linear`).
+            let rho = if k.linear_geo {
+                g[0] + g[1] * (u - xn as f32) + g[2] * (v - yn as f32)
             } else {
-                (g[0] - iz, g[1], g[2], iz * iz)
+                g[0]
+            };
+            let (res, gu, gv, dz) = if k.depth_param {
+                let ig2 = 1.0 / (rho * rho);
+                (1.0 / rho - qz, -g[1] * ig2, -g[2] * ig2, -1.0)
+            } else {
+                (rho - iz, g[1], g[2], iz * iz)
             };
             rg = res;
             if JAC {
@@ -455,12 +464,13 @@ mod tests {
         let b = CpuPyramid::build(&frame(w, h, 1.3), 1);
         let pose = Se3::exp(&[0.01, -0.004, 0.02, 0.003, -0.005, 0.002]);
         for est in 0..4u32 {
-            for (terms_mask, param) in [(3u32, 0u32), (1, 0), (2, 0), (3, 1)] {
+            // param: bit 0 depth parametrisation, bit 1 first-order inverse-depth sampling.
+            for (terms_mask, param) in [(3u32, 0u32), (1, 0), (2, 0), (3, 1), (3, 2), (2, 3)] {
                 let mut p = WarpParams {
                     dims: [w as u32, h as u32, 0, 1000],
                     intr: [90.0, 90.0, 47.5, 35.5],
                     rot: [[0.0; 4]; 3],
-                    robust: [4.0, if param == 1 { 0.01 } else { 0.003 }, 4.0, 6.0],
+                    robust: [4.0, if param & 1 == 1 { 0.01 } else { 0.003 }, 4.0, 6.0],
                     flags: [est, terms_mask, param, 0],
                 };
                 p.set_pose(&pose);

@@ -727,10 +727,16 @@ impl Odometry {
 }
 
 impl OdometryConfig {
-    fn geometric_code(&self) -> u32 {
-        match self.geometric {
+    /// `WarpParams::flags[2]`: bit 0 depth parametrisation, bit 1 first-order sampling.
+    pub(crate) fn geometric_code(&self) -> u32 {
+        let param = match self.geometric {
             super::GeometricParam::InverseDepth => 0,
             super::GeometricParam::Depth => 1,
-        }
+        };
+        let sampling = match self.geometric_sampling {
+            super::config::GeometricSampling::Nearest => 0,
+            super::config::GeometricSampling::Linear => 2,
+        };
+        param | sampling
     }
 }
