@@ -107,10 +107,46 @@ const LOW_MASK: u32 = (1 << LOW_BITS) - 1;
 const SMALL_SORT: usize = 96;
 const ZERO_EDGE: Edge = Edge { w: 0.0, a: 0, b: 0 };
 
-/// The top 12 bits of an edge's radix key.
+/// The inverse of [`weight_key`] (bit-exact).
 #[inline]
-fn top_digit(e: &Edge) -> usize {
-    (weight_key(e.w) >> (32 - TOP_BITS)) as usize
+fn key_weight(k: u32) -> f32 {
+    f32::from_bits(if k & 0x8000_0000 != 0 {
+        k ^ 0x8000_0000
+    } else {
+        !k
+    })
+}
+
+/// An item of the radix sort, ordered by a 32-bit key.
+trait RadixItem: Copy + Send + Sync {
+    /// A filler value.
+    const ZERO: Self;
+    /// The radix key.
+    fn key(&self) -> u32;
+}
+
+impl RadixItem for Edge {
+    const ZERO: Self = ZERO_EDGE;
+    #[inline]
+    fn key(&self) -> u32 {
+        weight_key(self.w)
+    }
+}
+
+/// A compact image-graph edge (see [`Tiles`]): the radix key of the weight in the high 32
+/// bits, the tag of the edge in the low 32.
+impl RadixItem for u64 {
+    const ZERO: Self = 0;
+    #[inline]
+    fn key(&self) -> u32 {
+        (*self >> 32) as u32
+    }
+}
+
+/// The top 12 bits of an item's radix key.
+#[inline]
+fn top_digit<T: RadixItem>(e: &T) -> usize {
+    (e.key() >> (32 - TOP_BITS)) as usize
 }
 
 /// Sorts edges by weight, stably: ties keep their input order. [`image_edges`] and
@@ -160,18 +196,18 @@ fn top_histogram(edges: &[Edge]) -> Vec<u32> {
 /// The edges of `pieces` (each with the histogram of its top digits), grouped by top digit
 /// in one buffer, stably (pieces in order); and the size of every group. The pieces scatter
 /// in parallel, each into its own part of every group.
-fn group_by_top_digit<S: AsRef<[Edge]> + Sync>(
+fn group_by_top_digit<T: RadixItem, S: AsRef<[T]> + Sync>(
     pieces: &[(S, Vec<u32>)],
-) -> (Vec<Edge>, Vec<usize>) {
+) -> (Vec<T>, Vec<usize>) {
     let mut sizes = vec![0usize; TOP_BUCKETS];
     for (_, h) in pieces {
         for (s, &c) in sizes.iter_mut().zip(h) {
             *s += c as usize;
         }
     }
-    let mut out = vec![ZERO_EDGE; sizes.iter().sum()];
+    let mut out = vec![T::ZERO; sizes.iter().sum()];
     // Every piece's part of every group, in group-major order.
-    let mut parts: Vec<Vec<&mut [Edge]>> = pieces
+    let mut parts: Vec<Vec<&mut [T]>> = pieces
         .iter()
         .map(|_| Vec::with_capacity(TOP_BUCKETS))
         .collect();
@@ -201,21 +237,21 @@ fn group_by_top_digit<S: AsRef<[Edge]> + Sync>(
 
 /// Sorts a group of edges (sharing the top digit) in place by the low 20 key bits, stably,
 /// with `scratch` as the second buffer.
-fn sort_bucket(v: &mut [Edge], scratch: &mut Vec<Edge>) {
+fn sort_bucket<T: RadixItem>(v: &mut [T], scratch: &mut Vec<T>) {
     let n = v.len();
     if n <= SMALL_SORT {
-        v.sort_by_key(|e| weight_key(e.w));
+        v.sort_by_key(|e| e.key());
         return;
     }
     let mut h0 = [0u32; LOW_BUCKETS];
     let mut h1 = [0u32; LOW_BUCKETS];
     for e in v.iter() {
-        let k = weight_key(e.w);
+        let k = e.key();
         h0[(k & LOW_MASK) as usize] += 1;
         h1[((k >> LOW_BITS) & LOW_MASK) as usize] += 1;
     }
     if scratch.len() < n {
-        scratch.resize(n, ZERO_EDGE);
+        scratch.resize(n, T::ZERO);
     }
     let tmp = &mut scratch[..n];
     let trivial = |h: &[u32; LOW_BUCKETS]| h.iter().any(|&c| c as usize == n);
@@ -238,7 +274,7 @@ fn sort_bucket(v: &mut [Edge], scratch: &mut Vec<Edge>) {
 
 /// One stable counting-sort pass of `src` into `dst` by the digit at `shift`, whose histogram
 /// is `hist`.
-fn scatter(src: &[Edge], dst: &mut [Edge], hist: &[u32; LOW_BUCKETS], shift: u32) {
+fn scatter<T: RadixItem>(src: &[T], dst: &mut [T], hist: &[u32; LOW_BUCKETS], shift: u32) {
     let mut next = [0u32; LOW_BUCKETS];
     let mut sum = 0u32;
     for (o, &c) in next.iter_mut().zip(hist) {
@@ -246,7 +282,7 @@ fn scatter(src: &[Edge], dst: &mut [Edge], hist: &[u32; LOW_BUCKETS], shift: u32
         sum += c;
     }
     for e in src {
-        let d = ((weight_key(e.w) >> shift) & LOW_MASK) as usize;
+        let d = ((e.key() >> shift) & LOW_MASK) as usize;
         dst[next[d] as usize] = *e;
         next[d] += 1;
     }
@@ -260,13 +296,13 @@ fn scatter(src: &[Edge], dst: &mut [Edge], hist: &[u32; LOW_BUCKETS], shift: u32
 /// Groups are claimed in order from a shared counter by a helper task and by the consumer
 /// whenever the next group is not sorted yet, so nothing waits on a task that cannot run
 /// (a pool of one thread sorts everything on the consumer's thread).
-fn for_each_sorted_bucket(
-    grouped: &mut [Edge],
+fn for_each_sorted_bucket<T: RadixItem>(
+    grouped: &mut [T],
     sizes: &[usize],
-    mut consume: impl FnMut(&[Edge]) + Send,
+    mut consume: impl FnMut(&[T]) + Send,
 ) {
-    struct Slot<'a> {
-        edges: &'a mut [Edge],
+    struct Slot<'a, T> {
+        edges: &'a mut [T],
         sorted: bool,
     }
     let mut slots = Vec::new();
@@ -280,7 +316,7 @@ fn for_each_sorted_bucket(
         rest = tail;
     }
     let next = AtomicUsize::new(0);
-    let claim_and_sort = |scratch: &mut Vec<Edge>| -> bool {
+    let claim_and_sort = |scratch: &mut Vec<T>| -> bool {
         let Some(slot) = slots.get(next.fetch_add(1, Ordering::Relaxed)) else {
             return false;
         };
@@ -420,8 +456,9 @@ impl Merger {
 /// Felzenszwalb-Huttenlocher segmentation of the 8-connected image graph: the same labels as
 /// [`felzenszwalb`]`(width * height, e, k, min_size, active)` with `e` the edges of
 /// [`image_edges`] sorted by [`sort_edges`], computed without the whole sorted edge list:
-/// bands of rows emit their edges grouped by the top digit of the weight, and the union-find
-/// pass consumes the groups as they are sorted, overlapping the sort of the heavier edges.
+/// bands of rows emit their edges (8-byte, with [`Tiles`] numbering) grouped by the top digit
+/// of the weight, and the union-find pass consumes the groups as they are sorted, overlapping
+/// the sort of the heavier edges.
 #[allow(clippy::too_many_arguments)]
 pub fn segment_image_graph(
     width: usize,
@@ -434,12 +471,372 @@ pub fn segment_image_graph(
     min_size: usize,
     active: &[bool],
 ) -> (Vec<u32>, usize) {
-    let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
-    let (mut grouped, sizes) = group_by_top_digit(&bands);
+    let Some(tiles) = Tiles::new(width, height) else {
+        // Too many pixels for the compact edges: the edges of `image_edges`.
+        let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
+        let (mut grouped, sizes) = group_by_top_digit(&bands);
+        drop(bands);
+        let mut merger = Merger::new(width * height, k, min_size);
+        for_each_sorted_bucket(&mut grouped, &sizes, |b| merger.add(b));
+        return merger.finish(active);
+    };
+    let bands = tagged_edge_bands(
+        width,
+        height,
+        points,
+        normals,
+        inverse_depth,
+        jump_ratio,
+        &tiles,
+    );
+    let (mut grouped, sizes) = group_by_top_digit::<u64, _>(&bands);
     drop(bands);
-    let mut merger = Merger::new(width * height, k, min_size);
+    let mut merger = TiledMerger::new(&tiles, k, min_size);
     for_each_sorted_bucket(&mut grouped, &sizes, |b| merger.add(b));
-    merger.finish(active)
+    merger.finish(width, height, active)
+}
+
+/// Bits of a node number in an edge tag of [`Tiles`]; the two above give the direction.
+const NODE_BITS: u32 = 30;
+const NODE_MASK: u32 = (1 << NODE_BITS) - 1;
+
+/// The union-find numbering of the pixels of the fused image path: 4 x 4 tiles of 16
+/// consecutive nodes, row-major within a tile and tiles row-major, so the two ends of most
+/// edges (and the pixels around them) share a cache line of the union-find arrays, where
+/// row-major numbering puts the pixel below 64 lines away.
+///
+/// An edge is tagged `a | dir << 30` by the node `a` of its first pixel (row-major first) and
+/// the direction of the second: 0 right, 1 down-left, 2 down, 3 down-right (the order of
+/// [`image_edges`]); the second node is `a` plus a delta that depends only on the direction
+/// and `a`'s place in its tile.
+struct Tiles {
+    /// Tiles per row.
+    tiles_w: usize,
+    /// Number of nodes (the image padded to whole tiles).
+    n: usize,
+    /// Node delta of the second pixel, at `(place in tile) << 2 | dir`.
+    delta: [u32; 64],
+}
+
+impl Tiles {
+    /// `None` when the padded image has more than `2^30` pixels.
+    fn new(width: usize, height: usize) -> Option<Self> {
+        let tiles_w = width.div_ceil(4);
+        let n = tiles_w.checked_mul(height.div_ceil(4))?.checked_mul(16)?;
+        if n > NODE_MASK as usize {
+            return None;
+        }
+        let mut t = Self {
+            tiles_w,
+            n,
+            delta: [0; 64],
+        };
+        for ly in 0..4 {
+            for lx in 0..4 {
+                // Any pixel with this place in its tile (and a left neighbour) has the same
+                // deltas, padding or not.
+                let (x, y) = (4 + lx, ly);
+                let a = t.node(x, y);
+                let seconds = [(x + 1, y), (x - 1, y + 1), (x, y + 1), (x + 1, y + 1)];
+                for (dir, (bx, by)) in seconds.into_iter().enumerate() {
+                    t.delta[((ly * 4 + lx) << 2) | dir] = t.node(bx, by).wrapping_sub(a);
+                }
+            }
+        }
+        Some(t)
+    }
+
+    /// The node of pixel `(x, y)` (wrapping arithmetic: only the deltas use padding pixels
+    /// beyond the tiles, which [`Tiles::new`] counts).
+    #[inline]
+    fn node(&self, x: usize, y: usize) -> u32 {
+        ((((y >> 2) * self.tiles_w + (x >> 2)) << 4) | ((y & 3) << 2) | (x & 3)) as u32
+    }
+
+    /// The two nodes of an edge tag.
+    #[inline]
+    fn ends(&self, tag: u32) -> (u32, u32) {
+        let a = tag & NODE_MASK;
+        let dir = tag >> NODE_BITS;
+        let b = a.wrapping_add(self.delta[(((a & 15) << 2) | dir) as usize]);
+        (a, b)
+    }
+}
+
+/// The weight of the edge between two pixels with normals (point, normal, inverse depth
+/// each), `lim` being `jump_ratio` times their distance in pixels: as in [`image_edges`].
+#[inline(always)]
+fn pixel_edge_weight(
+    (pi, ni, ri): ([f32; 3], [f32; 3], f32),
+    (pj, nj, rj): ([f32; 3], [f32; 3], f32),
+    lim: f32,
+) -> f32 {
+    if (ri - rj).abs() > lim * ri.max(rj) {
+        JUMP_WEIGHT
+    } else {
+        convexity_weight(pi, ni, pj, nj)
+    }
+}
+
+#[inline(always)]
+fn has_normal(v: [f32; 3]) -> bool {
+    v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0
+}
+
+/// The edges of [`image_edges`] as compact `u64` ([`RadixItem`]) with [`Tiles`] tags, in
+/// bands of [`BAND_ROWS`] rows, in parallel, each with the histogram of its top digits. Same
+/// weights and order as [`image_edge_bands`].
+fn tagged_edge_bands(
+    width: usize,
+    height: usize,
+    points: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    inverse_depth: &[f32],
+    jump_ratio: f32,
+    tiles: &Tiles,
+) -> Vec<(Vec<u64>, Vec<u32>)> {
+    let n = width * height;
+    if n == 0 || points.len() < n || normals.len() < n || inverse_depth.len() < n {
+        return Vec::new();
+    }
+    let px = Pixels {
+        width,
+        height,
+        points: &points[..n],
+        normals: &normals[..n],
+        rho: &inverse_depth[..n],
+        // The products of `image_edges` (`jump_ratio * dist` first).
+        lim_side: jump_ratio * 1.0,
+        lim_diag: jump_ratio * std::f32::consts::SQRT_2,
+    };
+    (0..height.div_ceil(BAND_ROWS))
+        .into_par_iter()
+        .map(|band| px.tagged_band(band, tiles))
+        .collect()
+}
+
+/// The per-pixel inputs of [`tagged_edge_bands`].
+struct Pixels<'a> {
+    width: usize,
+    height: usize,
+    points: &'a [[f32; 3]],
+    normals: &'a [[f32; 3]],
+    rho: &'a [f32],
+    lim_side: f32,
+    lim_diag: f32,
+}
+
+impl Pixels<'_> {
+    #[inline(always)]
+    fn at(&self, i: usize) -> ([f32; 3], [f32; 3], f32) {
+        (self.points[i], self.normals[i], self.rho[i])
+    }
+
+    /// The tagged edges of one band of rows and the histogram of their top digits.
+    fn tagged_band(&self, band: usize, tiles: &Tiles) -> (Vec<u64>, Vec<u32>) {
+        let (width, height, normals) = (self.width, self.height, self.normals);
+        let rows = band * BAND_ROWS..((band + 1) * BAND_ROWS).min(height);
+        let mut out: Vec<u64> = Vec::with_capacity(rows.len() * width * 4);
+        let mut hist = vec![0u32; TOP_BUCKETS];
+        let mut emit = |w: f32, tag: u64| {
+            let e = (u64::from(weight_key(w)) << 32) | tag;
+            hist[top_digit(&e)] += 1;
+            out.push(e);
+        };
+        for y in rows {
+            let down = y + 1 < height;
+            for x in 0..width {
+                let i = y * width + x;
+                if !has_normal(normals[i]) {
+                    continue;
+                }
+                let a = self.at(i);
+                let node = u64::from(tiles.node(x, y));
+                // Directions in increasing order of the second pixel, as `image_edges`.
+                if x + 1 < width && has_normal(normals[i + 1]) {
+                    let w = pixel_edge_weight(a, self.at(i + 1), self.lim_side);
+                    emit(w, node);
+                }
+                if down {
+                    let j = i + width;
+                    if x > 0 && has_normal(normals[j - 1]) {
+                        let w = pixel_edge_weight(a, self.at(j - 1), self.lim_diag);
+                        emit(w, node | 1 << NODE_BITS);
+                    }
+                    if has_normal(normals[j]) {
+                        let w = pixel_edge_weight(a, self.at(j), self.lim_side);
+                        emit(w, node | 2 << NODE_BITS);
+                    }
+                    if x + 1 < width && has_normal(normals[j + 1]) {
+                        let w = pixel_edge_weight(a, self.at(j + 1), self.lim_diag);
+                        emit(w, node | 3 << NODE_BITS);
+                    }
+                }
+            }
+        }
+        (out, hist)
+    }
+}
+
+/// Asks the CPU to fetch the cache line of `p` (a hint: any address is allowed).
+#[inline(always)]
+fn prefetch<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch does not access memory architecturally (it cannot fault), and SSE is
+    // part of the x86_64 baseline.
+    unsafe {
+        core::arch::x86_64::_mm_prefetch::<{ core::arch::x86_64::_MM_HINT_T0 }>(p.cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
+/// Size and merge threshold `Int(C) + k/|C|` of a union-find root, side by side (one cache
+/// line for both).
+#[derive(Clone, Copy)]
+struct RootInfo {
+    size: u32,
+    thresh: f32,
+}
+
+/// How far ahead (in edges) [`TiledMerger::add`] prefetches the union-find entries of an
+/// edge's ends, and half as far ahead, those of their parents.
+const PREFETCH: usize = 8;
+
+/// [`Merger`] on [`Tiles`] nodes and tagged edges, with prefetching; the same merges in the
+/// same order, so the same components and (numbered by pixel) the same labels.
+struct TiledMerger<'t> {
+    tiles: &'t Tiles,
+    parent: Vec<u32>,
+    root: Vec<RootInfo>,
+    k: f32,
+    /// Edges heavier than this never pass the merge test: every threshold is below `2k`
+    /// (`k > 0`; by induction, `Int(C) + k/|C| <= 2k - k/|C|`, as a merge's weight is at most
+    /// the threshold of the smaller side, of at most half the size), and below `k` for
+    /// `k <= 0`. The margin covers rounding (relative `3e-7` per merge, at most ~32 merges
+    /// deep along the smaller sides).
+    cutoff: f32,
+    min_size: usize,
+    /// Tags of the rejected edges, as in [`Merger`].
+    rejected: Vec<u32>,
+}
+
+impl<'t> TiledMerger<'t> {
+    fn new(tiles: &'t Tiles, k: f32, min_size: usize) -> Self {
+        let cutoff = if k > 0.0 { 2.0 * k * (1.0 + 1e-4) } else { k };
+        Self {
+            tiles,
+            parent: (0..tiles.n as u32).collect(),
+            root: vec![RootInfo { size: 1, thresh: k }; tiles.n],
+            k,
+            cutoff,
+            min_size,
+            rejected: Vec::new(),
+        }
+    }
+
+    /// Path-halving find, as [`UnionFind::find`].
+    #[inline]
+    fn find(parent: &mut [u32], mut x: u32) -> u32 {
+        while parent[x as usize] != x {
+            let p = parent[x as usize];
+            parent[x as usize] = parent[p as usize];
+            x = parent[x as usize];
+        }
+        x
+    }
+
+    /// Joins roots `a` and `b` by size (ties: `a` wins), as [`UnionFind::union`].
+    #[inline]
+    fn union(parent: &mut [u32], root: &mut [RootInfo], a: u32, b: u32) -> u32 {
+        let (sa, sb) = (root[a as usize].size, root[b as usize].size);
+        let (big, small) = if sa >= sb { (a, b) } else { (b, a) };
+        parent[small as usize] = big;
+        root[big as usize].size = sa + sb;
+        big
+    }
+
+    /// The merging pass over the next edges in weight order ([`Merger::add`]). Edges above
+    /// the cutoff go straight to the rejected list: the ones whose ends are already joined
+    /// are then extra entries there, which the minimum-size pass skips as it would have.
+    fn add(&mut self, edges: &[u64]) {
+        let (k, cutoff, keep) = (self.k, self.cutoff, self.min_size > 1);
+        let tiles = self.tiles;
+        let parent = &mut self.parent[..];
+        let root = &mut self.root[..];
+        for (i, &e) in edges.iter().enumerate() {
+            if let Some(&f) = edges.get(i + 2 * PREFETCH) {
+                let (fa, fb) = tiles.ends(f as u32);
+                prefetch(parent.as_ptr().wrapping_add(fa as usize));
+                prefetch(parent.as_ptr().wrapping_add(fb as usize));
+            }
+            if let Some(&f) = edges.get(i + PREFETCH) {
+                let (fa, fb) = tiles.ends(f as u32);
+                let (pa, pb) = (parent[fa as usize], parent[fb as usize]);
+                prefetch(root.as_ptr().wrapping_add(pa as usize));
+                prefetch(root.as_ptr().wrapping_add(pb as usize));
+                prefetch(parent.as_ptr().wrapping_add(pa as usize));
+                prefetch(parent.as_ptr().wrapping_add(pb as usize));
+            }
+            let w = key_weight(e.key());
+            let tag = e as u32;
+            if !(w <= cutoff) {
+                if keep {
+                    self.rejected.push(tag);
+                }
+                continue;
+            }
+            let (ea, eb) = tiles.ends(tag);
+            let a = Self::find(parent, ea);
+            let b = Self::find(parent, eb);
+            if a == b {
+                continue;
+            }
+            if w <= root[a as usize].thresh && w <= root[b as usize].thresh {
+                let r = Self::union(parent, root, a, b) as usize;
+                root[r].thresh = w + k / root[r].size as f32;
+            } else if keep {
+                self.rejected.push(tag);
+            }
+        }
+    }
+
+    /// The minimum-size pass and the labels, numbered by row-major pixel ([`Merger::finish`]).
+    fn finish(mut self, width: usize, height: usize, active: &[bool]) -> (Vec<u32>, usize) {
+        let (tiles, min_size) = (self.tiles, self.min_size);
+        let parent = &mut self.parent[..];
+        let root = &mut self.root[..];
+        for &tag in &self.rejected {
+            let (ea, eb) = tiles.ends(tag);
+            let a = Self::find(parent, ea);
+            let b = Self::find(parent, eb);
+            if a != b
+                && ((root[a as usize].size as usize) < min_size
+                    || (root[b as usize].size as usize) < min_size)
+            {
+                Self::union(parent, root, a, b);
+            }
+        }
+        let mut map = vec![NO_SEGMENT; tiles.n];
+        let mut labels = vec![NO_SEGMENT; width * height];
+        let mut count = 0u32;
+        if width > 0 {
+            for (y, row) in labels.chunks_mut(width).enumerate() {
+                for (x, label) in row.iter_mut().enumerate() {
+                    if !active.get(y * width + x).copied().unwrap_or(false) {
+                        continue;
+                    }
+                    let r = Self::find(parent, tiles.node(x, y)) as usize;
+                    if map[r] == NO_SEGMENT {
+                        map[r] = count;
+                        count += 1;
+                    }
+                    *label = map[r];
+                }
+            }
+        }
+        (labels, count as usize)
+    }
 }
 
 /// Edges of the 8-connected image graph between pixels with normals, weighted by
@@ -749,12 +1146,18 @@ mod tests {
         }
     }
 
-    /// The fused image path (row buckets, pipelined sort and merging) gives the labels of
-    /// `felzenszwalb` on the sorted `image_edges`, on any number of threads.
+    /// The fused image path (row buckets, tiled numbering, pipelined sort and merging) gives
+    /// the labels of `felzenszwalb` on the sorted `image_edges`, on any number of threads, for
+    /// sizes that are not whole tiles and for `k <= 0` (no cutoff).
     #[test]
     fn image_graph_equals_separate_stages() {
+        for (w, h) in [(160, 120), (157, 119), (161, 122)] {
+            image_graph_equals_separate_stages_at(w, h);
+        }
+    }
+
+    fn image_graph_equals_separate_stages_at(w: usize, h: usize) {
         let mut r = rng(3);
-        let (w, h) = (160, 120);
         let n = w * h;
         // Piecewise planes with noise, holes and depth steps; quantised normals give ties.
         let mut rho = vec![0.0f32; n];
@@ -784,7 +1187,7 @@ mod tests {
         let active: Vec<bool> = normals.iter().map(|v| v[2] != 0.0).collect();
         let mut edges = image_edges(w, h, &points, &normals, &rho, 0.03);
         sort_edges(&mut edges);
-        for (k, min_size) in [(0.6, 200), (0.05, 1), (0.3, 20)] {
+        for (k, min_size) in [(0.6, 200), (0.05, 1), (0.3, 20), (0.0, 5), (-0.1, 1)] {
             let want = felzenszwalb(n, &edges, k, min_size, &active);
             assert!(want.1 > 3, "{} segments", want.1);
             for threads in [1, 2, 3] {
@@ -795,7 +1198,7 @@ mod tests {
                 let got = pool.install(|| {
                     segment_image_graph(w, h, &points, &normals, &rho, 0.03, k, min_size, &active)
                 });
-                assert_eq!(got, want, "k {k} min {min_size} threads {threads}");
+                assert_eq!(got, want, "{w}x{h} k {k} min {min_size} threads {threads}");
             }
         }
     }

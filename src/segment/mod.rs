@@ -41,6 +41,8 @@ pub use normals::{
     normals_cpu, points_from_inverse_depth, smooth_inverse_depth, NormalMap, NormalParams,
 };
 
+use std::sync::{Arc, Mutex};
+
 use crate::camera::{CameraError, PinholeCamera};
 use crate::gpu::GpuError;
 use crate::image::ImageF32;
@@ -291,6 +293,23 @@ fn check_size(what: &'static str, img: &ImageF32, w: usize, h: usize) -> Result<
     Ok(())
 }
 
+/// [`SphereBins::golden`]`(m)`, kept for the next keyframe: building the bins (their covering
+/// radius and cube map) costs about a millisecond, and every keyframe asks for the same `m`.
+fn golden_bins(m: usize) -> Arc<SphereBins> {
+    static LAST: Mutex<Option<(usize, Arc<SphereBins>)>> = Mutex::new(None);
+    let Ok(mut last) = LAST.lock() else {
+        return Arc::new(SphereBins::golden(m));
+    };
+    match &*last {
+        Some((k, bins)) if *k == m => Arc::clone(bins),
+        _ => {
+            let bins = Arc::new(SphereBins::golden(m));
+            *last = Some((m, Arc::clone(&bins)));
+            bins
+        }
+    }
+}
+
 /// Segments a keyframe into superjuts with CPU normals (see the module docs).
 pub fn segment_keyframe(
     intensity: &ImageF32,
@@ -362,7 +381,7 @@ pub fn segment_with_normals(
             .collect::<Vec<(usize, f32)>>()
         },
     );
-    let bins = SphereBins::golden(config.bins);
+    let bins = golden_bins(config.bins);
     // Features from the normals of the inverse depth smoothed within each superjut (where they
     // exist), so sensor noise does not masquerade as curvature; the graph used the raw normals.
     let feature_normals =

@@ -184,54 +184,61 @@ fn diff(minus: f32, centre: f32, plus: f32, tol: f32) -> Option<f32> {
     }
 }
 
-/// The normal of pixel `(x, y)`; `[0, 0, 0]` if invalid. Same operations as the WGSL kernel.
-#[inline]
-pub(crate) fn normal_at(
+/// An inverse-depth sample as the kernel reads it: NaN as 0 (no measurement).
+#[inline(always)]
+fn sample(v: f32) -> f32 {
+    if v.is_nan() {
+        0.0
+    } else {
+        v
+    }
+}
+
+/// The normals of row `y` into `out` (one per pixel, left as they are where invalid; callers
+/// pass zeros). Same operations as the WGSL kernel, per pixel; the normalised image
+/// coordinates `x_n = (x - cx) / fx` of the columns come precomputed in `xns` (the same
+/// values).
+fn normal_row(
     rho: &ImageF32,
-    x: usize,
     y: usize,
+    xns: &[f32],
     cam: [f32; 4],
     p: &NormalParams,
-) -> [f32; 3] {
+    out: &mut [[f32; 3]],
+) {
     let (w, h) = (rho.width, rho.height);
-    let r0 = rho.data[y * w + x];
-    if r0.is_nan() || r0 <= 0.0 {
-        return [0.0; 3];
-    }
     let s = p.step.max(1) as usize;
-    let tol = p.jump_tolerance * r0;
-    let get = |xx: Option<usize>, yy: Option<usize>| -> f32 {
-        match (xx, yy) {
-            (Some(a), Some(b)) if a < w && b < h => {
-                let v = rho.data[b * w + a];
-                if v.is_nan() {
-                    0.0
-                } else {
-                    v
-                }
-            }
-            _ => 0.0,
-        }
+    let row_at = |yy: usize| rho.data.get(yy * w..(yy + 1) * w);
+    let Some(row) = row_at(y) else {
+        return;
     };
-    let xm = get(x.checked_sub(s), Some(y));
-    let xp = get(Some(x + s), Some(y));
-    let ym = get(Some(x), y.checked_sub(s));
-    let yp = get(Some(x), Some(y + s));
-    let (Some(gx), Some(gy)) = (diff(xm, r0, xp, tol), diff(ym, r0, yp, tol)) else {
-        return [0.0; 3];
-    };
+    let up = y.checked_sub(s).and_then(row_at);
+    let down = if y + s < h { row_at(y + s) } else { None };
     let inv_s = 1.0 / s as f32;
-    let [fx, fy, cx, cy] = cam;
-    let xn = (x as f32 - cx) / fx;
+    let [fx, fy, _, cy] = cam;
     let yn = (y as f32 - cy) / fy;
-    let mx = fx * (gx * inv_s);
-    let my = fy * (gy * inv_s);
-    let mz = r0 - xn * mx - yn * my;
-    let len = (mx * mx + my * my + mz * mz).sqrt();
-    if !(len > 0.0) || !len.is_finite() {
-        return [0.0; 3];
+    for ((x, o), &xn) in out.iter_mut().enumerate().zip(xns).take(w) {
+        let r0 = row[x];
+        if r0.is_nan() || r0 <= 0.0 {
+            continue;
+        }
+        let tol = p.jump_tolerance * r0;
+        let xm = if x >= s { sample(row[x - s]) } else { 0.0 };
+        let xp = if x + s < w { sample(row[x + s]) } else { 0.0 };
+        let ym = up.map_or(0.0, |r| sample(r[x]));
+        let yp = down.map_or(0.0, |r| sample(r[x]));
+        let (Some(gx), Some(gy)) = (diff(xm, r0, xp, tol), diff(ym, r0, yp, tol)) else {
+            continue;
+        };
+        let mx = fx * (gx * inv_s);
+        let my = fy * (gy * inv_s);
+        let mz = r0 - xn * mx - yn * my;
+        let len = (mx * mx + my * my + mz * mz).sqrt();
+        if !(len > 0.0) || !len.is_finite() {
+            continue;
+        }
+        *o = [-mx / len, -my / len, -mz / len];
     }
-    [-mx / len, -my / len, -mz / len]
 }
 
 /// Camera intrinsics as the f32 quadruple the kernels use.
@@ -256,10 +263,10 @@ pub fn normals_cpu(
     let cam = cam_f32(camera);
     let mut data = vec![[0.0f32; 3]; w * h];
     if w > 0 {
+        let [fx, _, cx, _] = cam;
+        let xns: Vec<f32> = (0..w).map(|x| (x as f32 - cx) / fx).collect();
         data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (x, out) in row.iter_mut().enumerate() {
-                *out = normal_at(inverse_depth, x, y, cam, params);
-            }
+            normal_row(inverse_depth, y, &xns, cam, params, row);
         });
     }
     NormalMap {
