@@ -1,5 +1,5 @@
 // Image-domain surface normals from an inverse-depth map (thesis eq. 5.2).
-// CPU mirror: src/segment/normals.rs (`normal_at`), same operations in the same order.
+// CPU mirror: src/segment/normals.rs (`normal_row`), same operations in the same order.
 //
 // rho(x, y) of a plane n.p = d is affine in normalised coordinates, so
 // m = (fx rho_u, fy rho_v, rho - x fx rho_u - y fy rho_v) = n / d and the camera-facing unit
