@@ -4,8 +4,8 @@
 use rayon::prelude::*;
 
 use super::kernel::{
-    bilateral, covisible, downsample, gradients, gradients_of_lane, pack_level0, FilterParams,
-    WarpParams, INVALID_RESIDUAL, PARTIAL_LEN,
+    bilateral, covisible, downsample, gradients_of_lane, pack_level0, FilterParams, WarpParams,
+    INVALID_RESIDUAL, PARTIAL_LEN,
 };
 use super::rows::{accumulate_rows, first_sample_at, sample_range, SampleWalk, Warp};
 use crate::image::RgbdFrame;
@@ -108,27 +108,7 @@ impl CpuPyramid {
                 });
         }
         for l in layout.iter().skip(first_gradient_level) {
-            let n = l.width * l.height;
-            let range = l.offset..l.offset + n;
-            // The level's values, so that rows can be written in parallel while their
-            // neighbours are read.
-            let src_p: Vec<[f32; 4]> = photo[range.clone()].to_vec();
-            let src_g: Vec<[f32; 4]> = geo[range.clone()].to_vec();
-            photo[range.clone()]
-                .par_chunks_mut(l.width)
-                .zip(geo[range].par_chunks_mut(l.width))
-                .enumerate()
-                .for_each(|(y, (rp, rg))| {
-                    for x in 0..l.width {
-                        let (gp, gg) = gradients(&src_p, &src_g, l.width, l.height, x, y);
-                        rp[x][1] = gp[0];
-                        rp[x][2] = gp[1];
-                        rg[x][1] = gg[0];
-                        rg[x][2] = gg[1];
-                        let rho = rg[x][0];
-                        rg[x][3] = if rho > 0.0 { 1.0 / rho } else { 0.0 };
-                    }
-                });
+            write_gradients(&mut photo, &mut geo, l, 0);
         }
         CpuPyramid {
             levels: layout,
@@ -176,21 +156,7 @@ impl CpuPyramid {
                     rg[x] = [sg[y * l.width + x][0], 0.0, 0.0, r];
                 }
             });
-        let src_p: Vec<[f32; 4]> = photo[range.clone()].to_vec();
-        let src_g: Vec<[f32; 4]> = geo[range.clone()].to_vec();
-        photo[range.clone()]
-            .par_chunks_mut(l.width)
-            .zip(geo[range].par_chunks_mut(l.width))
-            .enumerate()
-            .for_each(|(y, (rp, rg))| {
-                for x in 0..l.width {
-                    let (gp, gg) = gradients_of_lane(&src_p, &src_g, l.width, l.height, x, y, 3);
-                    rp[x][1] = gp[0];
-                    rp[x][2] = gp[1];
-                    rg[x][1] = gg[0];
-                    rg[x][2] = gg[1];
-                }
-            });
+        write_gradients(&mut photo, &mut geo, &l, 3);
         CpuPyramid {
             levels: self.levels.clone(),
             photo,
@@ -203,6 +169,34 @@ impl CpuPyramid {
         let r = lv.offset..lv.offset + lv.width * lv.height;
         (&self.photo[r.clone()], &self.geo[r])
     }
+}
+
+/// Writes the gradients of the values in `lane` of level `l` into lanes 1 and 2 (see
+/// [`gradients_of_lane`]). For `lane == 0` (a pyramid build) it also caches `z = 1 / rho` in
+/// `geo.w` (0 where rho is invalid); other lanes keep `.w` (it holds the filtered values).
+fn write_gradients(photo: &mut [[f32; 4]], geo: &mut [[f32; 4]], l: &LevelLayout, lane: usize) {
+    let range = l.offset..l.offset + l.width * l.height;
+    // The level's values, so that rows can be written in parallel while their neighbours are
+    // read.
+    let src_p: Vec<[f32; 4]> = photo[range.clone()].to_vec();
+    let src_g: Vec<[f32; 4]> = geo[range.clone()].to_vec();
+    photo[range.clone()]
+        .par_chunks_mut(l.width)
+        .zip(geo[range].par_chunks_mut(l.width))
+        .enumerate()
+        .for_each(|(y, (rp, rg))| {
+            for x in 0..l.width {
+                let (gp, gg) = gradients_of_lane(&src_p, &src_g, l.width, l.height, x, y, lane);
+                rp[x][1] = gp[0];
+                rp[x][2] = gp[1];
+                rg[x][1] = gg[0];
+                rg[x][2] = gg[1];
+                if lane == 0 {
+                    let rho = rg[x][0];
+                    rg[x][3] = if rho > 0.0 { 1.0 / rho } else { 0.0 };
+                }
+            }
+        });
 }
 
 /// Systematic sample of residuals `(r_photo, r_geo)`, `INVALID_RESIDUAL` where invalid.
