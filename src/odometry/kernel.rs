@@ -100,23 +100,10 @@ pub fn downsample(i4: [f32; 4], r4: [f32; 4]) -> (f32, f32) {
     (i, if n > 0.0 { s / n } else { 0.0 })
 }
 
-/// Central-difference gradients at (x, y) of one level (clamped at the borders). Returns the
-/// photometric and geometric gradient pairs.
-#[inline]
-pub fn gradients(
-    photo: &[[f32; 4]],
-    geo: &[[f32; 4]],
-    w: usize,
-    h: usize,
-    x: usize,
-    y: usize,
-) -> ([f32; 2], [f32; 2]) {
-    gradients_of_lane(photo, geo, w, h, x, y, 0)
-}
-
-/// [`gradients`] of the values in `lane` of each pixel (0: the level's own values; 3: the
-/// bilateral-filtered values written by [`bilateral`]). Mirror of `level_gradients` in
-/// `pyramid.wgsl`.
+/// Central-difference gradients at (x, y) of one level (clamped at the borders) of the values
+/// in `lane` of each pixel (0: the level's own values; 3: the bilateral-filtered values written
+/// by [`bilateral`]). Returns the photometric and geometric gradient pairs. Mirror of
+/// `level_gradients` in `pyramid.wgsl`.
 #[inline]
 pub fn gradients_of_lane(
     photo: &[[f32; 4]],

@@ -61,9 +61,9 @@ pub struct Alignment {
     /// The estimated `cur_from_ref`.
     pub cur_from_ref: Se3,
     /// Covariance of the estimate (left twist of `cur_from_ref`, `[v; w]`, m and rad): the
-    /// inverse of the Hessian on the finest level used, from the covariance pass at the final
-    /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`], the
-    /// default) or from the last Gauss-Newton iteration ([`CovarianceGradients::Raw`]).
+    /// inverse of the Hessian on the finest level used, from the last Gauss-Newton iteration
+    /// ([`CovarianceGradients::Raw`], the default) or from the covariance pass at the final
+    /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`]).
     pub covariance: Option<[[f64; 6]; 6]>,
     /// Condition number of that Hessian.
     pub condition_number: f64,
