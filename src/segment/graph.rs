@@ -563,21 +563,6 @@ impl Tiles {
     }
 }
 
-/// The weight of the edge between two pixels with normals (point, normal, inverse depth
-/// each), `lim` being `jump_ratio` times their distance in pixels: as in [`image_edges`].
-#[inline(always)]
-fn pixel_edge_weight(
-    (pi, ni, ri): ([f32; 3], [f32; 3], f32),
-    (pj, nj, rj): ([f32; 3], [f32; 3], f32),
-    lim: f32,
-) -> f32 {
-    if (ri - rj).abs() > lim * ri.max(rj) {
-        JUMP_WEIGHT
-    } else {
-        convexity_weight(pi, ni, pj, nj)
-    }
-}
-
 #[inline(always)]
 fn has_normal(v: [f32; 3]) -> bool {
     v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0
@@ -626,54 +611,163 @@ struct Pixels<'a> {
     lim_diag: f32,
 }
 
-impl Pixels<'_> {
-    #[inline(always)]
-    fn at(&self, i: usize) -> ([f32; 3], [f32; 3], f32) {
-        (self.points[i], self.normals[i], self.rho[i])
+/// One image row of [`Pixels`] as structure of arrays, so the weights of a whole row of
+/// edges vectorise: point and normal components, inverse depth, and whether the pixel has a
+/// normal (`valid[x + 1]` for pixel `x`; `valid[0]` and `valid[width + 1]` stay false, so
+/// the neighbours of the first and last pixel need no bounds test).
+#[derive(Default)]
+struct RowSoa {
+    p: [Vec<f32>; 3],
+    n: [Vec<f32>; 3],
+    rho: Vec<f32>,
+    valid: Vec<bool>,
+}
+
+impl RowSoa {
+    /// Fills the row with row `y` of `px`, or with no valid pixel when `y` is out of range.
+    fn load(&mut self, px: &Pixels, y: usize) {
+        let w = px.width;
+        self.valid.clear();
+        self.valid.resize(w + 2, false);
+        if y >= px.height {
+            return;
+        }
+        let r = y * w..(y + 1) * w;
+        let (points, normals) = (&px.points[r.clone()], &px.normals[r.clone()]);
+        for c in 0..3 {
+            self.p[c].clear();
+            self.p[c].extend(points.iter().map(|v| v[c]));
+            self.n[c].clear();
+            self.n[c].extend(normals.iter().map(|v| v[c]));
+        }
+        self.rho.clear();
+        self.rho.extend_from_slice(&px.rho[r]);
+        for (v, &nv) in self.valid[1..=w].iter_mut().zip(normals) {
+            *v = has_normal(nv);
+        }
     }
 
-    /// The tagged edges of one band of rows and the histogram of their top digits.
-    fn tagged_band(&self, band: usize, tiles: &Tiles) -> (Vec<u64>, Vec<u32>) {
-        let (width, height, normals) = (self.width, self.height, self.normals);
-        let rows = band * BAND_ROWS..((band + 1) * BAND_ROWS).min(height);
-        let mut out: Vec<u64> = Vec::with_capacity(rows.len() * width * 4);
-        let mut hist = vec![0u32; TOP_BUCKETS];
-        let mut emit = |w: f32, tag: u64| {
-            let e = (u64::from(weight_key(w)) << 32) | tag;
-            hist[top_digit(&e)] += 1;
-            out.push(e);
+    /// The columns `range` of the row.
+    fn cols(&self, range: std::ops::Range<usize>) -> RowCols<'_> {
+        RowCols {
+            p: [
+                &self.p[0][range.clone()],
+                &self.p[1][range.clone()],
+                &self.p[2][range.clone()],
+            ],
+            n: [
+                &self.n[0][range.clone()],
+                &self.n[1][range.clone()],
+                &self.n[2][range.clone()],
+            ],
+            rho: &self.rho[range],
+        }
+    }
+}
+
+/// Equal-length column slices of a [`RowSoa`].
+struct RowCols<'a> {
+    p: [&'a [f32]; 3],
+    n: [&'a [f32]; 3],
+    rho: &'a [f32],
+}
+
+/// `out[x]` = the weight of the edge from pixel `x` of `a` to pixel `x` of `b` (all of the
+/// same length), `lim` being `jump_ratio` times their distance in pixels: the arithmetic of
+/// [`image_edges`] ([`convexity_weight`] or [`JUMP_WEIGHT`]) operation for operation, so the
+/// weights are bit-identical, written for the vectoriser (no branch, unit stride).
+fn row_weights(out: &mut [f32], a: &RowCols, b: &RowCols, lim: f32) {
+    let m = out.len();
+    let (ap, an, ar) = (a.p.map(|c| &c[..m]), a.n.map(|c| &c[..m]), &a.rho[..m]);
+    let (bp, bn, br) = (b.p.map(|c| &c[..m]), b.n.map(|c| &c[..m]), &b.rho[..m]);
+    for x in 0..m {
+        let (ri, rj) = (ar[x], br[x]);
+        let d = (1.0 - (an[0][x] * bn[0][x] + an[1][x] * bn[1][x] + an[2][x] * bn[2][x])).max(0.0);
+        let conv = (bp[0][x] - ap[0][x]) * bn[0][x]
+            + (bp[1][x] - ap[1][x]) * bn[1][x]
+            + (bp[2][x] - ap[2][x]) * bn[2][x];
+        let w = if conv > 0.0 { d * d } else { d };
+        out[x] = if (ri - rj).abs() > lim * ri.max(rj) {
+            JUMP_WEIGHT
+        } else {
+            w
         };
+    }
+}
+
+impl Pixels<'_> {
+    /// The tagged edges of one band of rows and the histogram of their top digits, in the
+    /// order of [`image_edges`] (by first pixel, then direction: right, down-left, down,
+    /// down-right). The weights of each row come from [`row_weights`], one direction at a
+    /// time; the emission then writes every candidate edge and advances only past those
+    /// whose two pixels have normals (no data-dependent branch).
+    fn tagged_band(&self, band: usize, tiles: &Tiles) -> (Vec<u64>, Vec<u32>) {
+        let (width, height) = (self.width, self.height);
+        let rows = band * BAND_ROWS..((band + 1) * BAND_ROWS).min(height);
+        // One spare slot: a rejected candidate is written past the last kept edge.
+        let mut out = vec![0u64; rows.len() * width * 4 + 1];
+        let mut kept = 0usize;
+        let mut hist = vec![0u32; TOP_BUCKETS];
+        let (mut cur, mut next) = (RowSoa::default(), RowSoa::default());
+        // Weights by direction, indexed by the first pixel's column.
+        let mut wts = [
+            vec![0f32; width],
+            vec![0f32; width],
+            vec![0f32; width],
+            vec![0f32; width],
+        ];
+        if width == 0 {
+            return (Vec::new(), hist);
+        }
+        cur.load(self, rows.start);
         for y in rows {
-            let down = y + 1 < height;
+            next.load(self, y + 1);
+            let all = cur.cols(0..width);
+            row_weights(
+                &mut wts[0][..width - 1],
+                &all,
+                &cur.cols(1..width),
+                self.lim_side,
+            );
+            if y + 1 < height {
+                let below = next.cols(0..width);
+                row_weights(
+                    &mut wts[1][1..],
+                    &cur.cols(1..width),
+                    &next.cols(0..width - 1),
+                    self.lim_diag,
+                );
+                row_weights(&mut wts[2], &all, &below, self.lim_side);
+                row_weights(
+                    &mut wts[3][..width - 1],
+                    &all,
+                    &next.cols(1..width),
+                    self.lim_diag,
+                );
+            }
+            let (vc, vn) = (&cur.valid[..width + 2], &next.valid[..width + 2]);
             for x in 0..width {
-                let i = y * width + x;
-                if !has_normal(normals[i]) {
-                    continue;
-                }
-                let a = self.at(i);
                 let node = u64::from(tiles.node(x, y));
-                // Directions in increasing order of the second pixel, as `image_edges`.
-                if x + 1 < width && has_normal(normals[i + 1]) {
-                    let w = pixel_edge_weight(a, self.at(i + 1), self.lim_side);
-                    emit(w, node);
-                }
-                if down {
-                    let j = i + width;
-                    if x > 0 && has_normal(normals[j - 1]) {
-                        let w = pixel_edge_weight(a, self.at(j - 1), self.lim_diag);
-                        emit(w, node | 1 << NODE_BITS);
-                    }
-                    if has_normal(normals[j]) {
-                        let w = pixel_edge_weight(a, self.at(j), self.lim_side);
-                        emit(w, node | 2 << NODE_BITS);
-                    }
-                    if x + 1 < width && has_normal(normals[j + 1]) {
-                        let w = pixel_edge_weight(a, self.at(j + 1), self.lim_diag);
-                        emit(w, node | 3 << NODE_BITS);
-                    }
+                let here = vc[x + 1];
+                // (second pixel valid, weight, direction) in the order of `image_edges`;
+                // the next row's flags are all false below the last row.
+                let cand = [
+                    (vc[x + 2], wts[0][x], 0u64),
+                    (vn[x], wts[1][x], 1),
+                    (vn[x + 1], wts[2][x], 2),
+                    (vn[x + 2], wts[3][x], 3),
+                ];
+                for (there, w, dir) in cand {
+                    let e = (u64::from(weight_key(w)) << 32) | node | dir << NODE_BITS;
+                    let ok = here & there;
+                    out[kept] = e;
+                    hist[top_digit(&e)] += u32::from(ok);
+                    kept += usize::from(ok);
                 }
             }
+            std::mem::swap(&mut cur, &mut next);
         }
+        out.truncate(kept);
         (out, hist)
     }
 }
