@@ -86,8 +86,19 @@ pub enum FrameSource {
 }
 
 impl FrameSource {
-    /// Opens `spec`; generated sequences render on `backend`.
+    /// Opens `spec`; generated sequences render on `backend` with the Kinect-like sensor
+    /// model ([`crate::synth::SensorModel::kinect`]).
     pub fn open(spec: &SourceSpec, backend: &ComputeBackend) -> Result<FrameSource, SourceError> {
+        Self::open_with_sensor(spec, backend, None)
+    }
+
+    /// Opens `spec`; generated sequences render on `backend` with `sensor` (`None` = the
+    /// Kinect-like default; ignored for TUM folders).
+    pub fn open_with_sensor(
+        spec: &SourceSpec,
+        backend: &ComputeBackend,
+        sensor: Option<crate::synth::SensorModel>,
+    ) -> Result<FrameSource, SourceError> {
         match spec {
             SourceSpec::Synth {
                 spec,
@@ -120,11 +131,14 @@ impl FrameSource {
                     base
                 });
                 let kind = TrajectoryKind::from_name(traj)?;
-                let config = SequenceConfig {
+                let mut config = SequenceConfig {
                     frames: *frames,
                     seed: seed + u64::from(*session) * 1000,
                     ..Default::default()
                 };
+                if let Some(sensor) = sensor {
+                    config.sensor = sensor;
+                }
                 let seconds = lap_seconds.unwrap_or(config.duration());
                 if !(seconds.is_finite() && seconds > 0.0) {
                     return Err(SourceError::Invalid(format!(

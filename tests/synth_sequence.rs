@@ -295,3 +295,39 @@ fn tum_folder_is_complete_and_byte_identical() {
     let rgb = image::open(a.path().join(parts[1])).unwrap().into_rgb8();
     assert_eq!(rgb.as_raw(), &f0.frame.rgb);
 }
+
+/// The `home` preset has soft objects (sphere clusters, movable), and its sessions add soft
+/// objects rather than piles; the other presets have none (their scenes are unchanged).
+#[test]
+fn home_preset_has_soft_objects_that_sessions_change() {
+    use rgbid::synth::ObjectKind;
+    let soft = |s: &Scene| {
+        s.objects()
+            .iter()
+            .filter(|o| o.kind == ObjectKind::Soft)
+            .map(|o| o.id)
+            .collect::<Vec<_>>()
+    };
+    let home = Scene::preset("home", 3).unwrap();
+    let ids = soft(&home);
+    assert_eq!(ids.len(), home.params().soft_objects);
+    assert!(ids.len() >= 5);
+    for o in home.objects().iter().filter(|o| o.kind == ObjectKind::Soft) {
+        assert!(o.movable);
+        assert!(o.prims.len() >= 8, "{} spheres", o.prims.len());
+        assert!(o
+            .prims
+            .iter()
+            .all(|p| matches!(p.shape, rgbid::synth::Shape::Sphere { .. })));
+    }
+    let s1 = home.session(1);
+    let added: Vec<u32> = soft(&s1)
+        .into_iter()
+        .filter(|id| !ids.contains(id))
+        .collect();
+    assert!(!added.is_empty(), "session 1 adds soft objects");
+    assert!(added.iter().all(|id| s1.changed_objects().contains(id)));
+    for name in ["office", "kitchen", "corridor", "lab"] {
+        assert!(soft(&Scene::preset(name, 3).unwrap()).is_empty(), "{name}");
+    }
+}

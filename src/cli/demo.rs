@@ -14,7 +14,7 @@ pub struct Args {
     /// Output folder (trajectories, loops, model.ply, timings, summary.json).
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
-    /// Scene preset (office, kitchen, corridor, lab).
+    /// Scene preset (office, kitchen, corridor, lab, home).
     #[arg(long, default_value = "office")]
     pub scene: String,
     /// Trajectory (loop, handheld, slow, fast, walk-head, walk-chest, stairs, robot).

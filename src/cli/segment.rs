@@ -57,6 +57,10 @@ pub struct ExperimentArgs {
     /// Image width in pixels (height 3/4 of it).
     #[arg(long, default_value_t = 320)]
     width: u32,
+    /// Render without sensor noise (the limit of keyframes fused from many frames) instead
+    /// of the Kinect-like sensor model.
+    #[arg(long)]
+    noiseless: bool,
     /// Neg-entropy thresholds of the masks (an unmasked run is always added).
     #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.6,0.7,0.8,0.9")]
     thresholds: Vec<f64>,
@@ -172,6 +176,7 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         step: a.step,
         offset: a.offset,
         width: a.width,
+        noiseless: a.noiseless,
         thresholds: a.thresholds.clone(),
         ..Default::default()
     };

@@ -27,7 +27,7 @@ pub enum CameraKind {
 /// Arguments of `rgbid synth`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Scene preset (office, kitchen, corridor, lab).
+    /// Scene preset (office, kitchen, corridor, lab, home).
     #[arg(long, default_value = "office")]
     scene: String,
     /// Trajectory (handheld, slow, fast, loop, walk-head, walk-chest, stairs, robot).

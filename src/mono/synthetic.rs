@@ -37,7 +37,7 @@ pub struct SyntheticSpec {
     pub frames: usize,
     /// Frame rate, frames per second.
     pub fps: f64,
-    /// Scene preset (`office`, `kitchen`, `corridor`, `lab`).
+    /// Scene preset (`office`, `kitchen`, `corridor`, `lab`, `home`).
     pub scene: String,
     /// Trajectory name (`handheld`, `slow`, ...).
     pub trajectory: String,

@@ -72,6 +72,10 @@ pub struct ChangeExperimentConfig {
     pub offset: usize,
     /// Image width in pixels (height 3/4 of it).
     pub width: u32,
+    /// Render without sensor noise (no depth noise, quantisation or dropout, no colour
+    /// noise) instead of the Kinect-like model: the limit of a keyframe fused from many
+    /// frames, as the SLAM back-end segments them.
+    pub noiseless: bool,
     /// A superjut is "changed" when at least this fraction of its pixels is in the moved-object
     /// mask of its frame.
     pub changed_fraction: f64,
@@ -106,6 +110,7 @@ impl Default for ChangeExperimentConfig {
             step: 20,
             offset: 4,
             width: 320,
+            noiseless: false,
             changed_fraction: 0.5,
             static_fraction: 0.05,
             thresholds: vec![0.3, 0.5, 0.6, 0.7, 0.8, 0.9],
@@ -445,14 +450,16 @@ pub fn run_change_experiment(
                 session,
                 lap_seconds: None,
             };
-            let mut reference = FrameSource::open(&spec(0), backend)?;
+            let sensor = config.noiseless.then(crate::synth::SensorModel::noiseless);
+            let mut reference = FrameSource::open_with_sensor(&spec(0), backend, sensor.clone())?;
             let camera = reference.camera();
             let refs = indices
                 .iter()
                 .map(|&i| prepare(&mut reference, i, &camera, config, &mut times))
                 .collect::<Result<Vec<_>, _>>()?;
             for session in 1..=config.sessions {
-                let mut source = FrameSource::open(&spec(session), backend)?;
+                let mut source =
+                    FrameSource::open_with_sensor(&spec(session), backend, sensor.clone())?;
                 for (a, &i) in refs.iter().zip(&indices) {
                     let b = prepare(&mut source, i + config.offset, &camera, config, &mut times)?;
                     label_superjuts(&b, config, &mut changed, &mut unchanged);

@@ -1,7 +1,7 @@
 //! Synthetic RGB-D and omnidirectional sequences with exact ground truth.
 //!
 //! * [`Scene`]: procedural indoor scenes from a seed (presets `office`, `kitchen`,
-//!   `corridor`, `lab`, or full [`SceneParams`]), and "sessions" of the same scene with
+//!   `corridor`, `lab`, `home`, or full [`SceneParams`]), and "sessions" of the same scene with
 //!   movable objects moved, removed or added ([`Scene::session`]).
 //! * Rendering by per-pixel ray casting through any central camera ([`CameraModel`]: pinhole
 //!   with optional distortion, or the unified sphere model) on the CPU ([`render_pinhole`],

@@ -137,6 +137,10 @@ pub enum ObjectKind {
     Pile,
     /// A small item on a surface: box, ball, bottle (movable).
     Item,
+    /// A soft, irregular object on the floor (a bag, a heap of cushions or clothes, a
+    /// potted plant), modelled as overlapping spheres: bumpy, with normals in all
+    /// directions (movable).
+    Soft,
 }
 
 /// A group of primitives that moves as one.
@@ -197,6 +201,11 @@ pub struct SceneParams {
     pub piles: usize,
     /// Boxes/spheres/cylinders per pile (min, max).
     pub pile_items: (usize, usize),
+    /// Soft objects (bags, cushion heaps, plants: clusters of overlapping spheres) on the
+    /// floor next to the walls; sessions of scenes with soft objects also add soft objects
+    /// rather than piles. 0 in the presets other than `home` (absent in older files).
+    #[serde(default)]
+    pub soft_objects: usize,
     /// Items per metre of furniture top surface.
     pub items_per_metre: f64,
     /// Distance kept free of furniture from each wall, used for camera paths (metres).
@@ -212,7 +221,7 @@ pub struct SceneParams {
 }
 
 /// Names of the built-in presets.
-pub const PRESETS: &[&str] = &["office", "kitchen", "corridor", "lab"];
+pub const PRESETS: &[&str] = &["office", "kitchen", "corridor", "lab", "home"];
 
 impl SceneParams {
     /// The parameters of a named preset (see [`PRESETS`]).
@@ -228,6 +237,7 @@ impl SceneParams {
             furniture_density: 0.85,
             piles: 3,
             pile_items: (3, 7),
+            soft_objects: 0,
             items_per_metre: 2.5,
             wall_band: 1.3,
             exterior_margin: 2.5,
@@ -273,6 +283,19 @@ impl SceneParams {
                 pile_items: (4, 10),
                 items_per_metre: 3.5,
                 wall_band: 1.4,
+                ..base
+            },
+            // A lived-in room: office furniture along the walls and many soft objects
+            // on the floor (the movable clutter of the thesis' changed-environment
+            // recordings: bags, cushions, plants).
+            "home" => SceneParams {
+                size: [5.5, 4.5, 2.6],
+                posters: 3,
+                furniture_density: 0.7,
+                piles: 2,
+                soft_objects: 10,
+                items_per_metre: 2.0,
+                wall_band: 1.2,
                 ..base
             },
             _ => {
@@ -354,7 +377,7 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// A named preset (`office`, `kitchen`, `corridor`, `lab`) generated from `seed`.
+    /// A named preset (`office`, `kitchen`, `corridor`, `lab`, `home`) generated from `seed`.
     pub fn preset(name: &str, seed: u64) -> Result<Scene, SynthError> {
         Scene::generate(&SceneParams::preset(name)?, seed)
     }
@@ -474,7 +497,11 @@ impl Scene {
                 2 => (area.min.x - m, area.min.y + t * area.extent().y),
                 _ => (area.max.x + m, area.min.y + t * area.extent().y),
             };
-            let id = g.pile(DVec3::new(x, y, 0.0), 0.35);
+            let id = if base.params.soft_objects > 0 {
+                g.soft(DVec3::new(x, y, 0.0))
+            } else {
+                g.pile(DVec3::new(x, y, 0.0), 0.35)
+            };
             changed.push(id);
         }
         objects.extend(g.objects);
@@ -866,6 +893,15 @@ impl<'a> Generator<'a> {
             let c = wall.point(u, d, 0.0);
             self.pile(c, 0.3);
         }
+        // Soft objects in the same band.
+        for _ in 0..self.p.soft_objects {
+            let wall = walls[long_walls[self.rng.random_range(0..long_walls.len())]];
+            let u = self.rng.random_range(0.4..wall.length - 0.4);
+            let band = (self.p.wall_band - 0.3).max(0.3);
+            let d = self.rng.random_range(0.25..band.max(0.26));
+            let c = wall.point(u, d, 0.0);
+            self.soft(c);
+        }
     }
 
     /// One piece of furniture of the style at wall position `u` of width `w`.
@@ -1144,6 +1180,37 @@ impl<'a> Generator<'a> {
             }
         };
         self.push_object(ObjectKind::Item, true, vec![p])
+    }
+
+    /// A soft object standing on the floor at `c`: overlapping spheres of 4-14 cm radius
+    /// within a footprint of 15-35 cm, stacked 0.3-1.4 m high (about 10 spheres per 40 cm
+    /// of height, so the surface stays closed), in one or two materials: a bag or a heap of
+    /// cushions when low, a coat stand or a plant when tall (seen from eye height).
+    fn soft(&mut self, c: DVec3) -> u32 {
+        let height = self.rng.random_range(0.3..1.4f64);
+        let n = (8.0 + height * 25.0).round() as usize;
+        let foot = self.rng.random_range(0.15..0.35);
+        let mats = [self.random_material(true), self.random_material(true)];
+        let prims = (0..n)
+            .map(|_| {
+                let a = self.rng.random_range(0.0..std::f64::consts::TAU);
+                let rr = foot * self.rng.random::<f64>().sqrt();
+                let r = self.rng.random_range(0.04..0.14f64);
+                // Lower spheres spread wider, upper ones sit nearer the axis.
+                let h = self.rng.random_range(0.0..1.0f64);
+                let spread = 1.0 - 0.4 * h;
+                Primitive {
+                    shape: Shape::Sphere { radius: r },
+                    center: c
+                        + DVec3::new(a.cos() * rr * spread, a.sin() * rr * spread, 0.0)
+                        + DVec3::Z * (r.min(height) + h * (height - r).max(0.0)),
+                    world_from_local: DMat3::from_rotation_z(a),
+                    material: mats[self.rng.random_range(0..2)],
+                    world_texture: false,
+                }
+            })
+            .collect();
+        self.push_object(ObjectKind::Soft, true, prims)
     }
 
     /// A pile of rotated boxes, spheres and cylinders around floor point `c` within `radius`.
