@@ -12,6 +12,7 @@ use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::segment::experiment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::segment::{self, GpuNormals, NormalParams, SegmentConfig};
+use rgbid::synth::SensorModel;
 
 /// `rgbid segment SEQ ...` segments frames of a sequence; `experiment` is a subcommand.
 #[derive(clap::Args)]
@@ -57,10 +58,16 @@ pub struct ExperimentArgs {
     /// Image width in pixels (height 3/4 of it).
     #[arg(long, default_value_t = 320)]
     width: u32,
-    /// Render without sensor noise (the limit of keyframes fused from many frames) instead
-    /// of the Kinect-like sensor model.
-    #[arg(long)]
-    noiseless: bool,
+    /// Depth sensor of the rendered frames: `kinect` (the generator's Kinect-like model:
+    /// disparity noise 0.1 px and 1/8 px steps at the rendered image's focal length),
+    /// `kinect-native` (the same noise at the 525 px focal length of the 640x480 Kinect,
+    /// i.e. a real Kinect's depth resolution whatever the rendered width), or `noiseless`.
+    #[arg(long, value_enum, default_value_t = SensorArg::Kinect)]
+    sensor: SensorArg,
+    /// Fuse the inverse depth of the next FUSE frames (true poses) into each frame before
+    /// segmenting it, as SLAM keyframes are fused (0 = single raw frames).
+    #[arg(long, default_value_t = 0)]
+    fuse: usize,
     /// Neg-entropy thresholds of the masks (an unmasked run is always added).
     #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.6,0.7,0.8,0.9")]
     thresholds: Vec<f64>,
@@ -167,6 +174,17 @@ pub fn run(args: Args) -> Result<()> {
     }
 }
 
+/// Depth sensor models of `rgbid segment experiment --sensor`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum SensorArg {
+    /// The generator's Kinect-like model at the rendered focal length.
+    Kinect,
+    /// Kinect-like noise at the 640x480 Kinect's focal length (525 px).
+    KinectNative,
+    /// No noise, no quantisation, no dropout.
+    Noiseless,
+}
+
 fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     let mut config = ChangeExperimentConfig {
         scenes: a.scenes.clone(),
@@ -176,7 +194,15 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         step: a.step,
         offset: a.offset,
         width: a.width,
-        noiseless: a.noiseless,
+        sensor: match a.sensor {
+            SensorArg::Kinect => SensorModel::kinect(),
+            SensorArg::KinectNative => SensorModel {
+                focal_px: Some(525.0),
+                ..SensorModel::kinect()
+            },
+            SensorArg::Noiseless => SensorModel::noiseless(),
+        },
+        fuse: a.fuse,
         thresholds: a.thresholds.clone(),
         ..Default::default()
     };

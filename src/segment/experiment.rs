@@ -32,7 +32,7 @@ use crate::place::{
     RansacParams,
 };
 use crate::source::{FrameSource, SourceError, SourceSpec};
-use crate::synth::{SequenceFrame, SynthError};
+use crate::synth::{SensorModel, SequenceFrame, SynthError};
 
 /// Errors of the changed-environment experiments.
 #[derive(Debug, thiserror::Error)]
@@ -52,6 +52,9 @@ pub enum ExperimentError {
     /// Feature extraction or RANSAC failed.
     #[error(transparent)]
     Place(#[from] PlaceError),
+    /// Keyframe fusion failed.
+    #[error(transparent)]
+    Fusion(#[from] crate::slam::SlamError),
 }
 
 /// Parameters of [`run_change_experiment`].
@@ -72,10 +75,14 @@ pub struct ChangeExperimentConfig {
     pub offset: usize,
     /// Image width in pixels (height 3/4 of it).
     pub width: u32,
-    /// Render without sensor noise (no depth noise, quantisation or dropout, no colour
-    /// noise) instead of the Kinect-like model: the limit of a keyframe fused from many
-    /// frames, as the SLAM back-end segments them.
-    pub noiseless: bool,
+    /// The depth sensor model of the rendered frames: [`SensorModel::kinect`] by default;
+    /// [`SensorModel::noiseless`] gives the limit of perfect depth.
+    pub sensor: SensorModel,
+    /// Fuse the inverse depth of the next `fuse` frames of the sequence (ground-truth poses,
+    /// [`crate::slam::KeyframeFuser`] with its default parameters) into every frame before
+    /// segmenting it, as the SLAM back-end segments keyframes fused from the frames that
+    /// follow them (0 = the single raw frame). Frames past the end of the lap are not used.
+    pub fuse: usize,
     /// A superjut is "changed" when at least this fraction of its pixels is in the moved-object
     /// mask of its frame.
     pub changed_fraction: f64,
@@ -110,7 +117,8 @@ impl Default for ChangeExperimentConfig {
             step: 20,
             offset: 4,
             width: 320,
-            noiseless: false,
+            sensor: SensorModel::kinect(),
+            fuse: 0,
             changed_fraction: 0.5,
             static_fraction: 0.05,
             thresholds: vec![0.3, 0.5, 0.6, 0.7, 0.8, 0.9],
@@ -268,6 +276,7 @@ fn prepare(
     index: usize,
     camera: &PinholeCamera,
     config: &ChangeExperimentConfig,
+    backend: &ComputeBackend,
     times: &mut (Vec<f64>, Vec<f64>),
 ) -> Result<Prepared, ExperimentError> {
     let FrameSource::Synth(seq, _) = source else {
@@ -275,7 +284,21 @@ fn prepare(
             "the experiment needs a generated sequence".into(),
         ));
     };
-    let frame = seq.render_frame(index)?;
+    let mut frame = seq.render_frame(index)?;
+    if config.fuse > 0 {
+        let mut fuser = crate::slam::KeyframeFuser::new(
+            *camera,
+            crate::slam::FusionParams::default(),
+            backend,
+        )?;
+        fuser.start(&frame.frame.inverse_depth);
+        for j in index + 1..(index + 1 + config.fuse).min(seq.len()) {
+            let next = seq.render_frame(j)?;
+            let cur_from_kf = next.world_from_camera.inverse() * frame.world_from_camera;
+            fuser.fuse(&next.frame.inverse_depth, &cur_from_kf)?;
+        }
+        frame.frame.inverse_depth = fuser.finish()?.0;
+    }
     let t = Instant::now();
     let juts = segment_keyframe(
         &frame.frame.intensity,
@@ -450,18 +473,25 @@ pub fn run_change_experiment(
                 session,
                 lap_seconds: None,
             };
-            let sensor = config.noiseless.then(crate::synth::SensorModel::noiseless);
+            let sensor = Some(config.sensor.clone());
             let mut reference = FrameSource::open_with_sensor(&spec(0), backend, sensor.clone())?;
             let camera = reference.camera();
             let refs = indices
                 .iter()
-                .map(|&i| prepare(&mut reference, i, &camera, config, &mut times))
+                .map(|&i| prepare(&mut reference, i, &camera, config, backend, &mut times))
                 .collect::<Result<Vec<_>, _>>()?;
             for session in 1..=config.sessions {
                 let mut source =
                     FrameSource::open_with_sensor(&spec(session), backend, sensor.clone())?;
                 for (a, &i) in refs.iter().zip(&indices) {
-                    let b = prepare(&mut source, i + config.offset, &camera, config, &mut times)?;
+                    let b = prepare(
+                        &mut source,
+                        i + config.offset,
+                        &camera,
+                        config,
+                        backend,
+                        &mut times,
+                    )?;
                     label_superjuts(&b, config, &mut changed, &mut unchanged);
                     if b.frame
                         .frame
