@@ -2,13 +2,13 @@
 # Changed-scene relocalisation (issue 7): a map of session 0 of a generated scene, then
 # sessions 1..5 (objects moved, removed, added; other sensor noise) start lost in that map.
 # A case succeeds when the session relocalises within its first 10 frames.
-# Usage: scripts/relocalisation_experiment.sh [RGBID_BINARY] [OUT_DIR]
+# Usage: [SCENES="home:2 ..."] scripts/relocalisation_experiment.sh [RGBID_BINARY] [OUT_DIR]
 set -euo pipefail
 BIN=${1:-target/release/rgbid}
 OUT=${2:-reloc-exp}
 mkdir -p "$OUT"
 common="--width 192 --backend cpu --no-model"
-for spec in office:5 kitchen:3; do
+for spec in ${SCENES:-office:5 kitchen:3}; do
   scene=${spec%%:*}; seed=${spec##*:}
   # One lap = 300 frames; the map covers the first 120 frames (laps = 120/300).
   "$BIN" --log warn slam --synth "$scene:loop" --frames 120 --laps 0.4 --seed "$seed" $common \
