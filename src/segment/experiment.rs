@@ -276,7 +276,7 @@ fn prepare(
     index: usize,
     camera: &PinholeCamera,
     config: &ChangeExperimentConfig,
-    backend: &ComputeBackend,
+    fuser: Option<&mut crate::slam::KeyframeFuser>,
     times: &mut (Vec<f64>, Vec<f64>),
 ) -> Result<Prepared, ExperimentError> {
     let FrameSource::Synth(seq, _) = source else {
@@ -285,12 +285,7 @@ fn prepare(
         ));
     };
     let mut frame = seq.render_frame(index)?;
-    if config.fuse > 0 {
-        let mut fuser = crate::slam::KeyframeFuser::new(
-            *camera,
-            crate::slam::FusionParams::default(),
-            backend,
-        )?;
+    if let Some(fuser) = fuser {
         fuser.start(&frame.frame.inverse_depth);
         for j in index + 1..(index + 1 + config.fuse).min(seq.len()) {
             let next = seq.render_frame(j)?;
@@ -476,9 +471,28 @@ pub fn run_change_experiment(
             let sensor = Some(config.sensor.clone());
             let mut reference = FrameSource::open_with_sensor(&spec(0), backend, sensor.clone())?;
             let camera = reference.camera();
+            // One fuser (and, on a GPU, one set of pipelines) for all frames of the scene.
+            let mut fuser = (config.fuse > 0)
+                .then(|| {
+                    crate::slam::KeyframeFuser::new(
+                        camera,
+                        crate::slam::FusionParams::default(),
+                        backend,
+                    )
+                })
+                .transpose()?;
             let refs = indices
                 .iter()
-                .map(|&i| prepare(&mut reference, i, &camera, config, backend, &mut times))
+                .map(|&i| {
+                    prepare(
+                        &mut reference,
+                        i,
+                        &camera,
+                        config,
+                        fuser.as_mut(),
+                        &mut times,
+                    )
+                })
                 .collect::<Result<Vec<_>, _>>()?;
             for session in 1..=config.sessions {
                 let mut source =
@@ -489,7 +503,7 @@ pub fn run_change_experiment(
                         i + config.offset,
                         &camera,
                         config,
-                        backend,
+                        fuser.as_mut(),
                         &mut times,
                     )?;
                     label_superjuts(&b, config, &mut changed, &mut unchanged);
