@@ -51,6 +51,8 @@ fn main() -> anyhow::Result<()> {
     let seq = TumSequence::open(std::path::Path::new(&dir), &OpenOptions::default())?;
     let cam = seq.undistorted_camera();
     let cfg = SegmentConfig::default();
+    // Built once, as `segment_keyframe` keeps its bins for the next keyframe.
+    let bins = SphereBins::golden(cfg.bins);
     let names = [
         "normals",
         "points",
@@ -134,7 +136,6 @@ fn main() -> anyhow::Result<()> {
                 data
             });
             lap(8, &mut s);
-            let bins = SphereBins::golden(cfg.bins);
             let _ = segment::features::superjut_features(
                 &labels,
                 feature_normals.as_deref().unwrap_or(&n.data),

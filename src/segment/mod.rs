@@ -438,7 +438,7 @@ pub fn segment_mesh(
         .map(|v| v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0)
         .collect();
     let (labels, count) = graph::felzenszwalb(n, &edges, config.k, config.min_size, &active);
-    let bins = SphereBins::golden(config.bins);
+    let bins = golden_bins(config.bins);
     let segments = features::superjut_features(
         &labels,
         &mesh.normals,

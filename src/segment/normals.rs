@@ -513,13 +513,16 @@ pub fn points_from_inverse_depth(
     let [fx, fy, cx, cy] = cam_f32(camera);
     let mut out = vec![[0.0f32; 3]; w * h];
     if w > 0 {
+        let xs: Vec<f32> = (0..w).map(|x| (x as f32 - cx) / fx).collect();
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (x, o) in row.iter_mut().enumerate() {
-                let r = inverse_depth.data[y * w + x];
-                if r > 0.0 && r.is_finite() {
-                    let z = 1.0 / r;
-                    *o = [(x as f32 - cx) / fx * z, (y as f32 - cy) / fy * z, z];
-                }
+            let yn = (y as f32 - cy) / fy;
+            let rho = inverse_depth.data.get(y * w..(y + 1) * w).unwrap_or(&[]);
+            // Selects, not branches, so the row vectorises; the same values.
+            for ((o, &r), &xn) in row.iter_mut().zip(rho).zip(&xs) {
+                let ok = r > 0.0 && r.is_finite();
+                let z = 1.0 / r;
+                let p = [xn * z, yn * z, z];
+                *o = if ok { p } else { *o };
             }
         });
     }
