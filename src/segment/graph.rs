@@ -911,23 +911,35 @@ impl<'t> TiledMerger<'t> {
                 Self::union(parent, root, a, b);
             }
         }
-        let mut map = vec![NO_SEGMENT; tiles.n];
+        // Every pixel's root in parallel (read-only walks: the parents no longer change),
+        // then labels numbered by first appearance in row-major order, as before.
         let mut labels = vec![NO_SEGMENT; width * height];
-        let mut count = 0u32;
         if width > 0 {
-            for (y, row) in labels.chunks_mut(width).enumerate() {
-                for (x, label) in row.iter_mut().enumerate() {
-                    if !active.get(y * width + x).copied().unwrap_or(false) {
-                        continue;
+            let parent = &*parent;
+            labels
+                .par_chunks_mut(width)
+                .enumerate()
+                .for_each(|(y, row)| {
+                    for (x, label) in row.iter_mut().enumerate() {
+                        if active.get(y * width + x).copied().unwrap_or(false) {
+                            let mut r = tiles.node(x, y);
+                            while parent[r as usize] != r {
+                                r = parent[r as usize];
+                            }
+                            *label = r;
+                        }
                     }
-                    let r = Self::find(parent, tiles.node(x, y)) as usize;
-                    if map[r] == NO_SEGMENT {
-                        map[r] = count;
-                        count += 1;
-                    }
-                    *label = map[r];
-                }
+                });
+        }
+        let mut map = vec![NO_SEGMENT; tiles.n];
+        let mut count = 0u32;
+        for label in labels.iter_mut().filter(|l| **l != NO_SEGMENT) {
+            let m = &mut map[*label as usize];
+            if *m == NO_SEGMENT {
+                *m = count;
+                count += 1;
             }
+            *label = *m;
         }
         (labels, count as usize)
     }
