@@ -113,24 +113,35 @@ struct SmoothScratch {
     alive: Vec<bool>,
 }
 
-/// [`smooth_pixel`] for the `len` pixels from `start` whose whole window lies in the image,
-/// neighbours at `start +- k * stride`: the pairs are taken distance by distance over the
-/// whole span, a pixel's sum growing while all its pairs so far passed (adding `0.0` once one
-/// failed leaves the sum bit for bit as the early exit does). No branches in the inner
-/// loops, so they vectorise.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn smooth_span<const LABELS: bool>(
-    data: &[f32],
-    labels: &[u32],
+/// One run of pixels for [`smooth_span`]: the `len` pixels from index `start` of `data`
+/// (row-major inverse depth, 1/m), neighbours at `start +- k * stride` for `k` in
+/// `1..=radius`, all inside the image.
+#[derive(Clone, Copy)]
+struct Span<'a> {
+    data: &'a [f32],
+    labels: &'a [u32],
     start: usize,
     len: usize,
     stride: usize,
     radius: usize,
     tolerance: f32,
-    out: &mut [f32],
-    scratch: &mut SmoothScratch,
-) {
+}
+
+/// [`smooth_pixel`] for a [`Span`]: the pairs are taken distance by distance over the
+/// whole span, a pixel's sum growing while all its pairs so far passed (adding `0.0` once one
+/// failed leaves the sum bit for bit as the early exit does). No branches in the inner
+/// loops, so they vectorise.
+#[inline(always)]
+fn smooth_span<const LABELS: bool>(span: &Span<'_>, out: &mut [f32], scratch: &mut SmoothScratch) {
+    let Span {
+        data,
+        labels,
+        start,
+        len,
+        stride,
+        radius,
+        tolerance,
+    } = *span;
     let centre = &data[start..start + len];
     let lc = if LABELS {
         &labels[start..start + len]
@@ -204,13 +215,21 @@ fn smooth_pass_with<const ALONG_X: bool, const LABELS: bool>(
                 } else {
                     (0, 0)
                 };
-                for x in (0..x0).chain(x1.max(x0)..w) {
+                for x in (0..x0).chain(x1..w) {
                     row[x] = pixel(x);
                 }
                 if x1 > x0 {
                     let stride = if ALONG_X { 1 } else { w };
-                    let args = (data, labels, y * w + x0, x1 - x0, stride, radius, tolerance);
-                    smooth_span_dispatch::<LABELS>(args, &mut row[x0..x1], scratch);
+                    let span = Span {
+                        data,
+                        labels,
+                        start: y * w + x0,
+                        len: x1 - x0,
+                        stride,
+                        radius,
+                        tolerance,
+                    };
+                    smooth_span_dispatch::<LABELS>(&span, &mut row[x0..x1], scratch);
                 }
             },
         );
@@ -222,12 +241,9 @@ fn smooth_pass_with<const ALONG_X: bool, const LABELS: bool>(
     }
 }
 
-/// Arguments of [`smooth_span`] before its output and scratch.
-type SpanArgs<'a> = (&'a [f32], &'a [u32], usize, usize, usize, usize, f32);
-
 /// Runs [`smooth_span`], compiled for AVX2 when the CPU has it (the same IEEE operations).
 fn smooth_span_dispatch<const LABELS: bool>(
-    args: SpanArgs<'_>,
+    span: &Span<'_>,
     out: &mut [f32],
     scratch: &mut SmoothScratch,
 ) {
@@ -235,23 +251,21 @@ fn smooth_span_dispatch<const LABELS: bool>(
     {
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports the feature enabled on `smooth_span_avx2`.
-            unsafe { smooth_span_avx2::<LABELS>(args, out, scratch) };
+            unsafe { smooth_span_avx2::<LABELS>(span, out, scratch) };
             return;
         }
     }
-    let (d, l, s, n, st, r, t) = args;
-    smooth_span::<LABELS>(d, l, s, n, st, r, t, out, scratch);
+    smooth_span::<LABELS>(span, out, scratch);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn smooth_span_avx2<const LABELS: bool>(
-    args: SpanArgs<'_>,
+    span: &Span<'_>,
     out: &mut [f32],
     scratch: &mut SmoothScratch,
 ) {
-    let (d, l, s, n, st, r, t) = args;
-    smooth_span::<LABELS>(d, l, s, n, st, r, t, out, scratch);
+    smooth_span::<LABELS>(span, out, scratch);
 }
 
 /// Edge-aware smoothing of an inverse-depth map (1/m, 0 = invalid) as [`NormalParams`] asks:
@@ -358,59 +372,52 @@ fn normal_select(
     ([-mx / len, -my / len, -mz / len], ok)
 }
 
-/// The normals of row `y` into `out` (one per pixel, left as they are where invalid; callers
-/// pass zeros). Same operations as the WGSL kernel, per pixel; the normalised image
-/// coordinates `x_n = (x - cx) / fx` of the columns come precomputed in `xns` (the same
-/// values). `zeros` is a row of `0.0` standing in for the rows above or below the image.
-/// The interior columns run through a loop without branches (the compiler vectorises it;
-/// with AVX2 where the CPU has it), the `step` columns at each border through the same
-/// per-pixel function with their missing neighbours as 0.
-fn normal_row(
-    rho: &ImageF32,
-    y: usize,
-    xns: &[f32],
-    zeros: &[f32],
+/// What every row of [`normals_cpu`] shares: the inverse depth (1/m), the normalised image
+/// coordinates `x_n = (x - cx) / fx` of the columns (the values the WGSL computes), a row of
+/// `0.0` standing in for rows above or below the image, the intrinsics and the parameters.
+#[derive(Clone, Copy)]
+struct NormalRows<'a> {
+    rho: &'a ImageF32,
+    xns: &'a [f32],
+    zeros: &'a [f32],
     cam: [f32; 4],
-    p: &NormalParams,
-    out: &mut [[f32; 3]],
-) {
+    params: &'a NormalParams,
+}
+
+/// The normals of row `y` into `out` (one per pixel, left as they are where invalid; callers
+/// pass zeros). Same operations as the WGSL kernel, per pixel. The interior columns run
+/// through a loop without branches (the compiler vectorises it; with AVX2 where the CPU has
+/// it), the `step` columns at each border through the same per-pixel function with their
+/// missing neighbours as 0.
+fn normal_row(rows: &NormalRows<'_>, y: usize, out: &mut [[f32; 3]]) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports the feature enabled on `normal_row_avx2`.
-            unsafe { normal_row_avx2(rho, y, xns, zeros, cam, p, out) };
+            unsafe { normal_row_avx2(rows, y, out) };
             return;
         }
     }
-    normal_row_body(rho, y, xns, zeros, cam, p, out);
+    normal_row_body(rows, y, out);
 }
 
 /// [`normal_row_body`] compiled for AVX2 (8 lanes; the same IEEE operations, so the same
 /// results).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn normal_row_avx2(
-    rho: &ImageF32,
-    y: usize,
-    xns: &[f32],
-    zeros: &[f32],
-    cam: [f32; 4],
-    p: &NormalParams,
-    out: &mut [[f32; 3]],
-) {
-    normal_row_body(rho, y, xns, zeros, cam, p, out);
+fn normal_row_avx2(rows: &NormalRows<'_>, y: usize, out: &mut [[f32; 3]]) {
+    normal_row_body(rows, y, out);
 }
 
 #[inline(always)]
-fn normal_row_body(
-    rho: &ImageF32,
-    y: usize,
-    xns: &[f32],
-    zeros: &[f32],
-    cam: [f32; 4],
-    p: &NormalParams,
-    out: &mut [[f32; 3]],
-) {
+fn normal_row_body(rows: &NormalRows<'_>, y: usize, out: &mut [[f32; 3]]) {
+    let NormalRows {
+        rho,
+        xns,
+        zeros,
+        cam,
+        params: p,
+    } = *rows;
     let (w, h) = (rho.width, rho.height);
     let s = p.step.max(1) as usize;
     let row_at = |yy: usize| rho.data.get(yy * w..(yy + 1) * w);
@@ -492,8 +499,15 @@ pub fn normals_cpu(
         let [fx, _, cx, _] = cam;
         let xns: Vec<f32> = (0..w).map(|x| (x as f32 - cx) / fx).collect();
         let zeros = vec![0.0f32; w];
+        let rows = NormalRows {
+            rho: inverse_depth,
+            xns: &xns,
+            zeros: &zeros,
+            cam,
+            params,
+        };
         data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            normal_row(inverse_depth, y, &xns, &zeros, cam, params, row);
+            normal_row(&rows, y, row);
         });
     }
     NormalMap {
@@ -562,13 +576,9 @@ mod tests {
     #[test]
     fn smoothing_spans_match_the_per_pixel_loop() {
         let (w, h) = (53, 41);
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let mut next = || rng.random::<f32>();
         let mut rho = ImageF32::filled(w, h, 0.0);
         for y in 0..h {
             for x in 0..w {
