@@ -199,13 +199,24 @@ fn top_histogram(edges: &[Edge]) -> Vec<u32> {
 fn group_by_top_digit<T: RadixItem, S: AsRef<[T]> + Sync>(
     pieces: &[(S, Vec<u32>)],
 ) -> (Vec<T>, Vec<usize>) {
+    let mut out = Vec::new();
+    let sizes = group_by_top_digit_into(pieces, &mut out);
+    (out, sizes)
+}
+
+/// [`group_by_top_digit`] into `out` (resized to the number of edges; its old contents are
+/// overwritten, so a buffer kept from an earlier call is reused without clearing).
+fn group_by_top_digit_into<T: RadixItem, S: AsRef<[T]> + Sync>(
+    pieces: &[(S, Vec<u32>)],
+    out: &mut Vec<T>,
+) -> Vec<usize> {
     let mut sizes = vec![0usize; TOP_BUCKETS];
     for (_, h) in pieces {
         for (s, &c) in sizes.iter_mut().zip(h) {
             *s += c as usize;
         }
     }
-    let mut out = vec![T::ZERO; sizes.iter().sum()];
+    out.resize(sizes.iter().sum(), T::ZERO);
     // Every piece's part of every group, in group-major order.
     let mut parts: Vec<Vec<&mut [T]>> = pieces
         .iter()
@@ -232,7 +243,7 @@ fn group_by_top_digit<T: RadixItem, S: AsRef<[T]> + Sync>(
                 next[k] += 1;
             }
         });
-    (out, sizes)
+    sizes
 }
 
 /// Sorts a group of edges (sharing the top digit) in place by the low 20 key bits, stably,
@@ -299,6 +310,7 @@ fn scatter<T: RadixItem>(src: &[T], dst: &mut [T], hist: &[u32; LOW_BUCKETS], sh
 fn for_each_sorted_bucket<T: RadixItem>(
     grouped: &mut [T],
     sizes: &[usize],
+    scratch: &mut [Vec<T>; 2],
     mut consume: impl FnMut(&[T]) + Send,
 ) {
     struct Slot<'a, T> {
@@ -328,12 +340,10 @@ fn for_each_sorted_bucket<T: RadixItem>(
         s.sorted = true;
         true
     };
+    let [helper_scratch, own_scratch] = scratch;
     rayon::scope(|sc| {
-        sc.spawn(|_| {
-            let mut scratch = Vec::new();
-            while claim_and_sort(&mut scratch) {}
-        });
-        let mut scratch = Vec::new();
+        sc.spawn(|_| while claim_and_sort(helper_scratch) {});
+        let scratch = own_scratch;
         for slot in &slots {
             loop {
                 {
@@ -346,7 +356,7 @@ fn for_each_sorted_bucket<T: RadixItem>(
                         break;
                     }
                 }
-                if !claim_and_sort(&mut scratch) {
+                if !claim_and_sort(scratch) {
                     // Claimed by the helper, which is about to lock and sort it.
                     std::thread::yield_now();
                 }
@@ -477,23 +487,76 @@ pub fn segment_image_graph(
         let (mut grouped, sizes) = group_by_top_digit(&bands);
         drop(bands);
         let mut merger = Merger::new(width * height, k, min_size);
-        for_each_sorted_bucket(&mut grouped, &sizes, |b| merger.add(b));
+        let mut scratch = [Vec::new(), Vec::new()];
+        for_each_sorted_bucket(&mut grouped, &sizes, &mut scratch, |b| merger.add(b));
         return merger.finish(active);
     };
-    let bands = tagged_edge_bands(
+    let mut scratch = GraphScratch::take();
+    let inputs = GraphInputs {
         width,
         height,
         points,
         normals,
         inverse_depth,
         jump_ratio,
-        &tiles,
-    );
-    let (mut grouped, sizes) = group_by_top_digit::<u64, _>(&bands);
-    drop(bands);
-    let mut merger = TiledMerger::new(&tiles, k, min_size);
-    for_each_sorted_bucket(&mut grouped, &sizes, |b| merger.add(b));
-    merger.finish(width, height, active)
+    };
+    tagged_edge_bands(&inputs, &tiles, &mut scratch.bands);
+    let sizes = group_by_top_digit_into::<u64, _>(&scratch.bands, &mut scratch.grouped);
+    let mut merger = TiledMerger::new(&tiles, k, min_size, &mut scratch);
+    for_each_sorted_bucket(&mut scratch.grouped, &sizes, &mut scratch.sort, |b| {
+        merger.add(b)
+    });
+    let out = merger.finish(width, height, active, &mut scratch);
+    scratch.keep();
+    out
+}
+
+/// The buffers of the image-graph path of [`segment_image_graph`] (edge bands, the grouped
+/// edges, sort scratch, union-find arrays, rejected edges, label map: ~85 bytes per pixel,
+/// 26 MB at 640x480), kept between calls in [`GRAPH_SCRATCH`] so that the next keyframe of
+/// the same size reuses memory that is already mapped. Allocating them afresh on every call cost more in page
+/// faults (the kernel zeroing new pages) than the union-find itself.
+#[derive(Default)]
+struct GraphScratch {
+    bands: Vec<(Vec<u64>, Vec<u32>)>,
+    grouped: Vec<u64>,
+    sort: [Vec<u64>; 2],
+    parent: Vec<u32>,
+    root: Vec<RootInfo>,
+    rejected: Vec<u32>,
+    map: Vec<u32>,
+}
+
+/// The buffers of the last finished [`segment_image_graph`] call. Concurrent calls do not
+/// wait for each other: a call that finds it empty allocates its own.
+static GRAPH_SCRATCH: Mutex<Option<GraphScratch>> = Mutex::new(None);
+
+impl GraphScratch {
+    /// The kept buffers, or empty ones. A poisoned lock only means another call panicked
+    /// while holding plain buffers, which are still usable.
+    fn take() -> Self {
+        GRAPH_SCRATCH
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take()
+            .unwrap_or_default()
+    }
+
+    /// Keeps the buffers for the next call.
+    fn keep(self) {
+        *GRAPH_SCRATCH
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(self);
+    }
+}
+
+/// Frees the buffers that [`segment_image_graph`] keeps between calls (about 85 bytes per
+/// pixel of the last image segmented), e.g. when no more keyframes will be segmented. The
+/// next call allocates them again.
+pub fn release_kept_buffers() {
+    *GRAPH_SCRATCH
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner) = None;
 }
 
 /// Bits of a node number in an edge tag of [`Tiles`]; the two above give the direction.
@@ -569,20 +632,22 @@ fn has_normal(v: [f32; 3]) -> bool {
 }
 
 /// The edges of [`image_edges`] as compact `u64` ([`RadixItem`]) with [`Tiles`] tags, in
-/// bands of [`BAND_ROWS`] rows, in parallel, each with the histogram of its top digits. Same
-/// weights and order as [`image_edge_bands`].
-fn tagged_edge_bands(
-    width: usize,
-    height: usize,
-    points: &[[f32; 3]],
-    normals: &[[f32; 3]],
-    inverse_depth: &[f32],
-    jump_ratio: f32,
-    tiles: &Tiles,
-) -> Vec<(Vec<u64>, Vec<u32>)> {
+/// bands of [`BAND_ROWS`] rows, in parallel, each with the histogram of its top digits, into
+/// `bands` (one entry per band; their buffers are reused). Same weights and order as
+/// [`image_edge_bands`]. No edges when the inputs are shorter than the image.
+fn tagged_edge_bands(inputs: &GraphInputs, tiles: &Tiles, bands: &mut Vec<(Vec<u64>, Vec<u32>)>) {
+    let &GraphInputs {
+        width,
+        height,
+        points,
+        normals,
+        inverse_depth,
+        jump_ratio,
+    } = inputs;
     let n = width * height;
     if n == 0 || points.len() < n || normals.len() < n || inverse_depth.len() < n {
-        return Vec::new();
+        bands.clear();
+        return;
     }
     let px = Pixels {
         width,
@@ -594,10 +659,21 @@ fn tagged_edge_bands(
         lim_side: jump_ratio * 1.0,
         lim_diag: jump_ratio * std::f32::consts::SQRT_2,
     };
-    (0..height.div_ceil(BAND_ROWS))
-        .into_par_iter()
-        .map(|band| px.tagged_band(band, tiles))
-        .collect()
+    bands.resize_with(height.div_ceil(BAND_ROWS), Default::default);
+    bands
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(band, slot)| px.tagged_band(band, tiles, slot));
+}
+
+/// The image-graph inputs of [`segment_image_graph`], as given.
+struct GraphInputs<'a> {
+    width: usize,
+    height: usize,
+    points: &'a [[f32; 3]],
+    normals: &'a [[f32; 3]],
+    inverse_depth: &'a [f32],
+    jump_ratio: f32,
 }
 
 /// The per-pixel inputs of [`tagged_edge_bands`].
@@ -700,14 +776,17 @@ impl Pixels<'_> {
     /// order of [`image_edges`] (by first pixel, then direction: right, down-left, down,
     /// down-right). The weights of each row come from [`row_weights`], one direction at a
     /// time; the emission then writes every candidate edge and advances only past those
-    /// whose two pixels have normals (no data-dependent branch).
-    fn tagged_band(&self, band: usize, tiles: &Tiles) -> (Vec<u64>, Vec<u32>) {
+    /// whose two pixels have normals (no data-dependent branch). Written into `slot`, whose
+    /// buffers are reused: the edge buffer's old contents are overwritten, not cleared.
+    fn tagged_band(&self, band: usize, tiles: &Tiles, slot: &mut (Vec<u64>, Vec<u32>)) {
         let (width, height) = (self.width, self.height);
         let rows = band * BAND_ROWS..((band + 1) * BAND_ROWS).min(height);
+        let (out, hist) = slot;
         // One spare slot: a rejected candidate is written past the last kept edge.
-        let mut out = vec![0u64; rows.len() * width * 4 + 1];
+        out.resize(rows.len() * width * 4 + 1, 0);
         let mut kept = 0usize;
-        let mut hist = vec![0u32; TOP_BUCKETS];
+        hist.clear();
+        hist.resize(TOP_BUCKETS, 0);
         let (mut cur, mut next) = (RowSoa::default(), RowSoa::default());
         // Weights by direction, indexed by the first pixel's column.
         let mut wts = [
@@ -717,7 +796,8 @@ impl Pixels<'_> {
             vec![0f32; width],
         ];
         if width == 0 {
-            return (Vec::new(), hist);
+            out.clear();
+            return;
         }
         cur.load(self, rows.start);
         for y in rows {
@@ -768,7 +848,6 @@ impl Pixels<'_> {
             std::mem::swap(&mut cur, &mut next);
         }
         out.truncate(kept);
-        (out, hist)
     }
 }
 
@@ -816,16 +895,26 @@ struct TiledMerger<'t> {
 }
 
 impl<'t> TiledMerger<'t> {
-    fn new(tiles: &'t Tiles, k: f32, min_size: usize) -> Self {
+    /// A merger over `tiles.n` singletons, in buffers taken from `scratch` (handed back by
+    /// [`Self::finish`]).
+    fn new(tiles: &'t Tiles, k: f32, min_size: usize, scratch: &mut GraphScratch) -> Self {
         let cutoff = if k > 0.0 { 2.0 * k * (1.0 + 1e-4) } else { k };
+        let mut parent = std::mem::take(&mut scratch.parent);
+        parent.clear();
+        parent.extend(0..tiles.n as u32);
+        let mut root = std::mem::take(&mut scratch.root);
+        root.clear();
+        root.resize(tiles.n, RootInfo { size: 1, thresh: k });
+        let mut rejected = std::mem::take(&mut scratch.rejected);
+        rejected.clear();
         Self {
             tiles,
-            parent: (0..tiles.n as u32).collect(),
-            root: vec![RootInfo { size: 1, thresh: k }; tiles.n],
+            parent,
+            root,
             k,
             cutoff,
             min_size,
-            rejected: Vec::new(),
+            rejected,
         }
     }
 
@@ -896,7 +985,14 @@ impl<'t> TiledMerger<'t> {
     }
 
     /// The minimum-size pass and the labels, numbered by row-major pixel ([`Merger::finish`]).
-    fn finish(mut self, width: usize, height: usize, active: &[bool]) -> (Vec<u32>, usize) {
+    /// The buffers go back to `scratch`.
+    fn finish(
+        mut self,
+        width: usize,
+        height: usize,
+        active: &[bool],
+        scratch: &mut GraphScratch,
+    ) -> (Vec<u32>, usize) {
         let (tiles, min_size) = (self.tiles, self.min_size);
         let parent = &mut self.parent[..];
         let root = &mut self.root[..];
@@ -931,7 +1027,9 @@ impl<'t> TiledMerger<'t> {
                     }
                 });
         }
-        let mut map = vec![NO_SEGMENT; tiles.n];
+        let mut map = std::mem::take(&mut scratch.map);
+        map.clear();
+        map.resize(tiles.n, NO_SEGMENT);
         let mut count = 0u32;
         for label in labels.iter_mut().filter(|l| **l != NO_SEGMENT) {
             let m = &mut map[*label as usize];
@@ -941,6 +1039,10 @@ impl<'t> TiledMerger<'t> {
             }
             *label = *m;
         }
+        scratch.map = map;
+        scratch.parent = self.parent;
+        scratch.root = self.root;
+        scratch.rejected = self.rejected;
         (labels, count as usize)
     }
 }
@@ -1254,10 +1356,11 @@ mod tests {
 
     /// The fused image path (row buckets, tiled numbering, pipelined sort and merging) gives
     /// the labels of `felzenszwalb` on the sorted `image_edges`, on any number of threads, for
-    /// sizes that are not whole tiles and for `k <= 0` (no cutoff).
+    /// sizes that are not whole tiles and for `k <= 0` (no cutoff). The sizes shrink and grow
+    /// from call to call, so the buffers kept between calls are reused at other sizes.
     #[test]
     fn image_graph_equals_separate_stages() {
-        for (w, h) in [(160, 120), (157, 119), (161, 122)] {
+        for (w, h) in [(160, 120), (157, 119), (161, 122), (83, 64), (160, 120)] {
             image_graph_equals_separate_stages_at(w, h);
         }
     }

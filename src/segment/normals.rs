@@ -384,8 +384,10 @@ struct NormalRows<'a> {
     params: &'a NormalParams,
 }
 
-/// The normals of row `y` into `out` (one per pixel, left as they are where invalid; callers
-/// pass zeros). Same operations as the WGSL kernel, per pixel. The interior columns run
+/// The normals of row `y` into `out` (one per pixel, `[0, 0, 0]` where invalid). Every
+/// element is written and none is read: an output freshly allocated as zeros then takes one
+/// plain page fault per page, where reading it first maps the shared zero page and the write
+/// after it costs a copy-on-write fault with a TLB shootdown across cores. Same operations as the WGSL kernel, per pixel. The interior columns run
 /// through a loop without branches (the compiler vectorises it; with AVX2 where the CPU has
 /// it), the `step` columns at each border through the same per-pixel function with their
 /// missing neighbours as 0.
@@ -443,17 +445,13 @@ fn normal_row_body(rows: &NormalRows<'_>, y: usize, out: &mut [[f32; 3]]) {
     if w <= 2 * s {
         for (x, o) in out.iter_mut().enumerate().take(w) {
             let (n, ok) = px(x);
-            if ok {
-                *o = n;
-            }
+            *o = if ok { n } else { [0.0; 3] };
         }
         return;
     }
     for x in (0..s).chain(w - s..w) {
         let (n, ok) = px(x);
-        if ok {
-            out[x] = n;
-        }
+        out[x] = if ok { n } else { [0.0; 3] };
     }
     let n_in = w - 2 * s;
     let centre = &row[s..s + n_in];
@@ -465,11 +463,10 @@ fn normal_row_body(rows: &NormalRows<'_>, y: usize, out: &mut [[f32; 3]]) {
         let (n, ok) = normal_select(
             centre[i], minus[i], plus[i], up[i], down[i], xns[i], yn, fx, fy, inv_s, jt,
         );
-        let o = out[i];
         out[i] = [
-            if ok { n[0] } else { o[0] },
-            if ok { n[1] } else { o[1] },
-            if ok { n[2] } else { o[2] },
+            if ok { n[0] } else { 0.0 },
+            if ok { n[1] } else { 0.0 },
+            if ok { n[2] } else { 0.0 },
         ];
     }
 }
@@ -531,12 +528,13 @@ pub fn points_from_inverse_depth(
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             let yn = (y as f32 - cy) / fy;
             let rho = inverse_depth.data.get(y * w..(y + 1) * w).unwrap_or(&[]);
-            // Selects, not branches, so the row vectorises; the same values.
+            // Selects, not branches, so the row vectorises; the same values. Written without
+            // reading the output first (see `normal_row`).
             for ((o, &r), &xn) in row.iter_mut().zip(rho).zip(&xs) {
                 let ok = r > 0.0 && r.is_finite();
                 let z = 1.0 / r;
                 let p = [xn * z, yn * z, z];
-                *o = if ok { p } else { *o };
+                *o = if ok { p } else { [0.0; 3] };
             }
         });
     }
