@@ -306,12 +306,16 @@ fn scatter<T: RadixItem>(src: &[T], dst: &mut [T], hist: &[u32; LOW_BUCKETS], sh
 ///
 /// Groups are claimed in order from a shared counter by a helper task and by the consumer
 /// whenever the next group is not sorted yet, so nothing waits on a task that cannot run
-/// (a pool of one thread sorts everything on the consumer's thread).
+/// (a pool of one thread sorts everything on the consumer's thread). `consume(None)` follows
+/// the last group, still beside the helper. The helper, once nothing is left to sort, runs
+/// `side`: independent work that fills the other core while the sequential union-find and
+/// its tail run.
 fn for_each_sorted_bucket<T: RadixItem>(
     grouped: &mut [T],
     sizes: &[usize],
     scratch: &mut [Vec<T>; 2],
-    mut consume: impl FnMut(&[T]) + Send,
+    mut consume: impl FnMut(Option<&[T]>) + Send,
+    side: impl FnOnce() + Send,
 ) {
     struct Slot<'a, T> {
         edges: &'a mut [T],
@@ -342,7 +346,10 @@ fn for_each_sorted_bucket<T: RadixItem>(
     };
     let [helper_scratch, own_scratch] = scratch;
     rayon::scope(|sc| {
-        sc.spawn(|_| while claim_and_sort(helper_scratch) {});
+        sc.spawn(|_| {
+            while claim_and_sort(helper_scratch) {}
+            side();
+        });
         let scratch = own_scratch;
         for slot in &slots {
             loop {
@@ -352,7 +359,7 @@ fn for_each_sorted_bucket<T: RadixItem>(
                         return;
                     };
                     if s.sorted {
-                        consume(s.edges);
+                        consume(Some(s.edges));
                         break;
                     }
                 }
@@ -362,6 +369,7 @@ fn for_each_sorted_bucket<T: RadixItem>(
                 }
             }
         }
+        consume(None);
     });
 }
 
@@ -481,41 +489,105 @@ pub fn segment_image_graph(
     min_size: usize,
     active: &[bool],
 ) -> (Vec<u32>, usize) {
-    let Some(tiles) = Tiles::new(width, height) else {
-        // Too many pixels for the compact edges: the edges of `image_edges`.
-        let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
-        let (mut grouped, sizes) = group_by_top_digit(&bands);
-        drop(bands);
-        let mut merger = Merger::new(width * height, k, min_size);
-        let mut scratch = [Vec::new(), Vec::new()];
-        for_each_sorted_bucket(&mut grouped, &sizes, &mut scratch, |b| merger.add(b));
-        return merger.finish(active);
-    };
-    let mut scratch = GraphScratch::take();
-    let inputs = GraphInputs {
+    segment_image_graph_beside(
         width,
         height,
         points,
         normals,
         inverse_depth,
         jump_ratio,
+        k,
+        min_size,
+        active,
+        || (),
+    )
+    .0
+}
+
+/// [`segment_image_graph`], with `side` (work independent of the graph, e.g. the
+/// eigen-transform) run on the second core once the edges are sorted, beside the sequential
+/// union-find; returns both results. Labels are those of [`segment_image_graph`].
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn segment_image_graph_beside<R: Send + Default>(
+    width: usize,
+    height: usize,
+    points: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    inverse_depth: &[f32],
+    jump_ratio: f32,
+    k: f32,
+    min_size: usize,
+    active: &[bool],
+    side: impl FnOnce() -> R + Send,
+) -> ((Vec<u32>, usize), R) {
+    let mut job = Some(side);
+    let mut side_out = None;
+    let run_side = || {
+        if let Some(j) = job.take() {
+            side_out = Some(j());
+        }
     };
-    tagged_edge_bands(&inputs, &tiles, &mut scratch.bands);
-    let sizes = group_by_top_digit_into::<u64, _>(&scratch.bands, &mut scratch.grouped);
-    let mut merger = TiledMerger::new(&tiles, k, min_size, &mut scratch);
-    for_each_sorted_bucket(&mut scratch.grouped, &sizes, &mut scratch.sort, |b| {
-        merger.add(b)
-    });
-    let out = merger.finish(width, height, active, &mut scratch);
-    scratch.keep();
-    out
+    let mut out = (Vec::new(), 0);
+    if let Some(tiles) = Tiles::new(width, height) {
+        let mut scratch = GraphScratch::take();
+        let inputs = GraphInputs {
+            width,
+            height,
+            points,
+            normals,
+            inverse_depth,
+            jump_ratio,
+        };
+        tagged_edge_bands(&inputs, &tiles, &mut scratch.bands);
+        let sizes = group_by_top_digit_into::<u64, _>(&scratch.bands, &mut scratch.grouped);
+        let mut merger = TiledMerger::new(&tiles, k, min_size, &mut scratch);
+        let mut labels = None;
+        for_each_sorted_bucket(
+            &mut scratch.grouped,
+            &sizes,
+            &mut scratch.sort,
+            |b| match b {
+                Some(b) => merger.add(b),
+                None => labels = Some(merger.finish(width, height, active)),
+            },
+            run_side,
+        );
+        merger.give_back(&mut scratch);
+        scratch.keep();
+        if let Some(l) = labels {
+            out = l;
+        }
+    } else {
+        // Too many pixels for the compact edges: the edges of `image_edges`.
+        let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
+        let (mut grouped, sizes) = group_by_top_digit(&bands);
+        drop(bands);
+        let mut merger = Merger::new(width * height, k, min_size);
+        let mut scratch = [Vec::new(), Vec::new()];
+        let mut merged = false;
+        for_each_sorted_bucket(
+            &mut grouped,
+            &sizes,
+            &mut scratch,
+            |b| match b {
+                Some(b) => merger.add(b),
+                None => merged = true,
+            },
+            run_side,
+        );
+        if merged {
+            out = merger.finish(active);
+        }
+    }
+    // `side` has run on the helper unless that panicked (which propagated above).
+    (out, side_out.unwrap_or_default())
 }
 
 /// The buffers of the image-graph path of [`segment_image_graph`] (edge bands, the grouped
 /// edges, sort scratch, union-find arrays, rejected edges, label map: ~85 bytes per pixel,
 /// 26 MB at 640x480), kept between calls in [`GRAPH_SCRATCH`] so that the next keyframe of
-/// the same size reuses memory that is already mapped. Allocating them afresh on every call cost more in page
-/// faults (the kernel zeroing new pages) than the union-find itself.
+/// the same size reuses memory that is already mapped, instead of taking a page fault (the
+/// kernel mapping and zeroing a new page) every 4 KiB.
 #[derive(Default)]
 struct GraphScratch {
     bands: Vec<(Vec<u64>, Vec<u32>)>,
@@ -892,6 +964,8 @@ struct TiledMerger<'t> {
     min_size: usize,
     /// Tags of the rejected edges, as in [`Merger`].
     rejected: Vec<u32>,
+    /// Union-find root -> label, for [`Self::finish`].
+    map: Vec<u32>,
 }
 
 impl<'t> TiledMerger<'t> {
@@ -915,6 +989,7 @@ impl<'t> TiledMerger<'t> {
             cutoff,
             min_size,
             rejected,
+            map: std::mem::take(&mut scratch.map),
         }
     }
 
@@ -985,14 +1060,8 @@ impl<'t> TiledMerger<'t> {
     }
 
     /// The minimum-size pass and the labels, numbered by row-major pixel ([`Merger::finish`]).
-    /// The buffers go back to `scratch`.
-    fn finish(
-        mut self,
-        width: usize,
-        height: usize,
-        active: &[bool],
-        scratch: &mut GraphScratch,
-    ) -> (Vec<u32>, usize) {
+    /// Called once, after the last [`Self::add`].
+    fn finish(&mut self, width: usize, height: usize, active: &[bool]) -> (Vec<u32>, usize) {
         let (tiles, min_size) = (self.tiles, self.min_size);
         let parent = &mut self.parent[..];
         let root = &mut self.root[..];
@@ -1027,7 +1096,7 @@ impl<'t> TiledMerger<'t> {
                     }
                 });
         }
-        let mut map = std::mem::take(&mut scratch.map);
+        let map = &mut self.map;
         map.clear();
         map.resize(tiles.n, NO_SEGMENT);
         let mut count = 0u32;
@@ -1039,11 +1108,15 @@ impl<'t> TiledMerger<'t> {
             }
             *label = *m;
         }
-        scratch.map = map;
+        (labels, count as usize)
+    }
+
+    /// Hands the buffers back to `scratch` for the next call.
+    fn give_back(self, scratch: &mut GraphScratch) {
+        scratch.map = self.map;
         scratch.parent = self.parent;
         scratch.root = self.root;
         scratch.rejected = self.rejected;
-        (labels, count as usize)
     }
 }
 
@@ -1356,8 +1429,9 @@ mod tests {
 
     /// The fused image path (row buckets, tiled numbering, pipelined sort and merging) gives
     /// the labels of `felzenszwalb` on the sorted `image_edges`, on any number of threads, for
-    /// sizes that are not whole tiles and for `k <= 0` (no cutoff). The sizes shrink and grow
-    /// from call to call, so the buffers kept between calls are reused at other sizes.
+    /// sizes that are not whole tiles and for `k <= 0` (no cutoff), also with a side job run
+    /// beside the union-find. The sizes shrink and grow from call to call, so the buffers kept
+    /// between calls are reused at other sizes.
     #[test]
     fn image_graph_equals_separate_stages() {
         for (w, h) in [(160, 120), (157, 119), (161, 122), (83, 64), (160, 120)] {
@@ -1408,6 +1482,23 @@ mod tests {
                     segment_image_graph(w, h, &points, &normals, &rho, 0.03, k, min_size, &active)
                 });
                 assert_eq!(got, want, "{w}x{h} k {k} min {min_size} threads {threads}");
+                // The same labels with a side job, whose result comes back.
+                let (got, side) = pool.install(|| {
+                    segment_image_graph_beside(
+                        w,
+                        h,
+                        &points,
+                        &normals,
+                        &rho,
+                        0.03,
+                        k,
+                        min_size,
+                        &active,
+                        || rho.iter().filter(|&&r| r > 0.0).count(),
+                    )
+                });
+                assert_eq!(got, want, "beside: {w}x{h} k {k} threads {threads}");
+                assert_eq!(side, active.iter().filter(|&&a| a).count());
             }
         }
     }

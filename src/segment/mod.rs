@@ -350,25 +350,20 @@ pub fn segment_with_normals(
             got_h: normals.height,
         });
     }
-    // The eigen-transform needs only the intensity: it runs beside the graph stages, whose
-    // union-find pass is sequential.
-    let ((points, labels, count), texture) = rayon::join(
-        || {
-            let points = points_from_inverse_depth(inverse_depth, camera);
-            let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
-            let (labels, count) = graph::segment_image_graph(
-                w,
-                h,
-                &points,
-                &normals.data,
-                &inverse_depth.data,
-                config.jump_ratio,
-                config.k,
-                config.min_size,
-                &active,
-            );
-            (points, labels, count)
-        },
+    // The eigen-transform needs only the intensity: it runs on the second core once the
+    // graph's edges are sorted, beside the union-find pass, which is sequential.
+    let points = points_from_inverse_depth(inverse_depth, camera);
+    let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
+    let ((labels, count), texture) = graph::segment_image_graph_beside(
+        w,
+        h,
+        &points,
+        &normals.data,
+        &inverse_depth.data,
+        config.jump_ratio,
+        config.k,
+        config.min_size,
+        &active,
         || {
             features::eigen_transform_samples(
                 intensity,
