@@ -476,7 +476,8 @@ impl Merger {
 /// [`image_edges`] sorted by [`sort_edges`], computed without the whole sorted edge list:
 /// bands of rows emit their edges (8-byte, with [`Tiles`] numbering) grouped by the top digit
 /// of the weight, and the union-find pass consumes the groups as they are sorted, overlapping
-/// the sort of the heavier edges.
+/// the sort of the heavier edges. Its buffers are kept for the next call (see
+/// [`release_kept_buffers`]).
 #[allow(clippy::too_many_arguments)]
 pub fn segment_image_graph(
     width: usize,
@@ -970,7 +971,7 @@ struct TiledMerger<'t> {
 
 impl<'t> TiledMerger<'t> {
     /// A merger over `tiles.n` singletons, in buffers taken from `scratch` (handed back by
-    /// [`Self::finish`]).
+    /// [`Self::give_back`]).
     fn new(tiles: &'t Tiles, k: f32, min_size: usize, scratch: &mut GraphScratch) -> Self {
         let cutoff = if k > 0.0 { 2.0 * k * (1.0 + 1e-4) } else { k };
         let mut parent = std::mem::take(&mut scratch.parent);
