@@ -490,37 +490,28 @@ pub fn segment_image_graph(
     min_size: usize,
     active: &[bool],
 ) -> (Vec<u32>, usize) {
-    segment_image_graph_beside(
+    let inputs = GraphInputs {
         width,
         height,
         points,
         normals,
         inverse_depth,
         jump_ratio,
-        k,
-        min_size,
-        active,
-        || (),
-    )
-    .0
+    };
+    segment_image_graph_beside(&inputs, k, min_size, active, || ()).0
 }
 
 /// [`segment_image_graph`], with `side` (work independent of the graph, e.g. the
 /// eigen-transform) run on the second core once the edges are sorted, beside the sequential
 /// union-find; returns both results. Labels are those of [`segment_image_graph`].
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn segment_image_graph_beside<R: Send + Default>(
-    width: usize,
-    height: usize,
-    points: &[[f32; 3]],
-    normals: &[[f32; 3]],
-    inverse_depth: &[f32],
-    jump_ratio: f32,
+    inputs: &GraphInputs,
     k: f32,
     min_size: usize,
     active: &[bool],
     side: impl FnOnce() -> R + Send,
 ) -> ((Vec<u32>, usize), R) {
+    let (width, height) = (inputs.width, inputs.height);
     let mut job = Some(side);
     let mut side_out = None;
     let run_side = || {
@@ -531,15 +522,7 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
     let mut out = (Vec::new(), 0);
     if let Some(tiles) = Tiles::new(width, height) {
         let mut scratch = GraphScratch::take();
-        let inputs = GraphInputs {
-            width,
-            height,
-            points,
-            normals,
-            inverse_depth,
-            jump_ratio,
-        };
-        tagged_edge_bands(&inputs, &tiles, &mut scratch.bands);
+        tagged_edge_bands(inputs, &tiles, &mut scratch.bands);
         let sizes = group_by_top_digit_into::<u64, _>(&scratch.bands, &mut scratch.grouped);
         let mut merger = TiledMerger::new(&tiles, k, min_size, &mut scratch);
         let mut labels = None;
@@ -560,7 +543,14 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
         }
     } else {
         // Too many pixels for the compact edges: the edges of `image_edges`.
-        let bands = image_edge_bands(width, height, points, normals, inverse_depth, jump_ratio);
+        let bands = image_edge_bands(
+            width,
+            height,
+            inputs.points,
+            inputs.normals,
+            inputs.inverse_depth,
+            inputs.jump_ratio,
+        );
         let (mut grouped, sizes) = group_by_top_digit(&bands);
         drop(bands);
         let mut merger = Merger::new(width * height, k, min_size);
@@ -740,13 +730,13 @@ fn tagged_edge_bands(inputs: &GraphInputs, tiles: &Tiles, bands: &mut Vec<(Vec<u
 }
 
 /// The image-graph inputs of [`segment_image_graph`], as given.
-struct GraphInputs<'a> {
-    width: usize,
-    height: usize,
-    points: &'a [[f32; 3]],
-    normals: &'a [[f32; 3]],
-    inverse_depth: &'a [f32],
-    jump_ratio: f32,
+pub(crate) struct GraphInputs<'a> {
+    pub(crate) width: usize,
+    pub(crate) height: usize,
+    pub(crate) points: &'a [[f32; 3]],
+    pub(crate) normals: &'a [[f32; 3]],
+    pub(crate) inverse_depth: &'a [f32],
+    pub(crate) jump_ratio: f32,
 }
 
 /// The per-pixel inputs of [`tagged_edge_bands`].
@@ -1485,18 +1475,17 @@ mod tests {
                 assert_eq!(got, want, "{w}x{h} k {k} min {min_size} threads {threads}");
                 // The same labels with a side job, whose result comes back.
                 let (got, side) = pool.install(|| {
-                    segment_image_graph_beside(
-                        w,
-                        h,
-                        &points,
-                        &normals,
-                        &rho,
-                        0.03,
-                        k,
-                        min_size,
-                        &active,
-                        || rho.iter().filter(|&&r| r > 0.0).count(),
-                    )
+                    let inputs = GraphInputs {
+                        width: w,
+                        height: h,
+                        points: &points,
+                        normals: &normals,
+                        inverse_depth: &rho,
+                        jump_ratio: 0.03,
+                    };
+                    segment_image_graph_beside(&inputs, k, min_size, &active, || {
+                        rho.iter().filter(|&&r| r > 0.0).count()
+                    })
                 });
                 assert_eq!(got, want, "beside: {w}x{h} k {k} threads {threads}");
                 assert_eq!(side, active.iter().filter(|&&a| a).count());

@@ -354,17 +354,16 @@ pub fn segment_with_normals(
     // graph's edges are sorted, beside the union-find pass, which is sequential.
     let points = points_from_inverse_depth(inverse_depth, camera);
     let active: Vec<bool> = (0..w * h).map(|i| normals.is_valid(i)).collect();
-    let ((labels, count), texture) = graph::segment_image_graph_beside(
-        w,
-        h,
-        &points,
-        &normals.data,
-        &inverse_depth.data,
-        config.jump_ratio,
-        config.k,
-        config.min_size,
-        &active,
-        || {
+    let inputs = graph::GraphInputs {
+        width: w,
+        height: h,
+        points: &points,
+        normals: &normals.data,
+        inverse_depth: &inverse_depth.data,
+        jump_ratio: config.jump_ratio,
+    };
+    let ((labels, count), texture) =
+        graph::segment_image_graph_beside(&inputs, config.k, config.min_size, &active, || {
             features::eigen_transform_samples(
                 intensity,
                 config.texture_window,
@@ -374,8 +373,7 @@ pub fn segment_with_normals(
             .into_iter()
             .map(|(x, y, r)| (y as usize * w + x as usize, r))
             .collect::<Vec<(usize, f32)>>()
-        },
-    );
+        });
     let bins = golden_bins(config.bins);
     // Features from the normals of the inverse depth smoothed within each superjut (where they
     // exist), so sensor noise does not masquerade as curvature; the graph used the raw normals.
