@@ -654,7 +654,15 @@ impl Drop for Slam {
     }
 }
 
-fn backend_loop(mut back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
+fn backend_loop(back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
+    let out = backend_messages(back, rx);
+    // No more keyframes to segment: free the segmentation's kept buffers (26 MB at 640x480).
+    crate::segment::graph::release_kept_buffers();
+    out
+}
+
+/// The back-end's message loop, until the front-end hangs up or an error stops it.
+fn backend_messages(mut back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
     while let Ok(msg) = rx.recv() {
         match msg {
             ToBackend::Keyframe(kf) => back.process(*kf)?,
