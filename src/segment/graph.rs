@@ -512,13 +512,8 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
     side: impl FnOnce() -> R + Send,
 ) -> ((Vec<u32>, usize), R) {
     let (width, height) = (inputs.width, inputs.height);
-    let mut job = Some(side);
     let mut side_out = None;
-    let run_side = || {
-        if let Some(j) = job.take() {
-            side_out = Some(j());
-        }
-    };
+    let run_side = || side_out = Some(side());
     let mut out = (Vec::new(), 0);
     if let Some(tiles) = Tiles::new(width, height) {
         let mut scratch = GraphScratch::take();
