@@ -23,7 +23,8 @@ use super::odometry::OdometryOptions;
 #[derive(clap::Subcommand)]
 pub enum Command {
     /// Odometry kernels on generated frames (no data needed): pyramid, scale estimation,
-    /// normal equations, solve, per backend and image size.
+    /// normal equations, solve, and the undistortion pass (TUM fr1 distortion), per backend
+    /// and image size.
     Kernels(Box<KernelBench>),
     /// Odometry speed and accuracy per backend on a TUM sequence, against OpenCV / Open3D run
     /// on the same data by `../shared/eval/peer_odometry.py`.
@@ -140,6 +141,73 @@ fn kernels(a: KernelBench) -> Result<()> {
         }
     }
     println!("(align = pyramids of both frames + coarse-to-fine Gauss-Newton; the pyramid column is for both frames)");
+    undistortion(&a)
+}
+
+/// Times the undistortion of one frame (TUM fr1 distortion) per backend and size: the CPU
+/// remap on one thread (as in the I/O thread) and the WGSL kernel with its upload and
+/// read-back.
+fn undistortion(a: &KernelBench) -> Result<()> {
+    println!();
+    println!(
+        "| backend | size | undistort ms (median; intensity bilinear + inverse depth nearest) |"
+    );
+    println!("|---|---|---|");
+    for name in a
+        .backends
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+    {
+        let Some(backend) = backend_named(name, a.adapter.as_deref())? else {
+            continue;
+        };
+        for size in a.sizes.split(',') {
+            let Some((w, h)) = size.split_once('x').and_then(|(w, h)| {
+                Some((w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?))
+            }) else {
+                anyhow::bail!("bad size '{size}' (expected WxH)");
+            };
+            let s = f64::from(w) / 640.0;
+            let mut cam = PinholeCamera::new(517.3 * s, 516.5 * s, 318.6 * s, 255.3 * s, w, h);
+            cam.distortion = rgbid::camera::BrownConrady {
+                k1: 0.2624,
+                k2: -0.9531,
+                p1: -0.0054,
+                p2: 0.0026,
+                k3: 1.1633,
+            };
+            let map = rgbid::io::UndistortMap::new(&cam);
+            let f = test_pattern(w as usize, h as usize, 1);
+            let (raw_i, raw_d) = (&f.intensity.data, &f.inverse_depth.data);
+            let mut times = Vec::new();
+            match &backend {
+                ComputeBackend::Cpu => {
+                    let (mut oi, mut od) = (vec![0.0; raw_i.len()], vec![0.0; raw_d.len()]);
+                    for _ in 0..a.repeat.max(1) {
+                        let t = Instant::now();
+                        map.remap_bilinear(raw_i, &mut oi);
+                        map.remap_nearest(raw_d, &mut od);
+                        times.push(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                }
+                ComputeBackend::Gpu(ctx) => {
+                    let gpu = rgbid::io::GpuUndistort::new(ctx.clone(), &map)?;
+                    gpu.remap(raw_i, raw_d)?; // warm-up
+                    for _ in 0..a.repeat.max(1) {
+                        let t = Instant::now();
+                        gpu.remap(raw_i, raw_d)?;
+                        times.push(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                }
+            }
+            println!(
+                "| {} | {w}x{h} | {:.2} |",
+                backend.name(),
+                median(&mut times)
+            );
+        }
+    }
     Ok(())
 }
 

@@ -11,6 +11,7 @@ pub mod trajectory;
 pub mod tum;
 pub mod tum_writer;
 pub mod undistort;
+pub mod undistort_gpu;
 
 pub use config::CameraConfig;
 pub use tum::{
@@ -18,6 +19,7 @@ pub use tum::{
     SequenceEntry, TumSequence,
 };
 pub use undistort::UndistortMap;
+pub use undistort_gpu::GpuUndistort;
 
 use std::path::PathBuf;
 
@@ -159,6 +161,14 @@ pub enum IoError {
         index: usize,
         /// The number of frames.
         len: usize,
+    },
+    /// The GPU undistortion pass of a frame failed (device lost, read-back, validation).
+    #[error("{path}: GPU undistortion failed: {source}")]
+    Gpu {
+        /// The colour image of the frame.
+        path: PathBuf,
+        /// The GPU error.
+        source: crate::gpu::GpuError,
     },
 }
 

@@ -21,9 +21,11 @@ use glam::{DQuat, DVec3};
 
 use super::config::{parse_numbers, CameraConfig};
 use super::undistort::UndistortMap;
+use super::undistort_gpu::GpuUndistort;
 use super::IoError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
+use crate::gpu::GpuContext;
 use crate::image::{rgb_to_intensity, ImageF32, RgbdFrame};
 
 /// Default tolerance when associating colour and depth time stamps, seconds.
@@ -83,6 +85,7 @@ pub struct TumSequence {
     /// Where the camera came from (preset, config file, calib.txt).
     pub camera_source: String,
     undistort: Option<Arc<UndistortMap>>,
+    gpu_undistort: Option<Arc<GpuUndistort>>,
 }
 
 impl TumSequence {
@@ -164,6 +167,7 @@ impl TumSequence {
             groundtruth: gt.is_file().then_some(gt),
             camera_source: cfg.source,
             undistort,
+            gpu_undistort: None,
         };
         seq.load(0)?;
         Ok(seq)
@@ -186,6 +190,28 @@ impl TumSequence {
         c
     }
 
+    /// Runs the undistortion of [`Self::load`] on `ctx` (`shaders/undistort.wgsl`) instead of
+    /// the CPU: the kernel is compiled and the remap table uploaded here, once. Returns
+    /// `false` (and changes nothing) when the camera has no distortion, so there is nothing
+    /// to undistort. Frames are the same as with the CPU remap up to f32 rounding of the
+    /// bilinear intensity.
+    pub fn undistort_on_gpu(&mut self, ctx: Arc<GpuContext>) -> Result<bool, IoError> {
+        let Some(map) = &self.undistort else {
+            return Ok(false);
+        };
+        let gpu = GpuUndistort::new(ctx, map).map_err(|source| IoError::Gpu {
+            path: self.root.clone(),
+            source,
+        })?;
+        self.gpu_undistort = Some(Arc::new(gpu));
+        Ok(true)
+    }
+
+    /// True when [`Self::load`] undistorts on a GPU (see [`Self::undistort_on_gpu`]).
+    pub fn undistorts_on_gpu(&self) -> bool {
+        self.gpu_undistort.is_some()
+    }
+
     /// Decodes frame `index` from disk: intensity and inverse depth (1/m), undistorted.
     pub fn load(&self, index: usize) -> Result<RgbdFrame, IoError> {
         let e = self.entries.get(index).ok_or(IoError::IndexOutOfRange {
@@ -196,14 +222,12 @@ impl TumSequence {
             camera: &self.camera,
             source: &self.camera_source,
         };
-        decode_frame(
-            &e.rgb,
-            &e.depth,
-            cam,
-            self.depth_factor,
-            self.undistort.as_deref(),
-            e.timestamp,
-        )
+        let remap = match (&self.gpu_undistort, &self.undistort) {
+            (Some(g), _) => Remap::Gpu(g),
+            (None, Some(m)) => Remap::Cpu(m),
+            (None, None) => Remap::None,
+        };
+        decode_frame(&e.rgb, &e.depth, cam, self.depth_factor, remap, e.timestamp)
     }
 }
 
@@ -231,7 +255,7 @@ pub fn load_pair_frame(
             source: &cfg.source,
         },
         depth_factor,
-        map.as_ref(),
+        map.as_ref().map_or(Remap::None, Remap::Cpu),
         0.0,
     )
 }
@@ -433,6 +457,17 @@ fn existing(root: &Path, rel: &str, list: &Path, line: usize) -> Result<PathBuf,
     }
 }
 
+/// Where a frame's undistortion runs.
+#[derive(Clone, Copy)]
+enum Remap<'a> {
+    /// The camera has no distortion.
+    None,
+    /// The remap table on the CPU.
+    Cpu(&'a UndistortMap),
+    /// The same table on a GPU.
+    Gpu(&'a GpuUndistort),
+}
+
 #[derive(Clone, Copy)]
 struct CameraRef<'a> {
     camera: &'a PinholeCamera,
@@ -445,7 +480,7 @@ fn decode_frame(
     depth_path: &Path,
     cam: CameraRef<'_>,
     depth_factor: f64,
-    map: Option<&UndistortMap>,
+    remap: Remap<'_>,
     timestamp: f64,
 ) -> Result<RgbdFrame, IoError> {
     let (rgb, depth) = rayon::join(|| decode_intensity(rgb_path), || decode_depth(depth_path));
@@ -475,13 +510,24 @@ fn decode_frame(
         .map(|&d| if d == 0 { 0.0 } else { factor / f32::from(d) })
         .collect();
     let mut intensity = rgb.data;
-    if let Some(m) = map {
-        let mut out = vec![0.0f32; intensity.len()];
-        m.remap_bilinear(&intensity, &mut out);
-        intensity = out;
-        let mut out = vec![0.0f32; inverse_depth.len()];
-        m.remap_nearest(&inverse_depth, &mut out);
-        inverse_depth = out;
+    match remap {
+        Remap::None => {}
+        Remap::Cpu(m) => {
+            let mut out = vec![0.0f32; intensity.len()];
+            m.remap_bilinear(&intensity, &mut out);
+            intensity = out;
+            let mut out = vec![0.0f32; inverse_depth.len()];
+            m.remap_nearest(&inverse_depth, &mut out);
+            inverse_depth = out;
+        }
+        Remap::Gpu(g) => {
+            (intensity, inverse_depth) =
+                g.remap(&intensity, &inverse_depth)
+                    .map_err(|source| IoError::Gpu {
+                        path: rgb_path.into(),
+                        source,
+                    })?;
+        }
     }
     let (w, h) = (rgb.width, rgb.height);
     Ok(RgbdFrame {

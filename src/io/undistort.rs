@@ -81,6 +81,17 @@ impl UndistortMap {
         self.height
     }
 
+    /// The table as the WGSL kernel (`shaders/undistort.wgsl`) reads it, one entry per
+    /// output pixel in row-major order: `[top-left bilinear source index, x weight as f32
+    /// bits, y weight as f32 bits, nearest source index or u32::MAX when outside]`.
+    pub fn gpu_table(&self) -> Vec<[u32; 4]> {
+        self.bilinear
+            .iter()
+            .zip(&self.nearest)
+            .map(|(t, &n)| [t.index, t.wx.to_bits(), t.wy.to_bits(), n])
+            .collect()
+    }
+
     /// Bilinear resampling of a raw intensity image (`width * height` values) into `out`.
     ///
     /// Both slices must have `width * height` elements; shorter ones leave the rest of `out`
