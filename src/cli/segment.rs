@@ -226,27 +226,16 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         println!("| {} | {:.3} |", f.feature, f.auc);
     }
     println!("\nMatching session 0 against changed sessions (RANSAC-verified matches):");
-    println!(
-        "| neg-entropy mask | kept keypoints | matches | on changed objects | verified | inlier ratio | correct | precision | recall | pairs with pose ok |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
-    for r in &report.matching {
-        let t = r
-            .threshold
-            .map_or("none".to_string(), |t| format!(">= {t:.2}"));
+    print_matching(&report.matching);
+    for c in &report.cluttered_views {
         println!(
-            "| {t} | {:.2} | {} | {} ({:.1} %) | {} | {:.3} | {} | {:.3} | {:.3} | {} |",
-            r.kept_keypoints,
-            r.matches,
-            r.matches_on_changed,
-            100.0 * r.matches_on_changed as f64 / r.matches.max(1) as f64,
-            r.verified,
-            r.inlier_ratio,
-            r.correct,
-            r.precision,
-            r.recall,
-            r.pairs_pose_ok
+            "\nViews of moved clutter: the {} frame pairs in which changed objects carry >= {:.0} % of the unmasked matches:",
+            c.pairs,
+            100.0 * c.min_changed_share
         );
+        if c.pairs > 0 {
+            print_matching(&c.matching);
+        }
     }
     println!(
         "\nmedian per frame: segmentation {:.1} ms, ORB {:.1} ms ({}x{})",
@@ -385,6 +374,32 @@ fn run_segment(args: &RunArgs) -> Result<()> {
         backend.name()
     );
     Ok(())
+}
+
+/// Prints matching rows as a Markdown table (header included).
+fn print_matching(rows: &[rgbid::segment::experiment::MatchingRow]) {
+    println!(
+        "| neg-entropy mask | kept keypoints | matches | on changed objects | verified | inlier ratio | correct | precision | recall | pairs with pose ok |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for r in rows {
+        let t = r
+            .threshold
+            .map_or("none".to_string(), |t| format!(">= {t:.2}"));
+        println!(
+            "| {t} | {:.2} | {} | {} ({:.1} %) | {} | {:.3} | {} | {:.3} | {:.3} | {} |",
+            r.kept_keypoints,
+            r.matches,
+            r.matches_on_changed,
+            100.0 * r.matches_on_changed as f64 / r.matches.max(1) as f64,
+            r.verified,
+            r.inlier_ratio,
+            r.correct,
+            r.precision,
+            r.recall,
+            r.pairs_pose_ok
+        );
+    }
 }
 
 #[cfg(test)]

@@ -194,6 +194,23 @@ pub struct MatchingRow {
     pub pairs_pose_ok: usize,
 }
 
+/// Shares of the unmasked matches on changed objects that select the frame pairs of
+/// [`ChangeReport::cluttered_views`].
+pub const CLUTTER_SHARES: [f64; 3] = [0.05, 0.1, 0.2];
+
+/// Matching restricted to the frame pairs whose unmasked matches lie on changed objects for
+/// at least `min_changed_share` of them (recall relative to those pairs' unmasked run).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ClutteredViews {
+    /// Minimum share (0-1) of a pair's unmasked matches whose session-`k` keypoint lies on a
+    /// changed object.
+    pub min_changed_share: f64,
+    /// Frame pairs selected.
+    pub pairs: usize,
+    /// One row per threshold, the unmasked one first, summed over the selected pairs.
+    pub matching: Vec<MatchingRow>,
+}
+
 /// Everything [`run_change_experiment`] measured.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct ChangeReport {
@@ -209,6 +226,10 @@ pub struct ChangeReport {
     pub pairs_with_changes: usize,
     /// One row per threshold, the unmasked one first.
     pub matching: Vec<MatchingRow>,
+    /// The same rows over the frame pairs in which changed objects carry at least a given
+    /// share of the unmasked matches (views of moved clutter), one entry per share in
+    /// [`CLUTTER_SHARES`].
+    pub cluttered_views: Vec<ClutteredViews>,
     /// Median segmentation time per frame, ms.
     pub segment_ms: f64,
     /// Median ORB extraction time per frame, ms.
@@ -368,6 +389,40 @@ struct RowAcc {
     pose_ok: usize,
 }
 
+impl RowAcc {
+    fn add(&mut self, o: &RowAcc) {
+        self.kept += o.kept;
+        self.frames += o.frames;
+        self.matches += o.matches;
+        self.on_changed += o.on_changed;
+        self.verified += o.verified;
+        self.correct += o.correct;
+        self.pose_ok += o.pose_ok;
+    }
+}
+
+/// The matching rows of summed accumulators (one per threshold, the unmasked one first);
+/// recall is relative to the first row's correct matches.
+fn matching_rows(thresholds: &[Option<f64>], rows: &[RowAcc]) -> Vec<MatchingRow> {
+    let base_correct = rows.first().map_or(1, |r| r.correct.max(1)) as f64;
+    thresholds
+        .iter()
+        .zip(rows)
+        .map(|(t, a)| MatchingRow {
+            threshold: *t,
+            kept_keypoints: a.kept / a.frames.max(1) as f64,
+            matches: a.matches,
+            matches_on_changed: a.on_changed,
+            verified: a.verified,
+            correct: a.correct,
+            inlier_ratio: a.verified as f64 / a.matches.max(1) as f64,
+            precision: a.correct as f64 / a.verified.max(1) as f64,
+            recall: a.correct as f64 / base_correct,
+            pairs_pose_ok: a.pose_ok,
+        })
+        .collect()
+}
+
 /// Matches a session-0 frame `a` against a session-`k` frame `b` with keypoints restricted to
 /// superjuts of neg-entropy `>= threshold` (all keypoints for `None`).
 fn match_pair(
@@ -455,6 +510,7 @@ pub fn run_change_experiment(
     let mut thresholds: Vec<Option<f64>> = vec![None];
     thresholds.extend(config.thresholds.iter().map(|&t| Some(t)));
     let mut rows = vec![RowAcc::default(); thresholds.len()];
+    let mut per_pair: Vec<Vec<RowAcc>> = Vec::new();
     let (mut changed, mut unchanged) = (Vec::new(), Vec::new());
     let mut times = (Vec::new(), Vec::new());
     let (mut pairs, mut pairs_with_changes) = (0, 0);
@@ -515,9 +571,14 @@ pub fn run_change_experiment(
                     {
                         pairs_with_changes += 1;
                     }
-                    for (t, acc) in thresholds.iter().zip(rows.iter_mut()) {
+                    let mut this_pair = vec![RowAcc::default(); thresholds.len()];
+                    for (t, acc) in thresholds.iter().zip(this_pair.iter_mut()) {
                         match_pair(a, &b, *t, config, acc)?;
                     }
+                    for (total, one) in rows.iter_mut().zip(&this_pair) {
+                        total.add(one);
+                    }
+                    per_pair.push(this_pair);
                     pairs += 1;
                     progress(pairs, total);
                 }
@@ -536,21 +597,28 @@ pub fn run_change_experiment(
             }
         })
         .collect();
-    let base_correct = rows[0].correct.max(1) as f64;
-    let matching = thresholds
+    let matching = matching_rows(&thresholds, &rows);
+    let cluttered_views = CLUTTER_SHARES
         .iter()
-        .zip(&rows)
-        .map(|(t, a)| MatchingRow {
-            threshold: *t,
-            kept_keypoints: a.kept / a.frames.max(1) as f64,
-            matches: a.matches,
-            matches_on_changed: a.on_changed,
-            verified: a.verified,
-            correct: a.correct,
-            inlier_ratio: a.verified as f64 / a.matches.max(1) as f64,
-            precision: a.correct as f64 / a.verified.max(1) as f64,
-            recall: a.correct as f64 / base_correct,
-            pairs_pose_ok: a.pose_ok,
+        .map(|&share| {
+            let mut sum = vec![RowAcc::default(); thresholds.len()];
+            let mut n = 0;
+            for pair in &per_pair {
+                let unmasked = &pair[0];
+                if unmasked.matches > 0
+                    && unmasked.on_changed as f64 >= share * unmasked.matches as f64
+                {
+                    n += 1;
+                    for (t, one) in sum.iter_mut().zip(pair) {
+                        t.add(one);
+                    }
+                }
+            }
+            ClutteredViews {
+                min_changed_share: share,
+                pairs: n,
+                matching: matching_rows(&thresholds, &sum),
+            }
         })
         .collect();
     Ok(ChangeReport {
@@ -560,6 +628,7 @@ pub fn run_change_experiment(
         pairs,
         pairs_with_changes,
         matching,
+        cluttered_views,
         segment_ms: median(&mut times.0),
         orb_ms: median(&mut times.1),
     })
