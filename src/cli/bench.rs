@@ -80,24 +80,32 @@ fn backend_named(name: &str, adapter: Option<&str>) -> Result<Option<ComputeBack
 }
 
 fn kernels(a: KernelBench) -> Result<()> {
-    println!("| backend | size | align ms (median) | pyramid ms | scale ms | reduce ms | solve ms | GN iterations |");
-    println!("|---|---|---|---|---|---|---|---|");
+    let mut backends = Vec::new();
     for name in a
         .backends
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
     {
-        let Some(backend) = backend_named(name, a.adapter.as_deref())? else {
-            continue;
-        };
-        for size in a.sizes.split(',') {
-            let (w, h) = size
-                .split_once('x')
+        if let Some(b) = backend_named(name, a.adapter.as_deref())? {
+            backends.push(b);
+        }
+    }
+    let sizes = a
+        .sizes
+        .split(',')
+        .map(|size| {
+            size.split_once('x')
                 .and_then(|(w, h)| {
                     Some((w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?))
                 })
-                .ok_or_else(|| anyhow::anyhow!("bad size '{size}' (expected WxH)"))?;
+                .ok_or_else(|| anyhow::anyhow!("bad size '{size}' (expected WxH)"))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    println!("| backend | size | align ms (median) | pyramid ms | scale ms | reduce ms | solve ms | GN iterations |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for backend in &backends {
+        for &(w, h) in &sizes {
             let f = 525.0 * f64::from(w) / 640.0;
             let cam = PinholeCamera::new(
                 f,
@@ -109,7 +117,7 @@ fn kernels(a: KernelBench) -> Result<()> {
             );
             let frame_a = test_pattern(w as usize, h as usize, 1);
             let frame_b = test_pattern(w as usize, h as usize, 1);
-            let mut odo = Odometry::new(OdometryConfig::default(), cam, &backend)?;
+            let mut odo = Odometry::new(OdometryConfig::default(), cam, backend)?;
             let guess = Se3::exp(&[0.01, 0.0, 0.0, 0.0, 0.005, 0.0]);
             let mut totals = Vec::new();
             let mut stages: [Vec<f64>; 4] = Default::default();
@@ -141,33 +149,20 @@ fn kernels(a: KernelBench) -> Result<()> {
         }
     }
     println!("(align = pyramids of both frames + coarse-to-fine Gauss-Newton; the pyramid column is for both frames)");
-    undistortion(&a)
+    undistortion(&backends, &sizes, a.repeat)
 }
 
 /// Times the undistortion of one frame (TUM fr1 distortion) per backend and size: the CPU
 /// remap on one thread (as in the I/O thread) and the WGSL kernel with its upload and
 /// read-back.
-fn undistortion(a: &KernelBench) -> Result<()> {
+fn undistortion(backends: &[ComputeBackend], sizes: &[(u32, u32)], repeat: usize) -> Result<()> {
     println!();
     println!(
         "| backend | size | undistort ms (median; intensity bilinear + inverse depth nearest) |"
     );
     println!("|---|---|---|");
-    for name in a
-        .backends
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-    {
-        let Some(backend) = backend_named(name, a.adapter.as_deref())? else {
-            continue;
-        };
-        for size in a.sizes.split(',') {
-            let Some((w, h)) = size.split_once('x').and_then(|(w, h)| {
-                Some((w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?))
-            }) else {
-                anyhow::bail!("bad size '{size}' (expected WxH)");
-            };
+    for backend in backends {
+        for &(w, h) in sizes {
             let s = f64::from(w) / 640.0;
             let mut cam = PinholeCamera::new(517.3 * s, 516.5 * s, 318.6 * s, 255.3 * s, w, h);
             cam.distortion = rgbid::camera::BrownConrady {
@@ -181,10 +176,10 @@ fn undistortion(a: &KernelBench) -> Result<()> {
             let f = test_pattern(w as usize, h as usize, 1);
             let (raw_i, raw_d) = (&f.intensity.data, &f.inverse_depth.data);
             let mut times = Vec::new();
-            match &backend {
+            match backend {
                 ComputeBackend::Cpu => {
                     let (mut oi, mut od) = (vec![0.0; raw_i.len()], vec![0.0; raw_d.len()]);
-                    for _ in 0..a.repeat.max(1) {
+                    for _ in 0..repeat.max(1) {
                         let t = Instant::now();
                         map.remap_bilinear(raw_i, &mut oi);
                         map.remap_nearest(raw_d, &mut od);
@@ -194,7 +189,7 @@ fn undistortion(a: &KernelBench) -> Result<()> {
                 ComputeBackend::Gpu(ctx) => {
                     let gpu = rgbid::io::GpuUndistort::new(ctx.clone(), &map)?;
                     gpu.remap(raw_i, raw_d)?; // warm-up
-                    for _ in 0..a.repeat.max(1) {
+                    for _ in 0..repeat.max(1) {
                         let t = Instant::now();
                         gpu.remap(raw_i, raw_d)?;
                         times.push(t.elapsed().as_secs_f64() * 1e3);
