@@ -5,27 +5,15 @@
 mod common;
 
 use rand::{Rng, SeedableRng};
-use rgbid::camera::{BrownConrady, PinholeCamera};
+use rgbid::camera::PinholeCamera;
 use rgbid::io::{CameraConfig, GpuUndistort, OpenOptions, TumSequence, UndistortMap};
 
-/// The TUM fr1 distortion (strong barrel with tangential terms), on a camera of any size.
+/// The TUM fr1 preset (strong barrel distortion with tangential terms), scaled to any size.
 fn fr1_like(w: u32, h: u32) -> PinholeCamera {
-    let s = f64::from(w) / 640.0;
-    let mut c = PinholeCamera::new(
-        517.3 * s,
-        516.5 * s,
-        318.6 * s,
-        255.3 * f64::from(h) / 480.0,
-        w,
-        h,
-    );
-    c.distortion = BrownConrady {
-        k1: 0.2624,
-        k2: -0.9531,
-        p1: -0.0054,
-        p2: 0.0026,
-        k3: 1.1633,
-    };
+    let fr1 = CameraConfig::preset("tum_fr1").unwrap().camera;
+    let (sx, sy) = (f64::from(w) / 640.0, f64::from(h) / 480.0);
+    let mut c = PinholeCamera::new(fr1.fx * sx, fr1.fy * sy, fr1.cx * sx, fr1.cy * sy, w, h);
+    c.distortion = fr1.distortion;
     c
 }
 

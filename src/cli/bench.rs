@@ -163,15 +163,14 @@ fn undistortion(backends: &[ComputeBackend], sizes: &[(u32, u32)], repeat: usize
     println!("|---|---|---|");
     for backend in backends {
         for &(w, h) in sizes {
-            let s = f64::from(w) / 640.0;
-            let mut cam = PinholeCamera::new(517.3 * s, 516.5 * s, 318.6 * s, 255.3 * s, w, h);
-            cam.distortion = rgbid::camera::BrownConrady {
-                k1: 0.2624,
-                k2: -0.9531,
-                p1: -0.0054,
-                p2: 0.0026,
-                k3: 1.1633,
-            };
+            // The TUM fr1 preset's intrinsics and distortion, scaled to the size.
+            let fr1 = rgbid::io::CameraConfig::preset("tum_fr1")
+                .ok_or_else(|| anyhow::anyhow!("the tum_fr1 camera preset is missing"))?
+                .camera;
+            let (sx, sy) = (f64::from(w) / 640.0, f64::from(h) / 480.0);
+            let mut cam =
+                PinholeCamera::new(fr1.fx * sx, fr1.fy * sy, fr1.cx * sx, fr1.cy * sy, w, h);
+            cam.distortion = fr1.distortion;
             let map = rgbid::io::UndistortMap::new(&cam);
             let f = test_pattern(w as usize, h as usize, 1);
             let (raw_i, raw_d) = (&f.intensity.data, &f.inverse_depth.data);

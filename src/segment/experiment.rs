@@ -513,7 +513,6 @@ pub fn run_change_experiment(
     let total = config.scenes.len() * config.seeds.len() * config.sessions as usize * indices.len();
     let mut thresholds: Vec<Option<f64>> = vec![None];
     thresholds.extend(config.thresholds.iter().map(|&t| Some(t)));
-    let mut rows = vec![RowAcc::default(); thresholds.len()];
     let mut per_pair: Vec<Vec<RowAcc>> = Vec::new();
     let (mut changed, mut unchanged) = (Vec::new(), Vec::new());
     let mut times = (Vec::new(), Vec::new());
@@ -579,9 +578,6 @@ pub fn run_change_experiment(
                     for (t, acc) in thresholds.iter().zip(this_pair.iter_mut()) {
                         match_pair(a, &b, *t, config, acc)?;
                     }
-                    for (total, one) in rows.iter_mut().zip(&this_pair) {
-                        total.add(one);
-                    }
                     per_pair.push(this_pair);
                     pairs += 1;
                     progress(pairs, total);
@@ -601,27 +597,29 @@ pub fn run_change_experiment(
             }
         })
         .collect();
-    let matching = matching_rows(&thresholds, &rows);
+    // Rows summed over the pairs whose unmasked run (index 0) passes `keep`.
+    let summed = |keep: &dyn Fn(&RowAcc) -> bool| {
+        let mut sum = vec![RowAcc::default(); thresholds.len()];
+        let mut n = 0;
+        for pair in per_pair.iter().filter(|p| p.first().is_some_and(keep)) {
+            n += 1;
+            for (t, one) in sum.iter_mut().zip(pair) {
+                t.add(one);
+            }
+        }
+        (n, matching_rows(&thresholds, &sum))
+    };
+    let matching = summed(&|_| true).1;
     let cluttered_views = CLUTTER_SHARES
         .iter()
         .map(|&share| {
-            let mut sum = vec![RowAcc::default(); thresholds.len()];
-            let mut n = 0;
-            for pair in &per_pair {
-                let unmasked = &pair[0];
-                if unmasked.matches > 0
-                    && unmasked.on_changed as f64 >= share * unmasked.matches as f64
-                {
-                    n += 1;
-                    for (t, one) in sum.iter_mut().zip(pair) {
-                        t.add(one);
-                    }
-                }
-            }
+            let (pairs, matching) = summed(&|u: &RowAcc| {
+                u.matches > 0 && u.on_changed as f64 >= share * u.matches as f64
+            });
             ClutteredViews {
                 min_changed_share: share,
-                pairs: n,
-                matching: matching_rows(&thresholds, &sum),
+                pairs,
+                matching,
             }
         })
         .collect();
