@@ -4,7 +4,7 @@
 //! measurement". Images are row-major, index `y * width + x`.
 
 /// A row-major single-channel f32 image.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct ImageF32 {
     /// Width in pixels.
     pub width: usize,

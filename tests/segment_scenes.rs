@@ -277,6 +277,40 @@ fn segmentation_is_deterministic_across_thread_counts() {
     assert_eq!(a.segments, c.segments);
 }
 
+/// `segment_keyframe` keeps its per-pixel buffers for the next keyframe: nothing of one call
+/// may reach the next, whatever size or scene came in between, and freeing them changes
+/// nothing either.
+#[test]
+fn kept_buffers_carry_nothing_between_keyframes() {
+    let cfg = SegmentConfig::default();
+    let rho = render(&two_boxes(), 0.003, 11);
+    let first = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    assert!(first.segments.len() > 2);
+    // A smaller keyframe (resizes every kept buffer), then another scene at the first size.
+    let (w2, h2) = (W / 2 + 3, H / 2 - 1);
+    let small_cam = PinholeCamera::new(65.0, 65.0, 40.0, 29.0, w2 as u32, h2 as u32);
+    let small_rho = ImageF32::filled(w2, h2, 0.4);
+    let small_int = ImageF32::filled(w2, h2, 90.0);
+    let small = segment::segment_keyframe(&small_int, &small_rho, &small_cam, &cfg).unwrap();
+    assert_eq!(small.labels.len(), w2 * h2);
+    let other = segment::segment_keyframe(
+        &textured(),
+        &render(&[tilted_plane()], 0.0, 1),
+        &camera(),
+        &cfg,
+    )
+    .unwrap();
+    assert_eq!(other.segments.len(), 1);
+    let again = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    assert_eq!(first.labels, again.labels);
+    assert_eq!(first.segments, again.segments);
+    assert_eq!(first.normals, again.normals);
+    segment::graph::release_kept_buffers();
+    let fresh = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    assert_eq!(first.labels, fresh.labels);
+    assert_eq!(first.segments, fresh.segments);
+}
+
 #[test]
 fn golden_spiral_bins_have_near_equal_areas() {
     let bins = SphereBins::golden(80);

@@ -503,19 +503,56 @@ pub fn superjut_features(
     up: [f32; 3],
     texture: &[(usize, f32)],
 ) -> Vec<Superjut> {
+    superjut_features_with(
+        labels,
+        normals,
+        points,
+        count,
+        bins,
+        up,
+        texture,
+        &mut FeatureScratch::default(),
+    )
+}
+
+/// The per-sample and per-superjut buffers of [`superjut_features_with`], kept between
+/// keyframes by the caller (so they reuse memory that is already mapped).
+#[derive(Default)]
+pub(crate) struct FeatureScratch {
+    bin_of: Vec<u32>,
+    hist: Vec<u32>,
+    accs: Vec<Acc>,
+}
+
+/// [`superjut_features`] with its buffers in `scratch`; the same results.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn superjut_features_with(
+    labels: &[u32],
+    normals: &[[f32; 3]],
+    points: &[[f32; 3]],
+    count: usize,
+    bins: &SphereBins,
+    up: [f32; 3],
+    texture: &[(usize, f32)],
+    scratch: &mut FeatureScratch,
+) -> Vec<Superjut> {
     let m = bins.len();
     let in_range = |l: u32| l != NO_SEGMENT && (l as usize) < count;
     // The bin of every labelled sample (the costly part) in parallel; the sums below in sample
     // order, so every superjut's features are the same whatever the thread count.
-    let bin_of: Vec<u32> = labels
-        .par_iter()
-        .zip(normals)
+    let FeatureScratch { bin_of, hist, accs } = scratch;
+    let samples = labels.len().min(normals.len());
+    crate::segment::normals::size_for_overwrite(bin_of, samples, 0u32);
+    bin_of
+        .par_iter_mut()
+        .zip(labels[..samples].par_iter().zip(&normals[..samples]))
         .with_min_len(4096)
-        .map(|(&l, &n)| if in_range(l) { bins.bin(n) as u32 } else { 0 })
-        .collect();
-    let mut hist = vec![0u32; count * m];
-    let mut accs = vec![Acc::new(); count];
-    for ((&l, &b), (&n, &p)) in labels.iter().zip(&bin_of).zip(normals.iter().zip(points)) {
+        .for_each(|(o, (&l, &n))| *o = if in_range(l) { bins.bin(n) as u32 } else { 0 });
+    hist.clear();
+    hist.resize(count * m, 0);
+    accs.clear();
+    accs.resize(count, Acc::new());
+    for ((&l, &b), (&n, &p)) in labels.iter().zip(&*bin_of).zip(normals.iter().zip(points)) {
         if !in_range(l) {
             continue;
         }

@@ -608,13 +608,15 @@ impl GraphScratch {
     }
 }
 
-/// Frees the buffers that [`segment_image_graph`] keeps between calls (about 85 bytes per
+/// Frees the buffers that [`segment_image_graph`] and
+/// [`segment_keyframe`](super::segment_keyframe) keep between calls (about 130 bytes per
 /// pixel of the last image segmented), e.g. when no more keyframes will be segmented. The
 /// next call allocates them again.
 pub fn release_kept_buffers() {
     *GRAPH_SCRATCH
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner) = None;
+    super::KeptBuffers::release();
 }
 
 /// Bits of a node number in an edge tag of [`Tiles`]; the two above give the direction.

@@ -60,12 +60,22 @@ fn smooth_pass(
     tolerance: f32,
     labels: Option<&[u32]>,
     along_x: bool,
-) -> ImageF32 {
+    out: &mut ImageF32,
+) {
     match (labels, along_x) {
-        (Some(l), true) => smooth_pass_with::<true, true>(rho, radius, tolerance, l),
-        (Some(l), false) => smooth_pass_with::<false, true>(rho, radius, tolerance, l),
-        (None, true) => smooth_pass_with::<true, false>(rho, radius, tolerance, &[]),
-        (None, false) => smooth_pass_with::<false, false>(rho, radius, tolerance, &[]),
+        (Some(l), true) => smooth_pass_with::<true, true>(rho, radius, tolerance, l, out),
+        (Some(l), false) => smooth_pass_with::<false, true>(rho, radius, tolerance, l, out),
+        (None, true) => smooth_pass_with::<true, false>(rho, radius, tolerance, &[], out),
+        (None, false) => smooth_pass_with::<false, false>(rho, radius, tolerance, &[], out),
+    }
+}
+
+/// Sizes `v` to `n` elements for an output that is then overwritten in full: a buffer of that
+/// length (kept from an earlier call) is left as it is, any other is replaced by a fresh one
+/// of `zero`s (for zero bit patterns a lazily mapped allocation: see [`normal_row`]).
+pub(crate) fn size_for_overwrite<T: Clone>(v: &mut Vec<T>, n: usize, zero: T) {
+    if v.len() != n {
+        *v = vec![zero; n];
     }
 }
 
@@ -196,11 +206,17 @@ fn smooth_pass_with<const ALONG_X: bool, const LABELS: bool>(
     radius: usize,
     tolerance: f32,
     labels: &[u32],
-) -> ImageF32 {
+    out_image: &mut ImageF32,
+) {
     let (w, h) = (rho.width, rho.height);
-    let mut out = vec![0.0f32; w * h];
+    out_image.width = w;
+    out_image.height = h;
+    let out = &mut out_image.data;
+    size_for_overwrite(out, w * h, 0.0f32);
     let data = &rho.data[..w * h];
-    if w > 0 && (!LABELS || labels.len() >= w * h) {
+    if !(w > 0 && (!LABELS || labels.len() >= w * h)) {
+        out.fill(0.0);
+    } else {
         let same = |a: usize, b: usize| !LABELS || labels[a] == labels[b];
         out.par_chunks_mut(w).enumerate().for_each_init(
             SmoothScratch::default,
@@ -233,11 +249,6 @@ fn smooth_pass_with<const ALONG_X: bool, const LABELS: bool>(
                 }
             },
         );
-    }
-    ImageF32 {
-        width: w,
-        height: h,
-        data: out,
     }
 }
 
@@ -280,10 +291,32 @@ pub fn smooth_inverse_depth(
     if params.smooth_radius == 0 {
         return None;
     }
+    let empty = || ImageF32 {
+        width: 0,
+        height: 0,
+        data: Vec::new(),
+    };
+    let (mut x, mut out) = (empty(), empty());
+    smooth_inverse_depth_into(inverse_depth, params, labels, &mut x, &mut out).then_some(out)
+}
+
+/// [`smooth_inverse_depth`] into `out`, with `tmp` for the first pass (both buffers reused,
+/// as kept between keyframes); false (and the buffers untouched) when no smoothing is asked.
+pub(crate) fn smooth_inverse_depth_into(
+    inverse_depth: &ImageF32,
+    params: &NormalParams,
+    labels: Option<&[u32]>,
+    tmp: &mut ImageF32,
+    out: &mut ImageF32,
+) -> bool {
+    if params.smooth_radius == 0 {
+        return false;
+    }
     let r = params.smooth_radius as usize;
     let t = params.smooth_tolerance;
-    let x = smooth_pass(inverse_depth, r, t, labels, true);
-    Some(smooth_pass(&x, r, t, labels, false))
+    smooth_pass(inverse_depth, r, t, labels, true, tmp);
+    smooth_pass(tmp, r, t, labels, false, out);
+    true
 }
 
 /// A unit-normal image in the camera frame (x right, y down, z forward), normals facing the
@@ -489,9 +522,30 @@ pub fn normals_cpu(
     camera: &PinholeCamera,
     params: &NormalParams,
 ) -> NormalMap {
+    let mut data = Vec::new();
+    normals_cpu_into(inverse_depth, camera, params, &mut data);
+    NormalMap {
+        width: inverse_depth.width,
+        height: inverse_depth.height,
+        data,
+    }
+}
+
+/// [`normals_cpu`]'s data into `data` (a buffer kept from an earlier call of the same size is
+/// overwritten in place).
+pub(crate) fn normals_cpu_into(
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    params: &NormalParams,
+    data: &mut Vec<[f32; 3]>,
+) {
     let (w, h) = (inverse_depth.width, inverse_depth.height);
     let cam = cam_f32(camera);
-    let mut data = vec![[0.0f32; 3]; w * h];
+    size_for_overwrite(data, w * h, [0.0f32; 3]);
+    if inverse_depth.data.len() < w * h {
+        // Rows without data are not written below.
+        data.fill([0.0; 3]);
+    }
     if w > 0 {
         let [fx, _, cx, _] = cam;
         let xns: Vec<f32> = (0..w).map(|x| (x as f32 - cx) / fx).collect();
@@ -507,11 +561,6 @@ pub fn normals_cpu(
             normal_row(&rows, y, row);
         });
     }
-    NormalMap {
-        width: w,
-        height: h,
-        data,
-    }
 }
 
 /// Back-projects every pixel with inverse depth `rho > 0` to a camera-frame point (metres);
@@ -520,9 +569,25 @@ pub fn points_from_inverse_depth(
     inverse_depth: &ImageF32,
     camera: &PinholeCamera,
 ) -> Vec<[f32; 3]> {
+    let mut out = Vec::new();
+    points_from_inverse_depth_into(inverse_depth, camera, &mut out);
+    out
+}
+
+/// [`points_from_inverse_depth`] into `out` (a buffer kept from an earlier call of the same
+/// size is overwritten in place).
+pub(crate) fn points_from_inverse_depth_into(
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    out: &mut Vec<[f32; 3]>,
+) {
     let (w, h) = (inverse_depth.width, inverse_depth.height);
     let [fx, fy, cx, cy] = cam_f32(camera);
-    let mut out = vec![[0.0f32; 3]; w * h];
+    size_for_overwrite(out, w * h, [0.0f32; 3]);
+    if inverse_depth.data.len() < w * h {
+        // Rows without data are not written below.
+        out.fill([0.0; 3]);
+    }
     if w > 0 {
         let xs: Vec<f32> = (0..w).map(|x| (x as f32 - cx) / fx).collect();
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
@@ -538,7 +603,6 @@ pub fn points_from_inverse_depth(
             }
         });
     }
-    out
 }
 
 #[cfg(test)]
@@ -593,10 +657,12 @@ mod tests {
         let labels: Vec<u32> = (0..w * h)
             .map(|i| ((i % w) / 9 + (i / w) / 13) as u32)
             .collect();
+        // One output buffer for all runs: each must overwrite what the last one left.
+        let mut got = ImageF32::default();
         for radius in [1usize, 3, 5] {
             for along_x in [true, false] {
                 for lab in [None, Some(&labels[..])] {
-                    let got = smooth_pass(&rho, radius, 0.05, lab, along_x);
+                    smooth_pass(&rho, radius, 0.05, lab, along_x, &mut got);
                     for i in 0..w * h {
                         let same = |a: usize, b: usize| lab.is_none_or(|l| l[a] == l[b]);
                         let want = if along_x {
