@@ -35,9 +35,13 @@ pub struct SphereBins {
     points: Vec<[f32; 3]>,
     /// Upper bound of the angular radius (radians) of every Voronoi cell.
     max_radius: f32,
-    /// Start of each cube-map cell's candidate list in `cell_bins` (one more than cells).
-    cell_start: Vec<u32>,
-    /// Candidate bins of every cube-map cell, in increasing index order.
+    /// Entries per cube-map cell in `cell_bins`: the longest candidate list.
+    cell_width: usize,
+    /// The bin centres as structure of arrays (x, y, z), for [`Self::bin_many`].
+    soa: [Vec<f32>; 3],
+    /// Candidate bins of every cube-map cell, in increasing index order, `cell_width` per
+    /// cell: a shorter list is padded by repeating its first bin (which never wins over
+    /// itself), so every query runs the same loop without a data-dependent branch.
     cell_bins: Vec<u32>,
 }
 
@@ -104,11 +108,25 @@ impl SphereBins {
         } else {
             std::f32::consts::PI
         };
-        let (cell_start, cell_bins) = cube_candidates(&points);
+        let (cell_start, list) = cube_candidates(&points);
+        let cell_width = cell_start
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as usize)
+            .max()
+            .unwrap_or(0);
+        let mut cell_bins = Vec::with_capacity(cell_width * cell_start.len());
+        for w in cell_start.windows(2) {
+            let cands = &list[w[0] as usize..w[1] as usize];
+            cell_bins.extend_from_slice(cands);
+            let pad = cands.first().copied().unwrap_or(0);
+            cell_bins.extend(std::iter::repeat_n(pad, cell_width - cands.len()));
+        }
+        let soa = [0, 1, 2].map(|c| points.iter().map(|p| p[c]).collect());
         Self {
             points,
             max_radius,
-            cell_start,
+            cell_width,
+            soa,
             cell_bins,
         }
     }
@@ -139,13 +157,13 @@ impl SphereBins {
         }
         let (face, u, v) = cube_coords(n);
         let cell = (face * CUBE_GRID + cube_cell(u)) * CUBE_GRID + cube_cell(v);
-        let (s, e) = (
-            self.cell_start[cell] as usize,
-            self.cell_start[cell + 1] as usize,
-        );
+        let w = self.cell_width;
+        let Some(cands) = self.cell_bins.get(cell * w..(cell + 1) * w) else {
+            return 0;
+        };
         let mut best = 0usize;
         let mut best_d = f32::NEG_INFINITY;
-        for &k in &self.cell_bins[s..e] {
+        for &k in cands {
             let d = dot(self.points[k as usize], n);
             if d > best_d {
                 best_d = d;
@@ -153,6 +171,180 @@ impl SphereBins {
             }
         }
         best
+    }
+
+    /// [`Self::bin`] of many vectors: `out[i]` is the bin of `normals[i]` where `wanted(i)`,
+    /// and 0 elsewhere (those vectors are not looked at). The same results as [`Self::bin`]
+    /// (the same floating-point operations); with AVX2 (chosen at run time) eight unit
+    /// vectors are binned at once, the others go through [`Self::bin`]. Only the first
+    /// `min(normals.len(), out.len())` entries are written.
+    pub fn bin_many(&self, normals: &[[f32; 3]], wanted: impl Fn(usize) -> bool, out: &mut [u32]) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports the feature enabled on `bin_many_avx2`.
+                unsafe { self.bin_many_avx2(normals, &wanted, out) };
+                return;
+            }
+        }
+        for (i, (o, &n)) in out.iter_mut().zip(normals).enumerate() {
+            *o = if wanted(i) { self.bin(n) as u32 } else { 0 };
+        }
+    }
+
+    /// [`Self::bin_many`] eight vectors at a time: the cube-map cell by the operations of
+    /// [`cube_coords`] and [`cube_cell`] in lanes, then the cell's padded candidate list
+    /// gathered in lanes and searched as [`Self::bin`] does (each dot product as there, as
+    /// separate multiplies and adds, so the same values; the first largest wins).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn bin_many_avx2(
+        &self,
+        normals: &[[f32; 3]],
+        wanted: &impl Fn(usize) -> bool,
+        out: &mut [u32],
+    ) {
+        use std::arch::x86_64::*;
+        let n = normals.len().min(out.len());
+        let (w, m) = (self.cell_width, self.points.len());
+        let scalar = |i: usize| {
+            if wanted(i) {
+                self.bin(normals[i]) as u32
+            } else {
+                0
+            }
+        };
+        if w == 0 || m == 0 || self.cell_bins.len() < 6 * CUBE_GRID * CUBE_GRID * w {
+            for (i, o) in out.iter_mut().enumerate().take(n) {
+                *o = scalar(i);
+            }
+            return;
+        }
+        let xyz = &self.soa;
+        let g = CUBE_GRID as i32;
+        let mut i = 0;
+        while i + 8 <= n {
+            // Lanes not wanted look up a unit vector, and give 0 below.
+            let mut c = [[0f32; 8]; 3];
+            let mut want = 0u32;
+            for l in 0..8 {
+                let v = if wanted(i + l) {
+                    want |= 1 << l;
+                    normals[i + l]
+                } else {
+                    [0.0, 0.0, 1.0]
+                };
+                for (cc, vv) in c.iter_mut().zip(v) {
+                    cc[l] = vv;
+                }
+            }
+            // SAFETY: the loads read 8 floats of 8-float arrays.
+            let (x, y, z) = unsafe {
+                (
+                    _mm256_loadu_ps(c[0].as_ptr()),
+                    _mm256_loadu_ps(c[1].as_ptr()),
+                    _mm256_loadu_ps(c[2].as_ptr()),
+                )
+            };
+            let l2 = _mm256_add_ps(
+                _mm256_add_ps(_mm256_mul_ps(x, x), _mm256_mul_ps(y, y)),
+                _mm256_mul_ps(z, z),
+            );
+            let unit = _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(l2, _mm256_set1_ps(0.999)),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(l2, _mm256_set1_ps(1.001)),
+            );
+            let unit_bits = _mm256_movemask_ps(unit) as u32;
+            let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+            let (ax, ay, az) = (
+                _mm256_and_ps(x, abs),
+                _mm256_and_ps(y, abs),
+                _mm256_and_ps(z, abs),
+            );
+            // Major axis: x where ax >= ay and ax >= az, else y where ay >= az, else z.
+            let xm = _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(ax, ay),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(ax, az),
+            );
+            let ym = _mm256_andnot_ps(xm, _mm256_cmp_ps::<_CMP_GE_OQ>(ay, az));
+            let pick = |a: __m256, b: __m256, cc: __m256| {
+                _mm256_blendv_ps(_mm256_blendv_ps(cc, b, ym), a, xm)
+            };
+            let major = pick(x, y, z);
+            // The components after the major axis, cyclically ((axis + 1) % 3, (axis + 2) % 3).
+            let (u_num, v_num) = (pick(y, z, x), pick(z, x, y));
+            let d = _mm256_and_ps(major, abs);
+            let cell_of = |num: __m256| {
+                let t = _mm256_mul_ps(
+                    _mm256_add_ps(_mm256_div_ps(num, d), _mm256_set1_ps(1.0)),
+                    _mm256_set1_ps(0.5 * CUBE_GRID as f32),
+                );
+                // Truncation as `as usize`, clamped to the grid (NaN lanes, only for vectors
+                // that are not unit and go through `bin`, land in cell 0).
+                _mm256_min_epi32(
+                    _mm256_max_epi32(_mm256_cvttps_epi32(t), _mm256_setzero_si256()),
+                    _mm256_set1_epi32(g - 1),
+                )
+            };
+            let (cu, cv) = (cell_of(u_num), cell_of(v_num));
+            let axis = _mm256_blendv_epi8(
+                _mm256_blendv_epi8(
+                    _mm256_set1_epi32(2),
+                    _mm256_set1_epi32(1),
+                    _mm256_castps_si256(ym),
+                ),
+                _mm256_setzero_si256(),
+                _mm256_castps_si256(xm),
+            );
+            let neg = _mm256_and_si256(
+                _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LT_OQ>(major, _mm256_setzero_ps())),
+                _mm256_set1_epi32(1),
+            );
+            let face = _mm256_add_epi32(_mm256_add_epi32(axis, axis), neg);
+            let g_v = _mm256_set1_epi32(g);
+            let cell = _mm256_add_epi32(
+                _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(face, g_v), cu), g_v),
+                cv,
+            );
+            let base = _mm256_mullo_epi32(cell, _mm256_set1_epi32(w as i32));
+            let mut best = _mm256_setzero_si256();
+            let mut best_d = _mm256_set1_ps(f32::NEG_INFINITY);
+            for j in 0..w {
+                let idx = _mm256_add_epi32(base, _mm256_set1_epi32(j as i32));
+                // SAFETY: `idx` < 6 * CUBE_GRID^2 * w <= cell_bins.len() (cells clamped to
+                // the grid, j < w), and every entry of cell_bins is a bin index < m.
+                let (k, dd) = unsafe {
+                    let k = _mm256_i32gather_epi32::<4>(self.cell_bins.as_ptr().cast(), idx);
+                    let px = _mm256_i32gather_ps::<4>(xyz[0].as_ptr(), k);
+                    let py = _mm256_i32gather_ps::<4>(xyz[1].as_ptr(), k);
+                    let pz = _mm256_i32gather_ps::<4>(xyz[2].as_ptr(), k);
+                    let dd = _mm256_add_ps(
+                        _mm256_add_ps(_mm256_mul_ps(px, x), _mm256_mul_ps(py, y)),
+                        _mm256_mul_ps(pz, z),
+                    );
+                    (k, dd)
+                };
+                let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
+                best = _mm256_blendv_epi8(best, k, _mm256_castps_si256(better));
+                best_d = _mm256_blendv_ps(best_d, dd, better);
+            }
+            let mut lanes = [0u32; 8];
+            // SAFETY: stores 8 u32 into an 8-u32 array.
+            unsafe { _mm256_storeu_si256(lanes.as_mut_ptr().cast(), best) };
+            for (l, &b) in lanes.iter().enumerate() {
+                out[i + l] = if want >> l & 1 == 0 {
+                    0
+                } else if unit_bits >> l & 1 == 1 {
+                    b
+                } else {
+                    self.bin(normals[i + l]) as u32
+                };
+            }
+            i += 8;
+        }
+        for (j, o) in out.iter_mut().enumerate().take(n).skip(i) {
+            *o = scalar(j);
+        }
     }
 
     /// [`Self::bin`] by a search pruned by `z` (exact for unit vectors, given the bins'
@@ -543,11 +735,12 @@ pub(crate) fn superjut_features_with(
     let FeatureScratch { bin_of, hist, accs } = scratch;
     let samples = labels.len().min(normals.len());
     crate::segment::normals::size_for_overwrite(bin_of, samples, 0u32);
+    const CHUNK: usize = 4096;
     bin_of
-        .par_iter_mut()
-        .zip(labels[..samples].par_iter().zip(&normals[..samples]))
-        .with_min_len(4096)
-        .for_each(|(o, (&l, &n))| *o = if in_range(l) { bins.bin(n) as u32 } else { 0 });
+        .par_chunks_mut(CHUNK)
+        .zip(labels[..samples].par_chunks(CHUNK))
+        .zip(normals[..samples].par_chunks(CHUNK))
+        .for_each(|((o, l), n)| bins.bin_many(n, |i| in_range(l[i]), o));
     hist.clear();
     hist.resize(count * m, 0);
     accs.clear();
@@ -759,10 +952,27 @@ mod tests {
                     queries.push([c[0] / l, c[1] / l, c[2] / l]);
                 }
             }
-            for q in queries {
+            for &q in &queries {
                 let want = brute(&bins, q);
                 assert_eq!(bins.bin(q), want, "m {m} {q:?}");
                 assert_eq!(bins.bin_pruned(q), want, "m {m} {q:?} (pruned)");
+            }
+            // Many at once (eight-lane path and its tail), with vectors that are not unit
+            // (scalar fallback per lane) and lanes not wanted mixed in.
+            queries.extend([
+                [f32::NAN, 0.0, 1.0],
+                [0.0; 3],
+                [0.0, 0.0, 0.5],
+                [3.0, -1.0, 0.2],
+                [f32::INFINITY, 0.0, 0.0],
+            ]);
+            queries.rotate_right(3);
+            let wanted = |i: usize| i % 5 != 2;
+            let mut out = vec![7u32; queries.len()];
+            bins.bin_many(&queries, wanted, &mut out);
+            for (i, (&q, &o)) in queries.iter().zip(&out).enumerate() {
+                let want = if wanted(i) { bins.bin(q) as u32 } else { 0 };
+                assert_eq!(o, want, "m {m} {q:?} (many, index {i})");
             }
             assert_eq!(bins.bin([f32::NAN, 0.0, 1.0]), 0);
             let half = [0.0, 0.0, 0.5];
