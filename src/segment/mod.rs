@@ -41,6 +41,7 @@ pub use normals::{
     normals_cpu, points_from_inverse_depth, smooth_inverse_depth, NormalMap, NormalParams,
 };
 
+use rayon::prelude::*;
 use std::sync::{Arc, Mutex};
 
 use crate::camera::{CameraError, PinholeCamera};
@@ -401,8 +402,16 @@ pub fn segment_with_normals(
     // graph's edges are sorted, beside the union-find pass, which is sequential.
     normals::points_from_inverse_depth_into(inverse_depth, camera, &mut kept.points);
     let points = &kept.points;
-    kept.active.clear();
-    kept.active.extend((0..w * h).map(|i| normals.is_valid(i)));
+    normals::size_for_overwrite(&mut kept.active, w * h, false);
+    kept.active
+        .par_chunks_mut(w.max(1))
+        .zip(normals.data.par_chunks(w.max(1)))
+        .for_each(|(active, row)| {
+            for (a, n) in active.iter_mut().zip(row) {
+                // `NormalMap::is_valid`, a row at a time.
+                *a = n[0] != 0.0 || n[1] != 0.0 || n[2] != 0.0;
+            }
+        });
     let inputs = graph::GraphInputs {
         width: w,
         height: h,
