@@ -1,5 +1,6 @@
 //! Per-stage timing of superjut segmentation on frames of a TUM-layout sequence (median ms):
-//! `cargo run --release --example segment_stages -- SEQ [STEP] [--reps R] [--dump FILE]`.
+//! `cargo run --release --example segment_stages -- SEQ [STEP] [--reps R] [--dump FILE]
+//! [--back-to-back-only]`.
 //!
 //! With `--reps R` every frame is timed `R` times and each stage's fastest run counts (the
 //! median is then over frames), which filters out other processes on a busy machine. The
@@ -16,7 +17,9 @@
 //! `back to back` then segments the same frames again, each once per round (`R` rounds),
 //! one `segment_keyframe` call after another as a SLAM back-end does, and reports the median
 //! over all calls: unlike the best-of-`R` stage rows, it includes what one call leaves the
-//! next (page faults of fresh allocations, cold caches).
+//! next (page faults of fresh allocations, cold caches). With `--back-to-back-only` the stage
+//! rows are skipped, so the process runs nothing but `segment_keyframe` calls (what one call
+//! leaves the next is then not mixed with what the stage rows' separate functions left).
 
 use std::io::Write;
 use std::time::Instant;
@@ -29,6 +32,7 @@ fn main() -> anyhow::Result<()> {
     let mut dir = None;
     let mut dump = None;
     let mut reps = 1usize;
+    let mut only_calls = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         if a == "--reps" {
@@ -36,6 +40,8 @@ fn main() -> anyhow::Result<()> {
                 .next()
                 .ok_or_else(|| anyhow::anyhow!("--reps needs a count"))?
                 .parse()?;
+        } else if a == "--back-to-back-only" {
+            only_calls = true;
         } else if a == "--dump" {
             dump = Some(
                 args.next()
@@ -77,6 +83,10 @@ fn main() -> anyhow::Result<()> {
     let mut frames = Vec::new();
     for i in (0..seq.len()).step_by(step) {
         let f = seq.load(i)?;
+        if only_calls {
+            frames.push(f);
+            continue;
+        }
         let (w, h) = (f.intensity.width, f.intensity.height);
         let mut best = vec![f64::INFINITY; names.len()];
         let mut best_cpu = vec![f64::INFINITY; names.len()];
@@ -217,8 +227,10 @@ fn main() -> anyhow::Result<()> {
         v[v.len() / 2]
     };
     println!("{:>15}  {:>9}  {:>9}", "stage", "wall ms", "cpu ms");
-    for ((name, v), c) in names.iter().zip(t).zip(t_cpu) {
-        println!("{name:>15}: {:9.2}  {:9.2}", median(v), median(c));
+    if !only_calls {
+        for ((name, v), c) in names.iter().zip(t).zip(t_cpu) {
+            println!("{name:>15}: {:9.2}  {:9.2}", median(v), median(c));
+        }
     }
     let (mut wall, mut cpu) = (Vec::new(), Vec::new());
     for _ in 0..reps.max(1) {

@@ -37,8 +37,10 @@ pub struct SphereBins {
     max_radius: f32,
     /// Entries per cube-map cell in `cell_bins`: the longest candidate list.
     cell_width: usize,
-    /// The bin centres as structure of arrays (x, y, z), for [`Self::bin_many`].
-    soa: [Vec<f32>; 3],
+    /// The x, y, z of every entry of `cell_bins`, for [`Self::bin_many`]'s gathers.
+    cell_xyz: [Vec<f32>; 3],
+    /// The length of every cube-map cell's candidate list (without padding).
+    cell_len: Vec<i32>,
     /// Candidate bins of every cube-map cell, in increasing index order, `cell_width` per
     /// cell: a shorter list is padded by repeating its first bin (which never wins over
     /// itself), so every query runs the same loop without a data-dependent branch.
@@ -121,12 +123,18 @@ impl SphereBins {
             let pad = cands.first().copied().unwrap_or(0);
             cell_bins.extend(std::iter::repeat_n(pad, cell_width - cands.len()));
         }
-        let soa = [0, 1, 2].map(|c| points.iter().map(|p| p[c]).collect());
+        let cell_xyz =
+            [0, 1, 2].map(|c| cell_bins.iter().map(|&k| points[k as usize][c]).collect());
+        let cell_len = cell_start
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as i32)
+            .collect();
         Self {
             points,
             max_radius,
             cell_width,
-            soa,
+            cell_xyz,
+            cell_len,
             cell_bins,
         }
     }
@@ -214,13 +222,19 @@ impl SphereBins {
                 0
             }
         };
-        if w == 0 || m == 0 || self.cell_bins.len() < 6 * CUBE_GRID * CUBE_GRID * w {
+        let cells = 6 * CUBE_GRID * CUBE_GRID;
+        let xyz = &self.cell_xyz;
+        if w == 0
+            || m == 0
+            || self.cell_bins.len() < cells * w
+            || xyz.iter().any(|c| c.len() < cells * w)
+            || self.cell_len.len() < cells
+        {
             for (i, o) in out.iter_mut().enumerate().take(n) {
                 *o = scalar(i);
             }
             return;
         }
-        let xyz = &self.soa;
         let g = CUBE_GRID as i32;
         let mut i = 0;
         while i + 8 <= n {
@@ -309,24 +323,57 @@ impl SphereBins {
             let base = _mm256_mullo_epi32(cell, _mm256_set1_epi32(w as i32));
             let mut best = _mm256_setzero_si256();
             let mut best_d = _mm256_set1_ps(f32::NEG_INFINITY);
-            for j in 0..w {
-                let idx = _mm256_add_epi32(base, _mm256_set1_epi32(j as i32));
-                // SAFETY: `idx` < 6 * CUBE_GRID^2 * w <= cell_bins.len() (cells clamped to
-                // the grid, j < w), and every entry of cell_bins is a bin index < m.
-                let (k, dd) = unsafe {
-                    let k = _mm256_i32gather_epi32::<4>(self.cell_bins.as_ptr().cast(), idx);
-                    let px = _mm256_i32gather_ps::<4>(xyz[0].as_ptr(), k);
-                    let py = _mm256_i32gather_ps::<4>(xyz[1].as_ptr(), k);
-                    let pz = _mm256_i32gather_ps::<4>(xyz[2].as_ptr(), k);
+            let first = _mm256_cvtsi256_si32(cell);
+            let uniform = _mm256_movemask_epi8(_mm256_cmpeq_epi32(cell, _mm256_set1_epi32(first)));
+            if uniform == -1 {
+                // All eight in one cell (neighbouring pixels of a surface usually are): its
+                // candidates are loaded once and broadcast, no gathers.
+                let cands = &self.cell_bins[first as usize * w..(first as usize + 1) * w];
+                for &k in cands {
+                    let p = self.points[k as usize];
                     let dd = _mm256_add_ps(
-                        _mm256_add_ps(_mm256_mul_ps(px, x), _mm256_mul_ps(py, y)),
-                        _mm256_mul_ps(pz, z),
+                        _mm256_add_ps(
+                            _mm256_mul_ps(_mm256_set1_ps(p[0]), x),
+                            _mm256_mul_ps(_mm256_set1_ps(p[1]), y),
+                        ),
+                        _mm256_mul_ps(_mm256_set1_ps(p[2]), z),
                     );
-                    (k, dd)
-                };
-                let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
-                best = _mm256_blendv_epi8(best, k, _mm256_castps_si256(better));
-                best_d = _mm256_blendv_ps(best_d, dd, better);
+                    let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
+                    best = _mm256_blendv_epi8(
+                        best,
+                        _mm256_set1_epi32(k as i32),
+                        _mm256_castps_si256(better),
+                    );
+                    best_d = _mm256_blendv_ps(best_d, dd, better);
+                }
+            } else {
+                // Rounds up to the longest list among the lanes (padding repeats a list's
+                // first entry, which never wins again).
+                // SAFETY: `cell` < 6 * CUBE_GRID^2 <= cell_len.len() (clamped to the grid).
+                let lens = unsafe { _mm256_i32gather_epi32::<4>(self.cell_len.as_ptr(), cell) };
+                let mut l8 = [0i32; 8];
+                // SAFETY: stores 8 i32 into an 8-i32 array.
+                unsafe { _mm256_storeu_si256(l8.as_mut_ptr().cast(), lens) };
+                let rounds = (l8.iter().copied().max().unwrap_or(0).max(1) as usize).min(w);
+                for j in 0..rounds {
+                    let idx = _mm256_add_epi32(base, _mm256_set1_epi32(j as i32));
+                    // SAFETY: `idx` < 6 * CUBE_GRID^2 * w <= the length of cell_bins and of
+                    // each cell_xyz (checked above; cells clamped to the grid, j < w).
+                    let (k, dd) = unsafe {
+                        let k = _mm256_i32gather_epi32::<4>(self.cell_bins.as_ptr().cast(), idx);
+                        let px = _mm256_i32gather_ps::<4>(xyz[0].as_ptr(), idx);
+                        let py = _mm256_i32gather_ps::<4>(xyz[1].as_ptr(), idx);
+                        let pz = _mm256_i32gather_ps::<4>(xyz[2].as_ptr(), idx);
+                        let dd = _mm256_add_ps(
+                            _mm256_add_ps(_mm256_mul_ps(px, x), _mm256_mul_ps(py, y)),
+                            _mm256_mul_ps(pz, z),
+                        );
+                        (k, dd)
+                    };
+                    let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
+                    best = _mm256_blendv_epi8(best, k, _mm256_castps_si256(better));
+                    best_d = _mm256_blendv_ps(best_d, dd, better);
+                }
             }
             let mut lanes = [0u32; 8];
             // SAFETY: stores 8 u32 into an 8-u32 array.
