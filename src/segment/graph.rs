@@ -516,7 +516,7 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
     let run_side = || side_out = Some(side());
     let mut out = (Vec::new(), 0);
     if let Some(tiles) = Tiles::new(width, height) {
-        let mut scratch = GraphScratch::take();
+        let mut scratch = GRAPH_SCRATCH.take();
         tagged_edge_bands(inputs, &tiles, &mut scratch.bands);
         let sizes = group_by_top_digit_into::<u64, _>(&scratch.bands, &mut scratch.grouped);
         let mut merger = TiledMerger::new(&tiles, k, min_size, &mut scratch);
@@ -532,7 +532,7 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
             run_side,
         );
         merger.give_back(&mut scratch);
-        scratch.keep();
+        GRAPH_SCRATCH.keep(scratch);
         if let Some(l) = labels {
             out = l;
         }
@@ -585,38 +585,16 @@ struct GraphScratch {
     map: Vec<u32>,
 }
 
-/// The buffers of the last finished [`segment_image_graph`] call. Concurrent calls do not
-/// wait for each other: a call that finds it empty allocates its own.
-static GRAPH_SCRATCH: Mutex<Option<GraphScratch>> = Mutex::new(None);
-
-impl GraphScratch {
-    /// The kept buffers, or empty ones. A poisoned lock only means another call panicked
-    /// while holding plain buffers, which are still usable.
-    fn take() -> Self {
-        GRAPH_SCRATCH
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .take()
-            .unwrap_or_default()
-    }
-
-    /// Keeps the buffers for the next call.
-    fn keep(self) {
-        *GRAPH_SCRATCH
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(self);
-    }
-}
+/// The buffers of the last finished [`segment_image_graph`] call.
+static GRAPH_SCRATCH: super::KeptSlot<GraphScratch> = super::KeptSlot::new();
 
 /// Frees the buffers that [`segment_image_graph`] and
 /// [`segment_keyframe`](super::segment_keyframe) keep between calls (about 130 bytes per
 /// pixel of the last image segmented), e.g. when no more keyframes will be segmented. The
 /// next call allocates them again.
 pub fn release_kept_buffers() {
-    *GRAPH_SCRATCH
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner) = None;
-    super::KeptBuffers::release();
+    GRAPH_SCRATCH.release();
+    super::KEPT_BUFFERS.release();
 }
 
 /// Bits of a node number in an edge tag of [`Tiles`]; the two above give the direction.

@@ -344,31 +344,42 @@ struct KeptBuffers {
     features: features::FeatureScratch,
 }
 
-/// The buffers of the last finished [`segment_with_normals`] call. Concurrent calls do not
-/// wait for each other: a call that finds it empty allocates its own.
-static KEPT_BUFFERS: Mutex<Option<KeptBuffers>> = Mutex::new(None);
+/// The buffers of the last finished [`segment_with_normals`] call.
+static KEPT_BUFFERS: KeptSlot<KeptBuffers> = KeptSlot::new();
 
-impl KeptBuffers {
+/// A process-wide slot for buffers kept from one keyframe to the next. Concurrent calls do not
+/// wait for each other: a call that finds the slot empty allocates its own buffers, and the
+/// last one to finish keeps its.
+pub(crate) struct KeptSlot<T>(Mutex<Option<T>>);
+
+impl<T: Default> KeptSlot<T> {
+    /// An empty slot.
+    pub(crate) const fn new() -> Self {
+        Self(Mutex::new(None))
+    }
+
     /// The kept buffers, or empty ones (a poisoned lock only means another call panicked
     /// while holding plain buffers, which are still usable).
-    fn take() -> Self {
-        KEPT_BUFFERS
+    pub(crate) fn take(&self) -> T {
+        self.0
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .take()
             .unwrap_or_default()
     }
 
-    /// Keeps the buffers for the next call.
-    fn keep(self) {
-        *KEPT_BUFFERS
+    /// Keeps `buffers` for the next call.
+    pub(crate) fn keep(&self, buffers: T) {
+        *self
+            .0
             .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(self);
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(buffers);
     }
 
     /// Frees the kept buffers.
-    fn release() {
-        *KEPT_BUFFERS
+    pub(crate) fn release(&self) {
+        *self
+            .0
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner) = None;
     }
@@ -397,7 +408,7 @@ pub fn segment_with_normals(
         });
     }
     // Buffers kept from the last keyframe (see `KeptBuffers`).
-    let mut kept = KeptBuffers::take();
+    let mut kept = KEPT_BUFFERS.take();
     // The eigen-transform needs only the intensity: it runs on the second core once the
     // graph's edges are sorted, beside the union-find pass, which is sequential.
     normals::points_from_inverse_depth_into(inverse_depth, camera, &mut kept.points);
@@ -472,7 +483,7 @@ pub fn segment_with_normals(
         &texture,
         feature_scratch,
     );
-    kept.keep();
+    KEPT_BUFFERS.keep(kept);
     Ok(Superjuts {
         width: w,
         height: h,
