@@ -291,12 +291,7 @@ pub fn smooth_inverse_depth(
     if params.smooth_radius == 0 {
         return None;
     }
-    let empty = || ImageF32 {
-        width: 0,
-        height: 0,
-        data: Vec::new(),
-    };
-    let (mut x, mut out) = (empty(), empty());
+    let (mut x, mut out) = (ImageF32::default(), ImageF32::default());
     smooth_inverse_depth_into(inverse_depth, params, labels, &mut x, &mut out).then_some(out)
 }
 
