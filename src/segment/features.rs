@@ -195,6 +195,16 @@ impl SphereBins {
                 return;
             }
         }
+        self.bin_many_scalar(normals, &wanted, out);
+    }
+
+    /// [`Self::bin_many`] one vector at a time, through [`Self::bin`].
+    fn bin_many_scalar(
+        &self,
+        normals: &[[f32; 3]],
+        wanted: &impl Fn(usize) -> bool,
+        out: &mut [u32],
+    ) {
         for (i, (o, &n)) in out.iter_mut().zip(normals).enumerate() {
             *o = if wanted(i) { self.bin(n) as u32 } else { 0 };
         }
@@ -215,13 +225,6 @@ impl SphereBins {
         use std::arch::x86_64::*;
         let n = normals.len().min(out.len());
         let (w, m) = (self.cell_width, self.points.len());
-        let scalar = |i: usize| {
-            if wanted(i) {
-                self.bin(normals[i]) as u32
-            } else {
-                0
-            }
-        };
         let cells = 6 * CUBE_GRID * CUBE_GRID;
         let xyz = &self.cell_xyz;
         if w == 0
@@ -230,9 +233,7 @@ impl SphereBins {
             || xyz.iter().any(|c| c.len() < cells * w)
             || self.cell_len.len() < cells
         {
-            for (i, o) in out.iter_mut().enumerate().take(n) {
-                *o = scalar(i);
-            }
+            self.bin_many_scalar(normals, wanted, out);
             return;
         }
         let g = CUBE_GRID as i32;
@@ -323,57 +324,32 @@ impl SphereBins {
             let base = _mm256_mullo_epi32(cell, _mm256_set1_epi32(w as i32));
             let mut best = _mm256_setzero_si256();
             let mut best_d = _mm256_set1_ps(f32::NEG_INFINITY);
-            let first = _mm256_cvtsi256_si32(cell);
-            let uniform = _mm256_movemask_epi8(_mm256_cmpeq_epi32(cell, _mm256_set1_epi32(first)));
-            if uniform == -1 {
-                // All eight in one cell (neighbouring pixels of a surface usually are): its
-                // candidates are loaded once and broadcast, no gathers.
-                let cands = &self.cell_bins[first as usize * w..(first as usize + 1) * w];
-                for &k in cands {
-                    let p = self.points[k as usize];
+            // Rounds up to the longest list among the lanes (padding repeats a list's
+            // first entry, which never wins again).
+            // SAFETY: `cell` < 6 * CUBE_GRID^2 <= cell_len.len() (clamped to the grid).
+            let lens = unsafe { _mm256_i32gather_epi32::<4>(self.cell_len.as_ptr(), cell) };
+            let mut l8 = [0i32; 8];
+            // SAFETY: stores 8 i32 into an 8-i32 array.
+            unsafe { _mm256_storeu_si256(l8.as_mut_ptr().cast(), lens) };
+            let rounds = (l8.iter().copied().max().unwrap_or(0).max(1) as usize).min(w);
+            for j in 0..rounds {
+                let idx = _mm256_add_epi32(base, _mm256_set1_epi32(j as i32));
+                // SAFETY: `idx` < 6 * CUBE_GRID^2 * w <= the length of cell_bins and of
+                // each cell_xyz (checked above; cells clamped to the grid, j < w).
+                let (k, dd) = unsafe {
+                    let k = _mm256_i32gather_epi32::<4>(self.cell_bins.as_ptr().cast(), idx);
+                    let px = _mm256_i32gather_ps::<4>(xyz[0].as_ptr(), idx);
+                    let py = _mm256_i32gather_ps::<4>(xyz[1].as_ptr(), idx);
+                    let pz = _mm256_i32gather_ps::<4>(xyz[2].as_ptr(), idx);
                     let dd = _mm256_add_ps(
-                        _mm256_add_ps(
-                            _mm256_mul_ps(_mm256_set1_ps(p[0]), x),
-                            _mm256_mul_ps(_mm256_set1_ps(p[1]), y),
-                        ),
-                        _mm256_mul_ps(_mm256_set1_ps(p[2]), z),
+                        _mm256_add_ps(_mm256_mul_ps(px, x), _mm256_mul_ps(py, y)),
+                        _mm256_mul_ps(pz, z),
                     );
-                    let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
-                    best = _mm256_blendv_epi8(
-                        best,
-                        _mm256_set1_epi32(k as i32),
-                        _mm256_castps_si256(better),
-                    );
-                    best_d = _mm256_blendv_ps(best_d, dd, better);
-                }
-            } else {
-                // Rounds up to the longest list among the lanes (padding repeats a list's
-                // first entry, which never wins again).
-                // SAFETY: `cell` < 6 * CUBE_GRID^2 <= cell_len.len() (clamped to the grid).
-                let lens = unsafe { _mm256_i32gather_epi32::<4>(self.cell_len.as_ptr(), cell) };
-                let mut l8 = [0i32; 8];
-                // SAFETY: stores 8 i32 into an 8-i32 array.
-                unsafe { _mm256_storeu_si256(l8.as_mut_ptr().cast(), lens) };
-                let rounds = (l8.iter().copied().max().unwrap_or(0).max(1) as usize).min(w);
-                for j in 0..rounds {
-                    let idx = _mm256_add_epi32(base, _mm256_set1_epi32(j as i32));
-                    // SAFETY: `idx` < 6 * CUBE_GRID^2 * w <= the length of cell_bins and of
-                    // each cell_xyz (checked above; cells clamped to the grid, j < w).
-                    let (k, dd) = unsafe {
-                        let k = _mm256_i32gather_epi32::<4>(self.cell_bins.as_ptr().cast(), idx);
-                        let px = _mm256_i32gather_ps::<4>(xyz[0].as_ptr(), idx);
-                        let py = _mm256_i32gather_ps::<4>(xyz[1].as_ptr(), idx);
-                        let pz = _mm256_i32gather_ps::<4>(xyz[2].as_ptr(), idx);
-                        let dd = _mm256_add_ps(
-                            _mm256_add_ps(_mm256_mul_ps(px, x), _mm256_mul_ps(py, y)),
-                            _mm256_mul_ps(pz, z),
-                        );
-                        (k, dd)
-                    };
-                    let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
-                    best = _mm256_blendv_epi8(best, k, _mm256_castps_si256(better));
-                    best_d = _mm256_blendv_ps(best_d, dd, better);
-                }
+                    (k, dd)
+                };
+                let better = _mm256_cmp_ps::<_CMP_GT_OQ>(dd, best_d);
+                best = _mm256_blendv_epi8(best, k, _mm256_castps_si256(better));
+                best_d = _mm256_blendv_ps(best_d, dd, better);
             }
             let mut lanes = [0u32; 8];
             // SAFETY: stores 8 u32 into an 8-u32 array.
@@ -389,9 +365,7 @@ impl SphereBins {
             }
             i += 8;
         }
-        for (j, o) in out.iter_mut().enumerate().take(n).skip(i) {
-            *o = scalar(j);
-        }
+        self.bin_many_scalar(&normals[i..n], &|j| wanted(i + j), &mut out[i..n]);
     }
 
     /// [`Self::bin`] by a search pruned by `z` (exact for unit vectors, given the bins'
