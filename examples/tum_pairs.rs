@@ -39,6 +39,17 @@ fn main() {
                 w[4].to_degrees(),
                 w[5].to_degrees()
             );
+            let e = a.cur_from_ref.inverse();
+            let v = e.log();
+            println!(
+                "    estimate prev_from_cur: t {:+.3} {:+.3} {:+.3} mm, rotation vector {:+.4} {:+.4} {:+.4} deg",
+                e.translation.x * 1e3,
+                e.translation.y * 1e3,
+                e.translation.z * 1e3,
+                v[3].to_degrees(),
+                v[4].to_degrees(),
+                v[5].to_degrees()
+            );
         }
     }
 }

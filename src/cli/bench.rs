@@ -245,6 +245,8 @@ struct Row {
     ms_p90: f64,
     ate_rmse: Option<f64>,
     rpe_rmse_per_s: Option<f64>,
+    /// Rotational RPE RMSE over 1 s windows, deg/s (TUM `evaluate_rpe` semantics).
+    rpe_rot_deg_per_s: Option<f64>,
     stages: Option<[f64; 6]>,
     peak_rss_mib: Option<f64>,
 }
@@ -369,7 +371,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
         let (peak, rss_end) = rss_mib();
         let path = a.out.join(format!("rgbid_{name}.txt"));
         write_tum(&path, &poses)?;
-        let (ate, rpe) = accuracy(gt.as_deref(), &poses);
+        let (ate, rpe, rpe_rot) = accuracy(gt.as_deref(), &poses);
         let st = [
             median(&mut stages[0]),
             median(&mut stages[1]),
@@ -399,6 +401,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
             ms_p90: percentile(&mut totals, 0.9),
             ate_rmse: ate,
             rpe_rmse_per_s: rpe,
+            rpe_rot_deg_per_s: rpe_rot,
             stages: Some(st),
             peak_rss_mib: peak,
         });
@@ -413,16 +416,23 @@ fn odometry(a: OdometryBench) -> Result<()> {
     Ok(())
 }
 
-fn accuracy(gt: Option<&[TimedPose]>, est: &[TimedPose]) -> (Option<f64>, Option<f64>) {
-    let Some(gt) = gt else { return (None, None) };
+/// ATE RMSE (m), translational RPE RMSE (m/s) and rotational RPE RMSE (deg/s) of `est`.
+fn accuracy(
+    gt: Option<&[TimedPose]>,
+    est: &[TimedPose],
+) -> (Option<f64>, Option<f64>, Option<f64>) {
+    let Some(gt) = gt else {
+        return (None, None, None);
+    };
     match rgbid::eval::evaluate(gt, est, &rgbid::eval::EvalOptions::default()) {
         Ok(r) => (
             Some(r.ate.translation.rmse),
-            r.rpe.map(|x| x.translation_m_per_s.rmse),
+            r.rpe.as_ref().map(|x| x.translation_m_per_s.rmse),
+            r.rpe.as_ref().map(|x| x.rotation_deg_per_s.rmse),
         ),
         Err(e) => {
             log::warn!("evaluation failed: {e}");
-            (None, None)
+            (None, None, None)
         }
     }
 }
@@ -467,9 +477,9 @@ fn run_peers(a: &OdometryBench, seq: &TumSequence) -> Result<Vec<Row>> {
             .groundtruth
             .as_ref()
             .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
-        let (ate, rpe) = match (&gt, &est) {
+        let (ate, rpe, rpe_rot) = match (&gt, &est) {
             (Some(g), Some(e)) => accuracy(Some(g), e),
-            _ => (v["ate_rmse"].as_f64(), v["rpe_rmse_per_s"].as_f64()),
+            _ => (v["ate_rmse"].as_f64(), v["rpe_rmse_per_s"].as_f64(), None),
         };
         rows.push(Row {
             method,
@@ -478,6 +488,7 @@ fn run_peers(a: &OdometryBench, seq: &TumSequence) -> Result<Vec<Row>> {
             ms_p90: v["ms_p90"].as_f64().unwrap_or(f64::NAN),
             ate_rmse: ate,
             rpe_rmse_per_s: rpe,
+            rpe_rot_deg_per_s: rpe_rot,
             stages: None,
             peak_rss_mib: None,
         });
@@ -490,19 +501,20 @@ fn print_table(rows: &[Row]) {
         .iter()
         .find(|r| r.method == "cv_rgbd")
         .map(|r| r.ms_median);
-    println!("\n| method | frames | ATE RMSE m | RPE m/s | median ms/frame | p90 ms | speed-up vs OpenCV RGB_DEPTH |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("\n| method | frames | ATE RMSE m | RPE m/s | RPE deg/s | median ms/frame | p90 ms | speed-up vs OpenCV RGB_DEPTH |");
+    println!("|---|---|---|---|---|---|---|---|");
     for r in rows {
         let f = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_else(|| "-".into());
         let ratio = reference
             .map(|p| format!("{:.2}x", p / r.ms_median))
             .unwrap_or_else(|| "-".into());
         println!(
-            "| {} | {} | {} | {} | {:.1} | {:.1} | {} |",
+            "| {} | {} | {} | {} | {} | {:.1} | {:.1} | {} |",
             r.method,
             r.frames,
             f(r.ate_rmse),
             f(r.rpe_rmse_per_s),
+            f(r.rpe_rot_deg_per_s),
             r.ms_median,
             r.ms_p90,
             ratio
