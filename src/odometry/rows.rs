@@ -1,8 +1,11 @@
 //! The CPU backend's hot loops: the per-pixel mathematics of [`super::kernel::pixel_terms`]
 //! and [`super::kernel::accumulate_pixel`], restructured for a CPU (row-wise, scalar
-//! temporaries, a SIMD-friendly 7x8 accumulator, no integer divisions). The same equations,
-//! operation for operation up to floating-point reassociation; `tests/odometry_parity.rs`
-//! compares them with the WGSL and the unit test below with the reference mirror.
+//! temporaries, a SIMD-friendly 7x8 accumulator, no integer divisions). Where the CPU has
+//! AVX2 and FMA, the normal-equation loop computes eight pixels at a time in lanes (`lanes`:
+//! the same operations as the scalar [`terms`], so residuals are bit-identical) and appends
+//! their terms to the sum block eight at a time. The same equations, operation for operation
+//! up to floating-point reassociation; `tests/odometry_parity.rs` compares them with the WGSL
+//! and the unit tests below with the reference mirror and with the scalar loop.
 
 use super::kernel::{WarpParams, INVALID_GRAD, INVALID_RESIDUAL, MIN_DEPTH, PARTIAL_LEN};
 use super::robust::weight;
