@@ -944,6 +944,38 @@ mod tests {
         }
     }
 
+    /// Every estimator (0-3) with each term set (bit 0 photometric, bit 1 geometric) and
+    /// geometric option (bit 0 depth parametrisation, bit 1 first-order inverse-depth
+    /// sampling) the tests cover: `(estimator, terms, param)`.
+    fn variants() -> impl Iterator<Item = (u32, u32, u32)> {
+        (0..4u32).flat_map(|est| {
+            [(3u32, 0u32), (1, 0), (2, 0), (3, 1), (3, 2), (2, 3)]
+                .map(|(terms, param)| (est, terms, param))
+        })
+    }
+
+    /// Warp parameters of a `w x h` level (f = 90, principal point `c`) at `pose`, with
+    /// `count` samples and robust scales that suit the test frames.
+    fn params(
+        w: usize,
+        h: usize,
+        c: [f32; 2],
+        count: u32,
+        v: (u32, u32, u32),
+        pose: &Se3,
+    ) -> WarpParams {
+        let (est, terms, param) = v;
+        let mut p = WarpParams {
+            dims: [w as u32, h as u32, 0, count],
+            intr: [90.0, 90.0, c[0], c[1]],
+            rot: [[0.0; 4]; 3],
+            robust: [4.0, if param & 1 == 1 { 0.01 } else { 0.003 }, 4.0, 6.0],
+            flags: [est, terms, param, 0],
+        };
+        p.set_pose(pose);
+        p
+    }
+
     /// The AVX2 lane loop (chosen by `accumulate_rows` where the CPU has AVX2 and FMA) gives
     /// the scalar loop's counts and sample bit for bit (its residuals are computed with the
     /// same operations) and the same sums up to f32 summation order (its terms fill the
@@ -965,70 +997,53 @@ mod tests {
             Se3::exp(&[0.12, 0.05, -0.03, 0.02, 0.06, -0.01]),
         ];
         for pose in poses {
-            for est in 0..4u32 {
-                for (terms_mask, param) in [(3u32, 0u32), (1, 0), (2, 0), (3, 1), (3, 2), (2, 3)] {
-                    let mut p = WarpParams {
-                        dims: [w as u32, h as u32, 0, 700],
-                        intr: [90.0, 90.0, 50.0, 18.0],
-                        rot: [[0.0; 4]; 3],
-                        robust: [4.0, if param & 1 == 1 { 0.01 } else { 0.003 }, 4.0, 6.0],
-                        flags: [est, terms_mask, param, 0],
-                    };
-                    p.set_pose(&pose);
-                    let k = Warp::new(&p);
-                    let count = p.dims[3] as usize;
-                    let run = |lanes: bool| {
-                        let mut acc = [0.0f64; PARTIAL_LEN];
-                        let mut smp = vec![[0.0f32; 2]; count];
-                        let walk = SampleWalk::new(0, count, w * h);
-                        let s = Some((&mut smp[..], walk));
-                        if lanes {
-                            accumulate_rows(
-                                &k,
-                                &a.photo,
-                                &a.geo,
-                                &b.photo,
-                                &b.geo,
-                                0..h,
-                                &mut acc,
-                                s,
-                            );
-                        } else {
-                            accumulate_rows_body(
-                                &k,
-                                &a.photo,
-                                &a.geo,
-                                &b.photo,
-                                &b.geo,
-                                0..h,
-                                &mut acc,
-                                s,
-                            );
-                        }
-                        (acc, smp)
-                    };
-                    let (la, ls) = run(true);
-                    let (sa, ss) = run(false);
-                    assert!(
-                        sa[28] + sa[29] > 500.0,
-                        "too few terms: {} {}",
-                        sa[28],
-                        sa[29]
-                    );
-                    assert_eq!(la[28], sa[28], "photometric count");
-                    assert_eq!(la[29], sa[29], "geometric count");
-                    let scale = sa.iter().take(28).map(|v| v.abs()).fold(0.0, f64::max);
-                    for i in 0..28 {
-                        assert!(
-                            (la[i] - sa[i]).abs() <= 1e-6 * scale,
-                            "entry {i} (est {est}, terms {terms_mask}, param {param}): {} vs {}",
-                            la[i],
-                            sa[i]
+            for v in variants() {
+                let (est, terms_mask, param) = v;
+                let p = params(w, h, [50.0, 18.0], 700, v, &pose);
+                let k = Warp::new(&p);
+                let count = p.dims[3] as usize;
+                let run = |lanes: bool| {
+                    let mut acc = [0.0f64; PARTIAL_LEN];
+                    let mut smp = vec![[0.0f32; 2]; count];
+                    let walk = SampleWalk::new(0, count, w * h);
+                    let s = Some((&mut smp[..], walk));
+                    if lanes {
+                        accumulate_rows(&k, &a.photo, &a.geo, &b.photo, &b.geo, 0..h, &mut acc, s);
+                    } else {
+                        accumulate_rows_body(
+                            &k,
+                            &a.photo,
+                            &a.geo,
+                            &b.photo,
+                            &b.geo,
+                            0..h,
+                            &mut acc,
+                            s,
                         );
                     }
-                    for (x, y) in ls.iter().zip(&ss) {
-                        assert_eq!(x.map(f32::to_bits), y.map(f32::to_bits));
-                    }
+                    (acc, smp)
+                };
+                let (la, ls) = run(true);
+                let (sa, ss) = run(false);
+                assert!(
+                    sa[28] + sa[29] > 500.0,
+                    "too few terms: {} {}",
+                    sa[28],
+                    sa[29]
+                );
+                assert_eq!(la[28], sa[28], "photometric count");
+                assert_eq!(la[29], sa[29], "geometric count");
+                let scale = sa.iter().take(28).map(|v| v.abs()).fold(0.0, f64::max);
+                for i in 0..28 {
+                    assert!(
+                        (la[i] - sa[i]).abs() <= 1e-6 * scale,
+                        "entry {i} (est {est}, terms {terms_mask}, param {param}): {} vs {}",
+                        la[i],
+                        sa[i]
+                    );
+                }
+                for (x, y) in ls.iter().zip(&ss) {
+                    assert_eq!(x.map(f32::to_bits), y.map(f32::to_bits));
                 }
             }
         }
@@ -1042,96 +1057,85 @@ mod tests {
         let a = CpuPyramid::build(&frame(w, h, 0.0), 1);
         let b = CpuPyramid::build(&frame(w, h, 1.3), 1);
         let pose = Se3::exp(&[0.01, -0.004, 0.02, 0.003, -0.005, 0.002]);
-        for est in 0..4u32 {
-            // param: bit 0 depth parametrisation, bit 1 first-order inverse-depth sampling.
-            for (terms_mask, param) in [(3u32, 0u32), (1, 0), (2, 0), (3, 1), (3, 2), (2, 3)] {
-                let mut p = WarpParams {
-                    dims: [w as u32, h as u32, 0, 1000],
-                    intr: [90.0, 90.0, 47.5, 35.5],
-                    rot: [[0.0; 4]; 3],
-                    robust: [4.0, if param & 1 == 1 { 0.01 } else { 0.003 }, 4.0, 6.0],
-                    flags: [est, terms_mask, param, 0],
-                };
-                p.set_pose(&pose);
-                let mut want = [0.0f32; PARTIAL_LEN];
-                for i in 0..w * h {
-                    accumulate_pixel(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, &mut want);
-                }
-                let mut got = [0.0f64; PARTIAL_LEN];
-                accumulate_rows(
-                    &Warp::new(&p),
-                    &a.photo,
-                    &a.geo,
-                    &b.photo,
-                    &b.geo,
-                    0..h,
-                    &mut got,
-                    None,
+        for v in variants() {
+            let p = params(w, h, [47.5, 35.5], 1000, v, &pose);
+            let mut want = [0.0f32; PARTIAL_LEN];
+            for i in 0..w * h {
+                accumulate_pixel(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, &mut want);
+            }
+            let mut got = [0.0f64; PARTIAL_LEN];
+            accumulate_rows(
+                &Warp::new(&p),
+                &a.photo,
+                &a.geo,
+                &b.photo,
+                &b.geo,
+                0..h,
+                &mut got,
+                None,
+            );
+            assert_eq!(got[28] as f32, want[28], "photometric count");
+            assert_eq!(got[29] as f32, want[29], "geometric count");
+            assert!(want[28] + want[29] > 1000.0);
+            let scale = want.iter().take(28).map(|v| v.abs()).fold(0.0, f32::max) as f64;
+            for i in 0..28 {
+                let d = (got[i] - f64::from(want[i])).abs();
+                assert!(
+                    d <= 1e-4 * scale + 1e-4 * got[i].abs(),
+                    "entry {i}: {} vs {}",
+                    got[i],
+                    want[i]
                 );
-                assert_eq!(got[28] as f32, want[28], "photometric count");
-                assert_eq!(got[29] as f32, want[29], "geometric count");
-                assert!(want[28] + want[29] > 1000.0);
-                let scale = want.iter().take(28).map(|v| v.abs()).fold(0.0, f32::max) as f64;
-                for i in 0..28 {
-                    let d = (got[i] - f64::from(want[i])).abs();
-                    assert!(
-                        d <= 1e-4 * scale + 1e-4 * got[i].abs(),
-                        "entry {i}: {} vs {}",
-                        got[i],
-                        want[i]
-                    );
-                }
-                // The sample taken during the reduction equals the separate sample pass.
-                let (_, fused) =
-                    crate::odometry::cpu::normal_equations_and_sample(&p, &a, &b, 0, 5);
-                let separate = crate::odometry::cpu::sample_residuals(&p, &a, &b, 0);
-                assert_eq!(fused.len(), separate.len());
-                for (f, s) in fused.iter().zip(&separate) {
-                    assert!(
-                        (f[0] - s[0]).abs() <= 1e-5 * s[0].abs().max(1.0),
-                        "{f:?} vs {s:?}"
-                    );
-                    assert!(
-                        (f[1] - s[1]).abs() <= 1e-5 * s[1].abs().max(1.0),
-                        "{f:?} vs {s:?}"
-                    );
-                }
-                // The incremental sample walks the same pixels as `sample_index`.
-                let count = 1000usize;
-                let mut s = vec![[0.0f32; 2]; count];
-                sample_range(
-                    &Warp::new(&p),
-                    &a.photo,
-                    &a.geo,
-                    &b.photo,
-                    &b.geo,
-                    0,
-                    count,
-                    &mut s[..600],
+            }
+            // The sample taken during the reduction equals the separate sample pass.
+            let (_, fused) = crate::odometry::cpu::normal_equations_and_sample(&p, &a, &b, 0, 5);
+            let separate = crate::odometry::cpu::sample_residuals(&p, &a, &b, 0);
+            assert_eq!(fused.len(), separate.len());
+            for (f, s) in fused.iter().zip(&separate) {
+                assert!(
+                    (f[0] - s[0]).abs() <= 1e-5 * s[0].abs().max(1.0),
+                    "{f:?} vs {s:?}"
                 );
-                sample_range(
-                    &Warp::new(&p),
-                    &a.photo,
-                    &a.geo,
-                    &b.photo,
-                    &b.geo,
-                    600,
-                    count,
-                    &mut s[600..],
+                assert!(
+                    (f[1] - s[1]).abs() <= 1e-5 * s[1].abs().max(1.0),
+                    "{f:?} vs {s:?}"
                 );
-                for (kk, got) in s.iter().enumerate() {
-                    let i = sample_index(kk as u32, count as u32, (w * h) as u32) as usize;
-                    let t = pixel_terms(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, false);
-                    let want = [
-                        t.r_photo.unwrap_or(INVALID_RESIDUAL),
-                        t.r_geo.unwrap_or(INVALID_RESIDUAL),
-                    ];
-                    for c in 0..2 {
-                        assert!(
-                            (got[c] - want[c]).abs() <= 1e-5 * want[c].abs().max(1.0),
-                            "sample {kk}: {got:?} vs {want:?}"
-                        );
-                    }
+            }
+            // The incremental sample walks the same pixels as `sample_index`.
+            let count = 1000usize;
+            let mut s = vec![[0.0f32; 2]; count];
+            sample_range(
+                &Warp::new(&p),
+                &a.photo,
+                &a.geo,
+                &b.photo,
+                &b.geo,
+                0,
+                count,
+                &mut s[..600],
+            );
+            sample_range(
+                &Warp::new(&p),
+                &a.photo,
+                &a.geo,
+                &b.photo,
+                &b.geo,
+                600,
+                count,
+                &mut s[600..],
+            );
+            for (kk, got) in s.iter().enumerate() {
+                let i = sample_index(kk as u32, count as u32, (w * h) as u32) as usize;
+                let t = pixel_terms(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, false);
+                let want = [
+                    t.r_photo.unwrap_or(INVALID_RESIDUAL),
+                    t.r_geo.unwrap_or(INVALID_RESIDUAL),
+                ];
+                for c in 0..2 {
+                    assert!(
+                        (got[c] - want[c]).abs() <= 1e-5 * want[c].abs().max(1.0),
+                        "sample {kk}: {got:?} vs {want:?}"
+                    );
                 }
             }
         }
