@@ -236,9 +236,16 @@ fn accumulate_rows_avx2(
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
     let n = k.w * k.h;
-    if ref_photo.len() >= n && ref_geo.len() >= n && cur_photo.len() >= n && cur_geo.len() >= n {
-        // SAFETY: this function runs only with AVX2 and FMA enabled, and the sizes are
-        // checked above.
+    // The lanes gather with i32 float offsets (4 per pixel).
+    let fits_i32 = n < (i32::MAX as usize) / 4 - 8;
+    if fits_i32
+        && ref_photo.len() >= n
+        && ref_geo.len() >= n
+        && cur_photo.len() >= n
+        && cur_geo.len() >= n
+    {
+        // SAFETY: this function runs only with AVX2 and FMA enabled, and the buffer sizes
+        // and the offset range are checked above.
         unsafe {
             lanes::accumulate_rows_lanes(
                 k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample,
@@ -367,9 +374,10 @@ fn dot(x: &[f32; BLOCK], y: &[f32; BLOCK]) -> f32 {
     lanes.iter().flatten().sum::<f32>()
 }
 
-/// What the row loops do with one reference pixel's terms: the sample slot (if the pixel is
-/// sampled), the weighted sums and the counts. Both the scalar and the lane loops feed it
-/// pixel by pixel in row order, so their sums are the same.
+/// What the row loops do with a reference pixel's terms: the sample slot (if the pixel is
+/// sampled), the weighted sums and the counts. The scalar loop feeds it pixel by pixel; the
+/// lane loop records its samples and counts the same way and appends its terms to the same
+/// block eight at a time (`TermBlock::push8`).
 struct Consumer<'a> {
     slots: &'a mut [[f32; 2]],
     slot: usize,
