@@ -561,7 +561,8 @@ mod lanes {
     /// The rows `rows` of [`super::accumulate_rows`], eight pixels at a time.
     ///
     /// # Safety
-    /// The CPU has AVX2 and FMA, and all four buffers hold at least `k.w * k.h` pixels.
+    /// The CPU has AVX2 and FMA, all four buffers hold at least `k.w * k.h` pixels, and
+    /// `4 * k.w * k.h + 32` fits an `i32` (the gathers' float offsets).
     #[target_feature(enable = "avx2,fma")]
     #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn accumulate_rows_lanes(
