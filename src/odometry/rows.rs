@@ -537,25 +537,62 @@ mod lanes {
     use super::*;
     use std::arch::x86_64::*;
 
-    /// Terms of eight pixels, one array entry per lane.
+    /// One kind of term (photometric or geometric) of eight pixels, one entry per lane.
+    #[derive(Default)]
+    struct Terms8 {
+        /// Residuals, [`INVALID_RESIDUAL`] where there is none (for the sample).
+        r: [f32; 8],
+        /// The same with 0 where there is none, the Jacobians and the IRLS weights over
+        /// sigma^2 (0 there too): ready to be summed.
+        rz: [f32; 8],
+        j: [[f32; 8]; 6],
+        w: [f32; 8],
+        /// Number of valid terms.
+        n: u32,
+    }
+
+    impl Terms8 {
+        /// No term in any lane.
+        fn none(&mut self) {
+            self.r = [INVALID_RESIDUAL; 8];
+            self.n = 0;
+        }
+
+        /// Residuals `res` where `valid`, with their weights (estimator `est`, scale
+        /// `sigma`, `isig2 = 1 / sigma^2`, degrees of freedom `nu`) and the Jacobians of
+        /// [`jacobian8`] from the image gradient `(gu, gv)` and depth term `dz`.
+        #[target_feature(enable = "avx2,fma")]
+        #[inline]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn set(
+            &mut self,
+            res: __m256,
+            valid: __m256,
+            (est, sigma, isig2, nu): (u32, f32, f32, f32),
+            (fx, fy): (__m256, __m256),
+            (gu, gv, dz): (__m256, __m256, __m256),
+            q: [__m256; 3],
+            iz: __m256,
+        ) {
+            unsafe {
+                let invalid = _mm256_set1_ps(INVALID_RESIDUAL);
+                _mm256_storeu_ps(self.r.as_mut_ptr(), _mm256_blendv_ps(invalid, res, valid));
+                _mm256_storeu_ps(self.rz.as_mut_ptr(), _mm256_and_ps(res, valid));
+                let wt = weights8(est, res, valid, sigma, isig2, nu);
+                _mm256_storeu_ps(self.w.as_mut_ptr(), wt);
+                self.n = _mm256_movemask_ps(valid).count_ones();
+                jacobian8(fx, fy, gu, gv, dz, q, iz, valid, &mut self.j);
+            }
+        }
+    }
+
+    /// Terms of eight pixels.
     #[derive(Default)]
     struct Eight {
         /// Reference pixel has depth.
         has_depth: [bool; 8],
-        /// Residuals, [`INVALID_RESIDUAL`] where there is none (for the sample).
-        r_p: [f32; 8],
-        r_g: [f32; 8],
-        /// The same with 0 where there is none, and Jacobians (0 there too), and IRLS
-        /// weights over sigma^2 (0 there too): ready to be summed.
-        rz_p: [f32; 8],
-        rz_g: [f32; 8],
-        j_p: [[f32; 8]; 6],
-        j_g: [[f32; 8]; 6],
-        w_p: [f32; 8],
-        w_g: [f32; 8],
-        /// Number of valid photometric / geometric terms.
-        n_p: u32,
-        n_g: u32,
+        photo: Terms8,
+        geo: Terms8,
     }
 
     /// The rows `rows` of [`super::accumulate_rows`], eight pixels at a time.
@@ -589,18 +626,18 @@ mod lanes {
                 while c.slot < c.slots.len() && c.walk.i < i0 + 8 {
                     let l = c.walk.i - i0;
                     c.record(if e.has_depth[l] {
-                        [e.r_p[l], e.r_g[l]]
+                        [e.photo.r[l], e.geo.r[l]]
                     } else {
                         [INVALID_RESIDUAL; 2]
                     });
                 }
-                if e.n_p > 0 {
-                    c.buf.push8(&e.j_p, &e.rz_p, &e.w_p, out);
-                    c.n_photo += u64::from(e.n_p);
+                if e.photo.n > 0 {
+                    c.buf.push8(&e.photo.j, &e.photo.rz, &e.photo.w, out);
+                    c.n_photo += u64::from(e.photo.n);
                 }
-                if e.n_g > 0 {
-                    c.buf.push8(&e.j_g, &e.rz_g, &e.w_g, out);
-                    c.n_geo += u64::from(e.n_g);
+                if e.geo.n > 0 {
+                    c.buf.push8(&e.geo.j, &e.geo.rz, &e.geo.w, out);
+                    c.n_geo += u64::from(e.geo.n);
                 }
                 x += 8;
             }
@@ -783,7 +820,6 @@ mod lanes {
             valid = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_LT_OQ>(u, set(k.wm1)));
             valid = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_LT_OQ>(v, set(k.hm1)));
             let q = [qx, qy, qz];
-            let invalid_r = set(INVALID_RESIDUAL);
             let wv = _mm256_set1_epi32(k.w as i32);
             let mut hd = [0.0f32; 8];
             _mm256_storeu_ps(hd.as_mut_ptr(), has_depth);
@@ -814,15 +850,11 @@ mod lanes {
                 let c1 = bilinear(base, corners, weights, 1, valid);
                 let c2 = bilinear(base, corners, weights, 2, valid);
                 let rp = _mm256_sub_ps(c0, ref_i);
-                _mm256_storeu_ps(e.r_p.as_mut_ptr(), _mm256_blendv_ps(invalid_r, rp, valid));
-                _mm256_storeu_ps(e.rz_p.as_mut_ptr(), _mm256_and_ps(rp, valid));
-                let wt = weights8(c.est, rp, valid, c.sp, c.isp2, c.nu[0]);
-                _mm256_storeu_ps(e.w_p.as_mut_ptr(), wt);
-                e.n_p = _mm256_movemask_ps(valid).count_ones();
-                jacobian8(fx, fy, c1, c2, zero, q, iz, valid, &mut e.j_p);
+                let robust = (c.est, c.sp, c.isp2, c.nu[0]);
+                e.photo
+                    .set(rp, valid, robust, (fx, fy), (c1, c2, zero), q, iz);
             } else {
-                e.r_p = [INVALID_RESIDUAL; 8];
-                e.n_p = 0;
+                e.photo.none();
             }
             if k.geo {
                 let half = set(0.5);
@@ -864,15 +896,11 @@ mod lanes {
                 } else {
                     (_mm256_sub_ps(rho, iz), g1, g2, _mm256_mul_ps(iz, iz))
                 };
-                _mm256_storeu_ps(e.r_g.as_mut_ptr(), _mm256_blendv_ps(invalid_r, res, gvalid));
-                _mm256_storeu_ps(e.rz_g.as_mut_ptr(), _mm256_and_ps(res, gvalid));
-                let wt = weights8(c.est, res, gvalid, c.sg, c.isg2, c.nu[1]);
-                _mm256_storeu_ps(e.w_g.as_mut_ptr(), wt);
-                e.n_g = _mm256_movemask_ps(gvalid).count_ones();
-                jacobian8(fx, fy, gu, gv, dz, q, iz, gvalid, &mut e.j_g);
+                let robust = (c.est, c.sg, c.isg2, c.nu[1]);
+                e.geo
+                    .set(res, gvalid, robust, (fx, fy), (gu, gv, dz), q, iz);
             } else {
-                e.r_g = [INVALID_RESIDUAL; 8];
-                e.n_g = 0;
+                e.geo.none();
             }
         }
     }
