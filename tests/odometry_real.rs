@@ -132,13 +132,9 @@ fn known_gap_real_data_tum_pairs_match_opencv() {
     );
 }
 
-/// The bar on the named sequence: with the default configuration, the CPU backend's
-/// ATE and RPE over all 300 frames of redkitchen are no worse than OpenCV 5 RGB_DEPTH's
-/// (0.033 m and 0.035 m/s, `../shared/data/README.md`, the same sequence and metrics). Measured
-/// here: 0.0301 m and 0.0348 m/s.
-#[test]
-#[ignore = "needs ../shared/data (runs in CI's real-data stage)"]
-fn real_data_redkitchen_default_odometry_is_no_worse_than_opencv() {
+/// Default odometry (CPU backend) over all 300 frames of redkitchen, evaluated against its
+/// ground truth.
+fn redkitchen_default_metrics() -> rgbid::eval::TrajectoryMetrics {
     use rgbid::io::tum::{OpenOptions, TumSequence};
     let dir = common::shared_data().join("rgbd/redkitchen_0_299");
     let seq = TumSequence::open(&dir, &OpenOptions::default()).expect("redkitchen");
@@ -159,7 +155,33 @@ fn real_data_redkitchen_default_odometry_is_no_worse_than_opencv() {
             world_from_camera: r.world_from_camera,
         });
     }
-    let m = rgbid::eval::evaluate(&gt, &est, &rgbid::eval::EvalOptions::default()).expect("eval");
+    rgbid::eval::evaluate(&gt, &est, &rgbid::eval::EvalOptions::default()).expect("eval")
+}
+
+/// The rotational RPE (RMSE over 1 s windows) of OpenCV 5 RGB_DEPTH on redkitchen, 1.958
+/// deg/s, from `rgbid bench odometry ... --peers cv_rgbd` (its trajectory scored by rgbid's
+/// evaluator). rgbid is at 1.973 deg/s, 0.8 % behind, while its mean and median are lower
+/// (README "Rotation on redkitchen").
+#[test]
+#[ignore = "known gap: rotational RPE 0.8 % behind OpenCV; needs ../shared/data"]
+fn known_gap_real_data_redkitchen_rotation_rpe_matches_opencv() {
+    let m = redkitchen_default_metrics();
+    let rot = m.rpe.expect("1 s pairs").rotation_deg_per_s.rmse;
+    println!("redkitchen 300 frames: rotational RPE {rot:.4} deg/s");
+    assert!(
+        rot <= 1.958,
+        "rotational RPE {rot} deg/s worse than OpenCV RGB_DEPTH (1.958 deg/s)"
+    );
+}
+
+/// The bar on the named sequence: with the default configuration, the CPU backend's
+/// ATE and RPE over all 300 frames of redkitchen are no worse than OpenCV 5 RGB_DEPTH's
+/// (0.033 m and 0.035 m/s, `../shared/data/README.md`, the same sequence and metrics). Measured
+/// here: 0.0301 m and 0.0348 m/s.
+#[test]
+#[ignore = "needs ../shared/data (runs in CI's real-data stage)"]
+fn real_data_redkitchen_default_odometry_is_no_worse_than_opencv() {
+    let m = redkitchen_default_metrics();
     let ate = m.ate.translation.rmse;
     let rpe = m.rpe.expect("1 s pairs").translation_m_per_s.rmse;
     println!("redkitchen 300 frames: ATE {ate:.4} m, RPE {rpe:.4} m/s");
