@@ -20,17 +20,10 @@ import numpy as np
 from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
+from tum_pairs_opencv import K, pose
+
 DATA = sys.argv[1] if len(sys.argv) > 1 else "../shared/data/rgbd/tum_pairs"
-K = np.array([[525, 0, 319.5], [0, 525, 239.5], [0, 0, 1]], np.float32)
 SCALES = [0.95, 0.97, 1.0, 1.03, 1.0703, 1.09]
-
-
-def pose(path):
-    v = [float(x) for x in open(path).read().split()]
-    t = np.eye(4)
-    t[:3, :3] = Rotation.from_quat(v[3:7]).as_matrix()
-    t[:3, 3] = v[:3]
-    return t
 
 
 def rgbid_estimates(text):

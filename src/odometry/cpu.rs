@@ -7,7 +7,7 @@ use super::kernel::{
     bilateral, covisible, downsample, gradients_of_lane, pack_level0, FilterParams, WarpParams,
     INVALID_RESIDUAL, PARTIAL_LEN,
 };
-use super::rows::{accumulate_rows, first_sample_at, sample_range, SampleWalk, Warp};
+use super::rows::{accumulate_rows, first_sample_at, sample_range, Buffers, SampleWalk, Warp};
 use crate::image::RgbdFrame;
 
 /// Dimensions and offset of one pyramid level within a frame's buffers.
@@ -199,6 +199,22 @@ fn write_gradients(photo: &mut [[f32; 4]], geo: &mut [[f32; 4]], l: &LevelLayout
         });
 }
 
+/// The buffers of `level` of `reference` and `current` that one warp reads.
+fn level_buffers<'a>(
+    reference: &'a CpuPyramid,
+    current: &'a CpuPyramid,
+    level: usize,
+) -> Buffers<'a> {
+    let (ref_photo, ref_geo) = reference.level(level);
+    let (cur_photo, cur_geo) = current.level(level);
+    Buffers {
+        ref_photo,
+        ref_geo,
+        cur_photo,
+        cur_geo,
+    }
+}
+
 /// Systematic sample of residuals `(r_photo, r_geo)`, `INVALID_RESIDUAL` where invalid.
 pub fn sample_residuals(
     p: &WarpParams,
@@ -206,15 +222,14 @@ pub fn sample_residuals(
     current: &CpuPyramid,
     level: usize,
 ) -> Vec<[f32; 2]> {
-    let (rp, rg) = reference.level(level);
-    let (cp, cg) = current.level(level);
+    let bufs = level_buffers(reference, current, level);
     let count = p.dims[3] as usize;
     let k = Warp::new(p);
     let mut out = vec![[INVALID_RESIDUAL; 2]; count];
     const BLOCK: usize = 2048;
     out.par_chunks_mut(BLOCK)
         .enumerate()
-        .for_each(|(b, chunk)| sample_range(&k, rp, rg, cp, cg, b * BLOCK, count, chunk));
+        .for_each(|(b, chunk)| sample_range(&k, &bufs, b * BLOCK, count, chunk));
     out
 }
 
@@ -227,8 +242,7 @@ pub fn normal_equation_partials(
     level: usize,
     chunks: usize,
 ) -> Vec<[f32; PARTIAL_LEN]> {
-    let (rp, rg) = reference.level(level);
-    let (cp, cg) = current.level(level);
+    let bufs = level_buffers(reference, current, level);
     let h = p.dims[1] as usize;
     let k = Warp::new(p);
     let rows_per = h.div_ceil(chunks.max(1)).max(1);
@@ -237,7 +251,7 @@ pub fn normal_equation_partials(
         .map(|c| {
             let mut acc = [0.0f64; PARTIAL_LEN];
             let rows = c * rows_per..((c + 1) * rows_per).min(h);
-            accumulate_rows(&k, rp, rg, cp, cg, rows, &mut acc, None);
+            accumulate_rows(&k, &bufs, rows, &mut acc, None);
             acc.map(|v| v as f32)
         })
         .collect()
@@ -252,8 +266,7 @@ pub fn normal_equations_and_sample(
     level: usize,
     chunks: usize,
 ) -> super::kernel::PartialsAndSample {
-    let (rp, rg) = reference.level(level);
-    let (cp, cg) = current.level(level);
+    let bufs = level_buffers(reference, current, level);
     let (w, h) = (p.dims[0] as usize, p.dims[1] as usize);
     let (n, count) = (w * h, p.dims[3] as usize);
     let k = Warp::new(p);
@@ -268,16 +281,7 @@ pub fn normal_equations_and_sample(
             let mut sample = vec![[INVALID_RESIDUAL; 2]; k_hi - k_lo];
             let mut acc = [0.0f64; PARTIAL_LEN];
             let walk = SampleWalk::new(k_lo, count, n);
-            accumulate_rows(
-                &k,
-                rp,
-                rg,
-                cp,
-                cg,
-                rows,
-                &mut acc,
-                Some((&mut sample, walk)),
-            );
+            accumulate_rows(&k, &bufs, rows, &mut acc, Some((&mut sample, walk)));
             (acc.map(|v| v as f32), sample)
         })
         .collect();

@@ -10,6 +10,16 @@
 use super::kernel::{WarpParams, INVALID_GRAD, INVALID_RESIDUAL, MIN_DEPTH, PARTIAL_LEN};
 use super::robust::weight;
 
+/// The four buffers one warp reads, all of the same pyramid level: the reference frame's
+/// `(I, dI/du, dI/dv, 0)` and `(rho, drho/du, drho/dv, z)` per pixel, and the current frame's.
+#[derive(Clone, Copy)]
+pub(crate) struct Buffers<'a> {
+    pub(crate) ref_photo: &'a [[f32; 4]],
+    pub(crate) ref_geo: &'a [[f32; 4]],
+    pub(crate) cur_photo: &'a [[f32; 4]],
+    pub(crate) cur_geo: &'a [[f32; 4]],
+}
+
 /// Level constants of one warp, unpacked from [`WarpParams`].
 #[derive(Clone)]
 pub(crate) struct Warp {
@@ -69,15 +79,13 @@ impl Warp {
 /// `z = 1 / rho` (rho > 0) and normalised coordinates `rx = (x - cx) / fx`,
 /// `ry = (y - cy) / fy`. `INVALID_RESIDUAL` marks an invalid residual.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn terms<const JAC: bool>(
     k: &Warp,
     ref_i: f32,
     z: f32,
     rx: f32,
     ry: f32,
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
+    bufs: &Buffers,
 ) -> (f32, [f32; 6], f32, [f32; 6]) {
     let invalid = (INVALID_RESIDUAL, [0.0; 6], INVALID_RESIDUAL, [0.0; 6]);
     let px = rx * z;
@@ -101,8 +109,8 @@ fn terms<const JAC: bool>(
         let (xi, yi) = (u as i32 as usize, v as i32 as usize);
         let (ax, ay) = (u - xi as f32, v - yi as f32);
         let i0 = yi * k.w + xi;
-        let top = &cur_photo[i0..i0 + 2];
-        let bot = &cur_photo[i0 + k.w..i0 + k.w + 2];
+        let top = &bufs.cur_photo[i0..i0 + 2];
+        let bot = &bufs.cur_photo[i0 + k.w..i0 + k.w + 2];
         let (b00, b10, b01, b11) = (
             (1.0 - ax) * (1.0 - ay),
             ax * (1.0 - ay),
@@ -119,7 +127,7 @@ fn terms<const JAC: bool>(
     }
     if k.geo {
         let (xn, yn) = ((u + 0.5) as i32 as usize, (v + 0.5) as i32 as usize);
-        let g = cur_geo[yn * k.w + xn];
+        let g = bufs.cur_geo[yn * k.w + xn];
         if g[0] > 0.0 && g[1] != INVALID_GRAD {
             // Nearest sample, or its first-order extension to (u, v) along the stored
             // gradient (`GeometricSampling::Linear`).
@@ -198,13 +206,9 @@ pub(crate) fn first_sample_at(i: usize, count: usize, n: usize) -> usize {
 }
 
 /// Accumulates the IRLS normal equations of rows `rows` of the reference level.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn accumulate_rows(
     k: &Warp,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
+    bufs: &Buffers,
     rows: std::ops::Range<usize>,
     out: &mut [f64; PARTIAL_LEN],
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
@@ -214,23 +218,19 @@ pub(crate) fn accumulate_rows(
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU supports the features enabled on `accumulate_rows_avx2`.
             unsafe {
-                accumulate_rows_avx2(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
+                accumulate_rows_avx2(k, bufs, rows, out, sample);
             }
             return;
         }
     }
-    accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
+    accumulate_rows_body(k, bufs, rows, out, sample);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
 fn accumulate_rows_avx2(
     k: &Warp,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
+    bufs: &Buffers,
     rows: std::ops::Range<usize>,
     out: &mut [f64; PARTIAL_LEN],
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
@@ -239,20 +239,18 @@ fn accumulate_rows_avx2(
     // The lanes gather with i32 float offsets (4 per pixel).
     let fits_i32 = n < (i32::MAX as usize) / 4 - 8;
     if fits_i32
-        && ref_photo.len() >= n
-        && ref_geo.len() >= n
-        && cur_photo.len() >= n
-        && cur_geo.len() >= n
+        && bufs.ref_photo.len() >= n
+        && bufs.ref_geo.len() >= n
+        && bufs.cur_photo.len() >= n
+        && bufs.cur_geo.len() >= n
     {
         // SAFETY: this function runs only with AVX2 and FMA enabled, and the buffer sizes
         // and the offset range are checked above.
         unsafe {
-            lanes::accumulate_rows_lanes(
-                k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample,
-            );
+            lanes::accumulate_rows_lanes(k, bufs, rows, out, sample);
         }
     } else {
-        accumulate_rows_body(k, ref_photo, ref_geo, cur_photo, cur_geo, rows, out, sample);
+        accumulate_rows_body(k, bufs, rows, out, sample);
     }
 }
 
@@ -472,13 +470,9 @@ impl<'a> Consumer<'a> {
 
 /// The scalar terms of reference pixels `xs` of row `y`, fed to `c`.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn scalar_pixels(
     k: &Warp,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
+    bufs: &Buffers,
     y: usize,
     xs: std::ops::Range<usize>,
     c: &mut Consumer,
@@ -488,42 +482,28 @@ fn scalar_pixels(
     let ry = k.ry[y];
     for x in xs {
         let i = y * w + x;
-        let gi = ref_geo[i];
+        let gi = bufs.ref_geo[i];
         // geo.w caches z = 1 / rho (see `CpuPyramid`).
         if gi[0] <= 0.0 {
             c.skip(i);
             continue;
         }
-        let t = terms::<true>(k, ref_photo[i][0], gi[3], k.rx[x], ry, cur_photo, cur_geo);
+        let t = terms::<true>(k, bufs.ref_photo[i][0], gi[3], k.rx[x], ry, bufs);
         c.pixel(i, t, out);
     }
 }
 
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn accumulate_rows_body(
     k: &Warp,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
+    bufs: &Buffers,
     rows: std::ops::Range<usize>,
     out: &mut [f64; PARTIAL_LEN],
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
     let mut c = Consumer::new(k, sample);
     for y in rows {
-        scalar_pixels(
-            k,
-            ref_photo,
-            ref_geo,
-            cur_photo,
-            cur_geo,
-            y,
-            0..k.w,
-            &mut c,
-            out,
-        );
+        scalar_pixels(k, bufs, y, 0..k.w, &mut c, out);
     }
     c.finish(out);
 }
@@ -601,13 +581,9 @@ mod lanes {
     /// The CPU has AVX2 and FMA, all four buffers hold at least `k.w * k.h` pixels, and
     /// `4 * k.w * k.h + 32` fits an `i32` (the gathers' float offsets).
     #[target_feature(enable = "avx2,fma")]
-    #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn accumulate_rows_lanes(
         k: &Warp,
-        ref_photo: &[[f32; 4]],
-        ref_geo: &[[f32; 4]],
-        cur_photo: &[[f32; 4]],
-        cur_geo: &[[f32; 4]],
+        bufs: &Buffers,
         rows: std::ops::Range<usize>,
         out: &mut [f64; PARTIAL_LEN],
         sample: Option<(&mut [[f32; 2]], SampleWalk)>,
@@ -620,40 +596,37 @@ mod lanes {
             while x + 8 <= w {
                 // SAFETY: pixels y * w + x .. + 8 are inside the level (x + 8 <= w, y < h),
                 // and the caller guarantees the buffer sizes and CPU features.
-                unsafe { eight(k, &c, ref_photo, ref_geo, cur_photo, cur_geo, y, x, &mut e) };
-                // The sampled pixels among these eight (the walk's pixels increase).
-                let i0 = y * w + x;
-                while c.slot < c.slots.len() && c.walk.i < i0 + 8 {
-                    let l = c.walk.i - i0;
-                    c.record(if e.has_depth[l] {
-                        [e.photo.r[l], e.geo.r[l]]
-                    } else {
-                        [INVALID_RESIDUAL; 2]
-                    });
-                }
-                if e.photo.n > 0 {
-                    c.buf.push8(&e.photo.j, &e.photo.rz, &e.photo.w, out);
-                    c.n_photo += u64::from(e.photo.n);
-                }
-                if e.geo.n > 0 {
-                    c.buf.push8(&e.geo.j, &e.geo.rz, &e.geo.w, out);
-                    c.n_geo += u64::from(e.geo.n);
-                }
+                unsafe { eight(k, &c, bufs, y, x, &mut e) };
+                c.eight(y * w + x, &e, out);
                 x += 8;
             }
-            scalar_pixels(
-                k,
-                ref_photo,
-                ref_geo,
-                cur_photo,
-                cur_geo,
-                y,
-                x..w,
-                &mut c,
-                out,
-            );
+            scalar_pixels(k, bufs, y, x..w, &mut c, out);
         }
         c.finish(out);
+    }
+
+    impl Consumer<'_> {
+        /// The terms `e` of pixels `i0 .. i0 + 8`: their samples (the walk's pixels
+        /// increase), sums and counts.
+        #[inline(always)]
+        fn eight(&mut self, i0: usize, e: &Eight, out: &mut [f64; PARTIAL_LEN]) {
+            while self.slot < self.slots.len() && self.walk.i < i0 + 8 {
+                let l = self.walk.i - i0;
+                self.record(if e.has_depth[l] {
+                    [e.photo.r[l], e.geo.r[l]]
+                } else {
+                    [INVALID_RESIDUAL; 2]
+                });
+            }
+            if e.photo.n > 0 {
+                self.buf.push8(&e.photo.j, &e.photo.rz, &e.photo.w, out);
+                self.n_photo += u64::from(e.photo.n);
+            }
+            if e.geo.n > 0 {
+                self.buf.push8(&e.geo.j, &e.geo.rz, &e.geo.w, out);
+                self.n_geo += u64::from(e.geo.n);
+            }
+        }
     }
 
     /// Lane `c` of the eight `[f32; 4]` pixels at `idx4` (an index in floats, 4 per pixel),
@@ -778,29 +751,23 @@ mod lanes {
     /// The terms of pixels `x .. x + 8` of row `y` into `e`.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn eight(
-        k: &Warp,
-        c: &Consumer,
-        ref_photo: &[[f32; 4]],
-        ref_geo: &[[f32; 4]],
-        cur_photo: &[[f32; 4]],
-        cur_geo: &[[f32; 4]],
-        y: usize,
-        x: usize,
-        e: &mut Eight,
-    ) {
+    unsafe fn eight(k: &Warp, c: &Consumer, bufs: &Buffers, y: usize, x: usize, e: &mut Eight) {
         unsafe {
             let i = y * k.w + x;
             let set = _mm256_set1_ps;
             let all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
             let stride4 = _mm256_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28);
-            let rg_base = ref_geo.as_ptr().add(i) as *const f32;
+            let rg_base = bufs.ref_geo.as_ptr().add(i) as *const f32;
             let rho_ref = gather(rg_base, stride4, 0, all);
             let z = gather(rg_base, stride4, 3, all);
             // `!(rho <= 0)`, as the scalar test (NaN counts as depth there too).
             let has_depth = _mm256_cmp_ps::<_CMP_NLE_UQ>(rho_ref, _mm256_setzero_ps());
-            let ref_i = gather(ref_photo.as_ptr().add(i) as *const f32, stride4, 0, all);
+            let ref_i = gather(
+                bufs.ref_photo.as_ptr().add(i) as *const f32,
+                stride4,
+                0,
+                all,
+            );
             let rx = _mm256_loadu_ps(k.rx.as_ptr().add(x));
             let ry = set(k.ry[y]);
             let px = _mm256_mul_ps(rx, z);
@@ -844,7 +811,7 @@ mod lanes {
                 let b10 = _mm256_mul_ps(ax, nay);
                 let b01 = _mm256_mul_ps(nax, ay);
                 let b11 = _mm256_mul_ps(ax, ay);
-                let base = cur_photo.as_ptr() as *const f32;
+                let base = bufs.cur_photo.as_ptr() as *const f32;
                 let (corners, weights) = ([t0, t1, b0, b1], [b00, b10, b01, b11]);
                 let c0 = bilinear(base, corners, weights, 0, valid);
                 let c1 = bilinear(base, corners, weights, 1, valid);
@@ -863,7 +830,7 @@ mod lanes {
                 let n = _mm256_add_epi32(_mm256_mullo_epi32(yn, wv), xn);
                 let n = _mm256_and_si256(n, _mm256_castps_si256(valid));
                 let n4 = _mm256_slli_epi32::<2>(n);
-                let base = cur_geo.as_ptr() as *const f32;
+                let base = bufs.cur_geo.as_ptr() as *const f32;
                 let g0 = gather(base, n4, 0, valid);
                 let g1 = gather(base, n4, 1, valid);
                 let g2 = gather(base, n4, 2, valid);
@@ -908,13 +875,9 @@ mod lanes {
 
 /// Residuals `(r_photo, r_geo)` of the systematic sample `k0..k0 + out.len()` of `count`
 /// samples among the level's pixels ([`super::kernel::sample_index`], computed incrementally).
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn sample_range(
     k: &Warp,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
+    bufs: &Buffers,
     k0: usize,
     count: usize,
     out: &mut [[f32; 2]],
@@ -923,17 +886,10 @@ pub(crate) fn sample_range(
     let (mut x, mut y) = (walk.i % k.w, walk.i / k.w);
     for o in out.iter_mut() {
         let i = walk.i;
-        let g = ref_geo.get(i).copied().unwrap_or_default();
+        let g = bufs.ref_geo.get(i).copied().unwrap_or_default();
         *o = if g[0] > 0.0 {
-            let (r_p, _, r_g, _) = terms::<false>(
-                k,
-                ref_photo[i][0],
-                g[3],
-                k.rx[x],
-                k.ry[y],
-                cur_photo,
-                cur_geo,
-            );
+            let (r_p, _, r_g, _) =
+                terms::<false>(k, bufs.ref_photo[i][0], g[3], k.rx[x], k.ry[y], bufs);
             [r_p, r_g]
         } else {
             [INVALID_RESIDUAL, INVALID_RESIDUAL]
@@ -1028,6 +984,12 @@ mod tests {
         let (w, h) = (101usize, 37usize);
         let a = CpuPyramid::build(&frame(w, h, 0.0), 1);
         let b = CpuPyramid::build(&frame(w, h, 2.1), 1);
+        let bufs = Buffers {
+            ref_photo: &a.photo,
+            ref_geo: &a.geo,
+            cur_photo: &b.photo,
+            cur_geo: &b.geo,
+        };
         let poses = [
             Se3::exp(&[0.01, -0.004, 0.02, 0.003, -0.005, 0.002]),
             // Large enough that a band of pixels leaves the image.
@@ -1045,18 +1007,9 @@ mod tests {
                     let walk = SampleWalk::new(0, count, w * h);
                     let s = Some((&mut smp[..], walk));
                     if lanes {
-                        accumulate_rows(&k, &a.photo, &a.geo, &b.photo, &b.geo, 0..h, &mut acc, s);
+                        accumulate_rows(&k, &bufs, 0..h, &mut acc, s);
                     } else {
-                        accumulate_rows_body(
-                            &k,
-                            &a.photo,
-                            &a.geo,
-                            &b.photo,
-                            &b.geo,
-                            0..h,
-                            &mut acc,
-                            s,
-                        );
+                        accumulate_rows_body(&k, &bufs, 0..h, &mut acc, s);
                     }
                     (acc, smp)
                 };
@@ -1093,6 +1046,12 @@ mod tests {
         let (w, h) = (96usize, 72usize);
         let a = CpuPyramid::build(&frame(w, h, 0.0), 1);
         let b = CpuPyramid::build(&frame(w, h, 1.3), 1);
+        let bufs = Buffers {
+            ref_photo: &a.photo,
+            ref_geo: &a.geo,
+            cur_photo: &b.photo,
+            cur_geo: &b.geo,
+        };
         let pose = Se3::exp(&[0.01, -0.004, 0.02, 0.003, -0.005, 0.002]);
         for v in variants() {
             let p = params(w, h, [47.5, 35.5], 1000, v, &pose);
@@ -1101,16 +1060,7 @@ mod tests {
                 accumulate_pixel(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, &mut want);
             }
             let mut got = [0.0f64; PARTIAL_LEN];
-            accumulate_rows(
-                &Warp::new(&p),
-                &a.photo,
-                &a.geo,
-                &b.photo,
-                &b.geo,
-                0..h,
-                &mut got,
-                None,
-            );
+            accumulate_rows(&Warp::new(&p), &bufs, 0..h, &mut got, None);
             assert_eq!(got[28] as f32, want[28], "photometric count");
             assert_eq!(got[29] as f32, want[29], "geometric count");
             assert!(want[28] + want[29] > 1000.0);
@@ -1141,26 +1091,8 @@ mod tests {
             // The incremental sample walks the same pixels as `sample_index`.
             let count = 1000usize;
             let mut s = vec![[0.0f32; 2]; count];
-            sample_range(
-                &Warp::new(&p),
-                &a.photo,
-                &a.geo,
-                &b.photo,
-                &b.geo,
-                0,
-                count,
-                &mut s[..600],
-            );
-            sample_range(
-                &Warp::new(&p),
-                &a.photo,
-                &a.geo,
-                &b.photo,
-                &b.geo,
-                600,
-                count,
-                &mut s[600..],
-            );
+            sample_range(&Warp::new(&p), &bufs, 0, count, &mut s[..600]);
+            sample_range(&Warp::new(&p), &bufs, 600, count, &mut s[600..]);
             for (kk, got) in s.iter().enumerate() {
                 let i = sample_index(kk as u32, count as u32, (w * h) as u32) as usize;
                 let t = pixel_terms(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, false);
