@@ -1,0 +1,271 @@
+#!/usr/bin/env python3
+"""Renders docs/results.md from the benchmarks' JSON reports in docs/results/*.json.
+
+Every report is what a benchmark writes with `--json FILE` (`rgbid bench odometry`,
+`rgbid bench kernels`, `rgbid graph bench`): a `meta` object (date, commit, command, machine)
+and the rows the benchmark printed. One section per report, in file-name order, so the output
+depends only on the reports.
+
+Usage:
+    python3 scripts/results.py            # write docs/results.md
+    python3 scripts/results.py --check    # exit 1 if docs/results.md is not what it would write
+Standard library only.
+"""
+import argparse
+import difflib
+import json
+import pathlib
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+COMMAND = "python3 scripts/results.py"
+
+PEER_NAMES = {
+    "cv_rgbd": "OpenCV `Odometry` RGB_DEPTH",
+    "cv_rgb": "OpenCV `Odometry` RGB",
+    "cv_icp": "OpenCV `Odometry` DEPTH (ICP)",
+    "o3dt_hybrid": "Open3D tensor Hybrid",
+    "o3dt_intensity": "Open3D tensor Intensity",
+    "o3d_hybrid": "Open3D legacy Hybrid",
+    "o3d_color": "Open3D legacy Color",
+}
+PEER_LIBRARY = {"cv_": "opencv", "o3d": "open3d"}
+
+
+def num(v, fmt):
+    """A number in the given format, '-' for missing or non-finite values."""
+    if v is None or isinstance(v, str):
+        return "-" if v is None else v
+    if v != v or v in (float("inf"), float("-inf")):
+        return "-"
+    return format(v, fmt)
+
+
+def table(header, rows):
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return out
+
+
+def provenance(doc, name):
+    m = doc.get("meta", {})
+    mach = m.get("machine", {})
+    dirty = m.get("dirty")
+    commit = "`{}`{}".format(
+        m.get("commit", "unknown"),
+        " (with uncommitted changes)" if dirty else "" if dirty is False else " (tree state unknown)",
+    )
+    gpus = ", ".join(mach.get("gpu_adapters") or []) or "none (no GPU backend ran)"
+    lines = [
+        f"- Report: `docs/results/{name}`",
+        f"- Date (UTC): {m.get('date_utc', '?')}; commit {commit}; rgbid {m.get('rgbid_version', '?')}",
+        "- Machine: {}, {} logical cores, {}; GPU: {}".format(
+            mach.get("cpu", "?"), mach.get("logical_cores", "?"), mach.get("os", "?"), gpus
+        ),
+        f"- Command: `{m.get('command', '?')}`",
+    ]
+    versions = doc.get("peer_versions") or {}
+    if versions:
+        lines.append("- Peers: " + ", ".join(f"{k} {v}" for k, v in sorted(versions.items())))
+    return lines
+
+
+def method_label(row, versions):
+    m = row.get("method", "?")
+    if not row.get("peer"):
+        return f"**{m}**"
+    name = PEER_NAMES.get(m, m)
+    for prefix, lib in PEER_LIBRARY.items():
+        if m.startswith(prefix) and lib in versions:
+            name = name.replace(name.split()[0], f"{name.split()[0]} {versions[lib]}", 1)
+    return f"{name} (`{m}`)"
+
+
+def render_odometry(doc):
+    rows = doc.get("rows", [])
+    versions = doc.get("peer_versions") or {}
+    peers = [r["method"] for r in rows if r.get("peer")]
+    out = [
+        f"Sequence `{doc.get('sequence_name', '?')}` ({doc.get('sequence_frames', '?')} frames"
+        + (f", camera `{doc['camera']}`" if doc.get("camera") else "")
+        + "). Accuracy of every row is computed by rgbid's evaluator from the trajectory file "
+        "(ATE RMSE after rigid alignment; RPE RMSE over 1 s windows, TUM `evaluate_rpe` "
+        "semantics). Times are medians per frame of compute, decoding excluded. Speed-up: the "
+        "peer's median time over the row's, measured in the same run.",
+        "",
+    ]
+    header = ["method", "frames", "ATE RMSE m", "RPE m/s", "RPE deg/s", "median ms/frame", "p90 ms"]
+    header += [f"speed-up vs `{p}`" for p in peers]
+    body = []
+    for r in rows:
+        cells = [
+            method_label(r, versions),
+            r.get("frames", "-"),
+            num(r.get("ate_rmse_m"), ".4f"),
+            num(r.get("rpe_m_per_s"), ".4f"),
+            num(r.get("rpe_deg_per_s"), ".3f"),
+            num(r.get("ms_median"), ".1f"),
+            num(r.get("ms_p90"), ".1f"),
+        ]
+        for p in peers:
+            cells.append("1.00x" if p == r.get("method") else num(r.get("speedup_vs", {}).get(p), ".2f") + "x")
+        body.append(cells)
+    out += table(header, body)
+    staged = [r for r in rows if r.get("stages_ms")]
+    if staged:
+        out += ["", "Per-stage medians of the rgbid rows (ms per frame) and memory:", ""]
+        st_header = ["backend", "pyramid", "scale", "reduce", "solve", "covisibility", "covariance",
+                     "decode (not counted)", "resident MiB after 10 frames / end / process peak"]
+        st_body = []
+        for r in staged:
+            s = r["stages_ms"]
+            st_body.append([
+                r.get("backend") or r.get("method"),
+                *(num(s.get(k), ".2f") for k in ("pyramid", "scale", "reduce", "solve", "covisibility", "covariance")),
+                num(r.get("decode_ms_median"), ".2f"),
+                " / ".join(num(r.get(k), ".0f") for k in ("rss_mib_after_10", "rss_mib_end", "peak_rss_mib")),
+            ])
+        out += table(st_header, st_body)
+    return out
+
+
+def render_posegraph(doc):
+    rows = doc.get("rows", [])
+    if doc.get("suite") == "thesis":
+        out = [
+            "Thesis chapter 7 comparison (tables 7.1-7.4 analogues). RMSE: positions against the "
+            "ground truth after rigid alignment; 'vs SE': against this run's SE(n) solution from "
+            "the linear / chordal initialisation.",
+            "",
+        ]
+        body = [[f"`{r['file']}`", r["method"], r.get("variables", "-"), r.get("iterations", "-"),
+                 num(r.get("s"), ".3f"), num(r.get("chi2"), ".5g"), num(r.get("rmse_gt_m"), ".4f"),
+                 num(r.get("rmse_vs_se_m"), ".4f")] for r in rows]
+        return out + table(["file", "method", "variables", "iterations", "s", "chi2", "RMSE m", "vs SE m"], body)
+    solver = doc.get("solver", {})
+    measured = all(r.get("gtsam_measured") for r in rows if r.get("gtsam"))
+    out = [
+        "rgbid: median of {} solves with `--param {} --cost {} --init {}` (initialisation "
+        "included). GTSAM: its run with the lowest chi2 among LM, GN and (3D) chordal + LM, {}. "
+        "F is the SE-Sync objective, f* its certified global optimum.".format(
+            doc.get("repeat", "?"), solver.get("param", "?").lower(), solver.get("cost", "?").lower(),
+            solver.get("init", "?").lower(),
+            "measured in the same run" if measured else "figures from the data README (not measured in this run)",
+        ),
+        "",
+    ]
+    body = []
+    for r in rows:
+        g = r.get("gtsam") or {}
+        fstar = r.get("fstar")
+        body.append([
+            f"`{r['file']}`", r.get("poses", "-"), r.get("edges", "-"),
+            num(r.get("chi2"), ".5g"), num(g.get("chi2"), ".5g"),
+            num(r["F"] / fstar if fstar else None, ".4f"),
+            r.get("iterations", "-"), num(r.get("s"), ".3f"),
+            f"{num(g.get('s'), '.3f')} ({g['method']})" if g else "-",
+            num(r.get("speedup_vs_gtsam"), ".2f") + "x" if r.get("speedup_vs_gtsam") else "-",
+        ])
+    return out + table(["file", "poses", "edges", "rgbid chi2", "GTSAM chi2", "rgbid F/f*", "rgbid iterations",
+                        "rgbid s", "GTSAM s (run)", "speed-up vs GTSAM"], body)
+
+
+def render_kernels(doc):
+    out = [f"Generated frames, median of {doc.get('repeat', '?')} repetitions; align = pyramids of both "
+           "frames + coarse-to-fine Gauss-Newton.", ""]
+    body = [[r["backend"], f"{r['width']}x{r['height']}", num(r["align_ms"], ".2f"), num(r["pyramid_ms"], ".2f"),
+             num(r["scale_ms"], ".2f"), num(r["reduce_ms"], ".2f"), num(r["solve_ms"], ".3f"), r["iterations"]]
+            for r in doc.get("rows", [])]
+    out += table(["backend", "size", "align ms", "pyramid ms", "scale ms", "reduce ms", "solve ms", "GN iterations"], body)
+    und = doc.get("undistort_rows", [])
+    if und:
+        out += ["", "Undistortion of one frame (TUM fr1 distortion; GPU: upload and read-back included):", ""]
+        out += table(["backend", "size", "undistort ms"],
+                     [[r["backend"], f"{r['width']}x{r['height']}", num(r["undistort_ms"], ".2f")] for r in und])
+    return out
+
+
+def render_generic(doc):
+    rows = [r for r in doc.get("rows", []) if isinstance(r, dict)]
+    keys = []
+    for r in rows:
+        keys += [k for k, v in r.items() if k not in keys and (v is None or isinstance(v, (str, int, float, bool)))]
+    body = [[num(r.get(k), ".4g") if isinstance(r.get(k), float) else ("-" if r.get(k) is None else r.get(k))
+             for k in keys] for r in rows]
+    return table(keys, body) if keys else ["(no rows)"]
+
+
+RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels}
+TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels"}
+
+
+def title(doc):
+    kind = doc.get("benchmark", "?")
+    t = TITLES.get(kind, kind)
+    if kind == "odometry":
+        t += f" on `{doc.get('sequence_name', '?')}`"
+    if kind == "posegraph":
+        t += f" (`--suite {doc.get('suite', 'files')}`)"
+    return t
+
+
+def render(root):
+    reports = sorted((root / "docs" / "results").glob("*.json"))
+    out = [
+        "# Results",
+        "",
+        f"<!-- Generated by `{COMMAND}` from docs/results/*.json. Do not edit by hand: rerun the "
+        "benchmark with `--json docs/results/NAME.json`, then the script. -->",
+        "",
+        f"Generated by `{COMMAND}` from the benchmark reports in `docs/results/` (each written by "
+        "a benchmark's `--json FILE`). Every section names its command, date, commit and machine. "
+        "Ratios against peers are measured in the same run and are the figures to compare; "
+        "absolute times move with the machine and its load. `" + COMMAND + " --check` fails "
+        "when this file is out of date.",
+        "",
+    ]
+    docs = []
+    for p in reports:
+        with open(p, encoding="utf-8") as f:
+            docs.append((p.name, json.load(f)))
+    if not docs:
+        out.append("(no reports yet)")
+    else:
+        out += [f"- [{title(d)}](#{anchor(title(d))}) (`{n}`)" for n, d in docs]
+    for name, doc in docs:
+        out += ["", f"## {title(doc)}", ""]
+        out += provenance(doc, name)
+        out.append("")
+        out += RENDERERS.get(doc.get("benchmark"), render_generic)(doc)
+    return "\n".join(out) + "\n"
+
+
+def anchor(text):
+    """GitHub's heading anchor: lower case, punctuation dropped, spaces to hyphens."""
+    keep = "".join(c for c in text.lower() if c.isalnum() or c in " -_")
+    return keep.replace(" ", "-")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--check", action="store_true", help="exit 1 if docs/results.md differs from the rendering")
+    ap.add_argument("--root", type=pathlib.Path, default=ROOT, help="repository root (default: this checkout)")
+    a = ap.parse_args()
+    target = a.root / "docs" / "results.md"
+    text = render(a.root)
+    if a.check:
+        current = target.read_text(encoding="utf-8") if target.exists() else ""
+        if current != text:
+            sys.stdout.writelines(difflib.unified_diff(
+                current.splitlines(True), text.splitlines(True), str(target), "rendered"))
+            print(f"{target} is out of date: run `{COMMAND}`", file=sys.stderr)
+            return 1
+        return 0
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(text, encoding="utf-8")
+    print(f"wrote {target} ({len(text.splitlines())} lines)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
