@@ -17,18 +17,28 @@
 // Kernel mirrors index arrays the way the WGSL does, so the two read alike.
 #![allow(clippy::needless_range_loop)]
 
+// Modules by layer; each imports only from its own layer (without cycles) and the layers
+// above it in this list (ARCHITECTURE.md; enforced by tests/layers.rs).
+// Foundation.
 pub mod camera;
-pub mod eval;
 pub mod geometry;
-pub mod gpu;
-pub mod graph;
 pub mod image;
+pub mod trajectory;
+// Plumbing and formats.
+pub mod eval;
+pub mod gpu;
 pub mod io;
-pub mod mono;
+// Algorithms.
+pub mod graph;
 pub mod odometry;
 pub mod place;
-pub mod scale;
 pub mod segment;
-pub mod slam;
 pub mod source;
 pub mod synth;
+// Systems.
+pub mod mono;
+pub mod scale;
+pub mod slam;
+// Experiments.
+#[cfg(feature = "experiments")]
+pub mod experiments;

@@ -7,13 +7,14 @@ use std::sync::Arc;
 use crate::camera::PinholeCamera;
 use crate::gpu::ComputeBackend;
 use crate::image::RgbdFrame;
-use crate::io::trajectory::{read_tum, TimedPose};
+use crate::io::trajectory::read_tum;
 use crate::io::tum::{OpenOptions, TumSequence};
 use crate::io::IoError;
 use crate::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, SynthError, Trajectory,
     TrajectoryKind,
 };
+use crate::trajectory::TimedPose;
 
 /// Errors of [`FrameSource`].
 #[derive(Debug, thiserror::Error)]

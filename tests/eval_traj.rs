@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use glam::{DQuat, DVec3};
 use rgbid::eval::{evaluate, EvalError, EvalOptions, RpeDelta};
 use rgbid::geometry::Se3;
-use rgbid::io::trajectory::{read_tum, write_tum, TimedPose};
+use rgbid::io::trajectory::{read_tum, write_tum};
+use rgbid::trajectory::TimedPose;
 
 fn helix(n: usize, dt: f64) -> Vec<TimedPose> {
     (0..n)

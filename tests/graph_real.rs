@@ -4,8 +4,8 @@
 
 mod common;
 
+use rgbid::graph::g2o::{read_g2o, LoadedGraph};
 use rgbid::graph::{initialize_2d, initialize_3d, EdgeCost, InitMethod, SolverOptions};
-use rgbid::io::g2o::{read_g2o, LoadedGraph};
 
 /// Solves a file with the given cost from the default (linear / chordal) initialisation, with
 /// `rgbid graph optimize`'s default solver settings, and returns `(chi2, F)`.
@@ -98,7 +98,7 @@ fn real_data_isam_files_match_their_g2o_conversions() {
         ("isam/city10000.txt", "se-sync/city10000.g2o"),
         ("isam/sphere2500.txt", "se-sync/sphere2500.g2o"),
     ] {
-        let a = rgbid::io::isam::read_isam(dir.join(isam)).unwrap();
+        let a = rgbid::graph::isam::read_isam(dir.join(isam)).unwrap();
         let b = read_g2o(dir.join(g2o)).unwrap();
         match (&a.graph, &b.graph) {
             (LoadedGraph::Se2(x), LoadedGraph::Se2(y)) => {

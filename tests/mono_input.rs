@@ -7,10 +7,10 @@ use std::process::Command;
 
 use image::{GrayImage, Luma};
 use rgbid::camera::UnifiedCamera;
+use rgbid::experiments::mono::{render, SyntheticCamera, SyntheticSpec};
 use rgbid::image::ImageF32;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::mono::input::load_grey;
-use rgbid::mono::synthetic::{render, SyntheticCamera, SyntheticSpec};
 use rgbid::mono::{ImageSequence, MonoConfig, MonoError, MonoSlam};
 
 fn save_grey(path: &Path, img: &ImageF32) {

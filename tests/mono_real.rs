@@ -7,8 +7,9 @@ use std::path::Path;
 
 use rgbid::camera::UnifiedCamera;
 use rgbid::eval::ate::ate;
-use rgbid::io::trajectory::{read_tum, TimedPose};
+use rgbid::io::trajectory::read_tum;
 use rgbid::mono::{ImageSequence, MonoConfig, MonoSlam};
+use rgbid::trajectory::TimedPose;
 
 #[test]
 #[ignore = "needs ../shared/data"]

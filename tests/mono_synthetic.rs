@@ -4,9 +4,9 @@
 //! has an error comparable to that spread), and on the catadioptric sequence the warped
 //! patch must match more often per feature than the plain one (thesis table 2.1).
 
-use rgbid::io::trajectory::TimedPose;
-use rgbid::mono::synthetic::{render, run, RunResult, SyntheticCamera, SyntheticSpec};
+use rgbid::experiments::mono::{render, run, RunResult, SyntheticCamera, SyntheticSpec};
 use rgbid::mono::{MonoConfig, PatchMode};
+use rgbid::trajectory::TimedPose;
 
 /// RMS distance of the ground-truth positions from their mean, metres.
 fn spread(gt: &[TimedPose]) -> f64 {

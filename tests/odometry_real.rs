@@ -150,7 +150,7 @@ fn redkitchen_default_metrics() -> rgbid::eval::TrajectoryMetrics {
             odo.set_initial_pose(gt[0].world_from_camera);
         }
         let r = odo.track(&f).expect("track");
-        est.push(rgbid::io::trajectory::TimedPose {
+        est.push(rgbid::trajectory::TimedPose {
             timestamp: f.timestamp,
             world_from_camera: r.world_from_camera,
         });

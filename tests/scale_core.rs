@@ -3,16 +3,17 @@
 use std::f64::consts::PI;
 
 use glam::{DQuat, DVec3};
-use rgbid::geometry::Se3;
-use rgbid::io::trajectory::{read_tum, TimedPose};
-use rgbid::scale::experiment::{
+use rgbid::experiments::scale::{
     local_scale, run_sequence, standard_sequences, Estimator, ExperimentConfig, MonoEstimator,
 };
+use rgbid::geometry::Se3;
+use rgbid::io::trajectory::read_tum;
 use rgbid::scale::{
     emulate_monocular, DriftModel, DynScale, DynScaleConfig, HighPass, LiveDynScale, ScaleError,
     SpectrumConfig, StepAnalysis, UpAxis,
 };
 use rgbid::synth::{Scene, Trajectory};
+use rgbid::trajectory::TimedPose;
 
 fn noise(k: usize) -> f64 {
     // Deterministic pseudo-noise in [-1, 1].
@@ -164,7 +165,7 @@ fn constant_scale_is_recovered_on_a_generated_walk() {
         walking.len()
     );
     let last = walking[walking.len() - 1];
-    let med = rgbid::scale::experiment::median(&walking[5..]);
+    let med = rgbid::experiments::scale::median(&walking[5..]);
     assert!(
         (med / truth - 1.0).abs() < 0.04,
         "median scale {med} vs {truth}"

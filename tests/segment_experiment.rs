@@ -2,8 +2,8 @@
 //! the pipeline's bookkeeping (true relative poses, correctness of verified matches, masks by
 //! threshold) is checked; the figures themselves are in the README.
 
+use rgbid::experiments::segment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::gpu::ComputeBackend;
-use rgbid::segment::experiment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::synth::SensorModel;
 
 #[test]
@@ -69,7 +69,7 @@ fn fusion_and_clean_depth_on_the_home_preset() {
         sensor: SensorModel::noiseless(),
         ..base.clone()
     });
-    let auc = |r: &rgbid::segment::experiment::ChangeReport| r.features[0].auc;
+    let auc = |r: &rgbid::experiments::segment::ChangeReport| r.features[0].auc;
     assert_eq!(raw.features[0].feature, "neg_entropy");
     assert!(
         (fused.static_superjuts as f64) < 0.6 * raw.static_superjuts as f64,
@@ -115,7 +115,7 @@ fn masks_raise_the_inlier_ratio_in_views_of_moved_clutter() {
         .iter()
         .map(|c| c.min_changed_share)
         .collect();
-    assert_eq!(shares, rgbid::segment::experiment::CLUTTER_SHARES.to_vec());
+    assert_eq!(shares, rgbid::experiments::segment::CLUTTER_SHARES.to_vec());
     assert!(r
         .cluttered_views
         .windows(2)

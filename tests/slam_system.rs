@@ -9,7 +9,6 @@ use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
 use rgbid::image::RgbdFrame;
-use rgbid::io::trajectory::TimedPose;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
     FrameReport, FrameStatus, Map, MapError, Slam, SlamConfig, SlamError, SlamResult,
@@ -17,6 +16,7 @@ use rgbid::slam::{
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
 };
+use rgbid::trajectory::TimedPose;
 
 fn camera(w: u32) -> PinholeCamera {
     let h = w * 3 / 4;

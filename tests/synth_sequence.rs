@@ -4,8 +4,8 @@ use std::sync::Arc;
 
 use rgbid::camera::PinholeCamera;
 use rgbid::io::trajectory::read_tum;
-use rgbid::io::tum_writer::TumWriter;
 use rgbid::synth::trajectory::{TrajectoryKind, WalkingParams, TRAJECTORIES};
+use rgbid::synth::tum_export::TumWriter;
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig, Trajectory, PRESETS,
 };

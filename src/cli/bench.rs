@@ -13,9 +13,10 @@ use std::process::Command as Process;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use rgbid::io::trajectory::{write_tum, TimedPose};
+use rgbid::io::trajectory::write_tum;
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::odometry::{Odometry, OdometryConfig, OdometryError};
+use rgbid::trajectory::TimedPose;
 
 use super::odometry::OdometryOptions;
 
@@ -46,6 +47,37 @@ pub struct KernelBench {
     /// GPU adapter name filter.
     #[arg(long)]
     pub adapter: Option<String>,
+    /// Also write the results as JSON (machine, commit, command and every row) to this file.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+}
+
+/// One row of `rgbid bench kernels`' alignment table.
+#[derive(serde::Serialize)]
+struct KernelRow {
+    backend: String,
+    width: u32,
+    height: u32,
+    /// Median of one alignment: pyramids of both frames + coarse-to-fine Gauss-Newton, ms.
+    align_ms: f64,
+    /// Median per stage, ms (the pyramid is for both frames).
+    pyramid_ms: f64,
+    scale_ms: f64,
+    reduce_ms: f64,
+    solve_ms: f64,
+    /// Gauss-Newton iterations over all levels.
+    iterations: usize,
+}
+
+/// One row of `rgbid bench kernels`' undistortion table.
+#[derive(serde::Serialize)]
+struct UndistortRow {
+    backend: String,
+    width: u32,
+    height: u32,
+    /// Median ms of one frame: intensity bilinear + inverse depth nearest (GPU: upload and
+    /// read-back included).
+    undistort_ms: f64,
 }
 
 /// Median of a sample (NaN when empty).
@@ -102,6 +134,7 @@ fn kernels(a: KernelBench) -> Result<()> {
                 .ok_or_else(|| anyhow::anyhow!("bad size '{size}' (expected WxH)"))
         })
         .collect::<Result<Vec<_>>>()?;
+    let mut rows = Vec::new();
     println!("| backend | size | align ms (median) | pyramid ms | scale ms | reduce ms | solve ms | GN iterations |");
     println!("|---|---|---|---|---|---|---|---|");
     for backend in &backends {
@@ -137,25 +170,58 @@ fn kernels(a: KernelBench) -> Result<()> {
                 }
                 iterations = r.levels.iter().map(|l| l.iterations).sum();
             }
+            let row = KernelRow {
+                backend: backend.name(),
+                width: w,
+                height: h,
+                align_ms: median(&mut totals),
+                pyramid_ms: median(&mut stages[0]),
+                scale_ms: median(&mut stages[1]),
+                reduce_ms: median(&mut stages[2]),
+                solve_ms: median(&mut stages[3]),
+                iterations,
+            };
             println!(
                 "| {} | {w}x{h} | {:.2} | {:.2} | {:.2} | {:.2} | {:.3} | {iterations} |",
-                backend.name(),
-                median(&mut totals),
-                median(&mut stages[0]),
-                median(&mut stages[1]),
-                median(&mut stages[2]),
-                median(&mut stages[3])
+                row.backend,
+                row.align_ms,
+                row.pyramid_ms,
+                row.scale_ms,
+                row.reduce_ms,
+                row.solve_ms
             );
+            rows.push(row);
         }
     }
     println!("(align = pyramids of both frames + coarse-to-fine Gauss-Newton; the pyramid column is for both frames)");
-    undistortion(&backends, &sizes, a.repeat)
+    let undistort = undistortion(&backends, &sizes, a.repeat)?;
+    if let Some(path) = &a.json {
+        let adapters = backends
+            .iter()
+            .filter_map(|b| match b {
+                ComputeBackend::Gpu(ctx) => Some(ctx.info.name.clone()),
+                ComputeBackend::Cpu => None,
+            })
+            .collect();
+        let body = serde_json::json!({
+            "repeat": a.repeat.max(1),
+            "rows": rows,
+            "undistort_rows": undistort,
+        });
+        super::report::write(path, "kernels", &super::report::meta(adapters), &body)?;
+    }
+    Ok(())
 }
 
 /// Times the undistortion of one frame (TUM fr1 distortion) per backend and size: the CPU
 /// remap on one thread (as in the I/O thread) and the WGSL kernel with its upload and
 /// read-back.
-fn undistortion(backends: &[ComputeBackend], sizes: &[(u32, u32)], repeat: usize) -> Result<()> {
+fn undistortion(
+    backends: &[ComputeBackend],
+    sizes: &[(u32, u32)],
+    repeat: usize,
+) -> Result<Vec<UndistortRow>> {
+    let mut rows = Vec::new();
     println!();
     println!(
         "| backend | size | undistort ms (median; intensity bilinear + inverse depth nearest) |"
@@ -195,14 +261,17 @@ fn undistortion(backends: &[ComputeBackend], sizes: &[(u32, u32)], repeat: usize
                     }
                 }
             }
-            println!(
-                "| {} | {w}x{h} | {:.2} |",
-                backend.name(),
-                median(&mut times)
-            );
+            let row = UndistortRow {
+                backend: backend.name(),
+                width: w,
+                height: h,
+                undistort_ms: median(&mut times),
+            };
+            println!("| {} | {w}x{h} | {:.2} |", row.backend, row.undistort_ms);
+            rows.push(row);
         }
     }
-    Ok(())
+    Ok(rows)
 }
 
 /// Arguments of `rgbid bench odometry`.
@@ -232,23 +301,77 @@ pub struct OdometryBench {
     /// Camera preset or config file (default: calib.txt beside the sequence).
     #[arg(long)]
     pub camera: Option<String>,
+    /// Also write the results as JSON (machine, commit, command and every row) to this file,
+    /// e.g. `docs/results/odometry_redkitchen.json` for `scripts/results.py`.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
     #[command(flatten)]
     pub odometry: OdometryOptions,
 }
 
-/// One row of the result table.
+/// One row of the result table (and of the `--json` report).
 #[derive(Debug, Clone, serde::Serialize)]
 struct Row {
+    /// `rgbid cpu`, `rgbid gpu`, or the peer script's method name (`cv_rgbd`, ...).
     method: String,
+    /// True for rows measured by the peer script.
+    peer: bool,
+    /// The compute backend in words (rgbid rows).
+    backend: Option<String>,
+    /// Frames with a pose.
     frames: usize,
+    /// Median compute time per frame, ms (decoding excluded).
     ms_median: f64,
+    /// 90th percentile of the time per frame, ms.
     ms_p90: f64,
-    ate_rmse: Option<f64>,
-    rpe_rmse_per_s: Option<f64>,
-    /// Rotational RPE RMSE over 1 s windows, deg/s (TUM `evaluate_rpe` semantics).
-    rpe_rot_deg_per_s: Option<f64>,
-    stages: Option<[f64; 6]>,
+    /// ATE RMSE after rigid alignment, m.
+    ate_rmse_m: Option<f64>,
+    /// Translational RPE RMSE over 1 s windows, m/s (TUM `evaluate_rpe` semantics).
+    rpe_m_per_s: Option<f64>,
+    /// Rotational RPE RMSE over 1 s windows, deg/s.
+    rpe_deg_per_s: Option<f64>,
+    /// Per-stage medians (rgbid rows).
+    stages_ms: Option<Stages>,
+    /// Median decoding time per frame, ms (not counted in `ms_median`).
+    decode_ms_median: Option<f64>,
+    /// Resident memory after 10 frames, MiB.
+    rss_mib_after_10: Option<f64>,
+    /// Resident memory at the end of this row's run, MiB.
+    rss_mib_end: Option<f64>,
+    /// Peak resident memory of the process so far (it includes the rows run before), MiB.
     peak_rss_mib: Option<f64>,
+    /// Speed-up against every peer row of the same run: the peer's median time over this
+    /// row's (> 1: this row is faster).
+    speedup_vs: std::collections::BTreeMap<String, f64>,
+}
+
+/// Median milliseconds per frame of each odometry stage.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+struct Stages {
+    pyramid: f64,
+    scale: f64,
+    reduce: f64,
+    solve: f64,
+    covisibility: f64,
+    covariance: f64,
+}
+
+/// The `--json` report of `rgbid bench odometry` (besides `meta`).
+#[derive(serde::Serialize)]
+struct OdometryReport<'a> {
+    /// The sequence folder as given.
+    sequence: String,
+    /// Its folder name.
+    sequence_name: String,
+    /// Frames in the sequence (after `--max-frames`).
+    sequence_frames: usize,
+    /// `--camera` as given (None: calib.txt beside the sequence, else the default camera).
+    camera: Option<&'a str>,
+    /// The odometry configuration every rgbid row used.
+    config: &'a OdometryConfig,
+    /// Versions of the peers' libraries, from the peer interpreter.
+    peer_versions: std::collections::BTreeMap<String, String>,
+    rows: &'a [Row],
 }
 
 fn percentile(v: &mut [f64], p: f64) -> f64 {
@@ -290,6 +413,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
         .as_ref()
         .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
     let mut rows = Vec::new();
+    let mut adapters = Vec::new();
     for name in a
         .backends
         .split(',')
@@ -308,6 +432,9 @@ fn odometry(a: OdometryBench) -> Result<()> {
             other => anyhow::bail!("unknown backend '{other}' (cpu or gpu)"),
         };
         let label = backend.name();
+        if let ComputeBackend::Gpu(ctx) = &backend {
+            adapters.push(ctx.info.name.clone());
+        }
         let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
         if let (Some(gt), Some(e)) = (&gt, seq.entries.first()) {
             if let Some(near) = gt.iter().min_by(|x, y| {
@@ -372,38 +499,44 @@ fn odometry(a: OdometryBench) -> Result<()> {
         let path = a.out.join(format!("rgbid_{name}.txt"));
         write_tum(&path, &poses)?;
         let (ate, rpe, rpe_rot) = accuracy(gt.as_deref(), &poses);
-        let st = [
-            median(&mut stages[0]),
-            median(&mut stages[1]),
-            median(&mut stages[2]),
-            median(&mut stages[3]),
-            median(&mut stages[4]),
-            median(&mut stages[5]),
-        ];
+        let st = Stages {
+            pyramid: median(&mut stages[0]),
+            scale: median(&mut stages[1]),
+            reduce: median(&mut stages[2]),
+            solve: median(&mut stages[3]),
+            covisibility: median(&mut stages[4]),
+            covariance: median(&mut stages[5]),
+        };
+        let decode = median(&mut load_ms);
         println!(
-            "rgbid {label}: per-frame median {:.2} ms (pyramid {:.2}, scale {:.2}, reduce {:.2}, solve {:.2}, covisibility {:.2}, covariance {:.2}); decode {:.2} ms/frame (not counted)",
+            "rgbid {label}: per-frame median {:.2} ms (pyramid {:.2}, scale {:.2}, reduce {:.2}, solve {:.2}, covisibility {:.2}, covariance {:.2}); decode {decode:.2} ms/frame (not counted)",
             median(&mut totals.clone()),
-            st[0],
-            st[1],
-            st[2],
-            st[3],
-            st[4],
-            st[5],
-            median(&mut load_ms)
+            st.pyramid,
+            st.scale,
+            st.reduce,
+            st.solve,
+            st.covisibility,
+            st.covariance,
         );
         if let (Some(e), Some(l)) = (rss_early, rss_end) {
             println!("  resident memory: {e:.0} MiB after 10 frames, {l:.0} MiB at the end, peak {:.0} MiB", peak.unwrap_or(f64::NAN));
         }
         rows.push(Row {
             method: format!("rgbid {name}"),
+            peer: false,
+            backend: Some(label),
             frames: poses.len(),
             ms_median: median(&mut totals.clone()),
             ms_p90: percentile(&mut totals, 0.9),
-            ate_rmse: ate,
-            rpe_rmse_per_s: rpe,
-            rpe_rot_deg_per_s: rpe_rot,
-            stages: Some(st),
+            ate_rmse_m: ate,
+            rpe_m_per_s: rpe,
+            rpe_deg_per_s: rpe_rot,
+            stages_ms: Some(st),
+            decode_ms_median: Some(decode),
+            rss_mib_after_10: rss_early,
+            rss_mib_end: rss_end,
             peak_rss_mib: peak,
+            speedup_vs: Default::default(),
         });
     }
     if !a.peers.trim().is_empty() {
@@ -412,8 +545,52 @@ fn odometry(a: OdometryBench) -> Result<()> {
             Err(e) => println!("peers not measured: {e:#}"),
         }
     }
+    add_speedups(&mut rows);
     print_table(&rows);
+    if let Some(path) = &a.json {
+        let mut peer_versions = std::collections::BTreeMap::new();
+        if rows.iter().any(|r| r.peer) {
+            let peers = a.peers.to_lowercase();
+            for (prefix, module, label) in [("cv_", "cv2", "opencv"), ("o3d", "open3d", "open3d")] {
+                if peers.split(',').any(|m| m.trim().starts_with(prefix)) {
+                    if let Some(v) = super::report::python_module_version(&a.python, module) {
+                        peer_versions.insert(label.to_string(), v);
+                    }
+                }
+            }
+        }
+        let report = OdometryReport {
+            sequence: a.sequence.display().to_string(),
+            sequence_name: a
+                .sequence
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            sequence_frames: seq.len(),
+            camera: a.camera.as_deref(),
+            config: &config,
+            peer_versions,
+            rows: &rows,
+        };
+        super::report::write(path, "odometry", &super::report::meta(adapters), &report)?;
+    }
     Ok(())
+}
+
+/// Fills every row's speed-up against each peer row (other than itself).
+fn add_speedups(rows: &mut [Row]) {
+    let peers: Vec<(String, f64)> = rows
+        .iter()
+        .filter(|r| r.peer)
+        .map(|r| (r.method.clone(), r.ms_median))
+        .collect();
+    for r in rows.iter_mut() {
+        for (method, ms) in &peers {
+            if *method != r.method && ms.is_finite() && r.ms_median > 0.0 {
+                r.speedup_vs.insert(method.clone(), ms / r.ms_median);
+            }
+        }
+    }
 }
 
 /// ATE RMSE (m), translational RPE RMSE (m/s) and rotational RPE RMSE (deg/s) of `est`.
@@ -483,14 +660,20 @@ fn run_peers(a: &OdometryBench, seq: &TumSequence) -> Result<Vec<Row>> {
         };
         rows.push(Row {
             method,
+            peer: true,
+            backend: None,
             frames: v["frames"].as_u64().unwrap_or(0) as usize,
             ms_median: v["ms_median"].as_f64().unwrap_or(f64::NAN),
             ms_p90: v["ms_p90"].as_f64().unwrap_or(f64::NAN),
-            ate_rmse: ate,
-            rpe_rmse_per_s: rpe,
-            rpe_rot_deg_per_s: rpe_rot,
-            stages: None,
+            ate_rmse_m: ate,
+            rpe_m_per_s: rpe,
+            rpe_deg_per_s: rpe_rot,
+            stages_ms: None,
+            decode_ms_median: None,
+            rss_mib_after_10: None,
+            rss_mib_end: None,
             peak_rss_mib: None,
+            speedup_vs: Default::default(),
         });
     }
     Ok(rows)
@@ -512,15 +695,12 @@ fn print_table(rows: &[Row]) {
             "| {} | {} | {} | {} | {} | {:.1} | {:.1} | {} |",
             r.method,
             r.frames,
-            f(r.ate_rmse),
-            f(r.rpe_rmse_per_s),
-            f(r.rpe_rot_deg_per_s),
+            f(r.ate_rmse_m),
+            f(r.rpe_m_per_s),
+            f(r.rpe_deg_per_s),
             r.ms_median,
             r.ms_p90,
             ratio
         );
-    }
-    if let Ok(j) = serde_json::to_string(rows) {
-        println!("\njson: {j}");
     }
 }

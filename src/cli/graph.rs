@@ -5,11 +5,11 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use rgbid::graph::curve::{CurveGraph2, CurveGraph3, CurveOptions};
+use rgbid::graph::g2o::{read_g2o, write_g2o, G2oFile, LoadedGraph};
+use rgbid::graph::isam::read_isam;
 use rgbid::graph::{
     self, planar, Algorithm, EdgeCost, InitMethod, RobustKernel, SolveReport, SolverOptions,
 };
-use rgbid::io::g2o::{read_g2o, write_g2o, G2oFile, LoadedGraph};
-use rgbid::io::isam::read_isam;
 
 /// Subcommands of `rgbid graph`.
 #[derive(clap::Subcommand)]
@@ -169,15 +169,18 @@ pub struct BenchArgs {
     /// Only files whose name contains one of these strings.
     #[arg(long)]
     pub only: Vec<String>,
-    /// Print one JSON object per run instead of the table.
-    #[arg(long)]
-    pub json: bool,
+    /// Write the results as JSON (machine, commit, command and every row) to FILE, e.g.
+    /// `docs/results/posegraph.json` for `scripts/results.py`; `--json` without FILE prints
+    /// one JSON object per run instead of the table.
+    #[arg(long, value_name = "FILE", num_args = 0..=1)]
+    pub json: Option<Option<PathBuf>>,
     /// Time every rgbid solve this many times and report the median.
     #[arg(long, default_value_t = 3)]
     pub repeat: usize,
     /// `--suite files`: Python with the `gtsam` wheel; runs `--peer-script` on every file in
     /// the same run (LM, GN and, in 3D, chordal + LM) and prints the time ratio against its
-    /// best converged run. Without it the README's GTSAM figures are shown for reference.
+    /// best converged run. Without it the GTSAM figures of the data README are shown for
+    /// reference (marked as not measured in the `--json` report).
     #[arg(long)]
     pub python: Option<String>,
     /// The GTSAM peer script.
@@ -543,6 +546,62 @@ fn bench_files(a: &BenchArgs) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
+/// GTSAM's result on one file, for the `--json` report.
+#[derive(serde::Serialize)]
+struct GtsamRun {
+    /// `gtsam_lm`, `gtsam_gn`, `gtsam_chordal+lm`, or `README` for the data README's figures.
+    method: String,
+    /// Wall time, seconds.
+    s: f64,
+    chi2: f64,
+    /// SE-Sync objective.
+    #[serde(rename = "F")]
+    f: f64,
+}
+
+/// One file of `graph bench --suite files`, for the `--json` report.
+#[derive(serde::Serialize)]
+struct FileRow {
+    file: String,
+    poses: usize,
+    edges: usize,
+    iterations: usize,
+    /// Median seconds of the rgbid solves (initialisation included).
+    s: f64,
+    chi2: f64,
+    /// SE-Sync objective of the result.
+    #[serde(rename = "F")]
+    f: f64,
+    /// SE-Sync's certified optimum of F, where published.
+    fstar: Option<f64>,
+    termination: String,
+    /// True when the GTSAM figures were measured in this run (false: the data README's).
+    gtsam_measured: bool,
+    /// GTSAM's run with the lowest chi2.
+    gtsam: Option<GtsamRun>,
+    /// Every GTSAM run of this benchmark on the file (measured runs only).
+    gtsam_runs: Vec<GtsamRun>,
+    /// GTSAM's seconds over rgbid's (> 1: rgbid is faster).
+    speedup_vs_gtsam: Option<f64>,
+}
+
+/// One (file, method) of `graph bench --suite thesis`, for the `--json` report.
+#[derive(serde::Serialize)]
+struct ThesisRow {
+    file: String,
+    method: String,
+    variables: usize,
+    iterations: usize,
+    s: f64,
+    chi2: f64,
+    #[serde(rename = "F")]
+    f: f64,
+    /// Position RMSE against the ground truth after rigid alignment, m.
+    rmse_gt_m: Option<f64>,
+    /// Position RMSE against this run's SE(n) linear/chordal solution, m.
+    rmse_vs_se_m: Option<f64>,
+}
+
 fn bench(a: &BenchArgs) -> Result<()> {
     match a.suite {
         Suite::Files => bench_suite_files(a),
@@ -550,9 +609,35 @@ fn bench(a: &BenchArgs) -> Result<()> {
     }
 }
 
+/// Writes the `--json FILE` report of either suite.
+fn write_bench_report(a: &BenchArgs, path: &Path, rows: &impl serde::Serialize) -> Result<()> {
+    let gtsam_version = a
+        .python
+        .as_deref()
+        .filter(|_| a.suite == Suite::Files)
+        .and_then(|py| super::report::python_module_version(py, "gtsam"));
+    let body = serde_json::json!({
+        "suite": format!("{:?}", a.suite).to_lowercase(),
+        "data": a.data.display().to_string(),
+        "repeat": a.repeat.max(1),
+        "solver": {
+            "param": format!("{:?}", a.solve.param),
+            "cost": format!("{:?}", a.solve.cost),
+            "init": format!("{:?}", a.solve.init),
+            "algorithm": format!("{:?}", a.solve.algorithm),
+            "robust": format!("{:?}", a.solve.robust),
+        },
+        "peer_versions": gtsam_version.map(|v| serde_json::json!({"gtsam": v})).unwrap_or_else(|| serde_json::json!({})),
+        "rows": rows,
+    });
+    super::report::write(path, "posegraph", &super::report::meta(Vec::new()), &body)
+}
+
 fn bench_suite_files(a: &BenchArgs) -> Result<()> {
     let files = bench_files(a)?;
-    if !a.json {
+    let json_lines = matches!(a.json, Some(None));
+    let mut report_rows = Vec::new();
+    if !json_lines {
         println!(
             "rgbid: median of {} solves, --param {:?} --cost {:?} --init {:?}; GTSAM: {}",
             a.repeat.max(1),
@@ -596,12 +681,15 @@ fn bench_suite_files(a: &BenchArgs) -> Result<()> {
         let total = o.report.seconds;
         let fstar = FSTAR.iter().find(|(k, _)| *k == key).map(|x| x.1);
         // GTSAM: the run with the lowest chi2 (measured now), or the README figure.
+        let mut gtsam_runs = Vec::new();
         let gtsam: Option<(String, f64, f64, f64)> = match &a.python {
             Some(py) => match run_gtsam(py, &a.peer_script, &path) {
-                Ok(runs) => runs
-                    .into_iter()
-                    .filter(|r| r.2.is_finite())
-                    .min_by(|x, y| x.2.total_cmp(&y.2)),
+                Ok(runs) => {
+                    gtsam_runs.clone_from(&runs);
+                    runs.into_iter()
+                        .filter(|r| r.2.is_finite())
+                        .min_by(|x, y| x.2.total_cmp(&y.2))
+                }
                 Err(e) => {
                     pb.suspend(|| eprintln!("{key}: GTSAM: {e:#}"));
                     None
@@ -612,7 +700,28 @@ fn bench_suite_files(a: &BenchArgs) -> Result<()> {
                 .find(|(k, ..)| *k == key)
                 .map(|g| ("README".to_string(), g.3, g.2, g.1)),
         };
-        if a.json {
+        let as_run = |g: &(String, f64, f64, f64)| GtsamRun {
+            method: g.0.clone(),
+            s: g.1,
+            chi2: g.2,
+            f: g.3,
+        };
+        report_rows.push(FileRow {
+            file: key.clone(),
+            poses: nv,
+            edges: ne,
+            iterations: o.report.iterations,
+            s: total,
+            chi2: o.chi2,
+            f: o.sesync_f,
+            fstar,
+            termination: format!("{:?}", o.report.termination),
+            gtsam_measured: a.python.is_some() && gtsam.is_some(),
+            gtsam: gtsam.as_ref().map(as_run),
+            gtsam_runs: gtsam_runs.iter().map(as_run).collect(),
+            speedup_vs_gtsam: gtsam.as_ref().map(|g| g.1 / total),
+        });
+        if json_lines {
             let line = serde_json::json!({
                 "file": key, "poses": nv, "edges": ne, "s": total,
                 "iterations": o.report.iterations, "chi2": o.chi2, "F": o.sesync_f, "fstar": fstar,
@@ -646,6 +755,9 @@ fn bench_suite_files(a: &BenchArgs) -> Result<()> {
         pb.inc(1);
     }
     pb.finish_and_clear();
+    if let Some(Some(path)) = &a.json {
+        write_bench_report(a, path, &report_rows)?;
+    }
     Ok(())
 }
 
@@ -755,6 +867,7 @@ fn thesis_rows(
     make: &dyn Fn() -> Result<LoadedGraph>,
     gt_pos: Option<Vec<glam::DVec3>>,
     methods: &[(&str, SolveArgs, Option<bool>)],
+    report_rows: &mut Vec<ThesisRow>,
 ) -> Result<()> {
     let is3d = matches!(make()?, LoadedGraph::Se3(_));
     let mut reference: Option<Vec<glam::DVec3>> = None;
@@ -774,14 +887,25 @@ fn thesis_rows(
             other
                 .as_ref()
                 .and_then(|r| graph::eval::position_rmse(&pos, r).ok())
-                .map(|v| format!("{v:.4}"))
-                .unwrap_or_else(|| "-".into())
         };
-        let (r_gt, r_se) = (rmse(&gt_pos), rmse(&reference));
+        let (rmse_gt_m, rmse_vs_se_m) = (rmse(&gt_pos), rmse(&reference));
+        let text = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.4}"));
+        let (r_gt, r_se) = (text(rmse_gt_m), text(rmse_vs_se_m));
         if *label == "SE(n) linear/chordal init" {
             reference = Some(pos.clone());
         }
-        if a.json {
+        report_rows.push(ThesisRow {
+            file: file.to_string(),
+            method: label.to_string(),
+            variables: o.variables,
+            iterations: o.report.iterations,
+            s: o.report.seconds,
+            chi2: o.chi2,
+            f: o.sesync_f,
+            rmse_gt_m,
+            rmse_vs_se_m,
+        });
+        if matches!(a.json, Some(None)) {
             println!(
                 "{}",
                 serde_json::json!({"file": file, "method": label, "variables": o.variables,
@@ -875,6 +999,7 @@ fn bench_suite_thesis(a: &BenchArgs) -> Result<()> {
         "{:<28} {:<36} {:>6} {:>5} {:>8} {:>12} {:>10} {:>10}",
         "file", "method", "vars", "iter", "s", "chi2", "RMSE m", "vs SE m"
     );
+    let mut report_rows = Vec::new();
     for (file, gt) in THESIS_DATA {
         if !a.only.is_empty() && !a.only.iter().any(|o| file.contains(o.as_str())) {
             continue;
@@ -888,7 +1013,14 @@ fn bench_suite_thesis(a: &BenchArgs) -> Result<()> {
             Some(g) => Some(positions(&load(&a.data.join(g))?.graph)),
             None => None,
         };
-        thesis_rows(a, file, &|| Ok(load(&path)?.graph), gt_pos, &methods)?;
+        thesis_rows(
+            a,
+            file,
+            &|| Ok(load(&path)?.graph),
+            gt_pos,
+            &methods,
+            &mut report_rows,
+        )?;
     }
     // The projection experiment of 7.4.6 with ground truth: M3500 laid on a tilted plane in
     // 3D, with small out-of-plane noise on every measurement.
@@ -908,8 +1040,11 @@ fn bench_suite_thesis(a: &BenchArgs) -> Result<()> {
                 };
                 Ok(LoadedGraph::Se3(lift_to_tilted_plane(&g2)?))
             };
-            thesis_rows(a, tilted, &make, Some(gt3), &methods)?;
+            thesis_rows(a, tilted, &make, Some(gt3), &methods, &mut report_rows)?;
         }
+    }
+    if let Some(Some(path)) = &a.json {
+        write_bench_report(a, path, &report_rows)?;
     }
     Ok(())
 }

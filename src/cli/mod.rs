@@ -7,6 +7,7 @@ pub mod graph;
 pub mod mono;
 pub mod odometry;
 pub mod place;
+pub mod report;
 pub mod scale;
 pub mod segment;
 pub mod slam;

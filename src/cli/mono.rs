@@ -9,9 +9,10 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::UnifiedCamera;
 use rgbid::eval::ate::ate;
-use rgbid::io::trajectory::{read_tum, write_tum, TimedPose};
-use rgbid::mono::synthetic::{render, run as run_synthetic, SyntheticCamera, SyntheticSpec};
+use rgbid::experiments::mono::{render, run as run_synthetic, SyntheticCamera, SyntheticSpec};
+use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::mono::{load_camera, FrameReport, ImageSequence, MonoConfig, MonoSlam, PatchMode};
+use rgbid::trajectory::TimedPose;
 
 use super::bench::median;
 

@@ -6,11 +6,12 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::gpu::{select_backend, BackendChoice};
-use rgbid::io::trajectory::{write_tum, TimedPose};
+use rgbid::io::trajectory::write_tum;
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::odometry::{
     Estimator, GeometricParam, Odometry, OdometryConfig, OdometryError, ScaleMethod, Terms,
 };
+use rgbid::trajectory::TimedPose;
 
 /// Options shared by every command that runs the odometry.
 #[derive(clap::Args, Clone, Debug)]

@@ -114,7 +114,7 @@ fn median(v: &mut [f64]) -> f64 {
     v[v.len() / 2]
 }
 
-fn nearest_pose(gt: &[rgbid::io::trajectory::TimedPose], t: f64) -> Option<Se3> {
+fn nearest_pose(gt: &[rgbid::trajectory::TimedPose], t: f64) -> Option<Se3> {
     let p = gt
         .iter()
         .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))?;
@@ -213,7 +213,7 @@ fn print_loop(l: &DetectedLoop, stamps: &[f64]) {
 /// error of the verified loops.
 fn evaluate(
     a: &LoopsArgs,
-    gt: &[rgbid::io::trajectory::TimedPose],
+    gt: &[rgbid::trajectory::TimedPose],
     stamps: &[f64],
     loops: &[DetectedLoop],
 ) {

@@ -4,12 +4,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use rgbid::io::trajectory::{read_tum, write_tum};
-use rgbid::scale::experiment::{
+use rgbid::experiments::scale::{
     estimate_sequence, evaluate_run, load_run, median, percentile, run_cache_name, save_run,
     standard_sequences, Estimator, ExperimentConfig, MonoEstimator, RunReport, SequenceSpec,
     WindowTruth, METHODS,
 };
+use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::scale::plot::{plot_panels, Series};
 use rgbid::scale::walking::{GRIEVE_ALPHA, GRIEVE_BETA};
 use rgbid::scale::{

@@ -8,9 +8,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use rgbid::experiments::segment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::io::tum::{OpenOptions, TumSequence};
-use rgbid::segment::experiment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::segment::{self, GpuNormals, NormalParams, SegmentConfig};
 use rgbid::synth::SensorModel;
 
@@ -377,7 +377,7 @@ fn run_segment(args: &RunArgs) -> Result<()> {
 }
 
 /// Prints matching rows as a Markdown table (header included).
-fn print_matching(rows: &[rgbid::segment::experiment::MatchingRow]) {
+fn print_matching(rows: &[rgbid::experiments::segment::MatchingRow]) {
     println!(
         "| neg-entropy mask | kept keypoints | matches | on changed objects | verified | inlier ratio | correct | precision | recall | pairs with pose ok |"
     );

@@ -9,13 +9,14 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
-use rgbid::io::trajectory::{write_tum, TimedPose};
+use rgbid::io::trajectory::write_tum;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
     build_model, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
 use rgbid::source::{FrameSource, SourceSpec};
 use rgbid::synth::{SequenceConfig, TrajectoryKind};
+use rgbid::trajectory::TimedPose;
 
 /// Arguments of `rgbid slam`.
 #[derive(clap::Args)]

@@ -9,8 +9,8 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::{PinholeCamera, UnifiedCamera};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
-use rgbid::io::tum_writer::TumWriter;
 use rgbid::synth::trajectory::{TrajectoryKind, TRAJECTORIES};
+use rgbid::synth::tum_export::TumWriter;
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig, Trajectory, PRESETS,
 };

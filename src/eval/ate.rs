@@ -3,7 +3,7 @@
 use glam::{DMat3, DQuat, DVec3};
 
 use super::{ErrorStats, EvalError};
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// The similarity `gt_from_est` that best maps estimated positions onto ground truth:
 /// `p_gt ~ scale * rotation * p_est + translation`.

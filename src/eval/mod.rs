@@ -17,7 +17,7 @@ pub mod rpe;
 pub use ate::{align_umeyama, ate, Alignment, AteResult};
 pub use rpe::{rpe, RpeDelta, RpeResult};
 
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// Default largest time difference for matching estimated to ground-truth poses, seconds.
 pub const DEFAULT_MAX_TIME_DIFFERENCE: f64 = 0.02;

@@ -1,7 +1,7 @@
 //! Relative pose error, TUM `evaluate_rpe` semantics.
 
 use super::{ErrorStats, EvalError};
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// The interval between the two poses of an RPE pair.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

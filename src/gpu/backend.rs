@@ -3,17 +3,8 @@ use std::sync::Arc;
 use super::context::{GpuContext, GpuError};
 
 /// What the user asked for on the command line (`--backend`).
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    Default,
-    PartialEq,
-    Eq,
-    clap::ValueEnum,
-    serde::Serialize,
-    serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum BackendChoice {
     /// A hardware GPU if there is one, else the CPU backend (software GPU adapters such as
     /// lavapipe are slower than the rayon CPU backend, so `auto` does not pick them).

@@ -6,14 +6,17 @@
 //! - [`pose_graph`]: SE(2)/SE(3)/Sim(3) pose graphs (eq. 7.1-7.6), chi2 and the SE-Sync
 //!   objective.
 //! - [`init`]: spanning-tree, linear 2D and chordal 3D initialisation.
+//! - [`g2o`], [`isam`]: the g2o and iSAM text formats (read and write).
 //!
 //! Vertices are `world_from_body` transforms, edges `from_from_to` measurements with an
 //! information matrix ordered like the residual (translation first). Metres and radians.
 
 pub mod curve;
 pub mod eval;
+pub mod g2o;
 pub mod incremental;
 pub mod init;
+pub mod isam;
 pub mod lie;
 pub mod planar;
 pub mod pose_graph;

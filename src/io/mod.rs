@@ -5,11 +5,8 @@
 //! there is one) and the cause; nothing here panics on input.
 
 pub mod config;
-pub mod g2o;
-pub mod isam;
 pub mod trajectory;
 pub mod tum;
-pub mod tum_writer;
 pub mod undistort;
 pub mod undistort_gpu;
 

@@ -21,7 +21,8 @@
 //! Jacobians, initialisation with covariance), [`fast`] (FAST-9 corners), [`patch`] (ZNCC and
 //! catadioptric patch warping), [`filter`] (the SLAM loop: prediction, active search,
 //! 1-point RANSAC, update, map management, statistics), [`input`] (image-only sequences and
-//! camera files), [`synthetic`] (runs on generated sequences with ground truth).
+//! camera files). Runs on generated sequences with ground truth are in
+//! `crate::experiments::mono` (feature `experiments`).
 
 pub mod fast;
 pub mod filter;
@@ -29,7 +30,6 @@ pub mod input;
 pub mod landmark;
 pub mod patch;
 pub mod state;
-pub mod synthetic;
 
 use std::path::PathBuf;
 

@@ -5,9 +5,8 @@ use super::robust::{Estimator, ScaleMethod};
 use super::OdometryError;
 
 /// Which residuals are minimised (thesis tables 4.1, 4.2).
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Terms {
     /// Photometric and geometric (the default).
@@ -30,9 +29,8 @@ impl Terms {
 }
 
 /// Parametrisation of the geometric error.
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum GeometricParam {
     /// Inverse depth, 1/m (the thesis' choice: noise roughly constant over depth).
@@ -43,9 +41,8 @@ pub enum GeometricParam {
 
 /// How the current frame's inverse depth is sampled at a warped point for the geometric
 /// residual.
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum GeometricSampling {
     /// The nearest pixel (thesis eq. 6.5-6.9; the default).
@@ -58,9 +55,8 @@ pub enum GeometricSampling {
 }
 
 /// Gradients used for the covariance of an alignment (thesis 6.20, 6.21).
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum CovarianceGradients {
     /// The inverse of the last Gauss-Newton Hessian (raw image gradients, at the pose before

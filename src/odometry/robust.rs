@@ -5,9 +5,8 @@
 //! for the geometric term); a scale `sigma` has the same unit.
 
 /// The robust loss used to weight residuals.
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Estimator {
     /// Plain least squares (weight 1). JSON: `"leastsquares"` (or `"least-squares"`, as on
@@ -67,9 +66,8 @@ pub fn weight(estimator: u32, z: f32, nu: f32) -> f32 {
 }
 
 /// How residual scales are obtained.
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ScaleMethod {
     /// Maximum likelihood for the chosen estimator (eq. 6.15): quadratic seed, then the loss.

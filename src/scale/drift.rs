@@ -20,7 +20,7 @@ use rand_pcg::Pcg64;
 
 use super::particle::standard_normal;
 use crate::geometry::{so3_exp, Se3};
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// Parameters of the emulated monocular drift.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

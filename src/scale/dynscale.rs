@@ -32,7 +32,7 @@ use super::spectrum::{HighPass, SpectrumConfig, StepAnalysis};
 use super::walking::WalkingModel;
 use super::{check_param, ScaleError};
 use crate::geometry::Se3;
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// The gravity-up direction in the trajectory's world frame.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

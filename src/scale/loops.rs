@@ -20,7 +20,7 @@ use super::particle::standard_normal;
 use super::ScaleError;
 use crate::geometry::{so3_exp, Se3};
 use crate::graph::{PoseGraphSim3, Sim3, SolverOptions};
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// Settings of the emulated loop closures and of the Sim(3) graph.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -12,7 +12,7 @@ use glam::DVec3;
 
 use super::ScaleError;
 use crate::eval::ate::align_umeyama;
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// Errors by normalised arc length.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

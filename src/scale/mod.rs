@@ -19,7 +19,6 @@
 //!   ground-truth trajectory, for experiments.
 //! - [`loops`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
 //! - [`metric`]: position error against ground truth by normalised arc length (3.36).
-//! - [`experiment`]: the tables 3.1-3.4 analogues on generated walking sequences.
 //! - [`plot`]: PNG line plots of frequency, scale and speed per section (figs. 3.7-3.8).
 //!
 //! Frames: trajectories are `world_from_camera` in the trajectory's own world frame (for a
@@ -29,7 +28,6 @@
 
 pub mod drift;
 pub mod dynscale;
-pub mod experiment;
 pub mod loops;
 pub mod metric;
 pub mod particle;

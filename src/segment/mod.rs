@@ -26,7 +26,6 @@
 //! # Ok::<(), SegmentError>(())
 //! ```
 
-pub mod experiment;
 pub mod features;
 mod gpu;
 pub mod graph;

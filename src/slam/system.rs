@@ -16,9 +16,9 @@ use crate::geometry::Se3;
 use crate::gpu::ComputeBackend;
 use crate::graph::{PoseGraph3, SolverOptions};
 use crate::image::{ImageF32, RgbdFrame};
-use crate::io::trajectory::TimedPose;
 use crate::odometry::{Odometry, StageTimes};
 use crate::place::Vocabulary;
+use crate::trajectory::TimedPose;
 
 /// Tracking state of a frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

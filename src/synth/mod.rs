@@ -22,6 +22,7 @@ mod scene;
 mod sensor;
 pub mod sequence;
 pub mod trajectory;
+pub mod tum_export;
 
 pub use bvh::Aabb;
 pub use gpu::GpuRayCaster;

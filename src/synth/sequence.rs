@@ -11,7 +11,7 @@ use super::sensor::SensorModel;
 use super::trajectory::Trajectory;
 use super::SynthError;
 use crate::geometry::Se3;
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// How a sequence is sampled and sensed.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

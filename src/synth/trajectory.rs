@@ -21,7 +21,7 @@ use rand_pcg::Pcg64;
 use super::scene::{FreeArea, Scene};
 use super::SynthError;
 use crate::geometry::Se3;
-use crate::io::trajectory::TimedPose;
+use crate::trajectory::TimedPose;
 
 /// Names accepted by [`TrajectoryKind::from_name`].
 pub const TRAJECTORIES: &[&str] = &[

@@ -22,9 +22,9 @@ use std::path::Path;
 use glam::{DQuat, DVec3, EulerRot};
 
 use super::g2o::{parse_f64s, parse_id, upper_to_full, G2oFile, RawGraph};
-use super::IoError;
+use super::Se2;
 use crate::geometry::Se3;
-use crate::graph::Se2;
+use crate::io::IoError;
 
 /// `Rz(yaw) Ry(pitch) Rx(roll)` from the file's `roll pitch yaw`.
 fn rpy(roll: f64, pitch: f64, yaw: f64) -> DQuat {
@@ -95,7 +95,7 @@ pub fn read_isam(path: impl AsRef<Path>) -> Result<G2oFile, IoError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::io::g2o::LoadedGraph;
+    use crate::graph::g2o::LoadedGraph;
 
     #[test]
     fn reads_2d_and_3d() {

@@ -4,16 +4,16 @@
 
 use std::sync::Arc;
 
-use super::{MonoConfig, MonoError, MonoSlam, MonoStats};
 use crate::camera::{PinholeCamera, UnifiedCamera};
 use crate::eval::ate::{ate, AteResult};
 use crate::image::ImageF32;
-use crate::io::trajectory::TimedPose;
 use crate::mono::filter::FrameReport;
+use crate::mono::{MonoConfig, MonoError, MonoSlam, MonoStats};
 use crate::synth::{
     CameraModel, RenderBackend, Scene, SensorModel, Sequence, SequenceConfig, Trajectory,
     TrajectoryKind,
 };
+use crate::trajectory::TimedPose;
 
 /// Which synthetic camera.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]

@@ -28,13 +28,13 @@ use std::time::Instant;
 
 use glam::DVec3;
 
-use super::{segment_keyframe, SegmentConfig, SegmentError, Superjuts};
 use crate::camera::PinholeCamera;
 use crate::gpu::ComputeBackend;
 use crate::place::{
     extract_orb, match_descriptors, ransac_rigid, MatchParams, OrbFeatures, OrbParams, PlaceError,
     RansacParams,
 };
+use crate::segment::{segment_keyframe, SegmentConfig, SegmentError, Superjut, Superjuts};
 use crate::source::{FrameSource, SourceError, SourceSpec};
 use crate::synth::{SensorModel, SequenceFrame, SynthError};
 
@@ -277,7 +277,7 @@ const FEATURES: [&str; 5] = [
     "size",
 ];
 
-fn feature_values(s: &super::Superjut) -> [f64; 5] {
+fn feature_values(s: &Superjut) -> [f64; 5] {
     [
         s.neg_entropy,
         s.planarity,

@@ -12,9 +12,9 @@ use std::path::Path;
 
 use glam::{DQuat, DVec3};
 
-use super::IoError;
+use super::{GraphError, PoseGraph2, PoseGraph3, Se2};
 use crate::geometry::Se3;
-use crate::graph::{GraphError, PoseGraph2, PoseGraph3, Se2};
+use crate::io::IoError;
 
 /// A pose graph read from a file, 2D or 3D.
 #[derive(Clone, Debug)]
@@ -123,7 +123,7 @@ pub(crate) struct RawGraph {
 /// anyway. Returns `None` when even the diagonal blocks are not positive definite. The
 /// input is returned unchanged when it is already positive definite.
 pub fn repair_information(info: &[f64], dim: usize, dt: usize) -> Option<Vec<f64>> {
-    use crate::graph::lie::cholesky_lower;
+    use super::lie::cholesky_lower;
     if info.len() != dim * dim || info.iter().any(|v| !v.is_finite()) {
         return None;
     }

@@ -19,20 +19,20 @@ use std::sync::Arc;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
-use super::drift::{emulate_monocular, DriftModel, EmulatedRun};
-use super::dynscale::{DynScale, DynScaleConfig, DynScaleResult};
-use super::loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
-use super::metric::{arc_length_error, ArcLengthError};
-use super::ScaleError;
 use crate::camera::UnifiedCamera;
 use crate::geometry::Se3;
-use crate::io::trajectory::TimedPose;
 use crate::mono::{MonoConfig, MonoSlam};
+use crate::scale::drift::{emulate_monocular, DriftModel, EmulatedRun};
+use crate::scale::dynscale::{DynScale, DynScaleConfig, DynScaleResult};
+use crate::scale::loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
+use crate::scale::metric::{arc_length_error, ArcLengthError};
+use crate::scale::ScaleError;
 use crate::synth::trajectory::{Mount, PaceSegment, WalkingParams};
 use crate::synth::Trajectory;
 use crate::synth::{
     CameraModel, RenderBackend, Scene, SceneParams, SensorModel, Sequence, SequenceConfig,
 };
+use crate::trajectory::TimedPose;
 
 /// A generated walking sequence.
 #[derive(Clone, Debug)]

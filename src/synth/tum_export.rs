@@ -22,10 +22,11 @@ use std::path::{Path, PathBuf};
 use image::codecs::png::PngEncoder;
 use image::{ImageBuffer, Luma, Rgb};
 
-use super::trajectory::{write_tum, TimedPose};
-use super::IoError;
+use super::{CameraModel, RenderedFrame};
 use crate::geometry::Se3;
-use crate::synth::{CameraModel, RenderedFrame};
+use crate::io::trajectory::write_tum;
+use crate::io::IoError;
+use crate::trajectory::TimedPose;
 
 /// Writes one TUM-layout folder frame by frame.
 pub struct TumWriter {

@@ -1,0 +1,14 @@
+//! The thesis' experiment harnesses: generated data with exact ground truth, run through the
+//! systems and scored as the thesis' tables and figures do. Behind the `experiments` feature
+//! (enabled by the `cli` feature), so a library user who only embeds the systems does not
+//! build them.
+//!
+//! - [`segment`]: the changed-environment experiments of chapter 5 (ROC AUC per superjut
+//!   feature, masked matching across generated sessions).
+//! - [`scale`]: tables 3.1-3.4 analogues (walking scale on emulated drift or on the monocular
+//!   EKF of rendered catadioptric walks).
+//! - [`mono`]: monocular EKF SLAM on rendered sequences with ground truth (table 2.1).
+
+pub mod mono;
+pub mod scale;
+pub mod segment;
