@@ -9,7 +9,8 @@ use anyhow::{Context, Result};
 use egui::{Color32, PointerButton, RichText, Sense, TextureHandle, TextureOptions, Vec2};
 use egui_plot::{HLine, Legend, Line, Plot, PlotPoints};
 use rgbid::gpu::BackendChoice;
-use rgbid::io::trajectory::{write_tum, TimedPose};
+use rgbid::io::trajectory::write_tum;
+use rgbid::trajectory::TimedPose;
 
 use crate::images;
 use crate::output::{load_map, load_output, StageRow};

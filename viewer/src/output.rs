@@ -5,8 +5,9 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use glam::DVec3;
-use rgbid::io::trajectory::{read_tum, TimedPose};
+use rgbid::io::trajectory::read_tum;
 use rgbid::slam::{build_model, voxel_filter, Map, ModelParams};
+use rgbid::trajectory::TimedPose;
 
 use crate::worker::FinishedRun;
 

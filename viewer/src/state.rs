@@ -6,9 +6,9 @@ use std::sync::Arc;
 use glam::DVec3;
 use rgbid::geometry::Se3;
 use rgbid::image::ImageF32;
-use rgbid::io::trajectory::TimedPose;
 use rgbid::odometry::ResidualImages;
 use rgbid::slam::FrameStatus;
+use rgbid::trajectory::TimedPose;
 
 use crate::output::{OutputFolder, StageRow};
 use crate::scene3d::{Geometry, Vertex};

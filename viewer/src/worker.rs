@@ -12,7 +12,6 @@ use glam::DVec3;
 use rgbid::camera::PinholeCamera;
 use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::image::{ImageF32, RgbdFrame};
-use rgbid::io::trajectory::TimedPose;
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
 use rgbid::place::orb::{extract_orb, OrbParams};
 use rgbid::place::{PixelMatch, Vocabulary};
@@ -20,6 +19,7 @@ use rgbid::segment::{segment_keyframe, SegmentConfig};
 use rgbid::slam::{
     build_model, voxel_filter, FrameReport, FrameStatus, LoopRecord, ModelParams, Slam, SlamConfig,
 };
+use rgbid::trajectory::TimedPose;
 
 use crate::source::{FrameSource, SourceSpec};
 
