@@ -64,6 +64,10 @@ def provenance(doc, name):
         ),
         f"- Command: `{m.get('command', '?')}`",
     ]
+    load = m.get("load_average")
+    if load:
+        lines[2] += "; load average {} / {} / {} (1 / 5 / 15 min) when the report was written".format(
+            *(num(x, ".2f") for x in load))
     versions = doc.get("peer_versions") or {}
     if versions:
         lines.append("- Peers: " + ", ".join(f"{k} {v}" for k, v in sorted(versions.items())))

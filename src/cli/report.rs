@@ -28,6 +28,9 @@ pub struct Meta {
     pub command: String,
     /// The machine.
     pub machine: Machine,
+    /// Load average over 1, 5 and 15 minutes when the report was written (/proc/loadavg): on
+    /// a small machine other work skews the timings, less so the ratios of one run.
+    pub load_average: Option<[f64; 3]>,
 }
 
 /// The machine a benchmark ran on.
@@ -58,6 +61,7 @@ pub fn meta(gpu_adapters: Vec<String>) -> Meta {
             os: os_name(),
             gpu_adapters,
         },
+        load_average: load_average(),
     }
 }
 
@@ -151,6 +155,12 @@ fn cpu_model() -> String {
                 .map(|(_, v)| v.trim().to_string())
         })
         .unwrap_or_else(|| "unknown".into())
+}
+
+fn load_average() -> Option<[f64; 3]> {
+    let s = std::fs::read_to_string("/proc/loadavg").ok()?;
+    let mut v = s.split_whitespace().map(|x| x.parse::<f64>().ok());
+    Some([v.next()??, v.next()??, v.next()??])
 }
 
 fn os_name() -> String {
