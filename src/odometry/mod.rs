@@ -12,7 +12,9 @@
 //! ratio (6.10) drops below a threshold (6.4.1).
 //!
 //! Frames: `cur_from_ref` maps points from the reference camera to the current camera; poses
-//! are `world_from_camera`. Twists are `[v; w]` (m, rad), applied on the left.
+//! are `world_from_camera`. The Gauss-Newton increments are twists `[v; w]` (m, rad) of
+//! `cur_from_ref` applied on the left, which is the library's right perturbation of
+//! `ref_from_cur` ([`crate::geometry`]); covariances leave this module in that convention.
 //! Pixel work runs on the GPU (`gpu.rs`) or the CPU mirror (`cpu.rs`), chosen by
 //! [`crate::gpu::ComputeBackend`].
 

@@ -60,7 +60,10 @@ pub struct LevelStats {
 pub struct Alignment {
     /// The estimated `cur_from_ref`.
     pub cur_from_ref: Se3,
-    /// Covariance of the estimate (left twist of `cur_from_ref`, `[v; w]`, m and rad): the
+    /// Covariance of `ref_from_cur = cur_from_ref^-1` in the library's right-perturbation
+    /// convention ([`crate::geometry`]: `ref_from_cur * exp(d)`, `d = [v; w]` in the current
+    /// camera's frame, m and rad). The solver updates `cur_from_ref <- exp(delta) cur_from_ref`,
+    /// which is `ref_from_cur <- ref_from_cur exp(-delta)`: the same matrix. It is the
     /// inverse of the Hessian on the finest level used, from the last Gauss-Newton iteration
     /// ([`CovarianceGradients::Raw`], the default) or from the covariance pass at the final
     /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`]).

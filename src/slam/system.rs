@@ -517,9 +517,9 @@ impl Slam {
         };
         record.status = FrameStatus::Tracking;
         let frontworld_from_camera = r.world_from_camera;
-        // The odometry covariance is a left perturbation of cur_from_ref, i.e. a right
-        // perturbation of ref_from_cur in the current frame: the chain is carried to that
-        // frame by the adjoint before it is added (a first-order composition).
+        // The odometry covariance is of ref_from_cur (right perturbation, current frame):
+        // the chain is carried to that frame by the adjoint before it is added (a
+        // first-order composition).
         let anchor_from_camera = self.frontworld_from_anchor.inverse() * frontworld_from_camera;
         if r.stats.new_reference {
             self.chain_covariance =
@@ -655,10 +655,10 @@ impl Drop for Slam {
 }
 
 fn backend_loop(back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
-    let out = backend_messages(back, rx);
-    // No more keyframes to segment: free the segmentation's kept buffers (26 MB at 640x480).
-    crate::segment::graph::release_kept_buffers();
-    out
+    let mut back = backend_messages(back, rx)?;
+    // No more keyframes to segment: free the segmentation's buffers (~130 bytes per pixel).
+    back.segmenter.release();
+    Ok(back)
 }
 
 /// The back-end's message loop, until the front-end hangs up or an error stops it.
