@@ -319,9 +319,9 @@ impl<V: Manifold> Problem<V> {
         factor_block_start.push(blocks.len());
         let symbolic = {
             let sym = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
-            // faer's default threshold (1.0) keeps the simplicial factorisation on
-            // parking-garage, where the supernodal one is 1.45x faster (0.54 vs 0.79 s per
-            // solve, 2 cores); at 0.5 the other benchmark files time the same as before.
+            // faer's default threshold (1.0) keeps the simplicial factorisation on graphs such
+            // as parking-garage where the supernodal one is clearly faster; 0.5 switches
+            // those and leaves the other benchmark files unchanged (docs/notes.md).
             let params = faer::sparse::linalg::cholesky::CholeskySymbolicParams {
                 supernodal_flop_ratio_threshold: faer::sparse::linalg::SupernodalThreshold(0.5),
                 ..Default::default()

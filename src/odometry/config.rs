@@ -50,7 +50,8 @@ pub enum GeometricSampling {
     /// The nearest pixel extended to the warped point along its (already stored) inverse-depth
     /// gradient: a first-order sample consistent with the Jacobian, never across a depth
     /// discontinuity (the gradient is invalid there). Removes the nearest sample's bias on
-    /// noiseless rendered views (0.65 -> 0.008 mm); no better on real Kinect data (README).
+    /// noiseless rendered views; not the default because it did not help on real Kinect data
+    /// (docs/notes.md).
     Linear,
 }
 
@@ -61,8 +62,8 @@ pub enum GeometricSampling {
 pub enum CovarianceGradients {
     /// The inverse of the last Gauss-Newton Hessian (raw image gradients, at the pose before
     /// the last update). The default: on rendered views with known noise the bilateral pass
-    /// lowered the median NEES only from 346 to ~300 (both far above the consistent 6) for
-    /// about 15 % more time per frame (`examples/odo_covariance.rs`, README).
+    /// barely improves the consistency (NEES) and costs an extra pass per frame
+    /// (`examples/odo_covariance.rs`, docs/notes.md).
     Raw,
     /// The thesis' method (6.20, 6.21): an extra normal-equation pass at the final pose on
     /// the finest level used, with the gradients of the bilateral-filtered current intensity
@@ -82,8 +83,8 @@ pub struct OdometryConfig {
     /// Finest level used (`stopLevel` of 4.4.6; 0 = full resolution).
     pub stop_level: usize,
     /// Levels wider than this many pixels are not optimised (an automatic `stopLevel`): on
-    /// Kinect-class data the full 640x480 level costs four times the 320x240 one and did not
-    /// improve accuracy (README, odometry results). `0` disables the rule.
+    /// Kinect-class data the full 640x480 level costs four times the 320x240 one and does not
+    /// improve accuracy (docs/notes.md). `0` disables the rule.
     pub max_width: usize,
     /// Robust estimator.
     pub estimator: Estimator,
