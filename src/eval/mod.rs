@@ -4,9 +4,9 @@
 //! pose is matched to the ground-truth pose nearest in time (within `max_time_difference`,
 //! default 0.02 s); the metrics use the matched pairs only.
 //!
-//! - ATE ([`ate`]): translation error after aligning the estimate to the ground truth with a
+//! - ATE ([`ate()`]): translation error after aligning the estimate to the ground truth with a
 //!   rigid Horn/Umeyama fit (optionally a similarity, for monocular runs); metres.
-//! - RPE ([`rpe`]): error of the relative motion between poses `delta` apart, TUM
+//! - RPE ([`rpe()`]): error of the relative motion between poses `delta` apart, TUM
 //!   `evaluate_rpe`: for each `i`, `k` is the first pose with `t_k >= t_i + delta`; the error is
 //!   `(gt_i^-1 gt_k)^-1 (est_i^-1 est_k)`. Reported raw (metres, degrees) and per second of
 //!   `t_k - t_i` (m/s, deg/s). A frame mode uses pairs `(i, i + n)`.

@@ -17,7 +17,7 @@ pub const KIND_CYLINDER: u32 = 2;
 /// Object id written for rays that hit nothing.
 pub const NO_OBJECT: u32 = u32::MAX;
 
-/// One primitive as the kernels read it (6 x vec4<f32>).
+/// One primitive as the kernels read it (6 x `vec4<f32>`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable, PartialEq)]
 pub struct PackedPrim {
@@ -34,7 +34,7 @@ pub struct PackedPrim {
     pub extra: [f32; 4],
 }
 
-/// One BVH node (2 x vec4<f32>): AABB and either two children (`a` = left child index, right
+/// One BVH node (2 x `vec4<f32>`): AABB and either two children (`a` = left child index, right
 /// child is `a + 1`, `count = 0`) or a leaf of `count` primitives starting at `a`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable, PartialEq)]
@@ -45,7 +45,7 @@ pub struct PackedNode {
     pub max: [f32; 4],
 }
 
-/// One material (3 x vec4<f32>): two albedo colours mixed by a procedural pattern.
+/// One material (3 x `vec4<f32>`): two albedo colours mixed by a procedural pattern.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable, PartialEq)]
 pub struct PackedMaterial {
