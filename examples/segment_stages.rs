@@ -6,11 +6,13 @@
 //! median is then over frames), which filters out other processes on a busy machine. The
 //! `cpu ms` column is the CPU time of all threads (Linux), which load does not inflate: for
 //! one thread it is the unloaded wall time, for two busy threads about twice it.
-//! The stages are those of `segment::segment_keyframe`, run one after another through the
-//! public API; `sum` is their total and `total` times `segment_keyframe` itself on the same
-//! frame (it overlaps independent stages, so it can be below `sum`). `graph` is the fused
-//! edges + sort + Felzenszwalb-Huttenlocher of `graph::segment_image_graph` that
-//! `segment_keyframe` runs; the three separate functions are timed above it (not in `sum`). `--dump FILE` writes,
+//! The stages are those of `segment::Segmenter::segment_keyframe`, run one after another
+//! through the public API; `sum` is their total and `total` times `segment_keyframe` itself on
+//! the same frame (it overlaps independent stages, so it can be below `sum`). `graph` is the
+//! fused edges + sort + Felzenszwalb-Huttenlocher of `graph::segment_image_graph_with` that
+//! `segment_keyframe` runs (with its own kept buffers, as the segmenter keeps its); the three
+//! separate functions are timed above it (not in `sum`). One `Segmenter` serves every
+//! `segment_keyframe` call of the process, as a SLAM back-end keeps one. `--dump FILE` writes,
 //! per frame, a hash of the label image and every superjut's features (f64 values as exact
 //! bit patterns), to compare two builds for identical results.
 //!
@@ -25,7 +27,7 @@ use std::io::Write;
 use std::time::Instant;
 
 use rgbid::io::tum::{OpenOptions, TumSequence};
-use rgbid::segment::{self, graph, SegmentConfig, SphereBins};
+use rgbid::segment::{self, graph, SegmentConfig, Segmenter, SphereBins};
 
 fn main() -> anyhow::Result<()> {
     let mut step = 30usize;
@@ -62,8 +64,10 @@ fn main() -> anyhow::Result<()> {
     let seq = TumSequence::open(std::path::Path::new(&dir), &OpenOptions::default())?;
     let cam = seq.undistorted_camera();
     let cfg = SegmentConfig::default();
-    // Built once, as `segment_keyframe` keeps its bins for the next keyframe.
+    // Built once, as the segmenter keeps its bins for the next keyframe.
     let bins = SphereBins::golden(cfg.bins);
+    let mut segmenter = Segmenter::new();
+    let mut graph_scratch = graph::GraphScratch::new();
     let names = [
         "normals",
         "points",
@@ -116,7 +120,8 @@ fn main() -> anyhow::Result<()> {
             let (labels, count) = graph::felzenszwalb(w * h, &e, cfg.k, cfg.min_size, &active);
             lap(4, &mut s);
             drop(e);
-            let fused = graph::segment_image_graph(
+            let fused = graph::segment_image_graph_with(
+                &mut graph_scratch,
                 w,
                 h,
                 &p,
@@ -166,12 +171,7 @@ fn main() -> anyhow::Result<()> {
             cur_cpu[10] = [0, 1, 5, 6, 7, 8, 9].iter().map(|&k| cur_cpu[k]).sum();
             let c2 = cpu_ms();
             let s2 = Instant::now();
-            juts = Some(segment::segment_keyframe(
-                &f.intensity,
-                &f.inverse_depth,
-                &cam,
-                &cfg,
-            )?);
+            juts = Some(segmenter.segment_keyframe(&f.intensity, &f.inverse_depth, &cam, &cfg)?);
             cur[11] = s2.elapsed().as_secs_f64() * 1e3;
             cur_cpu[11] = cpu_ms() - c2;
             for (b, c) in best.iter_mut().zip(&cur) {
@@ -236,7 +236,7 @@ fn main() -> anyhow::Result<()> {
     for _ in 0..reps.max(1) {
         for f in &frames {
             let (c0, s0) = (cpu_ms(), Instant::now());
-            let juts = segment::segment_keyframe(&f.intensity, &f.inverse_depth, &cam, &cfg)?;
+            let juts = segmenter.segment_keyframe(&f.intensity, &f.inverse_depth, &cam, &cfg)?;
             wall.push(s0.elapsed().as_secs_f64() * 1e3);
             cpu.push(cpu_ms() - c0);
             drop(juts);

@@ -4,7 +4,7 @@
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
 use rgbid::image::ImageF32;
-use rgbid::segment::{self, mesh, SegmentConfig, SphereBins, Superjuts, NO_SEGMENT};
+use rgbid::segment::{self, mesh, SegmentConfig, Segmenter, SphereBins, Superjuts, NO_SEGMENT};
 
 const W: usize = 160;
 const H: usize = 120;
@@ -277,38 +277,118 @@ fn segmentation_is_deterministic_across_thread_counts() {
     assert_eq!(a.segments, c.segments);
 }
 
-/// `segment_keyframe` keeps its per-pixel buffers for the next keyframe: nothing of one call
-/// may reach the next, whatever size or scene came in between, and freeing them changes
-/// nothing either.
+/// A `Segmenter` keeps its per-pixel buffers for the next keyframe: nothing of one call may
+/// reach the next, whatever size or scene came in between, and freeing them changes nothing
+/// either.
 #[test]
 fn kept_buffers_carry_nothing_between_keyframes() {
     let cfg = SegmentConfig::default();
     let rho = render(&two_boxes(), 0.003, 11);
-    let first = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    let mut segmenter = Segmenter::new();
+    assert_eq!(segmenter.scratch_bytes(), 0);
+    let first = segmenter
+        .segment_keyframe(&textured(), &rho, &camera(), &cfg)
+        .unwrap();
     assert!(first.segments.len() > 2);
+    // ~130 bytes per pixel kept for the next keyframe.
+    let kept = segmenter.scratch_bytes();
+    assert!(kept >= 100 * W * H, "{kept} bytes kept");
+    // The convenience function (a fresh segmenter) gives the same.
+    let alone = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    assert_eq!(first.labels, alone.labels);
+    assert_eq!(first.segments, alone.segments);
     // A smaller keyframe (resizes every kept buffer), then another scene at the first size.
     let (w2, h2) = (W / 2 + 3, H / 2 - 1);
     let small_cam = PinholeCamera::new(65.0, 65.0, 40.0, 29.0, w2 as u32, h2 as u32);
     let small_rho = ImageF32::filled(w2, h2, 0.4);
     let small_int = ImageF32::filled(w2, h2, 90.0);
-    let small = segment::segment_keyframe(&small_int, &small_rho, &small_cam, &cfg).unwrap();
+    let small = segmenter
+        .segment_keyframe(&small_int, &small_rho, &small_cam, &cfg)
+        .unwrap();
     assert_eq!(small.labels.len(), w2 * h2);
-    let other = segment::segment_keyframe(
-        &textured(),
-        &render(&[tilted_plane()], 0.0, 1),
-        &camera(),
-        &cfg,
-    )
-    .unwrap();
+    let other = segmenter
+        .segment_keyframe(
+            &textured(),
+            &render(&[tilted_plane()], 0.0, 1),
+            &camera(),
+            &cfg,
+        )
+        .unwrap();
     assert_eq!(other.segments.len(), 1);
-    let again = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    let again = segmenter
+        .segment_keyframe(&textured(), &rho, &camera(), &cfg)
+        .unwrap();
     assert_eq!(first.labels, again.labels);
     assert_eq!(first.segments, again.segments);
     assert_eq!(first.normals, again.normals);
-    segment::graph::release_kept_buffers();
-    let fresh = segment::segment_keyframe(&textured(), &rho, &camera(), &cfg).unwrap();
+    segmenter.release();
+    assert_eq!(segmenter.scratch_bytes(), 0);
+    let fresh = segmenter
+        .segment_keyframe(&textured(), &rho, &camera(), &cfg)
+        .unwrap();
     assert_eq!(first.labels, fresh.labels);
     assert_eq!(first.segments, fresh.segments);
+    assert!(segmenter.scratch_bytes() >= 100 * W * H);
+}
+
+/// Two segmenters used from two threads at the same time give what one gives keyframe after
+/// keyframe: each owns its buffers, so neither sees (or frees) the other's.
+#[test]
+fn segmenters_on_two_threads_match_one_after_the_other() {
+    let cfg = SegmentConfig::default();
+    let scenes: Vec<ImageF32> = vec![
+        render(&two_boxes(), 0.003, 11),
+        render(&[tilted_plane()], 0.0, 1),
+        render(&two_boxes(), 0.004, 12),
+        render(&two_boxes(), 0.002, 13),
+    ];
+    let mut one = Segmenter::new();
+    let sequential: Vec<Superjuts> = scenes
+        .iter()
+        .chain(scenes.iter().rev())
+        .map(|rho| {
+            one.segment_keyframe(&textured(), rho, &camera(), &cfg)
+                .unwrap()
+        })
+        .collect();
+    let n = scenes.len();
+    // Each thread runs the scenes several times, in opposite orders, so their calls overlap
+    // and each segmenter's buffers hold another scene than the one it segments next.
+    let rounds = 3;
+    let run = |order: Vec<usize>| {
+        let (scenes, cfg) = (&scenes, &cfg);
+        move || {
+            let mut segmenter = Segmenter::new();
+            let mut out = Vec::new();
+            for _ in 0..rounds {
+                for &i in &order {
+                    let juts = segmenter
+                        .segment_keyframe(&textured(), &scenes[i], &camera(), cfg)
+                        .unwrap();
+                    out.push((i, juts));
+                }
+            }
+            out
+        }
+    };
+    let (a, b) = std::thread::scope(|s| {
+        let a = s.spawn(run((0..n).collect()));
+        let b = s.spawn(run((0..n).rev().collect()));
+        (a.join().unwrap(), b.join().unwrap())
+    });
+    assert_eq!(a.len(), rounds * n);
+    assert_eq!(b.len(), rounds * n);
+    for (i, juts) in a.iter().chain(&b) {
+        let want = &sequential[*i];
+        assert_eq!(juts.labels, want.labels, "scene {i}");
+        assert_eq!(juts.segments, want.segments, "scene {i}");
+        assert_eq!(juts.normals, want.normals, "scene {i}");
+    }
+    // The reversed half of the sequential run matches its first half.
+    for i in 0..n {
+        assert_eq!(sequential[i].labels, sequential[2 * n - 1 - i].labels);
+        assert_eq!(sequential[i].segments, sequential[2 * n - 1 - i].segments);
+    }
 }
 
 #[test]

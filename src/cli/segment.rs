@@ -307,6 +307,7 @@ fn run_segment(args: &RunArgs) -> Result<()> {
     )?;
     let bar = indicatif::ProgressBar::new(frames.len() as u64);
     let mut times = Vec::new();
+    let mut segmenter = segment::Segmenter::new();
     for &f in &frames {
         let frame = seq.load(f)?;
         let (t, intensity, inv) = (frame.timestamp, frame.intensity, frame.inverse_depth);
@@ -314,9 +315,9 @@ fn run_segment(args: &RunArgs) -> Result<()> {
         let juts = match &gpu {
             Some(g) => {
                 let n = g.compute(&inv, &cam, &cfg.normals)?;
-                segment::segment_with_normals(&intensity, &inv, &cam, n, &cfg)?
+                segmenter.segment_with_normals(&intensity, &inv, &cam, n, &cfg)?
             }
-            None => segment::segment_keyframe(&intensity, &inv, &cam, &cfg)?,
+            None => segmenter.segment_keyframe(&intensity, &inv, &cam, &cfg)?,
         };
         times.push(t0.elapsed().as_secs_f64() * 1e3);
         let (w, h) = (juts.width, juts.height);

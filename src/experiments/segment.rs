@@ -34,7 +34,7 @@ use crate::place::{
     extract_orb, match_descriptors, ransac_rigid, MatchParams, OrbFeatures, OrbParams, PlaceError,
     RansacParams,
 };
-use crate::segment::{segment_keyframe, SegmentConfig, SegmentError, Superjut, Superjuts};
+use crate::segment::{SegmentConfig, SegmentError, Segmenter, Superjut, Superjuts};
 use crate::source::{FrameSource, SourceError, SourceSpec};
 use crate::synth::{SensorModel, SequenceFrame, SynthError};
 
@@ -302,6 +302,7 @@ fn prepare(
     camera: &PinholeCamera,
     config: &ChangeExperimentConfig,
     fuser: Option<&mut crate::slam::KeyframeFuser>,
+    segmenter: &mut Segmenter,
     times: &mut (Vec<f64>, Vec<f64>),
 ) -> Result<Prepared, ExperimentError> {
     let FrameSource::Synth(seq, _) = source else {
@@ -320,7 +321,7 @@ fn prepare(
         frame.frame.inverse_depth = fuser.finish()?.0;
     }
     let t = Instant::now();
-    let juts = segment_keyframe(
+    let juts = segmenter.segment_keyframe(
         &frame.frame.intensity,
         &frame.frame.inverse_depth,
         camera,
@@ -517,6 +518,8 @@ pub fn run_change_experiment(
     let (mut changed, mut unchanged) = (Vec::new(), Vec::new());
     let mut times = (Vec::new(), Vec::new());
     let (mut pairs, mut pairs_with_changes) = (0, 0);
+    // One segmenter (and its buffers) for every frame.
+    let mut segmenter = Segmenter::new();
     for scene in &config.scenes {
         for &seed in &config.seeds {
             let spec = |session: u32| SourceSpec::Synth {
@@ -549,6 +552,7 @@ pub fn run_change_experiment(
                         &camera,
                         config,
                         fuser.as_mut(),
+                        &mut segmenter,
                         &mut times,
                     )
                 })
@@ -563,6 +567,7 @@ pub fn run_change_experiment(
                         &camera,
                         config,
                         fuser.as_mut(),
+                        &mut segmenter,
                         &mut times,
                     )?;
                     label_superjuts(&b, config, &mut changed, &mut unchanged);

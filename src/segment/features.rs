@@ -139,6 +139,15 @@ impl SphereBins {
         }
     }
 
+    /// Bytes of heap memory the bins hold (their points and cube-map tables).
+    pub(crate) fn heap_bytes(&self) -> usize {
+        use crate::segment::vec_bytes;
+        vec_bytes(&self.points)
+            + self.cell_xyz.iter().map(vec_bytes).sum::<usize>()
+            + vec_bytes(&self.cell_len)
+            + vec_bytes(&self.cell_bins)
+    }
+
     /// Number of bins.
     pub fn len(&self) -> usize {
         self.points.len()
@@ -729,12 +738,21 @@ pub fn superjut_features(
 }
 
 /// The per-sample and per-superjut buffers of [`superjut_features_with`], kept between
-/// keyframes by the caller (so they reuse memory that is already mapped).
+/// keyframes by the caller (a [`Segmenter`](crate::segment::Segmenter)) so they reuse memory
+/// that is already mapped.
 #[derive(Default)]
 pub(crate) struct FeatureScratch {
     bin_of: Vec<u32>,
     hist: Vec<u32>,
     accs: Vec<Acc>,
+}
+
+impl FeatureScratch {
+    /// Bytes of capacity held.
+    pub(crate) fn bytes(&self) -> usize {
+        use crate::segment::vec_bytes;
+        vec_bytes(&self.bin_of) + vec_bytes(&self.hist) + vec_bytes(&self.accs)
+    }
 }
 
 /// [`superjut_features`] with its buffers in `scratch`; the same results.

@@ -474,12 +474,41 @@ impl Merger {
 /// Felzenszwalb-Huttenlocher segmentation of the 8-connected image graph: the same labels as
 /// [`felzenszwalb`]`(width * height, e, k, min_size, active)` with `e` the edges of
 /// [`image_edges`] sorted by [`sort_edges`], computed without the whole sorted edge list:
-/// bands of rows emit their edges (8-byte, with [`Tiles`] numbering) grouped by the top digit
-/// of the weight, and the union-find pass consumes the groups as they are sorted, overlapping
-/// the sort of the heavier edges. Its buffers are kept for the next call (see
-/// [`release_kept_buffers`]).
+/// bands of rows emit their edges (8-byte, over pixels numbered in 4x4 tiles) grouped by the
+/// top digit of the weight, and the union-find pass consumes the groups as they are sorted,
+/// overlapping the sort of the heavier edges. Its buffers (~85 bytes per pixel) are allocated
+/// per call: [`segment_image_graph_with`] reuses them.
 #[allow(clippy::too_many_arguments)]
 pub fn segment_image_graph(
+    width: usize,
+    height: usize,
+    points: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    inverse_depth: &[f32],
+    jump_ratio: f32,
+    k: f32,
+    min_size: usize,
+    active: &[bool],
+) -> (Vec<u32>, usize) {
+    segment_image_graph_with(
+        &mut GraphScratch::default(),
+        width,
+        height,
+        points,
+        normals,
+        inverse_depth,
+        jump_ratio,
+        k,
+        min_size,
+        active,
+    )
+}
+
+/// [`segment_image_graph`] with its buffers in `scratch`, kept there for the next call (the
+/// same labels, whatever `scratch` held before).
+#[allow(clippy::too_many_arguments)]
+pub fn segment_image_graph_with(
+    scratch: &mut GraphScratch,
     width: usize,
     height: usize,
     points: &[[f32; 3]],
@@ -498,13 +527,14 @@ pub fn segment_image_graph(
         inverse_depth,
         jump_ratio,
     };
-    segment_image_graph_beside(&inputs, k, min_size, active, || ()).0
+    segment_image_graph_beside(scratch, &inputs, k, min_size, active, || ()).0
 }
 
 /// [`segment_image_graph`], with `side` (work independent of the graph, e.g. the
 /// eigen-transform) run on the second core once the edges are sorted, beside the sequential
 /// union-find; returns both results. Labels are those of [`segment_image_graph`].
 pub(crate) fn segment_image_graph_beside<R: Send + Default>(
+    scratch: &mut GraphScratch,
     inputs: &GraphInputs,
     k: f32,
     min_size: usize,
@@ -516,10 +546,9 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
     let run_side = || side_out = Some(side());
     let mut out = (Vec::new(), 0);
     if let Some(tiles) = Tiles::new(width, height) {
-        let mut scratch = GRAPH_SCRATCH.take();
         tagged_edge_bands(inputs, &tiles, &mut scratch.bands);
         let sizes = group_by_top_digit_into::<u64, _>(&scratch.bands, &mut scratch.grouped);
-        let mut merger = TiledMerger::new(&tiles, k, min_size, &mut scratch);
+        let mut merger = TiledMerger::new(&tiles, k, min_size, scratch);
         let mut labels = None;
         for_each_sorted_bucket(
             &mut scratch.grouped,
@@ -531,8 +560,7 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
             },
             run_side,
         );
-        merger.give_back(&mut scratch);
-        GRAPH_SCRATCH.keep(scratch);
+        merger.give_back(scratch);
         if let Some(l) = labels {
             out = l;
         }
@@ -571,11 +599,12 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
 
 /// The buffers of the image-graph path of [`segment_image_graph`] (edge bands, the grouped
 /// edges, sort scratch, union-find arrays, rejected edges, label map: ~85 bytes per pixel,
-/// 26 MB at 640x480), kept between calls in [`GRAPH_SCRATCH`] so that the next keyframe of
-/// the same size reuses memory that is already mapped, instead of taking a page fault (the
-/// kernel mapping and zeroing a new page) every 4 KiB.
+/// 26 MB at 640x480), for [`segment_image_graph_with`] to reuse, so that the next image of
+/// the same size writes memory that is already mapped instead of taking a page fault (the
+/// kernel mapping and zeroing a new page) every 4 KiB. Images too large for the compact edges
+/// (over 2^30 pixels) do not use it.
 #[derive(Default)]
-struct GraphScratch {
+pub struct GraphScratch {
     bands: Vec<(Vec<u64>, Vec<u32>)>,
     grouped: Vec<u64>,
     sort: [Vec<u64>; 2],
@@ -585,16 +614,36 @@ struct GraphScratch {
     map: Vec<u32>,
 }
 
-/// The buffers of the last finished [`segment_image_graph`] call.
-static GRAPH_SCRATCH: super::KeptSlot<GraphScratch> = super::KeptSlot::new();
+impl GraphScratch {
+    /// Empty buffers (the first image allocates them).
+    pub fn new() -> Self {
+        Self::default()
+    }
 
-/// Frees the buffers that [`segment_image_graph`] and
-/// [`segment_keyframe`](super::segment_keyframe) keep between calls (about 130 bytes per
-/// pixel of the last image segmented), e.g. when no more keyframes will be segmented. The
-/// next call allocates them again.
-pub fn release_kept_buffers() {
-    GRAPH_SCRATCH.release();
-    super::KEPT_BUFFERS.release();
+    /// Bytes of capacity the buffers hold.
+    pub fn bytes(&self) -> usize {
+        use super::vec_bytes;
+        vec_bytes(&self.bands)
+            + self
+                .bands
+                .iter()
+                .map(|(e, t)| vec_bytes(e) + vec_bytes(t))
+                .sum::<usize>()
+            + vec_bytes(&self.grouped)
+            + self.sort.iter().map(vec_bytes).sum::<usize>()
+            + vec_bytes(&self.parent)
+            + vec_bytes(&self.root)
+            + vec_bytes(&self.rejected)
+            + vec_bytes(&self.map)
+    }
+}
+
+impl std::fmt::Debug for GraphScratch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GraphScratch")
+            .field("bytes", &self.bytes())
+            .finish_non_exhaustive()
+    }
 }
 
 /// Bits of a node number in an edge tag of [`Tiles`]; the two above give the direction.
@@ -1400,12 +1449,14 @@ mod tests {
     /// between calls are reused at other sizes.
     #[test]
     fn image_graph_equals_separate_stages() {
+        // One scratch for every size: what one call leaves must not change the next.
+        let mut scratch = GraphScratch::new();
         for (w, h) in [(160, 120), (157, 119), (161, 122), (83, 64), (160, 120)] {
-            image_graph_equals_separate_stages_at(w, h);
+            image_graph_equals_separate_stages_at(w, h, &mut scratch);
         }
     }
 
-    fn image_graph_equals_separate_stages_at(w: usize, h: usize) {
+    fn image_graph_equals_separate_stages_at(w: usize, h: usize, scratch: &mut GraphScratch) {
         let mut r = rng(3);
         let n = w * h;
         // Piecewise planes with noise, holes and depth steps; quantised normals give ties.
@@ -1458,7 +1509,7 @@ mod tests {
                         inverse_depth: &rho,
                         jump_ratio: 0.03,
                     };
-                    segment_image_graph_beside(&inputs, k, min_size, &active, || {
+                    segment_image_graph_beside(scratch, &inputs, k, min_size, &active, || {
                         rho.iter().filter(|&&r| r > 0.0).count()
                     })
                 });

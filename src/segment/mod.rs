@@ -41,7 +41,6 @@ pub use normals::{
 };
 
 use rayon::prelude::*;
-use std::sync::{Arc, Mutex};
 
 use crate::camera::{CameraError, PinholeCamera};
 use crate::gpu::GpuError;
@@ -293,47 +292,51 @@ fn check_size(what: &'static str, img: &ImageF32, w: usize, h: usize) -> Result<
     Ok(())
 }
 
-/// [`SphereBins::golden`]`(m)`, kept for the next keyframe: building the bins (their covering
-/// radius and cube map) costs about a millisecond, and every keyframe asks for the same `m`.
-fn golden_bins(m: usize) -> Arc<SphereBins> {
-    static LAST: Mutex<Option<(usize, Arc<SphereBins>)>> = Mutex::new(None);
-    let Ok(mut last) = LAST.lock() else {
-        return Arc::new(SphereBins::golden(m));
-    };
-    match &*last {
-        Some((k, bins)) if *k == m => Arc::clone(bins),
-        _ => {
-            let bins = Arc::new(SphereBins::golden(m));
-            *last = Some((m, Arc::clone(&bins)));
-            bins
-        }
+/// Superjut segmentation with the buffers it reuses from one keyframe to the next: the
+/// pixel graph's (edge bands, grouped and sorted edges, union-find arrays: ~85 bytes per
+/// pixel), the other per-pixel buffers (points, activity, the two smoothing passes, the
+/// smoothed normals, the feature sums: ~45 bytes per pixel) and the golden-spiral bins of the
+/// last bin count. Reusing them spares the next keyframe of the same size the page faults of
+/// fresh allocations (the kernel mapping and zeroing a page every 4 KiB) and the bins' cube
+/// map; the results are those of a fresh `Segmenter` to the bit, whatever came before.
+///
+/// One `Segmenter` segments one keyframe at a time (`&mut self`); threads that segment at the
+/// same time each own one. [`Self::scratch_bytes`] tells what it holds, [`Self::release`]
+/// frees it.
+///
+/// ```no_run
+/// # use rgbid::{camera::PinholeCamera, image::ImageF32, segment::*};
+/// # let frames = vec![(ImageF32::filled(640, 480, 0.0), ImageF32::filled(640, 480, 0.5))];
+/// let camera = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
+/// let mut segmenter = Segmenter::new();
+/// for (intensity, inverse_depth) in &frames {
+///     let juts = segmenter.segment_keyframe(intensity, inverse_depth, &camera, &SegmentConfig::default())?;
+///     println!("{} superjuts, {} bytes kept", juts.segments.len(), segmenter.scratch_bytes());
+/// }
+/// # Ok::<(), SegmentError>(())
+/// ```
+#[derive(Default)]
+pub struct Segmenter {
+    /// The pixel graph's buffers.
+    graph: graph::GraphScratch,
+    /// The other per-pixel buffers.
+    kept: KeptBuffers,
+    /// [`SphereBins::golden`]`(m)` of the last bin count `m` asked for: building the bins
+    /// (their covering radius and cube map) costs about a millisecond, and every keyframe asks
+    /// for the same `m`.
+    bins: Option<(usize, SphereBins)>,
+}
+
+impl std::fmt::Debug for Segmenter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Segmenter")
+            .field("scratch_bytes", &self.scratch_bytes())
+            .finish_non_exhaustive()
     }
 }
 
-/// Segments a keyframe into superjuts with CPU normals (see the module docs).
-pub fn segment_keyframe(
-    intensity: &ImageF32,
-    inverse_depth: &ImageF32,
-    camera: &PinholeCamera,
-    config: &SegmentConfig,
-) -> Result<Superjuts, SegmentError> {
-    camera.validate()?;
-    check_size(
-        "inverse depth",
-        inverse_depth,
-        camera.width as usize,
-        camera.height as usize,
-    )?;
-    let normals = normals_cpu(inverse_depth, camera, &config.normals);
-    segment_with_normals(intensity, inverse_depth, camera, normals, config)
-}
-
-/// The per-pixel buffers of [`segment_with_normals`] besides the graph's (points, activity,
-/// the two smoothing passes, the smoothed normals, the feature sums: ~45 bytes per pixel,
-/// 14 MB at 640x480), kept between keyframes so that the next one of the same size reuses
-/// memory that is already mapped instead of faulting in fresh pages (measured on redkitchen:
-/// ~2.6k page faults per 640x480 keyframe with fresh buffers, ~0.2k with these kept; glibc
-/// hands the freed memory back after every call). Freed by [`graph::release_kept_buffers`].
+/// The per-pixel buffers of [`Segmenter::segment_with_normals`] besides the graph's (points,
+/// activity, the two smoothing passes, the smoothed normals, the feature sums).
 #[derive(Default)]
 struct KeptBuffers {
     points: Vec<[f32; 3]>,
@@ -344,48 +347,246 @@ struct KeptBuffers {
     features: features::FeatureScratch,
 }
 
-/// The buffers of the last finished [`segment_with_normals`] call.
-static KEPT_BUFFERS: KeptSlot<KeptBuffers> = KeptSlot::new();
-
-/// A process-wide slot for buffers kept from one keyframe to the next. Concurrent calls do not
-/// wait for each other: a call that finds the slot empty allocates its own buffers, and the
-/// last one to finish keeps its.
-pub(crate) struct KeptSlot<T>(Mutex<Option<T>>);
-
-impl<T: Default> KeptSlot<T> {
-    /// An empty slot.
-    pub(crate) const fn new() -> Self {
-        Self(Mutex::new(None))
-    }
-
-    /// The kept buffers, or empty ones (a poisoned lock only means another call panicked
-    /// while holding plain buffers, which are still usable).
-    pub(crate) fn take(&self) -> T {
-        self.0
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .take()
-            .unwrap_or_default()
-    }
-
-    /// Keeps `buffers` for the next call.
-    pub(crate) fn keep(&self, buffers: T) {
-        *self
-            .0
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(buffers);
-    }
-
-    /// Frees the kept buffers.
-    pub(crate) fn release(&self) {
-        *self
-            .0
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = None;
+impl KeptBuffers {
+    /// Bytes of capacity held.
+    fn bytes(&self) -> usize {
+        vec_bytes(&self.points)
+            + vec_bytes(&self.active)
+            + vec_bytes(&self.smooth_tmp.data)
+            + vec_bytes(&self.smooth.data)
+            + vec_bytes(&self.smooth_normals)
+            + self.features.bytes()
     }
 }
 
-/// Segments a keyframe whose normals were already computed (e.g. by [`GpuNormals`]).
+/// Bytes of capacity of `v` (its heap allocation, not what its elements own).
+pub(crate) fn vec_bytes<T>(v: &Vec<T>) -> usize {
+    v.capacity() * std::mem::size_of::<T>()
+}
+
+/// The bins of `slot` if they are for `m` bins, else new ones kept there.
+fn golden_bins(slot: &mut Option<(usize, SphereBins)>, m: usize) -> &SphereBins {
+    if slot.as_ref().is_some_and(|(k, _)| *k != m) {
+        *slot = None;
+    }
+    &slot.get_or_insert_with(|| (m, SphereBins::golden(m))).1
+}
+
+impl Segmenter {
+    /// A segmenter that holds no buffers yet (the first keyframe allocates them).
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Bytes of memory this segmenter holds between keyframes (the capacity of its buffers,
+    /// about 130 bytes per pixel of the largest recent keyframe, plus the bins); 0 after
+    /// [`Self::release`].
+    pub fn scratch_bytes(&self) -> usize {
+        self.graph.bytes()
+            + self.kept.bytes()
+            + self.bins.as_ref().map_or(0, |(_, b)| b.heap_bytes())
+    }
+
+    /// Frees every buffer (e.g. when no more keyframes will be segmented); the next keyframe
+    /// allocates them again, with the same results.
+    pub fn release(&mut self) {
+        *self = Self::default();
+    }
+
+    /// Segments a keyframe into superjuts with CPU normals (see the module docs).
+    pub fn segment_keyframe(
+        &mut self,
+        intensity: &ImageF32,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+        config: &SegmentConfig,
+    ) -> Result<Superjuts, SegmentError> {
+        camera.validate()?;
+        check_size(
+            "inverse depth",
+            inverse_depth,
+            camera.width as usize,
+            camera.height as usize,
+        )?;
+        let normals = normals_cpu(inverse_depth, camera, &config.normals);
+        self.segment_with_normals(intensity, inverse_depth, camera, normals, config)
+    }
+
+    /// Segments a keyframe whose normals were already computed (e.g. by [`GpuNormals`]).
+    pub fn segment_with_normals(
+        &mut self,
+        intensity: &ImageF32,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+        normals: NormalMap,
+        config: &SegmentConfig,
+    ) -> Result<Superjuts, SegmentError> {
+        config.validate()?;
+        camera.validate()?;
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        check_size("inverse depth", inverse_depth, w, h)?;
+        check_size("intensity", intensity, w, h)?;
+        if normals.width != w || normals.height != h || normals.data.len() != w * h {
+            return Err(SegmentError::SizeMismatch {
+                what: "normal map",
+                expected_w: w,
+                expected_h: h,
+                got_w: normals.width,
+                got_h: normals.height,
+            });
+        }
+        let Segmenter {
+            graph: graph_scratch,
+            kept,
+            bins,
+        } = self;
+        // The eigen-transform needs only the intensity: it runs on the second core once the
+        // graph's edges are sorted, beside the union-find pass, which is sequential.
+        normals::points_from_inverse_depth_into(inverse_depth, camera, &mut kept.points);
+        let points = &kept.points;
+        normals::size_for_overwrite(&mut kept.active, w * h, false);
+        kept.active
+            .par_chunks_mut(w.max(1))
+            .zip(normals.data.par_chunks(w.max(1)))
+            .for_each(|(active, row)| {
+                for (a, n) in active.iter_mut().zip(row) {
+                    // `NormalMap::is_valid`, a row at a time.
+                    *a = n[0] != 0.0 || n[1] != 0.0 || n[2] != 0.0;
+                }
+            });
+        let inputs = graph::GraphInputs {
+            width: w,
+            height: h,
+            points,
+            normals: &normals.data,
+            inverse_depth: &inverse_depth.data,
+            jump_ratio: config.jump_ratio,
+        };
+        let ((labels, count), texture) = graph::segment_image_graph_beside(
+            graph_scratch,
+            &inputs,
+            config.k,
+            config.min_size,
+            &kept.active,
+            || {
+                features::eigen_transform_samples(
+                    intensity,
+                    config.texture_window,
+                    config.texture_first,
+                    config.texture_stride,
+                )
+                .into_iter()
+                .map(|(x, y, r)| (y as usize * w + x as usize, r))
+                .collect::<Vec<(usize, f32)>>()
+            },
+        );
+        let bins = golden_bins(bins, config.bins);
+        // Features from the normals of the inverse depth smoothed within each superjut (where
+        // they exist), so sensor noise does not masquerade as curvature; the graph used the raw
+        // normals.
+        let KeptBuffers {
+            points,
+            smooth_tmp,
+            smooth,
+            smooth_normals,
+            features: feature_scratch,
+            ..
+        } = kept;
+        let smoothed = normals::smooth_inverse_depth_into(
+            inverse_depth,
+            &config.normals,
+            Some(&labels),
+            smooth_tmp,
+            smooth,
+        );
+        if smoothed {
+            normals::normals_cpu_into(smooth, camera, &config.normals, smooth_normals);
+            for (n, &raw) in smooth_normals.iter_mut().zip(&normals.data) {
+                if *n == [0.0; 3] {
+                    *n = raw;
+                }
+            }
+        }
+        let segments = features::superjut_features_with(
+            &labels,
+            if smoothed {
+                smooth_normals
+            } else {
+                &normals.data
+            },
+            points,
+            count,
+            bins,
+            config.up,
+            &texture,
+            feature_scratch,
+        );
+        Ok(Superjuts {
+            width: w,
+            height: h,
+            labels,
+            segments,
+            normals,
+        })
+    }
+
+    /// Segments a triangle mesh (with vertex normals) by its edges; returns per-vertex labels
+    /// and the features of each segment (no texture: meshes carry no intensity). Reuses only
+    /// the bins.
+    pub fn segment_mesh(
+        &mut self,
+        mesh: &TriMesh,
+        config: &SegmentConfig,
+    ) -> Result<(Vec<u32>, Vec<Superjut>), SegmentError> {
+        config.validate()?;
+        let n = mesh.vertices.len();
+        if mesh.normals.len() != n {
+            return Err(SegmentError::SizeMismatch {
+                what: "mesh normals",
+                expected_w: n,
+                expected_h: 1,
+                got_w: mesh.normals.len(),
+                got_h: 1,
+            });
+        }
+        let mut edges = mesh.weighted_edges();
+        graph::sort_edges(&mut edges);
+        let active: Vec<bool> = mesh
+            .normals
+            .iter()
+            .map(|v| v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0)
+            .collect();
+        let (labels, count) = graph::felzenszwalb(n, &edges, config.k, config.min_size, &active);
+        let bins = golden_bins(&mut self.bins, config.bins);
+        let segments = features::superjut_features(
+            &labels,
+            &mesh.normals,
+            &mesh.vertices,
+            count,
+            bins,
+            config.up,
+            &[],
+        );
+        Ok((labels, segments))
+    }
+}
+
+/// Segments a keyframe into superjuts with CPU normals (see the module docs), with a fresh
+/// [`Segmenter`]: every call allocates (and frees) the segmentation's buffers, ~130 bytes per
+/// pixel. To segment keyframe after keyframe, keep a [`Segmenter`] and call
+/// [`Segmenter::segment_keyframe`] (the same results).
+pub fn segment_keyframe(
+    intensity: &ImageF32,
+    inverse_depth: &ImageF32,
+    camera: &PinholeCamera,
+    config: &SegmentConfig,
+) -> Result<Superjuts, SegmentError> {
+    Segmenter::new().segment_keyframe(intensity, inverse_depth, camera, config)
+}
+
+/// Segments a keyframe whose normals were already computed (e.g. by [`GpuNormals`]), with a
+/// fresh [`Segmenter`] (allocating per call, as [`segment_keyframe`]; see
+/// [`Segmenter::segment_with_normals`]).
 pub fn segment_with_normals(
     intensity: &ImageF32,
     inverse_depth: &ImageF32,
@@ -393,140 +594,14 @@ pub fn segment_with_normals(
     normals: NormalMap,
     config: &SegmentConfig,
 ) -> Result<Superjuts, SegmentError> {
-    config.validate()?;
-    camera.validate()?;
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    check_size("inverse depth", inverse_depth, w, h)?;
-    check_size("intensity", intensity, w, h)?;
-    if normals.width != w || normals.height != h || normals.data.len() != w * h {
-        return Err(SegmentError::SizeMismatch {
-            what: "normal map",
-            expected_w: w,
-            expected_h: h,
-            got_w: normals.width,
-            got_h: normals.height,
-        });
-    }
-    // Buffers kept from the last keyframe (see `KeptBuffers`).
-    let mut kept = KEPT_BUFFERS.take();
-    // The eigen-transform needs only the intensity: it runs on the second core once the
-    // graph's edges are sorted, beside the union-find pass, which is sequential.
-    normals::points_from_inverse_depth_into(inverse_depth, camera, &mut kept.points);
-    let points = &kept.points;
-    normals::size_for_overwrite(&mut kept.active, w * h, false);
-    kept.active
-        .par_chunks_mut(w.max(1))
-        .zip(normals.data.par_chunks(w.max(1)))
-        .for_each(|(active, row)| {
-            for (a, n) in active.iter_mut().zip(row) {
-                // `NormalMap::is_valid`, a row at a time.
-                *a = n[0] != 0.0 || n[1] != 0.0 || n[2] != 0.0;
-            }
-        });
-    let inputs = graph::GraphInputs {
-        width: w,
-        height: h,
-        points,
-        normals: &normals.data,
-        inverse_depth: &inverse_depth.data,
-        jump_ratio: config.jump_ratio,
-    };
-    let ((labels, count), texture) =
-        graph::segment_image_graph_beside(&inputs, config.k, config.min_size, &kept.active, || {
-            features::eigen_transform_samples(
-                intensity,
-                config.texture_window,
-                config.texture_first,
-                config.texture_stride,
-            )
-            .into_iter()
-            .map(|(x, y, r)| (y as usize * w + x as usize, r))
-            .collect::<Vec<(usize, f32)>>()
-        });
-    let bins = golden_bins(config.bins);
-    // Features from the normals of the inverse depth smoothed within each superjut (where they
-    // exist), so sensor noise does not masquerade as curvature; the graph used the raw normals.
-    let KeptBuffers {
-        points,
-        smooth_tmp,
-        smooth,
-        smooth_normals,
-        features: feature_scratch,
-        ..
-    } = &mut kept;
-    let smoothed = normals::smooth_inverse_depth_into(
-        inverse_depth,
-        &config.normals,
-        Some(&labels),
-        smooth_tmp,
-        smooth,
-    );
-    if smoothed {
-        normals::normals_cpu_into(smooth, camera, &config.normals, smooth_normals);
-        for (n, &raw) in smooth_normals.iter_mut().zip(&normals.data) {
-            if *n == [0.0; 3] {
-                *n = raw;
-            }
-        }
-    }
-    let segments = features::superjut_features_with(
-        &labels,
-        if smoothed {
-            smooth_normals
-        } else {
-            &normals.data
-        },
-        points,
-        count,
-        &bins,
-        config.up,
-        &texture,
-        feature_scratch,
-    );
-    KEPT_BUFFERS.keep(kept);
-    Ok(Superjuts {
-        width: w,
-        height: h,
-        labels,
-        segments,
-        normals,
-    })
+    Segmenter::new().segment_with_normals(intensity, inverse_depth, camera, normals, config)
 }
 
-/// Segments a triangle mesh (with vertex normals) by its edges; returns per-vertex labels and
-/// the features of each segment (no texture: meshes carry no intensity).
+/// Segments a triangle mesh (with vertex normals) by its edges, with a fresh [`Segmenter`]
+/// (see [`Segmenter::segment_mesh`]).
 pub fn segment_mesh(
     mesh: &TriMesh,
     config: &SegmentConfig,
 ) -> Result<(Vec<u32>, Vec<Superjut>), SegmentError> {
-    config.validate()?;
-    let n = mesh.vertices.len();
-    if mesh.normals.len() != n {
-        return Err(SegmentError::SizeMismatch {
-            what: "mesh normals",
-            expected_w: n,
-            expected_h: 1,
-            got_w: mesh.normals.len(),
-            got_h: 1,
-        });
-    }
-    let mut edges = mesh.weighted_edges();
-    graph::sort_edges(&mut edges);
-    let active: Vec<bool> = mesh
-        .normals
-        .iter()
-        .map(|v| v[0] != 0.0 || v[1] != 0.0 || v[2] != 0.0)
-        .collect();
-    let (labels, count) = graph::felzenszwalb(n, &edges, config.k, config.min_size, &active);
-    let bins = golden_bins(config.bins);
-    let segments = features::superjut_features(
-        &labels,
-        &mesh.normals,
-        &mesh.vertices,
-        count,
-        &bins,
-        config.up,
-        &[],
-    );
-    Ok((labels, segments))
+    Segmenter::new().segment_mesh(mesh, config)
 }

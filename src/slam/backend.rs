@@ -14,7 +14,7 @@ use crate::image::{ImageF32, RgbdFrame};
 use crate::odometry::Odometry;
 use crate::place::detector::keypoints_inside;
 use crate::place::{KeyframeDescription, LoopDetector, PixelMatch, Vocabulary};
-use crate::segment::segment_keyframe;
+use crate::segment::Segmenter;
 
 /// A loop the back-end found (accepted or rejected after verification).
 #[derive(Clone, Debug)]
@@ -109,6 +109,8 @@ pub(crate) struct Backend {
     pub shared: Arc<Mutex<Shared>>,
     /// Keyframes before this id come from a loaded map (fixed in the graph).
     pub map_keyframes: usize,
+    /// Superjut segmentation and the buffers it keeps between keyframes.
+    pub segmenter: Segmenter,
 }
 
 fn mask_image(m: &crate::segment::Mask) -> ImageF32 {
@@ -143,16 +145,17 @@ impl Backend {
             timings: Vec::new(),
             shared,
             map_keyframes: 0,
+            segmenter: Segmenter::new(),
         })
     }
 
     /// Masks (as images) of a keyframe: empty without masks, else the full image first and
     /// one per threshold.
-    fn masks(&self, frame: &RgbdFrame) -> Result<Vec<ImageF32>, SlamError> {
+    fn masks(&mut self, frame: &RgbdFrame) -> Result<Vec<ImageF32>, SlamError> {
         if !self.config.masks {
             return Ok(Vec::new());
         }
-        let sj = segment_keyframe(
+        let sj = self.segmenter.segment_keyframe(
             &frame.intensity,
             &frame.inverse_depth,
             &self.camera,
@@ -165,7 +168,7 @@ impl Backend {
         Ok(out)
     }
 
-    pub fn describe(&self, frame: &RgbdFrame) -> Result<Described, SlamError> {
+    pub fn describe(&mut self, frame: &RgbdFrame) -> Result<Described, SlamError> {
         let t = Instant::now();
         let masks = self.masks(frame)?;
         let segment_ms = t.elapsed().as_secs_f64() * 1e3;

@@ -15,7 +15,7 @@ use rgbid::image::{ImageF32, RgbdFrame};
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
 use rgbid::place::orb::{extract_orb, OrbParams};
 use rgbid::place::{PixelMatch, Vocabulary};
-use rgbid::segment::{segment_keyframe, SegmentConfig};
+use rgbid::segment::{SegmentConfig, Segmenter};
 use rgbid::slam::{
     build_model, voxel_filter, FrameReport, FrameStatus, LoopRecord, ModelParams, Slam, SlamConfig,
 };
@@ -420,6 +420,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     let orb_params = slam_config.detector.orb.clone();
     let mask_threshold = slam_config.mask_thresholds.first().copied();
     let mut reference: Option<(RgbdFrame, rgbid::geometry::Se3)> = None;
+    // One segmenter (and its buffers) for every keyframe panel.
+    let mut segmenter = Segmenter::new();
     // Keyframe images by id as the back-end keeps them (intensity rounded to 8 bits), for
     // the loop panel; loop records seen so far.
     let mut keyframe_images = KeyframeImages::default();
@@ -518,14 +520,15 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                 let points = frame_points(&frame, &camera, &world_from_keyframe, config.point_step);
                 let t = Instant::now();
                 let seg = if config.segment_keyframes {
-                    segment_keyframe(
-                        &frame.intensity,
-                        &frame.inverse_depth,
-                        &camera,
-                        &SegmentConfig::default(),
-                    )
-                    .map_err(|e| log::warn!("segmentation of frame {i}: {e}"))
-                    .ok()
+                    segmenter
+                        .segment_keyframe(
+                            &frame.intensity,
+                            &frame.inverse_depth,
+                            &camera,
+                            &SegmentConfig::default(),
+                        )
+                        .map_err(|e| log::warn!("segmentation of frame {i}: {e}"))
+                        .ok()
                 } else {
                     None
                 };
