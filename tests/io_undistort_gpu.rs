@@ -1,8 +1,6 @@
 //! GPU/CPU parity of the undistortion kernel (`shaders/undistort.wgsl`) and of a TUM sequence
-//! loaded with it. Runs on any wgpu adapter (lavapipe in CI); without one it prints a SKIPPED
-//! line and passes, unless `RGBID_REQUIRE_GPU=1`.
-
-mod common;
+//! loaded with it. Runs on any wgpu adapter (lavapipe in CI): GPU tests, ignored by default
+//! (see `rgbid::gpu::test_gpu`).
 
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
@@ -18,8 +16,9 @@ fn fr1_like(w: u32, h: u32) -> PinholeCamera {
 }
 
 #[test]
+#[ignore = "needs a GPU adapter"]
 fn gpu_undistortion_matches_the_cpu_mirror() {
-    let Some(ctx) = common::gpu_or_skip("gpu_undistortion_matches_the_cpu_mirror") else {
+    let Some(ctx) = rgbid::gpu::test_gpu("gpu_undistortion_matches_the_cpu_mirror") else {
         return;
     };
     let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
@@ -72,8 +71,9 @@ fn gpu_undistortion_matches_the_cpu_mirror() {
 }
 
 #[test]
-fn sequence_undistorted_on_the_gpu_equals_the_cpu_load() {
-    let Some(ctx) = common::gpu_or_skip("sequence_undistorted_on_the_gpu_equals_the_cpu_load")
+#[ignore = "needs a GPU adapter"]
+fn gpu_sequence_undistorted_on_the_gpu_equals_the_cpu_load() {
+    let Some(ctx) = rgbid::gpu::test_gpu("gpu_sequence_undistorted_on_the_gpu_equals_the_cpu_load")
     else {
         return;
     };

@@ -1,7 +1,5 @@
 //! Odometry on rendered views of procedural scenes with exact ground truth.
 
-mod common;
-
 use glam::DVec3;
 use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
@@ -42,30 +40,33 @@ fn errors(est: &Se3, truth: &Se3) -> (f64, f64) {
 
 const MOTION: [f64; 6] = [0.02, -0.01, 0.015, 0.01, -0.015, 0.008];
 
-fn backends() -> Vec<ComputeBackend> {
-    let mut v = vec![ComputeBackend::Cpu];
-    if let Some(g) = common::gpu_or_skip("odometry_synthetic (gpu backend)") {
-        v.push(ComputeBackend::Gpu(g));
-    }
-    v
+/// Aligns two noisy views `MOTION` apart on `backend` and checks the error.
+fn known_motion_is_recovered(backend: &ComputeBackend) {
+    let (a, b, truth) = views(&MOTION, true);
+    let mut odo = Odometry::new(OdometryConfig::default(), camera(), backend).expect("odometry");
+    let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
+    let (mm, deg) = errors(&al.cur_from_ref, &truth);
+    println!("{}: error {mm:.3} mm {deg:.4} deg", backend.name());
+    assert!(
+        mm < 1.0 && deg < 0.05,
+        "{}: {mm} mm {deg} deg",
+        backend.name()
+    );
+    assert!(al.covariance.is_some() && al.condition_number.is_finite());
 }
 
 #[test]
-fn known_motion_is_recovered_on_every_backend() {
-    let (a, b, truth) = views(&MOTION, true);
-    for backend in backends() {
-        let mut odo =
-            Odometry::new(OdometryConfig::default(), camera(), &backend).expect("odometry");
-        let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
-        let (mm, deg) = errors(&al.cur_from_ref, &truth);
-        println!("{}: error {mm:.3} mm {deg:.4} deg", backend.name());
-        assert!(
-            mm < 1.0 && deg < 0.05,
-            "{}: {mm} mm {deg} deg",
-            backend.name()
-        );
-        assert!(al.covariance.is_some() && al.condition_number.is_finite());
-    }
+fn known_motion_is_recovered_on_the_cpu_backend() {
+    known_motion_is_recovered(&ComputeBackend::Cpu);
+}
+
+#[test]
+#[ignore = "needs a GPU adapter"]
+fn gpu_known_motion_is_recovered_on_the_gpu_backend() {
+    let Some(g) = rgbid::gpu::test_gpu("gpu_known_motion_is_recovered_on_the_gpu_backend") else {
+        return;
+    };
+    known_motion_is_recovered(&ComputeBackend::Gpu(g));
 }
 
 #[test]
@@ -150,59 +151,85 @@ fn tracking_a_rendered_sequence_switches_references_and_stays_accurate() {
     assert!(mm < 15.0 && deg < 0.5, "{mm} mm {deg} deg");
 }
 
+/// The bilateral covariance pass on `backend`: same pose, larger covariance.
+fn bilateral_covariance_pass(backend: &ComputeBackend) {
+    let (a, b, truth) = views(&MOTION, true);
+    let mut out = Vec::new();
+    for covariance in [CovarianceGradients::Raw, CovarianceGradients::Bilateral] {
+        let cfg = OdometryConfig {
+            covariance,
+            ..Default::default()
+        };
+        let mut odo = Odometry::new(cfg, camera(), backend).expect("odometry");
+        let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
+        let c = al.covariance.expect("covariance");
+        let trace = (0..6).map(|i| c[i][i]).sum::<f64>();
+        println!(
+            "{} {covariance:?}: trace {trace:.3e}, condition {:.3e}, covariance pass {:.2} ms",
+            backend.name(),
+            al.condition_number,
+            al.times.covariance_ms
+        );
+        assert!(al.condition_number.is_finite());
+        out.push((al.cur_from_ref, trace));
+    }
+    // Same estimate (the pass only evaluates the Hessian), and smoothed gradients carry
+    // less information: a larger covariance.
+    assert_eq!(out[0].0.log(), out[1].0.log());
+    assert!(out[1].1 > out[0].1, "{} vs {}", out[1].1, out[0].1);
+    let (mm, deg) = errors(&out[1].0, &truth);
+    assert!(mm < 1.0 && deg < 0.05, "{mm} mm {deg} deg");
+}
+
 #[test]
 fn bilateral_covariance_pass_changes_the_covariance_not_the_pose() {
-    let (a, b, truth) = views(&MOTION, true);
-    for backend in backends() {
-        let mut out = Vec::new();
-        for covariance in [CovarianceGradients::Raw, CovarianceGradients::Bilateral] {
-            let cfg = OdometryConfig {
-                covariance,
-                ..Default::default()
-            };
-            let mut odo = Odometry::new(cfg, camera(), &backend).expect("odometry");
-            let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
-            let c = al.covariance.expect("covariance");
-            let trace = (0..6).map(|i| c[i][i]).sum::<f64>();
-            println!(
-                "{} {covariance:?}: trace {trace:.3e}, condition {:.3e}, covariance pass {:.2} ms",
-                backend.name(),
-                al.condition_number,
-                al.times.covariance_ms
-            );
-            assert!(al.condition_number.is_finite());
-            out.push((al.cur_from_ref, trace));
-        }
-        // Same estimate (the pass only evaluates the Hessian), and smoothed gradients carry
-        // less information: a larger covariance.
-        assert_eq!(out[0].0.log(), out[1].0.log());
-        assert!(out[1].1 > out[0].1, "{} vs {}", out[1].1, out[0].1);
-        let (mm, deg) = errors(&out[1].0, &truth);
-        assert!(mm < 1.0 && deg < 0.05, "{mm} mm {deg} deg");
-    }
+    bilateral_covariance_pass(&ComputeBackend::Cpu);
+}
+
+#[test]
+#[ignore = "needs a GPU adapter"]
+fn gpu_bilateral_covariance_pass_changes_the_covariance_not_the_pose() {
+    let test = "gpu_bilateral_covariance_pass_changes_the_covariance_not_the_pose";
+    let Some(g) = rgbid::gpu::test_gpu(test) else {
+        return;
+    };
+    bilateral_covariance_pass(&ComputeBackend::Gpu(g));
+}
+
+/// First-order inverse-depth sampling on `backend`: noiseless views give the exact motion.
+fn first_order_sampling(backend: &ComputeBackend) {
+    // The nearest-pixel geometric residual leaves a bias on noiseless views (the known gap
+    // above); extending the nearest sample along its gradient removes it.
+    let (a, b, truth) = views(&MOTION, false);
+    let cfg = OdometryConfig {
+        geometric_sampling: GeometricSampling::Linear,
+        ..Default::default()
+    };
+    let mut odo = Odometry::new(cfg, camera(), backend).expect("odometry");
+    let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
+    let (mm, deg) = errors(&al.cur_from_ref, &truth);
+    println!(
+        "{} linear sampling, noiseless: {mm:.4} mm {deg:.5} deg",
+        backend.name()
+    );
+    assert!(
+        mm < 0.1 && deg < 0.005,
+        "{}: {mm} mm {deg} deg",
+        backend.name()
+    );
 }
 
 #[test]
 fn first_order_inverse_depth_sampling_recovers_noiseless_motion() {
-    // The nearest-pixel geometric residual leaves a bias on noiseless views (the known gap
-    // above); extending the nearest sample along its gradient removes it.
-    let (a, b, truth) = views(&MOTION, false);
-    for backend in backends() {
-        let cfg = OdometryConfig {
-            geometric_sampling: GeometricSampling::Linear,
-            ..Default::default()
-        };
-        let mut odo = Odometry::new(cfg, camera(), &backend).expect("odometry");
-        let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
-        let (mm, deg) = errors(&al.cur_from_ref, &truth);
-        println!(
-            "{} linear sampling, noiseless: {mm:.4} mm {deg:.5} deg",
-            backend.name()
-        );
-        assert!(
-            mm < 0.1 && deg < 0.005,
-            "{}: {mm} mm {deg} deg",
-            backend.name()
-        );
-    }
+    first_order_sampling(&ComputeBackend::Cpu);
+}
+
+#[test]
+#[ignore = "needs a GPU adapter"]
+fn gpu_first_order_inverse_depth_sampling_recovers_noiseless_motion() {
+    let test = "gpu_first_order_inverse_depth_sampling_recovers_noiseless_motion";
+    let Some(g) = rgbid::gpu::test_gpu(test) else {
+        return;
+    };
+    first_order_sampling(&ComputeBackend::Gpu(g));
 }

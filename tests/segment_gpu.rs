@@ -1,25 +1,12 @@
 //! GPU/CPU parity of the image-domain normal kernel (`shaders/normals.wgsl`).
 //!
-//! Runs on any wgpu adapter (lavapipe included). Without one the test prints a loud SKIPPED
-//! line and passes, unless `RGBID_REQUIRE_GPU=1`, where it fails.
+//! Runs on any wgpu adapter (lavapipe included): a GPU test, ignored by default (see
+//! `rgbid::gpu::test_gpu`).
 
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
 use rgbid::image::ImageF32;
 use rgbid::segment::{normals_cpu, GpuNormals, NormalParams};
-
-fn gpu() -> Option<std::sync::Arc<rgbid::gpu::GpuContext>> {
-    let g = rgbid::gpu::any_gpu();
-    if g.is_none() {
-        if std::env::var("RGBID_REQUIRE_GPU").as_deref() == Ok("1") {
-            panic!("RGBID_REQUIRE_GPU=1 but no GPU adapter was found");
-        }
-        eprintln!(
-            "\n*** SKIPPED: no GPU adapter (set RGBID_REQUIRE_GPU=1 to make this a failure) ***\n"
-        );
-    }
-    g
-}
 
 /// A sphere in front of a slanted wall, with holes and depth noise: planes, curved surface,
 /// depth discontinuities, invalid pixels and image borders all occur.
@@ -54,8 +41,11 @@ fn scene(w: usize, h: usize, cam: &PinholeCamera, seed: u64) -> ImageF32 {
 }
 
 #[test]
+#[ignore = "needs a GPU adapter"]
 fn gpu_normals_match_the_cpu_mirror() {
-    let Some(ctx) = gpu() else { return };
+    let Some(ctx) = rgbid::gpu::test_gpu("gpu_normals_match_the_cpu_mirror") else {
+        return;
+    };
     let kernel = GpuNormals::new(ctx).unwrap();
     for (w, h, step) in [(160usize, 120usize, 1u32), (203, 97, 2), (640, 480, 2)] {
         let cam = PinholeCamera::new(

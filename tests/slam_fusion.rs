@@ -1,7 +1,5 @@
 //! Keyframe fusion (`shaders/fuse.wgsl` and its CPU mirror) and the map file.
 
-mod common;
-
 use glam::{DQuat, DVec3};
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
@@ -123,8 +121,9 @@ fn fusion_averages_noise_and_counts_covisibility() {
 }
 
 #[test]
-fn fusion_gpu_matches_cpu_mirror() {
-    let Some(gpu) = common::gpu_or_skip("fusion_gpu_matches_cpu_mirror") else {
+#[ignore = "needs a GPU adapter"]
+fn gpu_fusion_matches_cpu_mirror() {
+    let Some(gpu) = rgbid::gpu::test_gpu("gpu_fusion_matches_cpu_mirror") else {
         return;
     };
     for (w, h) in [(160u32, 120u32), (203, 97), (640, 480)] {

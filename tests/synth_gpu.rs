@@ -1,6 +1,6 @@
 //! GPU/CPU parity of the WGSL ray caster (`shaders/raycast.wgsl`) against its CPU mirror.
-//! Runs on any adapter (lavapipe in CI); without one it prints a loud SKIPPED line, unless
-//! RGBID_REQUIRE_GPU=1, in which case it fails.
+//! Runs on any adapter (lavapipe in CI): a GPU test, ignored by default (see
+//! `rgbid::gpu::test_gpu`).
 
 use std::sync::Arc;
 
@@ -10,20 +10,12 @@ use rgbid::synth::raycast::NO_OBJECT;
 use rgbid::synth::trajectory::camera_pose;
 use rgbid::synth::{CameraModel, RenderBackend, Renderer, Scene, SensorModel};
 
-fn gpu() -> Option<Arc<rgbid::gpu::GpuContext>> {
-    let g = rgbid::gpu::any_gpu();
-    if g.is_none() {
-        if std::env::var("RGBID_REQUIRE_GPU").as_deref() == Ok("1") {
-            panic!("RGBID_REQUIRE_GPU=1 but no GPU adapter was found");
-        }
-        eprintln!("==================== SKIPPED: no GPU adapter ====================");
-    }
-    g
-}
-
 #[test]
+#[ignore = "needs a GPU adapter"]
 fn gpu_ray_caster_matches_cpu() {
-    let Some(ctx) = gpu() else { return };
+    let Some(ctx) = rgbid::gpu::test_gpu("gpu_ray_caster_matches_cpu") else {
+        return;
+    };
     let cams = [
         CameraModel::Pinhole(PinholeCamera::new(262.5, 262.5, 159.5, 119.5, 320, 240)),
         CameraModel::Unified(UnifiedCamera::catadioptric(240, 240)),

@@ -8,6 +8,9 @@
 mod backend;
 mod context;
 pub mod shaders;
+mod testing;
 
 pub use backend::{any_gpu, describe_adapters, select_backend, BackendChoice, ComputeBackend};
 pub use context::{GpuContext, GpuError};
+#[doc(hidden)]
+pub use testing::{no_test_gpu, test_gpu, REQUIRE_GPU_ENV};

@@ -2,8 +2,8 @@
 //! main panels rendered offscreen with wgpu (egui_kittest), compared against the PNGs in
 //! `tests/snapshots/` with a tolerance. `UPDATE_SNAPSHOTS=1` rewrites the references.
 //!
-//! Without a wgpu adapter the snapshot test prints a loud SKIPPED line, unless
-//! `RGBID_REQUIRE_GPU=1` (CI with lavapipe), where it fails.
+//! The tests that render need a GPU adapter: they are named `gpu_*` and ignored by default,
+//! and CI runs them on lavapipe with `RGBID_REQUIRE_GPU=1` (see `rgbid::gpu::test_gpu`).
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -148,8 +148,11 @@ fn step_processes_exactly_one_frame_while_paused() {
     }
 }
 
-/// A wgpu render state for kittest, or None (with a loud line) when there is no adapter.
-fn render_state_or_skip(test: &str) -> Option<egui_wgpu::RenderState> {
+/// A wgpu render state for kittest in the GPU test `test`: `None` after
+/// [`rgbid::gpu::test_gpu`]'s skip line when there is no adapter (a failure with
+/// `RGBID_REQUIRE_GPU=1`).
+fn gpu_render_state(test: &str) -> Option<egui_wgpu::RenderState> {
+    rgbid::gpu::test_gpu(test)?;
     let made = std::panic::catch_unwind(|| {
         egui_kittest::wgpu::create_render_state(
             egui_kittest::wgpu::default_wgpu_setup(),
@@ -159,12 +162,7 @@ fn render_state_or_skip(test: &str) -> Option<egui_wgpu::RenderState> {
     match made {
         Ok(rs) => Some(rs),
         Err(_) => {
-            if std::env::var("RGBID_REQUIRE_GPU").as_deref() == Ok("1") {
-                panic!(
-                    "{test}: RGBID_REQUIRE_GPU=1 but no wgpu adapter (install mesa-vulkan-drivers)"
-                );
-            }
-            eprintln!("SKIPPED {test}: no wgpu adapter (install mesa-vulkan-drivers for lavapipe)");
+            rgbid::gpu::no_test_gpu(test, "egui_kittest could not create a render state");
             None
         }
     }
@@ -220,8 +218,9 @@ fn background_fraction(img: &image::RgbaImage, bg: [u8; 3]) -> f64 {
 }
 
 #[test]
-fn panel_snapshots_rendered_with_wgpu() {
-    let Some(rs) = render_state_or_skip("panel_snapshots_rendered_with_wgpu") else {
+#[ignore = "needs a GPU adapter"]
+fn gpu_panel_snapshots() {
+    let Some(rs) = gpu_render_state("gpu_panel_snapshots") else {
         return;
     };
     let base = deterministic_state();
@@ -243,7 +242,7 @@ fn panel_snapshots_rendered_with_wgpu() {
     let state = ViewerState::from_run(run.clone());
     let mut app = ViewerApp::new(state, None);
     app.has_3d = true;
-    let rs = render_state_or_skip("3d").expect("adapter seen above");
+    let rs = gpu_render_state("3d").expect("adapter seen above");
     let mut h3 = harness(rs, egui::Vec2::new(640.0, 480.0), app, |ui, app| {
         egui::CentralPanel::default().show(ui, |ui| app.scene_ui(ui));
     });
@@ -259,7 +258,7 @@ fn panel_snapshots_rendered_with_wgpu() {
     results.extend_harness(&mut h3);
 
     // Image panels and plots alone.
-    let rs = render_state_or_skip("images").expect("adapter seen above");
+    let rs = gpu_render_state("images").expect("adapter seen above");
     let mut hi = harness(
         rs,
         egui::Vec2::new(360.0, 1000.0),
@@ -271,7 +270,7 @@ fn panel_snapshots_rendered_with_wgpu() {
     hi.run_steps(2);
     hi.snapshot_options("images", &opts);
     results.extend_harness(&mut hi);
-    let rs = render_state_or_skip("plots").expect("adapter seen above");
+    let rs = gpu_render_state("plots").expect("adapter seen above");
     let mut hp = harness(
         rs,
         egui::Vec2::new(1000.0, 260.0),
@@ -301,18 +300,22 @@ fn loop_run() -> RunConfig {
     cfg
 }
 
-/// The loop panels after SLAM on [`loop_run`]: the latest accepted loop's inlier matches lie
-/// on ORB keypoints of the two keyframe images (as the back-end extracts them), the drawn
-/// lines join exactly those points, the two keyframes see the same place (ground truth), and
-/// the panels are compared against `tests/snapshots/loops.png`.
-#[test]
-fn loop_panel_snapshots_show_the_inlier_matches_of_a_closed_loop() {
+/// The viewer state after SLAM on [`loop_run`].
+fn closed_loop_state() -> ViewerState {
     let mut app = ViewerApp::new(ViewerState::default(), Some(loop_run()));
     app.speed = 0.0;
     app.send_speed();
     app.wait_until_finished();
     assert!(app.state.error.is_none(), "{:?}", app.state.error);
-    let state = app.state.clone();
+    app.state.clone()
+}
+
+/// The loop panels after SLAM on [`loop_run`]: the latest accepted loop's inlier matches lie
+/// on ORB keypoints of the two keyframe images (as the back-end extracts them), the drawn
+/// lines join exactly those points, and the two keyframes see the same place (ground truth).
+#[test]
+fn loop_panels_show_the_inlier_matches_of_a_closed_loop() {
+    let state = closed_loop_state();
     let l = state
         .panels
         .loop_accepted
@@ -374,10 +377,16 @@ fn loop_panel_snapshots_show_the_inlier_matches_of_a_closed_loop() {
             .as_ref()
             .map(|r| (r.query, r.candidate, r.reason.clone()))
     );
+}
 
-    let Some(rs) = render_state_or_skip("loop_panel_snapshots") else {
+/// The loop panels after SLAM on [`loop_run`], compared against `tests/snapshots/loops.png`.
+#[test]
+#[ignore = "needs a GPU adapter"]
+fn gpu_loop_panel_snapshot() {
+    let Some(rs) = gpu_render_state("gpu_loop_panel_snapshot") else {
         return;
     };
+    let state = closed_loop_state();
     let mut h = harness(
         rs,
         egui::Vec2::new(360.0, 380.0),
@@ -395,15 +404,16 @@ fn loop_panel_snapshots_show_the_inlier_matches_of_a_closed_loop() {
 
 /// Frame time of the whole UI (egui layout + tessellation + wgpu render + read-back) with a
 /// 1M-point cloud in the 3D view. A measurement, not an assertion on speed: run with
-/// `cargo test -p rgbid-viewer --test panels -- --ignored --nocapture ui_frame_time`.
+/// `cargo test -p rgbid-viewer --test panels -- --ignored --nocapture ui_frame_time`. Manual
+/// (`manual_*`): not run by CI.
 #[test]
-#[ignore = "benchmark: prints figures"]
-fn ui_frame_time_with_a_million_points() {
-    let Some(_) = render_state_or_skip("ui_frame_time_with_a_million_points") else {
+#[ignore = "benchmark: prints figures; needs a GPU adapter"]
+fn manual_ui_frame_time_with_a_million_points() {
+    let Some(_) = gpu_render_state("manual_ui_frame_time_with_a_million_points") else {
         return;
     };
     for (points, budget) in [(0, None), (1_000_000, None), (1_000_000, Some(250_000u32))] {
-        let rs = render_state_or_skip("ui_frame_time").expect("adapter seen above");
+        let rs = gpu_render_state("ui_frame_time").expect("adapter seen above");
         let adapter = rs.adapter.get_info().name;
         let mut state = ViewerState::default();
         state.add_bench_points(points);
@@ -435,11 +445,12 @@ fn ui_frame_time_with_a_million_points() {
 
 /// Writes `viewer/screenshot.png` (the README's picture): the full UI after SLAM on one lap
 /// of the generated office loop. Run with
-/// `cargo test -p rgbid-viewer --test panels -- --ignored readme_screenshot`.
+/// `cargo test -p rgbid-viewer --test panels -- --ignored readme_screenshot`. Manual
+/// (`manual_*`): not run by CI.
 #[test]
-#[ignore = "writes viewer/screenshot.png"]
-fn readme_screenshot() {
-    let Some(rs) = render_state_or_skip("readme_screenshot") else {
+#[ignore = "writes viewer/screenshot.png; needs a GPU adapter"]
+fn manual_readme_screenshot() {
+    let Some(rs) = gpu_render_state("manual_readme_screenshot") else {
         return;
     };
     let mut cfg = RunConfig::new(SourceSpec::Synth {
@@ -542,8 +553,9 @@ fn saved_map_opens_with_its_keyframes_and_model() {
 }
 
 #[test]
-fn dragging_orbits_and_scrolling_zooms_the_3d_view() {
-    let Some(rs) = render_state_or_skip("dragging_orbits_and_scrolling_zooms_the_3d_view") else {
+#[ignore = "needs a GPU adapter"]
+fn gpu_dragging_orbits_and_scrolling_zooms_the_3d_view() {
+    let Some(rs) = gpu_render_state("gpu_dragging_orbits_and_scrolling_zooms_the_3d_view") else {
         return;
     };
     let mut state = ViewerState::default();
