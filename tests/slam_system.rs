@@ -169,6 +169,92 @@ fn slam_tracks_a_generated_sequence_with_keyframes_and_a_map_file() {
     assert!(e.to_string().contains("v.rgbmap"));
 }
 
+/// Each `Slam` keeps its own memory account: two instances in one process, one fed three
+/// times the frames of the other, report their own keyframes, descriptions, records and
+/// segmentation buffers; the account grows with the keyframes, its peak never falls and is
+/// never below what is held, and one instance stopping frees none of the other's buffers.
+#[test]
+fn two_instances_account_their_own_memory() {
+    let cam = camera(192);
+    let pixels = 192 * 144;
+    let scene = Scene::preset("office", 3).unwrap();
+    let mut seq = sequence(scene, TrajectoryKind::Handheld, 90, 3, cam);
+    let new_slam = || {
+        Slam::new(
+            SlamConfig::default(),
+            cam,
+            &ComputeBackend::Cpu,
+            Vocabulary::embedded_default().unwrap(),
+            None,
+        )
+        .unwrap()
+    };
+    let (mut a, mut b) = (new_slam(), new_slam());
+    let b_frames = 30;
+    let mut accounts = Vec::new();
+    let mut a_keyframes = 0;
+    for i in 0..seq.len() {
+        let f = seq.render_frame(i).unwrap();
+        let frame = f.frame.to_rgbd_frame(f.timestamp);
+        if a.process(&frame).unwrap().status == FrameStatus::NewKeyframe {
+            a_keyframes += 1;
+        }
+        if i < b_frames {
+            b.process(&frame).unwrap();
+        }
+        let m = a.memory();
+        assert!(m.peak_bytes() >= m.now.total(), "frame {i}: {m:?}");
+        accounts.push(m);
+    }
+    for (i, w) in accounts.windows(2).enumerate() {
+        let (before, after) = (&w[0], &w[1]);
+        assert!(after.peak_bytes() >= before.peak_bytes(), "frame {i}");
+        // Keyframes are only ever added; one more frame record each frame.
+        assert!(after.now.keyframes >= before.now.keyframes, "frame {i}");
+        assert!(after.now.records >= before.now.records, "frame {i}");
+    }
+    let last = accounts.last().unwrap();
+    assert!(last.now.odometry > 0 && last.now.fusion > 0, "{last:?}");
+    assert_eq!(last.now.gpu, 0, "CPU backend");
+    // Once A's back-end has segmented a keyframe (it got one when the second started), B
+    // stopping (its back-end frees its segmentation buffers) leaves A's alone.
+    assert!(a_keyframes >= 2, "{a_keyframes} keyframes");
+    let t = std::time::Instant::now();
+    while a.memory().now.segmenter == 0 && t.elapsed().as_secs() < 120 {
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    let rb = b.finish().unwrap();
+    assert!(a.memory().now.segmenter >= 100 * pixels);
+    let ra = a.finish().unwrap();
+    assert!(ra.keyframes().len() > rb.keyframes().len());
+    for r in [&ra, &rb] {
+        let m = r.memory;
+        // This instance's keyframe images (4 bytes per pixel) and no other's.
+        let images: usize = r
+            .keyframes()
+            .iter()
+            .map(|k| k.intensity.len() + 2 * k.inverse_depth.len() + k.weight.len())
+            .sum();
+        assert_eq!(images, 4 * pixels * r.keyframes().len());
+        assert!(
+            m.now.keyframes >= images && m.now.keyframes < images + 64 * 1024,
+            "{} keyframe bytes for {} keyframes",
+            m.now.keyframes,
+            r.keyframes().len()
+        );
+        // The back-end freed its segmentation buffers when it stopped; the peak held them.
+        assert_eq!(m.now.segmenter, 0);
+        assert!(m.peak.segmenter >= 100 * pixels, "{m:?}");
+        assert!(m.peak_bytes() >= m.now.total());
+        assert!(m.now.place_recognition > 0 && m.now.pose_graph > 0);
+    }
+    let (ma, mb) = (ra.memory, rb.memory);
+    assert!(ma.now.keyframes > mb.now.keyframes);
+    assert!(ma.now.place_recognition > mb.now.place_recognition);
+    assert!(ma.now.records > mb.now.records);
+    assert!(ma.peak_bytes() > mb.peak_bytes());
+}
+
 #[test]
 fn wrong_frame_size_is_an_error_not_a_panic() {
     let cam = camera(160);

@@ -492,10 +492,27 @@ fn write_outputs(
             r.map.bytes_per_keyframe() / 1e6
         );
     }
+    // The instance's own account (what this `Slam` held), beside the process figure.
+    let peak = &r.memory.peak;
+    let mb = |b: usize| b as f64 / 1e6;
+    println!(
+        "instance peak {:.1} MB: keyframes {:.1} | place recognition {:.1} | pose graph {:.2} | segmenter {:.1} | odometry {:.1} | fusion {:.1} | records {:.2} | gpu {:.1}",
+        mb(peak.total()),
+        mb(peak.keyframes),
+        mb(peak.place_recognition),
+        mb(peak.pose_graph),
+        mb(peak.segmenter),
+        mb(peak.odometry),
+        mb(peak.fusion),
+        mb(peak.records),
+        mb(peak.gpu)
+    );
     let mut summary = serde_json::json!({
         "frames": processed, "dropped": dropped, "tracked": tracked, "lost": lost,
         "relocalised": reloc, "keyframes": r.keyframes().len(), "loops_accepted": accepted,
         "wall_s": wall, "model_points": model_points, "peak_rss_mb": rss,
+        "instance_peak_bytes": r.memory.peak_bytes(),
+        "instance_peak_breakdown_bytes": peak,
     });
     if let Some(gt) = source.groundtruth() {
         let gt_path = out.join("groundtruth.txt");

@@ -294,6 +294,24 @@ impl<P: Pose> Factor<P> for EdgeFactor<P> {
 }
 
 impl<P: Pose> PoseGraph<P> {
+    /// Bytes of heap memory the graph holds (vertices, edges with their information
+    /// matrices, the id index counted at its capacity times its entry size).
+    pub(crate) fn heap_bytes(&self) -> usize {
+        fn bytes<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        bytes(&self.ids)
+            + bytes(&self.poses)
+            + bytes(&self.fixed)
+            + bytes(&self.edges)
+            + self
+                .edges
+                .iter()
+                .map(|e| bytes(&e.information))
+                .sum::<usize>()
+            + self.index.capacity() * std::mem::size_of::<(i64, usize)>()
+    }
+
     /// An empty graph.
     pub fn new() -> Self {
         PoseGraph {

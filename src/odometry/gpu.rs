@@ -57,7 +57,21 @@ fn source(name: &str) -> Result<String, GpuError> {
     })
 }
 
+impl GpuPyramid {
+    /// Bytes of the device buffers allocated for this pyramid.
+    pub(crate) fn device_bytes(&self) -> usize {
+        (self.input.size() + self.photo.size() + self.geo.size()) as usize
+    }
+}
+
 impl GpuOdometry {
+    /// Bytes of the device buffers the kernels keep (parameters, partial sums, read-back
+    /// staging), pyramids aside.
+    pub(crate) fn device_bytes(&self) -> usize {
+        let pyr: u64 = self.pyr_uniforms.iter().map(wgpu::Buffer::size).sum();
+        (pyr + self.warp_uniform.size() + self.out.size() + self.staging.size()) as usize
+    }
+
     /// Compiles the kernels on `ctx` (subgroup reductions where the device has them).
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         let subgroups = ctx.has_subgroups;

@@ -193,6 +193,40 @@ impl Odometry {
         })
     }
 
+    /// Bytes this odometry holds between frames, `(host, device)`: the pyramids it keeps
+    /// (the reference, a spare one recycled for the next frame, the covariance pass's
+    /// filtered level) in host memory on the CPU backend, and on a GPU the buffers allocated
+    /// for them and for the kernels' parameters, partial sums and read-back (host: only the
+    /// level tables). Sums of capacities and buffer sizes; allocates nothing.
+    pub fn memory_bytes(&self) -> (usize, usize) {
+        let mut host = 0;
+        let mut device = match &self.engine {
+            Engine::Cpu => 0,
+            Engine::Gpu(g) => g.device_bytes(),
+        };
+        let pyramids = [
+            self.reference.as_ref().map(|r| &r.pyramid),
+            self.spare.as_ref(),
+            self.filtered.as_ref(),
+        ];
+        let levels = |l: &Vec<super::cpu::LevelLayout>| {
+            l.capacity() * std::mem::size_of::<super::cpu::LevelLayout>()
+        };
+        for p in pyramids.into_iter().flatten() {
+            match p {
+                Pyramid::Cpu(c) => {
+                    host += levels(&c.levels)
+                        + (c.photo.capacity() + c.geo.capacity()) * std::mem::size_of::<[f32; 4]>();
+                }
+                Pyramid::Gpu(g) => {
+                    host += levels(&g.levels);
+                    device += g.device_bytes();
+                }
+            }
+        }
+        (host, device)
+    }
+
     /// The configuration.
     pub fn config(&self) -> &OdometryConfig {
         &self.config

@@ -58,6 +58,23 @@ pub struct KeyframeDatabase {
 }
 
 impl KeyframeDatabase {
+    /// Bytes of heap memory the database holds: the inverted index, the entry table and the
+    /// stored histograms (the hash map counted at its capacity times its entry size).
+    pub(crate) fn heap_bytes(&self) -> usize {
+        fn bytes<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        bytes(&self.inverted)
+            + self.inverted.iter().map(bytes).sum::<usize>()
+            + bytes(&self.entry_keyframe)
+            + self.histograms.capacity() * std::mem::size_of::<(usize, Vec<BowVector>)>()
+            + self
+                .histograms
+                .values()
+                .map(|h| bytes(h) + h.iter().map(|b| bytes(&b.0)).sum::<usize>())
+                .sum::<usize>()
+    }
+
     /// An empty database for a vocabulary of `num_words` words scored with `scoring`.
     pub fn new(num_words: usize, scoring: Scoring) -> Self {
         Self {

@@ -97,6 +97,30 @@ impl LoopDetector {
         self.keyframes.len()
     }
 
+    /// Bytes of heap memory of the database and the keyframe descriptions (keypoints,
+    /// descriptors, 3D points, bags of words, direct index; the direct index's tree nodes
+    /// counted as their entries), without the vocabulary (see [`Vocabulary::heap_bytes`]).
+    pub(crate) fn database_bytes(&self) -> usize {
+        fn bytes<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        let description = |d: &KeyframeDescription| {
+            let f = &d.features;
+            bytes(&f.keypoints)
+                + bytes(&f.descriptors)
+                + bytes(&f.points)
+                + bytes(&d.bows)
+                + d.bows.iter().map(|b| bytes(&b.0)).sum::<usize>()
+                + d.feature_vector
+                    .values()
+                    .map(|v| std::mem::size_of::<(u32, Vec<usize>)>() + bytes(v))
+                    .sum::<usize>()
+        };
+        self.database.heap_bytes()
+            + bytes(&self.keyframes)
+            + self.keyframes.iter().map(description).sum::<usize>()
+    }
+
     /// True when no keyframe was inserted.
     pub fn is_empty(&self) -> bool {
         self.keyframes.is_empty()

@@ -253,6 +253,16 @@ fn kmedians(
 }
 
 impl Vocabulary {
+    /// Bytes of heap memory the tree holds (nodes, their child lists, the word table).
+    pub(crate) fn heap_bytes(&self) -> usize {
+        fn bytes<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        bytes(&self.nodes)
+            + self.nodes.iter().map(|n| bytes(&n.children)).sum::<usize>()
+            + bytes(&self.words)
+    }
+
     /// Branching factor.
     pub fn k(&self) -> usize {
         self.k

@@ -476,7 +476,7 @@ impl Merger {
 /// [`image_edges`] sorted by [`sort_edges`], computed without the whole sorted edge list:
 /// bands of rows emit their edges (8-byte, over pixels numbered in 4x4 tiles) grouped by the
 /// top digit of the weight, and the union-find pass consumes the groups as they are sorted,
-/// overlapping the sort of the heavier edges. Its buffers (~85 bytes per pixel) are allocated
+/// overlapping the sort of the heavier edges. Its buffers (~90 bytes per pixel) are allocated
 /// per call: [`segment_image_graph_with`] reuses them.
 #[allow(clippy::too_many_arguments)]
 pub fn segment_image_graph(
@@ -598,8 +598,8 @@ pub(crate) fn segment_image_graph_beside<R: Send + Default>(
 }
 
 /// The buffers of the image-graph path of [`segment_image_graph`] (edge bands, the grouped
-/// edges, sort scratch, union-find arrays, rejected edges, label map: ~85 bytes per pixel,
-/// 26 MB at 640x480), for [`segment_image_graph_with`] to reuse, so that the next image of
+/// edges, sort scratch, union-find arrays, rejected edges, label map: ~90 bytes per pixel,
+/// more once the edge bands have grown for a busier image), for [`segment_image_graph_with`] to reuse, so that the next image of
 /// the same size writes memory that is already mapped instead of taking a page fault (the
 /// kernel mapping and zeroing a new page) every 4 KiB. Images too large for the compact edges
 /// (over 2^30 pixels) do not use it.

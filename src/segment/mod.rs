@@ -293,12 +293,13 @@ fn check_size(what: &'static str, img: &ImageF32, w: usize, h: usize) -> Result<
 }
 
 /// Superjut segmentation with the buffers it reuses from one keyframe to the next: the
-/// pixel graph's (edge bands, grouped and sorted edges, union-find arrays: ~85 bytes per
-/// pixel), the other per-pixel buffers (points, activity, the two smoothing passes, the
-/// smoothed normals, the feature sums: ~45 bytes per pixel) and the golden-spiral bins of the
-/// last bin count. Reusing them spares the next keyframe of the same size the page faults of
-/// fresh allocations (the kernel mapping and zeroing a page every 4 KiB) and the bins' cube
-/// map; the results are those of a fresh `Segmenter` to the bit, whatever came before.
+/// pixel graph's (edge bands, grouped and sorted edges, union-find arrays: ~90-120 bytes per
+/// pixel, the edge bands keeping the largest capacity a keyframe needed), the other per-pixel
+/// buffers (points, activity, the two smoothing passes, the smoothed normals, the feature
+/// sums: ~40 bytes per pixel) and the golden-spiral bins of the last bin count. Reusing them
+/// spares the next keyframe of the same size the page faults of fresh allocations (the kernel
+/// mapping and zeroing a page every 4 KiB) and the bins' cube map; the results are those of a
+/// fresh `Segmenter` to the bit, whatever came before.
 ///
 /// One `Segmenter` segments one keyframe at a time (`&mut self`); threads that segment at the
 /// same time each own one. [`Self::scratch_bytes`] tells what it holds, [`Self::release`]
@@ -379,7 +380,7 @@ impl Segmenter {
     }
 
     /// Bytes of memory this segmenter holds between keyframes (the capacity of its buffers,
-    /// about 130 bytes per pixel of the largest recent keyframe, plus the bins); 0 after
+    /// ~130-160 bytes per pixel of the largest keyframe so far, plus the bins); 0 after
     /// [`Self::release`].
     pub fn scratch_bytes(&self) -> usize {
         self.graph.bytes()

@@ -5,6 +5,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use super::keyframe::{Keyframe, KeyframeLink};
+use super::memory::{keyframe_bytes, vec_bytes, MemoryAccount, MemoryBreakdown};
 use super::{information_from, SlamConfig, SlamError};
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
@@ -76,6 +77,17 @@ pub(crate) struct Shared {
     pub optimisations: usize,
     /// Every loop record so far (accepted and rejected), in the order they were found.
     pub loop_records: Vec<LoopRecord>,
+    /// The instance's memory account (both threads' parts and the peak).
+    pub memory: MemoryAccount,
+}
+
+/// Bytes of loop records.
+pub(crate) fn loop_record_bytes(records: &Vec<LoopRecord>) -> usize {
+    vec_bytes(records)
+        + records
+            .iter()
+            .map(|r| vec_bytes(&r.matches) + r.reason.capacity())
+            .sum::<usize>()
 }
 
 /// Answer to a relocalisation request.
@@ -111,6 +123,8 @@ pub(crate) struct Backend {
     pub map_keyframes: usize,
     /// Superjut segmentation and the buffers it keeps between keyframes.
     pub segmenter: Segmenter,
+    /// Bytes of the vocabulary (it does not change).
+    vocabulary_bytes: usize,
 }
 
 fn mask_image(m: &crate::segment::Mask) -> ImageF32 {
@@ -133,6 +147,7 @@ impl Backend {
         ocfg.reference_switch = None;
         ocfg.constant_velocity = false;
         let odometry = Odometry::new(ocfg, camera, backend)?;
+        let vocabulary_bytes = vocabulary.heap_bytes();
         Ok(Backend {
             camera,
             detector: LoopDetector::new(vocabulary, config.detector.clone()),
@@ -146,7 +161,41 @@ impl Backend {
             shared,
             map_keyframes: 0,
             segmenter: Segmenter::new(),
+            vocabulary_bytes,
         })
+    }
+
+    /// The back-end's parts of the instance's memory account (sums of capacities; allocates
+    /// nothing).
+    pub fn memory_parts(&self) -> MemoryBreakdown {
+        let (odometry, gpu) = self.odometry.memory_bytes();
+        let flags = vec_bytes(&self.mask_flags)
+            + self
+                .mask_flags
+                .iter()
+                .map(|k| vec_bytes(k) + k.iter().map(vec_bytes).sum::<usize>())
+                .sum::<usize>();
+        MemoryBreakdown {
+            keyframes: vec_bytes(&self.keyframes)
+                + self.keyframes.iter().map(keyframe_bytes).sum::<usize>(),
+            place_recognition: self.vocabulary_bytes + self.detector.database_bytes() + flags,
+            pose_graph: self.graph.heap_bytes(),
+            segmenter: self.segmenter.scratch_bytes(),
+            odometry,
+            records: vec_bytes(&self.timings),
+            gpu,
+            ..MemoryBreakdown::default()
+        }
+    }
+
+    /// Enters [`Self::memory_parts`] in the account shared with the front-end.
+    pub fn note_memory(&self) {
+        let parts = self.memory_parts();
+        self.shared
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .memory
+            .set_backend(parts);
     }
 
     /// Masks (as images) of a keyframe: empty without masks, else the full image first and

@@ -311,6 +311,16 @@ impl GpuFusion {
         })
     }
 
+    /// Bytes of the device buffers allocated (parameters, counts, and the resident keyframe
+    /// and current frame).
+    fn device_bytes(&self) -> usize {
+        let resident = self
+            .buffers
+            .as_ref()
+            .map_or(0, |(cur, kr, kw, _)| cur.size() + kr.size() + kw.size());
+        (self.uniform.size() + self.counts.size() + resident) as usize
+    }
+
     /// Reads the keyframe back: `(rho, weight)`.
     pub fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError> {
         let Some((_, kr, kw, _)) = &self.buffers else {
@@ -355,6 +365,18 @@ impl KeyframeFuser {
             rho: Vec::new(),
             weight: Vec::new(),
         })
+    }
+
+    /// Bytes this fuser holds, `(host, device)`: the keyframe's inverse depth and weights in
+    /// host memory, and on a GPU the buffers allocated for the resident keyframe, the frame
+    /// being fused and the kernel's parameters. Allocates nothing.
+    pub fn memory_bytes(&self) -> (usize, usize) {
+        let host = (self.rho.capacity() + self.weight.capacity()) * std::mem::size_of::<f32>();
+        let device = match &self.engine {
+            Engine::Cpu => 0,
+            Engine::Gpu(g) => g.device_bytes(),
+        };
+        (host, device)
     }
 
     /// Starts a keyframe from the inverse depth `rho` (1/m, 0 = invalid): weight 1 where valid.

@@ -23,6 +23,7 @@ mod backend;
 pub mod fusion;
 pub mod keyframe;
 pub mod map;
+mod memory;
 pub mod model;
 mod system;
 
@@ -30,6 +31,7 @@ pub use backend::{KeyframeTiming, LoopRecord};
 pub use fusion::{fuse_cpu, FusionCounts, FusionParams, KeyframeFuser};
 pub use keyframe::{Keyframe, KeyframeLink};
 pub use map::{Map, MapError, MAP_VERSION};
+pub use memory::{MemoryBreakdown, MemoryReport};
 pub use model::{build_model, voxel_filter, write_ply, ModelParams};
 pub use system::{FrameRecord, FrameReport, FrameStatus, OdometryDiagnostics, Slam, SlamResult};
 

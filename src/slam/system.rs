@@ -6,10 +6,13 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use super::backend::{Backend, KeyframeTiming, LoopRecord, Relocalisation, Shared};
+use super::backend::{
+    loop_record_bytes, Backend, KeyframeTiming, LoopRecord, Relocalisation, Shared,
+};
 use super::fusion::KeyframeFuser;
 use super::keyframe::{Keyframe, KeyframeLink};
 use super::map::Map;
+use super::memory::{vec_bytes, MemoryBreakdown, MemoryReport};
 use super::{information_from, SlamConfig, SlamError};
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
@@ -113,6 +116,9 @@ pub struct SlamResult {
     pub map: Map,
     /// Milliseconds of the final keyframe and all-frames optimisations.
     pub final_optimise_ms: f64,
+    /// The instance's memory account at the end of the run (after the back-end stopped and
+    /// freed its segmentation buffers), with its peak over the run (see [`Slam::memory`]).
+    pub memory: MemoryReport,
 }
 
 enum ToBackend {
@@ -222,6 +228,7 @@ impl Slam {
             map.load_into(&mut back)?;
         }
         let map_keyframes = back.keyframes.len();
+        back.note_memory();
         let (tx, rx) = sync_channel::<ToBackend>(config.queue);
         let handle = std::thread::Builder::new()
             .name("rgbid-backend".into())
@@ -251,6 +258,54 @@ impl Slam {
     /// Number of frames processed.
     pub fn frames(&self) -> usize {
         self.frames.len()
+    }
+
+    /// The memory this instance holds, by owner, and the peak of its total over the run
+    /// (bytes; see [`MemoryBreakdown`] for what is counted). The front-end's parts are
+    /// measured now, the back-end's as of its last keyframe: the back-end runs on its own
+    /// thread. The peak is taken at every processed frame and every back-end keyframe. Cheap
+    /// (sums of capacities, one lock); allocates nothing.
+    pub fn memory(&self) -> MemoryReport {
+        let shared = self
+            .shared
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let front = self.frontend_memory(loop_record_bytes(&shared.loop_records));
+        shared.memory.report_with(&front)
+    }
+
+    /// The front-end's parts of the memory account; the loop records (kept in the state
+    /// shared with the back-end) count `loop_records` bytes.
+    fn frontend_memory(&self, loop_records: usize) -> MemoryBreakdown {
+        let (odometry, odometry_gpu) = self.odometry.memory_bytes();
+        let (fusion, fusion_gpu) = self.fuser.memory_bytes();
+        let buffered = self.buffer.capacity() * std::mem::size_of::<(ImageF32, Se3)>()
+            + self
+                .buffer
+                .iter()
+                .map(|(rho, _)| vec_bytes(&rho.data))
+                .sum::<usize>();
+        MemoryBreakdown {
+            keyframes: self
+                .current
+                .as_ref()
+                .map_or(0, |c| vec_bytes(&c.intensity.data)),
+            odometry,
+            fusion: fusion + buffered,
+            records: vec_bytes(&self.frames) + loop_records,
+            gpu: odometry_gpu + fusion_gpu,
+            ..MemoryBreakdown::default()
+        }
+    }
+
+    /// Enters the front-end's parts in the memory account.
+    fn note_memory(&self) {
+        let mut shared = self
+            .shared
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let front = self.frontend_memory(loop_record_bytes(&shared.loop_records));
+        shared.memory.set_frontend(front);
     }
 
     fn send(&mut self, msg: ToBackend) -> Result<(), SlamError> {
@@ -355,6 +410,7 @@ impl Slam {
 
     fn report(&mut self, record: FrameRecord) -> FrameReport {
         self.frames.push(record);
+        self.note_memory();
         let (keyframes, loops) = self.counts();
         FrameReport {
             record,
@@ -611,6 +667,7 @@ impl Slam {
                 })
             })
             .collect();
+        let memory = self.memory();
         let map = Map::from_backend(&mut back, self.session + 1);
         let timings = back.timings.clone();
         Ok(SlamResult {
@@ -628,6 +685,7 @@ impl Slam {
             timings,
             map,
             final_optimise_ms,
+            memory,
         })
     }
 
@@ -656,8 +714,9 @@ impl Drop for Slam {
 
 fn backend_loop(back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
     let mut back = backend_messages(back, rx)?;
-    // No more keyframes to segment: free the segmentation's buffers (~130 bytes per pixel).
+    // No more keyframes to segment: free the segmentation's buffers (~130-160 bytes per pixel).
     back.segmenter.release();
+    back.note_memory();
     Ok(back)
 }
 
@@ -665,9 +724,13 @@ fn backend_loop(back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamE
 fn backend_messages(mut back: Backend, rx: Receiver<ToBackend>) -> Result<Backend, SlamError> {
     while let Ok(msg) = rx.recv() {
         match msg {
-            ToBackend::Keyframe(kf) => back.process(*kf)?,
+            ToBackend::Keyframe(kf) => {
+                back.process(*kf)?;
+                back.note_memory();
+            }
             ToBackend::Relocalise(frame, reply) => {
                 let answer = back.relocalise(&frame);
+                back.note_memory();
                 let failed = answer.is_err();
                 let _ = reply.send(answer);
                 if failed {
