@@ -9,7 +9,6 @@ use rgbid::geometry::Se3;
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::image::test_pattern;
 use std::path::PathBuf;
-use std::process::Command as Process;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -615,56 +614,33 @@ fn accuracy(
 }
 
 fn run_peers(a: &OdometryBench, seq: &TumSequence) -> Result<Vec<Row>> {
-    if !a.peer_script.exists() {
-        anyhow::bail!("{} not found (pass --peer-script)", a.peer_script.display());
-    }
-    let mut cmd = Process::new(&a.python);
-    cmd.arg(&a.peer_script)
-        .arg(&seq.root)
-        .arg(a.out.join("peers"))
-        .arg("--methods")
-        .arg(&a.peers);
-    if let Some(n) = a.max_frames {
-        cmd.arg("--max-frames").arg(n.to_string());
-    }
-    println!("running peers: {:?}", cmd);
-    let out = cmd
-        .output()
-        .with_context(|| format!("starting {}", a.python))?;
-    if !out.status.success() {
-        anyhow::bail!(
-            "peer script failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-                .lines()
-                .last()
-                .unwrap_or("")
-        );
-    }
+    use rgbid::experiments::peers::{run_odometry_peers, OdometryPeerOptions};
+    let opts = OdometryPeerOptions {
+        python: &a.python,
+        script: &a.peer_script,
+        methods: &a.peers,
+        max_frames: a.max_frames,
+    };
+    let runs = run_odometry_peers(&opts, &seq.root, &a.out.join("peers"))?;
+    let gt = seq
+        .groundtruth
+        .as_ref()
+        .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
     let mut rows = Vec::new();
-    for line in String::from_utf8_lossy(&out.stdout).lines() {
-        let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else {
-            continue;
-        };
-        let method = v["method"].as_str().unwrap_or("?").to_string();
+    for run in runs {
         // Re-evaluate the peers' trajectories with rgbid's own metrics, like rgbid's rows.
-        let est =
-            rgbid::io::trajectory::read_tum(&a.out.join("peers").join(format!("{method}.txt")))
-                .ok();
-        let gt = seq
-            .groundtruth
-            .as_ref()
-            .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
+        let est = rgbid::io::trajectory::read_tum(&run.trajectory).ok();
         let (ate, rpe, rpe_rot) = match (&gt, &est) {
             (Some(g), Some(e)) => accuracy(Some(g), e),
-            _ => (v["ate_rmse"].as_f64(), v["rpe_rmse_per_s"].as_f64(), None),
+            _ => (run.ate_rmse_m, run.rpe_m_per_s, None),
         };
         rows.push(Row {
-            method,
+            method: run.method,
             peer: true,
             backend: None,
-            frames: v["frames"].as_u64().unwrap_or(0) as usize,
-            ms_median: v["ms_median"].as_f64().unwrap_or(f64::NAN),
-            ms_p90: v["ms_p90"].as_f64().unwrap_or(f64::NAN),
+            frames: run.frames,
+            ms_median: run.ms_median,
+            ms_p90: run.ms_p90,
             ate_rmse_m: ate,
             rpe_m_per_s: rpe,
             rpe_deg_per_s: rpe_rot,

@@ -492,37 +492,12 @@ fn solve_timed_with(
 /// GTSAM's runs on one file from the peer script: `(method, seconds, chi2, F)` per
 /// successful run.
 fn run_gtsam(python: &str, script: &Path, file: &Path) -> Result<Vec<(String, f64, f64, f64)>> {
-    let out = std::process::Command::new(python)
-        .arg(script)
-        .arg(file)
-        .output()
-        .with_context(|| format!("starting {python} {}", script.display()))?;
-    if !out.status.success() {
-        bail!(
-            "{} failed on {}: {}",
-            script.display(),
-            file.display(),
-            String::from_utf8_lossy(&out.stderr)
-                .lines()
-                .last()
-                .unwrap_or("")
-        );
-    }
-    let mut runs = Vec::new();
-    for line in String::from_utf8_lossy(&out.stdout).lines() {
-        let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else {
-            continue;
-        };
-        if let (Some(m), Some(sec), Some(chi2), Some(f)) = (
-            v["method"].as_str(),
-            v["s"].as_f64(),
-            v["chi2"].as_f64(),
-            v["F"].as_f64(),
-        ) {
-            runs.push((m.to_string(), sec, chi2, f));
-        }
-    }
-    Ok(runs)
+    Ok(
+        rgbid::experiments::peers::run_graph_peer(python, script, file)?
+            .into_iter()
+            .map(|r| (r.method, r.seconds, r.chi2, r.sesync_objective))
+            .collect(),
+    )
 }
 
 fn bench_files(a: &BenchArgs) -> Result<Vec<PathBuf>> {
@@ -761,105 +736,6 @@ fn bench_suite_files(a: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// One dataset of the thesis suite: file, optional ground truth, dimension label.
-const THESIS_DATA: &[(&str, Option<&str>)] = &[
-    (
-        "carlone/M3500.g2o",
-        Some("isam/groundtruth/manhattanOlson3500_groundtruth.txt"),
-    ),
-    (
-        "carlone/M3500a.g2o",
-        Some("isam/groundtruth/manhattanOlson3500_groundtruth.txt"),
-    ),
-    (
-        "carlone/M3500b.g2o",
-        Some("isam/groundtruth/manhattanOlson3500_groundtruth.txt"),
-    ),
-    (
-        "carlone/M3500c.g2o",
-        Some("isam/groundtruth/manhattanOlson3500_groundtruth.txt"),
-    ),
-    (
-        "isam/manhattanOlson3500.txt",
-        Some("isam/groundtruth/manhattanOlson3500_groundtruth.txt"),
-    ),
-    (
-        "isam/city10000.txt",
-        Some("isam/groundtruth/city10000_groundtruth.txt"),
-    ),
-    ("carlone/INTEL.g2o", None),
-    ("carlone/MIT.g2o", None),
-    (
-        "isam/sphere2500.txt",
-        Some("isam/groundtruth/sphere2500_groundtruth.txt"),
-    ),
-    ("isam/torus10000.txt", None),
-    ("se-sync/parking-garage.g2o", None),
-    ("se-sync/kitti_00.g2o", None),
-    ("se-sync/kitti_05.g2o", None),
-];
-
-/// The plane of the tilted-plane experiment: rotation by 20 degrees about (1, 1, 0), then a
-/// shift of (1, 2, 3) m.
-fn tilt() -> (glam::DMat3, glam::DVec3) {
-    (
-        glam::DMat3::from_axis_angle(
-            glam::DVec3::new(1.0, 1.0, 0.0).normalize(),
-            20f64.to_radians(),
-        ),
-        glam::DVec3::new(1.0, 2.0, 3.0),
-    )
-}
-
-/// A 2D graph laid on the tilted plane of [`tilt`]: vertices lifted exactly, measurements
-/// given 1 cm of z noise and 0.3 degrees of roll/pitch noise (seeded), with the matching
-/// information; the 2D information is kept for x, y and yaw.
-fn lift_to_tilted_plane(g2: &graph::PoseGraph2) -> Result<graph::PoseGraph3> {
-    use rand::SeedableRng;
-    use rgbid::scale::particle::standard_normal;
-    let (r0, t0) = tilt();
-    let q0 = glam::DQuat::from_mat3(&r0);
-    let mut rng = rand_pcg::Pcg64::seed_from_u64(35);
-    let (sz, sr) = (0.01, 0.3f64.to_radians());
-    let mut g3 = graph::PoseGraph3::new();
-    for (id, p) in g2.ids.iter().zip(&g2.poses) {
-        let q = q0 * glam::DQuat::from_rotation_z(p.theta);
-        g3.add_vertex(
-            *id,
-            rgbid::geometry::Se3::new(q, r0 * glam::DVec3::new(p.x, p.y, 0.0) + t0),
-        )?;
-    }
-    for e in &g2.edges {
-        let z = e.measurement;
-        let q = glam::DQuat::from_rotation_z(z.theta)
-            * glam::DQuat::from_euler(
-                glam::EulerRot::XYZ,
-                sr * standard_normal(&mut rng),
-                sr * standard_normal(&mut rng),
-                0.0,
-            );
-        let m = rgbid::geometry::Se3::new(
-            q,
-            glam::DVec3::new(z.x, z.y, sz * standard_normal(&mut rng)),
-        );
-        let i2 = &e.information;
-        let mut info = vec![0.0; 36];
-        for r in 0..2 {
-            for c in 0..2 {
-                info[r * 6 + c] = i2[r * 3 + c];
-            }
-            info[r * 6 + 5] = i2[r * 3 + 2];
-            info[5 * 6 + r] = i2[2 * 3 + r];
-        }
-        info[2 * 6 + 2] = 1.0 / (sz * sz);
-        info[3 * 6 + 3] = 1.0 / (sr * sr);
-        info[4 * 6 + 4] = 1.0 / (sr * sr);
-        info[5 * 6 + 5] = i2[8];
-        g3.add_edge_by_index(e.from, e.to, m, info)?;
-    }
-    Ok(g3)
-}
-
 /// Runs every method on one dataset of the thesis suite and prints its rows.
 fn thesis_rows(
     a: &BenchArgs,
@@ -1000,7 +876,7 @@ fn bench_suite_thesis(a: &BenchArgs) -> Result<()> {
         "file", "method", "vars", "iter", "s", "chi2", "RMSE m", "vs SE m"
     );
     let mut report_rows = Vec::new();
-    for (file, gt) in THESIS_DATA {
+    for (file, gt) in rgbid::experiments::graph::THESIS_DATA {
         if !a.only.is_empty() && !a.only.iter().any(|o| file.contains(o.as_str())) {
             continue;
         }
@@ -1032,13 +908,15 @@ fn bench_suite_thesis(a: &BenchArgs) -> Result<()> {
             .join("isam/groundtruth/manhattanOlson3500_groundtruth.txt");
         if m3500.exists() && gt.exists() {
             let gt2 = positions(&load(&gt)?.graph);
-            let (r0, t0) = tilt();
+            let (r0, t0) = rgbid::experiments::graph::tilt();
             let gt3: Vec<glam::DVec3> = gt2.iter().map(|p| r0 * *p + t0).collect();
             let make = || {
                 let LoadedGraph::Se2(g2) = load(&m3500)?.graph else {
                     bail!("{} is not a 2D graph", m3500.display());
                 };
-                Ok(LoadedGraph::Se3(lift_to_tilted_plane(&g2)?))
+                Ok(LoadedGraph::Se3(
+                    rgbid::experiments::graph::lift_to_tilted_plane(&g2)?,
+                ))
             };
             thesis_rows(a, tilted, &make, Some(gt3), &methods, &mut report_rows)?;
         }
