@@ -1,6 +1,6 @@
 //! Aligns the two real TUM pairs of `../shared/data/rgbd/tum_pairs` with the odometry
 //! configuration of each JSON file given (an `OdometryConfig`; `{}` = the defaults) and prints
-//! the error of `prev_from_cur` against ground truth (the README's thesis-claims table):
+//! the error of `prev_from_cur` against ground truth (the thesis-claims table in docs/notes.md):
 //! `cargo run --release --example tum_pairs -- a.json b.json`.
 
 use rgbid::camera::PinholeCamera;

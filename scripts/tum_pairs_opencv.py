@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """OpenCV's RGB-D odometry on the two TUM pairs of ../shared/data/rgbd/tum_pairs, each term
-alone and both together, against the ground truth: the peer side of the README's per-term table
+alone and both together, against the ground truth: the peer side of the per-term table in docs/notes.md
 (rgbid's side: `cargo run --release --example tum_pairs -- CONFIG.json` with
 `{"terms": "photometric"}`, `{"terms": "geometric"}` and `{}`).
 

@@ -161,7 +161,7 @@ fn redkitchen_default_metrics() -> rgbid::eval::TrajectoryMetrics {
 /// The rotational RPE (RMSE over 1 s windows) of OpenCV 5 RGB_DEPTH on redkitchen, 1.958
 /// deg/s, from `rgbid bench odometry ... --peers cv_rgbd` (its trajectory scored by rgbid's
 /// evaluator). rgbid is at 1.973 deg/s, 0.8 % behind, while its mean and median are lower
-/// (README "Rotation on redkitchen").
+/// (docs/notes.md, odometry: rotation on redkitchen).
 #[test]
 #[ignore = "known gap: rotational RPE 0.8 % behind OpenCV; needs ../shared/data"]
 fn known_gap_real_data_redkitchen_rotation_rpe_matches_opencv() {

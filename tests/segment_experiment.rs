@@ -1,6 +1,6 @@
 //! The changed-environment experiment (thesis figs. 5.6 / 5.10) on a small generated case:
 //! the pipeline's bookkeeping (true relative poses, correctness of verified matches, masks by
-//! threshold) is checked; the figures themselves are in the README.
+//! threshold) is checked; the figures themselves are in docs/notes.md.
 
 use rgbid::experiments::segment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::gpu::ComputeBackend;

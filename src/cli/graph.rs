@@ -655,7 +655,7 @@ fn bench_suite_files(a: &BenchArgs) -> Result<()> {
         };
         let total = o.report.seconds;
         let fstar = FSTAR.iter().find(|(k, _)| *k == key).map(|x| x.1);
-        // GTSAM: the run with the lowest chi2 (measured now), or the README figure.
+        // GTSAM: the run with the lowest chi2 (measured now), or the data README figure.
         let mut gtsam_runs = Vec::new();
         let gtsam: Option<(String, f64, f64, f64)> = match &a.python {
             Some(py) => match run_gtsam(py, &a.peer_script, &path) {
