@@ -2,9 +2,14 @@
 //!
 //! GPU-portable implementations of the localisation and mapping systems of the thesis
 //! *Real-time Metric Localisation with Wearable Vision Systems* (Gutiérrez-Gómez, 2016):
-//! dense RGB-D odometry with inverse depth, and, as they land, RGB-ID SLAM, pose-graph and
-//! curve-graph optimisation, place recognition, superjut segmentation, monocular EKF SLAM
-//! and metric scale from walking.
+//! dense RGB-D odometry with inverse depth ([`odometry`]), RGB-ID SLAM ([`slam`]), pose-graph
+//! and curve-graph optimisation ([`graph`]), place recognition ([`place`]), superjut
+//! segmentation ([`segment`]), monocular EKF SLAM ([`mono`]) and metric scale from walking
+//! ([`scale`]).
+//!
+//! Features: `cli` (default) builds the `rgbid` program and enables `experiments` (the thesis'
+//! experiment harnesses on generated data) and `clap` (`clap::ValueEnum` on the option enums).
+//! With `default-features = false` the library has none of the command line's dependencies.
 //!
 //! Conventions (see `ARCHITECTURE.md`): transforms are named `a_from_b` (`p_a = a_from_b * p_b`);
 //! metres, radians, seconds; inverse depth in 1/m with 0 = no measurement; intensity in
