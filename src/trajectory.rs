@@ -1,6 +1,6 @@
 //! Trajectory types: time-stamped poses (`world_from_camera`, metres, seconds) and the TUM line
 //! format `timestamp tx ty tz qx qy qz qw` they are written in. Reading and writing files is in
-//! [`crate::io::trajectory`].
+//! `rgbid::io::trajectory` (the plumbing layer).
 
 use glam::{DQuat, DVec3};
 

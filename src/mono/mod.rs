@@ -22,7 +22,7 @@
 //! catadioptric patch warping), [`filter`] (the SLAM loop: prediction, active search,
 //! 1-point RANSAC, update, map management, statistics), [`input`] (image-only sequences and
 //! camera files). Runs on generated sequences with ground truth are in
-//! `crate::experiments::mono` (feature `experiments`).
+//! `rgbid::experiments::mono` (feature `experiments`).
 
 pub mod fast;
 pub mod filter;
