@@ -118,12 +118,3 @@ pub fn select_backend(
         }),
     }
 }
-
-/// Creates a context on any available adapter (software included), for tests and tools;
-/// `None` when the machine has no adapter at all.
-pub fn any_gpu() -> Option<Arc<GpuContext>> {
-    match select_backend(BackendChoice::Gpu, None) {
-        Ok(ComputeBackend::Gpu(g)) => Some(g),
-        _ => None,
-    }
-}

@@ -10,7 +10,7 @@ mod context;
 pub mod shaders;
 mod testing;
 
-pub use backend::{any_gpu, describe_adapters, select_backend, BackendChoice, ComputeBackend};
+pub use backend::{describe_adapters, select_backend, BackendChoice, ComputeBackend};
 pub use context::{GpuContext, GpuError};
 #[doc(hidden)]
 pub use testing::{no_test_gpu, test_gpu, REQUIRE_GPU_ENV};
