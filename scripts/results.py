@@ -192,12 +192,29 @@ def render_kernels(doc):
              num(r["scale_ms"], ".2f"), num(r["reduce_ms"], ".2f"), num(r["solve_ms"], ".3f"), r["iterations"]]
             for r in doc.get("rows", [])]
     out += table(["backend", "size", "align ms", "pyramid ms", "scale ms", "reduce ms", "solve ms", "GN iterations"], body)
+    frames = doc.get("frame_rows", [])
+    if frames:
+        out += ["", "Keyframe fusion of one frame into a resident keyframe, and ray casting of one frame "
+                "of the generated office scene (no sensor model):", ""]
+        out += table(["backend", "size", "fuse ms", "ray cast ms"],
+                     [[r["backend"], f"{r['width']}x{r['height']}", num(r["fuse_ms"], ".2f"),
+                       num(r["raycast_ms"], ".2f")] for r in frames])
     und = doc.get("undistort_rows", [])
     if und:
-        out += ["", "Undistortion of one frame (TUM fr1 distortion; GPU: upload and read-back included):", ""]
+        out += ["", "Undistortion of one frame (TUM fr1 distortion, CPU remap as in the I/O thread):", ""]
         out += table(["backend", "size", "undistort ms"],
                      [[r["backend"], f"{r['width']}x{r['height']}", num(r["undistort_ms"], ".2f")] for r in und])
     return out
+
+
+def render_gpu_check(doc):
+    out = [f"`scripts/gpu-check.sh` (bundle from `scripts/gpu-bundle.sh`), {doc.get('check_seconds', '?')} s in all.",
+           "", "GPU tests (`gpu_*`, `RGBID_REQUIRE_GPU=1`):", ""]
+    out += table(["test executable", "exit", "passed", "failed", "seconds"],
+                 [[t.get("executable"), t.get("exit"), t.get("passed"), t.get("failed"), t.get("seconds")]
+                  for t in doc.get("tests", [])])
+    out += ["", "Odometry kernels, keyframe fusion and ray casting per backend:", ""]
+    return out + render_kernels(doc)
 
 
 def render_generic(doc):
@@ -210,8 +227,10 @@ def render_generic(doc):
     return table(keys, body) if keys else ["(no rows)"]
 
 
-RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels}
-TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels"}
+RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
+             "gpu-check": render_gpu_check}
+TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
+          "gpu-check": "GPU check on a real GPU"}
 
 
 def title(doc):

@@ -9,19 +9,26 @@
 // counts[0]: keyframe pixels with depth; counts[1]: of those, landing on a current pixel with
 // depth (covisibility numerator); counts[2]: fused.
 
+// Host mirror: `FuseUniform` in src/slam/fusion.rs (a test compares the layouts).
 struct Params {
-    width: u32,
+    width: u32,               // keyframe size, pixels
     height: u32,
     _pad0: u32,
     _pad1: u32,
-    intr: vec4<f32>,          // fx, fy, cx, cy
-    rot0: vec4<f32>,          // cur_from_kf rows, translation in w
+    fx: f32,                  // intrinsics, pixels
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    rot0: vec4<f32>,          // cur_from_kf rows, translation (m) in w
     rot1: vec4<f32>,
     rot2: vec4<f32>,
-    inv0: vec4<f32>,          // kf_from_cur rows, translation in w
+    inv0: vec4<f32>,          // kf_from_cur rows, translation (m) in w
     inv1: vec4<f32>,
     inv2: vec4<f32>,
-    tol: vec4<f32>,           // tol_abs, tol_rel, w_new, w_max
+    tol_abs: f32,             // consistency tolerance tol_abs + tol_rel rho, 1/m
+    tol_rel: f32,
+    new_weight: f32,          // weight of one measurement
+    max_weight: f32,          // cap of the accumulated weight
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -51,10 +58,10 @@ fn fuse(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     atomicAdd(&counts[0], 1u);
-    let fx = params.intr.x;
-    let fy = params.intr.y;
-    let cx = params.intr.z;
-    let cy = params.intr.w;
+    let fx = params.fx;
+    let fy = params.fy;
+    let cx = params.cx;
+    let cy = params.cy;
     let z = 1.0 / rho;
     let pk = vec3<f32>((f32(gid.x) - cx) / fx * z, (f32(gid.y) - cy) / fy * z, z);
     let pc = xform(params.rot0, params.rot1, params.rot2, pk);
@@ -81,12 +88,12 @@ fn fuse(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let rho_new = 1.0 / qk.z;
-    if (abs(rho_new - rho) > params.tol.x + params.tol.y * rho) {
+    if (abs(rho_new - rho) > params.tol_abs + params.tol_rel * rho) {
         return;
     }
     let wk = kf_weight[i];
-    let wn = params.tol.z;
+    let wn = params.new_weight;
     kf_rho[i] = (wk * rho + wn * rho_new) / (wk + wn);
-    kf_weight[i] = min(wk + wn, params.tol.w);
+    kf_weight[i] = min(wk + wn, params.max_weight);
     atomicAdd(&counts[2], 1u);
 }

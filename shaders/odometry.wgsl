@@ -4,14 +4,36 @@
 // equations reduced per workgroup, residual samples for scale estimation, covisibility.
 // CPU mirror: src/odometry/kernel.rs (same formulas, same order).
 
+// Host mirror: `WarpParams` in src/odometry/kernel.rs (a test compares the layouts).
 struct WarpParams {
-    dims: vec4<u32>,   // width, height, level offset, sample count
-    intr: vec4<f32>,   // fx, fy, cx, cy
-    rot0: vec4<f32>,   // rows of R (cur_from_ref), .w = t
+    width: u32,        // level size, pixels
+    height: u32,
+    offset: u32,       // level offset in the pyramid buffers, pixels
+    samples: u32,      // residual sample size (0: none)
+    fx: f32,           // level intrinsics, pixels
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    rot0: vec4<f32>,   // rows of R (cur_from_ref), .w = t (m)
     rot1: vec4<f32>,
     rot2: vec4<f32>,
-    robust: vec4<f32>, // sigma_I, sigma_W, nu_I, nu_W
-    flags: vec4<u32>,  // estimator, term mask, geometric param (0 inv depth, 1 depth), sample offset
+    sigma_photo: f32,  // robust scales and Student-t degrees of freedom
+    sigma_geo: f32,
+    nu_photo: f32,
+    nu_geo: f32,
+    estimator: u32,    // Estimator: 0 least squares, 1 Huber, 2 Tukey, 3 Student-t
+    terms: u32,        // Terms: bit 0 photometric, bit 1 geometric
+    geometric: u32,    // GeometricParam: 0 inverse depth, 1 depth
+    sampling: u32,     // GeometricSampling: 0 nearest, 1 first-order
+}
+
+// One reduction partial (host mirror: `Partial` in src/odometry/kernel.rs).
+struct Partial {
+    h: array<f32, 21>, // upper triangle of sum w J^T J / sigma^2, row-major
+    g: array<f32, 6>,  // sum w J^T r / sigma^2
+    cost: f32,         // sum w (r / sigma)^2
+    n_photo: f32,      // valid photometric residuals
+    n_geo: f32,        // valid geometric residuals
 }
 
 @group(0) @binding(0) var<uniform> P: WarpParams;
@@ -19,10 +41,14 @@ struct WarpParams {
 @group(0) @binding(2) var<storage, read> ref_geo: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> cur_photo: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> cur_geo: array<vec4<f32>>;
-@group(0) @binding(5) var<storage, read_write> out: array<f32>;
+// Normal-equation partials, one per workgroup (or per subgroup).
+@group(0) @binding(5) var<storage, read_write> partials: array<Partial>;
+// Residual sample (r_photo, r_geo) per sampled pixel.
+@group(0) @binding(6) var<storage, read_write> sample: array<vec2<f32>>;
+// Covisibility counts (pixels with depth, covisible pixels) per workgroup (or subgroup).
+@group(0) @binding(7) var<storage, read_write> counts: array<vec2<f32>>;
 
 const WG: u32 = 128u;
-const NPART: u32 = 30u;
 var<workgroup> sh: array<f32, 256>; // 2 * WG, covisibility counts
 
 struct Terms {
@@ -54,10 +80,10 @@ fn robust_weight(est: u32, z: f32, nu: f32) -> f32 {
 // Reference pixel i back-projected with its inverse depth and moved by cur_from_ref;
 // .w = 0 where it has no depth. Mirror of `warp_point` in kernel.rs.
 fn warp_point(i: u32) -> vec4<f32> {
-    let w = P.dims.x;
-    let rho = ref_geo[P.dims.z + i].x;
+    let w = P.width;
+    let rho = ref_geo[P.offset + i].x;
     if (rho <= 0.0) { return vec4<f32>(0.0); }
-    let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
+    let fx = P.fx; let fy = P.fy; let cx = P.cx; let cy = P.cy;
     let x = f32(i % w);
     let y = f32(i / w);
     let z = 1.0 / rho;
@@ -73,13 +99,13 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
     var t: Terms;
     t.photo_ok = false;
     t.geo_ok = false;
-    let w = P.dims.x;
-    let h = P.dims.y;
-    let o = P.dims.z;
+    let w = P.width;
+    let h = P.height;
+    let o = P.offset;
     let wq = warp_point(i);
     if (wq.w == 0.0) { return t; }
     let q = wq.xyz;
-    let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
+    let fx = P.fx; let fy = P.fy; let cx = P.cx; let cy = P.cy;
     if (q.z < MIN_DEPTH) { return t; }
     let iz = 1.0 / q.z;
     let u = fx * q.x * iz + cx;
@@ -97,8 +123,7 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
     let b01 = (1.0 - ax) * ay;
     let b11 = ax * ay;
     let c = b00 * p00.xyz + b10 * p10.xyz + b01 * p01.xyz + b11 * p11.xyz;
-    let terms = P.flags.y;
-    if ((terms & 1u) != 0u) {
+    if ((P.terms & 1u) != 0u) {
         t.photo_ok = true;
         t.r_photo = c.x - ref_photo[o + i].x;
         if (want_j) {
@@ -109,18 +134,18 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
             t.j_photo_r = cross(q, jt);
         }
     }
-    if ((terms & 2u) != 0u) {
+    if ((P.terms & 2u) != 0u) {
         let xn = u32(floor(u + 0.5));
         let yn = u32(floor(v + 0.5));
         let g = cur_geo[o + yn * w + xn];
         if (g.x > 0.0 && g.y != INVALID_GRAD) {
             var res: f32; var gu: f32; var gv: f32; var dz: f32;
-            // Nearest sample, or (flags.z bit 1) its first-order extension to (u, v).
+            // Nearest sample, or its first-order extension to (u, v).
             var rho = g.x;
-            if ((P.flags.z & 2u) != 0u) {
+            if (P.sampling == 1u) {
                 rho = g.x + g.y * (u - f32(xn)) + g.z * (v - f32(yn));
             }
-            if ((P.flags.z & 1u) != 0u) {
+            if (P.geometric == 1u) {
                 let ig2 = 1.0 / (rho * rho);
                 res = 1.0 / rho - q.z; gu = -g.y * ig2; gv = -g.z * ig2; dz = -1.0;
             } else {
@@ -140,12 +165,22 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
     return t;
 }
 
-// The 30 partial sums live in 8 vec4 accumulators with constant indices (dynamic indexing of
-// a private array becomes gathers/scatters on SIMD CPUs such as llvmpipe). Layout, as the
-// CPU mirror's `PARTIAL_LEN` array: H upper triangle row-major (21), g (6), cost, n_I, n_W, 0.
+// The 30 sums of a `Partial` live in 8 vec4 accumulators with constant indices (dynamic
+// indexing of a private array becomes gathers/scatters on SIMD CPUs such as llvmpipe), in the
+// order of `Partial`'s fields: a0..a4 and a5.x the 21 entries of h, a5.yzw and a6.xyz g,
+// a6.w the cost, a7.xy the counts.
 struct Acc {
     a0: vec4<f32>, a1: vec4<f32>, a2: vec4<f32>, a3: vec4<f32>,
     a4: vec4<f32>, a5: vec4<f32>, a6: vec4<f32>, a7: vec4<f32>,
+}
+
+fn to_partial(a0: vec4<f32>, a1: vec4<f32>, a2: vec4<f32>, a3: vec4<f32>,
+              a4: vec4<f32>, a5: vec4<f32>, a6: vec4<f32>, a7: vec2<f32>) -> Partial {
+    return Partial(
+        array<f32, 21>(a0.x, a0.y, a0.z, a0.w, a1.x, a1.y, a1.z, a1.w, a2.x, a2.y, a2.z, a2.w,
+                       a3.x, a3.y, a3.z, a3.w, a4.x, a4.y, a4.z, a4.w, a5.x),
+        array<f32, 6>(a5.y, a5.z, a5.w, a6.x, a6.y, a6.z),
+        a6.w, a7.x, a7.y);
 }
 
 fn accumulate(acc: ptr<function, Acc>, jt: vec3<f32>, jr: vec3<f32>, r: f32, wt: f32) {
@@ -182,32 +217,31 @@ fn sample_slot(i: u32, n: u32, count: u32) -> u32 {
 }
 
 // One invocation's share of the normal equations: pixels first, first + stride, ... With
-// P.dims.w > 0 it also writes the residual sample at this pose (as sample_residuals would,
-// from the same pixel_terms) at P.flags.w, so no second warp of the sampled pixels is needed.
+// P.samples > 0 it also writes the residual sample at this pose (as sample_residuals would,
+// from the same pixel_terms), so no second warp of the sampled pixels is needed.
 fn accumulate_pixels(first: u32, stride: u32) -> Acc {
     var acc: Acc;
-    let n = P.dims.x * P.dims.y;
-    let est = P.flags.x;
-    let count = min(P.dims.w, n);
-    let o = P.flags.w;
+    let n = P.width * P.height;
+    let est = P.estimator;
+    let count = min(P.samples, n);
     for (var i = first; i < n; i += stride) {
         let t = pixel_terms(i, true);
         if (count > 0u) {
             let k = sample_slot(i, n, count);
             if (k < count) {
-                out[o + 2u * k] = select(INVALID_RESIDUAL, t.r_photo, t.photo_ok);
-                out[o + 2u * k + 1u] = select(INVALID_RESIDUAL, t.r_geo, t.geo_ok);
+                sample[k] = vec2<f32>(select(INVALID_RESIDUAL, t.r_photo, t.photo_ok),
+                                      select(INVALID_RESIDUAL, t.r_geo, t.geo_ok));
             }
         }
         if (t.photo_ok) {
-            let s = P.robust.x;
-            let wt = robust_weight(est, t.r_photo / s, P.robust.z) / (s * s);
+            let s = P.sigma_photo;
+            let wt = robust_weight(est, t.r_photo / s, P.nu_photo) / (s * s);
             accumulate(&acc, t.j_photo_t, t.j_photo_r, t.r_photo, wt);
             acc.a7.x += 1.0;
         }
         if (t.geo_ok) {
-            let s = P.robust.y;
-            let wt = robust_weight(est, t.r_geo / s, P.robust.w) / (s * s);
+            let s = P.sigma_geo;
+            let wt = robust_weight(est, t.r_geo / s, P.nu_geo) / (s * s);
             accumulate(&acc, t.j_geo_t, t.j_geo_r, t.r_geo, wt);
             acc.a7.y += 1.0;
         }
@@ -234,40 +268,30 @@ fn normal_equations(@builtin(local_invocation_id) lid: vec3<u32>,
         }
         workgroupBarrier();
     }
-    if (l < 8u) {
-        let v = shv[l * WG];
-        let base = wid.x * NPART + 4u * l;
-        // The last vec4 holds (n_I, n_W, 0, 0): only its first two lanes fit in NPART = 30.
-        out[base] = v.x;
-        out[base + 1u] = v.y;
-        if (l < 7u) {
-            out[base + 2u] = v.z;
-            out[base + 3u] = v.w;
-        }
+    if (l == 0u) {
+        partials[wid.x] = to_partial(shv[0], shv[WG], shv[2u * WG], shv[3u * WG], shv[4u * WG],
+                                     shv[5u * WG], shv[6u * WG], shv[7u * WG].xy);
     }
 }
 
 @compute @workgroup_size(128)
 fn sample_residuals(@builtin(global_invocation_id) id: vec3<u32>) {
-    let count = P.dims.w;
+    let count = P.samples;
     if (id.x >= count) { return; }
-    let n = P.dims.x * P.dims.y;
+    let n = P.width * P.height;
     let t = pixel_terms(sample_pixel(id.x, n, count), false);
-    // flags.w: where the sample starts in `out` (after the normal-equation partials when both
-    // run in one submission).
-    let o = P.flags.w;
-    out[o + 2u * id.x] = select(INVALID_RESIDUAL, t.r_photo, t.photo_ok);
-    out[o + 2u * id.x + 1u] = select(INVALID_RESIDUAL, t.r_geo, t.geo_ok);
+    sample[id.x] = vec2<f32>(select(INVALID_RESIDUAL, t.r_photo, t.photo_ok),
+                             select(INVALID_RESIDUAL, t.r_geo, t.geo_ok));
 }
 
 fn covisible(i: u32) -> u32 {
-    let w = P.dims.x;
-    let h = P.dims.y;
-    let o = P.dims.z;
+    let w = P.width;
+    let h = P.height;
+    let o = P.offset;
     let wq = warp_point(i);
     if (wq.w == 0.0) { return 0u; }
     let q = wq.xyz;
-    let fx = P.intr.x; let fy = P.intr.y; let cx = P.intr.z; let cy = P.intr.w;
+    let fx = P.fx; let fy = P.fy; let cx = P.cx; let cy = P.cy;
     if (q.z < MIN_DEPTH) { return 1u; }
     let u = fx * q.x / q.z + cx;
     let v = fy * q.y / q.z + cy;
@@ -282,7 +306,7 @@ fn covisible(i: u32) -> u32 {
 fn count_covisible(first: u32, stride: u32) -> vec2<f32> {
     var with_depth = 0.0;
     var seen = 0.0;
-    let n = P.dims.x * P.dims.y;
+    let n = P.width * P.height;
     for (var i = first; i < n; i += stride) {
         let c = covisible(i);
         if (c >= 1u) { with_depth += 1.0; }
@@ -307,7 +331,6 @@ fn covisibility(@builtin(local_invocation_id) lid: vec3<u32>,
         workgroupBarrier();
     }
     if (lid.x == 0u) {
-        out[2u * wid.x] = sh[0];
-        out[2u * wid.x + 1u] = sh[WG];
+        counts[wid.x] = vec2<f32>(sh[0], sh[WG]);
     }
 }

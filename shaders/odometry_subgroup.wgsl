@@ -24,15 +24,7 @@ fn normal_equations_sg(@builtin(local_invocation_id) lid: vec3<u32>,
     let a6 = subgroupAdd(acc.a6);
     let a7 = subgroupAdd(acc.a7.xy);
     if (sl == 0u) {
-        let b = (wid.x * nsg + sid) * NPART;
-        out[b] = a0.x; out[b + 1u] = a0.y; out[b + 2u] = a0.z; out[b + 3u] = a0.w;
-        out[b + 4u] = a1.x; out[b + 5u] = a1.y; out[b + 6u] = a1.z; out[b + 7u] = a1.w;
-        out[b + 8u] = a2.x; out[b + 9u] = a2.y; out[b + 10u] = a2.z; out[b + 11u] = a2.w;
-        out[b + 12u] = a3.x; out[b + 13u] = a3.y; out[b + 14u] = a3.z; out[b + 15u] = a3.w;
-        out[b + 16u] = a4.x; out[b + 17u] = a4.y; out[b + 18u] = a4.z; out[b + 19u] = a4.w;
-        out[b + 20u] = a5.x; out[b + 21u] = a5.y; out[b + 22u] = a5.z; out[b + 23u] = a5.w;
-        out[b + 24u] = a6.x; out[b + 25u] = a6.y; out[b + 26u] = a6.z; out[b + 27u] = a6.w;
-        out[b + 28u] = a7.x; out[b + 29u] = a7.y;
+        partials[wid.x * nsg + sid] = to_partial(a0, a1, a2, a3, a4, a5, a6, a7);
     }
 }
 
@@ -45,8 +37,6 @@ fn covisibility_sg(@builtin(local_invocation_id) lid: vec3<u32>,
                    @builtin(subgroup_invocation_id) sl: u32) {
     let c = subgroupAdd(count_covisible(wid.x * WG + lid.x, nwg.x * WG));
     if (sl == 0u) {
-        let b = 2u * (wid.x * nsg + sid);
-        out[b] = c.x;
-        out[b + 1u] = c.y;
+        counts[wid.x * nsg + sid] = c;
     }
 }

@@ -2,9 +2,16 @@
 // Image pyramids and gradients (mirror: src/odometry/kernel.rs + cpu.rs).
 // photo = (I, dI/du, dI/dv, 0), geo = (rho, drho/du, drho/dv, 0); all levels concatenated.
 
+// Host mirror: `PyrParams` in src/odometry/kernel.rs (a test compares the layouts).
 struct PyrParams {
-    dims: vec4<u32>, // dst width, dst height, dst offset, src offset
-    src: vec4<u32>,  // src width, src height, -, -
+    width: u32,       // destination level size, pixels
+    height: u32,
+    offset: u32,      // destination level offset, pixels
+    src_offset: u32,  // source level offset (downsampling), pixels
+    src_width: u32,   // source level size (downsampling), pixels
+    src_height: u32,
+    inv2_photo: f32,  // bilateral filter: 1 / (2 sigma_I^2)
+    inv2_rho: f32,    // bilateral filter: 1 / (2 sigma_rho^2)
 }
 
 @group(0) @binding(0) var<uniform> P: PyrParams;
@@ -14,8 +21,8 @@ struct PyrParams {
 
 @compute @workgroup_size(16, 16)
 fn pack_level0(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
+    let w = P.width;
+    let h = P.height;
     if (id.x >= w || id.y >= h) { return; }
     let i = id.y * w + id.x;
     let n = w * h;
@@ -29,11 +36,11 @@ fn pack_level0(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(16, 16)
 fn downsample(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
+    let w = P.width;
+    let h = P.height;
     if (id.x >= w || id.y >= h) { return; }
-    let sw = P.src.x;
-    let k = P.dims.w + 2u * id.y * sw + 2u * id.x;
+    let sw = P.src_width;
+    let k = P.src_offset + 2u * id.y * sw + 2u * id.x;
     let i = 0.25 * (photo[k].x + photo[k + 1u].x + photo[k + sw].x + photo[k + sw + 1u].x);
     var s = 0.0;
     var n = 0.0;
@@ -43,7 +50,7 @@ fn downsample(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     var r = 0.0;
     if (n > 0.0) { r = s / n; }
-    let d = P.dims.z + id.y * w + id.x;
+    let d = P.offset + id.y * w + id.x;
     photo[d] = vec4<f32>(i, 0.0, 0.0, 0.0);
     geo[d] = vec4<f32>(r, 0.0, 0.0, 0.0);
 }
@@ -53,11 +60,11 @@ fn downsample(@builtin(global_invocation_id) id: vec3<u32>) {
 // sanitising, same sums in the same order), without writing level 0.
 @compute @workgroup_size(16, 16)
 fn downsample_input(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
+    let w = P.width;
+    let h = P.height;
     if (id.x >= w || id.y >= h) { return; }
-    let sw = P.src.x;
-    let n0 = sw * P.src.y;
+    let sw = P.src_width;
+    let n0 = sw * P.src_height;
     let k = 2u * id.y * sw + 2u * id.x;
     let i = 0.25 * (input[k] + input[k + 1u] + input[k + sw] + input[k + sw + 1u]);
     var s = 0.0;
@@ -70,7 +77,7 @@ fn downsample_input(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     var r = 0.0;
     if (n > 0.0) { r = s / n; }
-    let d = P.dims.z + id.y * w + id.x;
+    let d = P.offset + id.y * w + id.x;
     photo[d] = vec4<f32>(i, 0.0, 0.0, 0.0);
     geo[d] = vec4<f32>(r, 0.0, 0.0, 0.0);
 }
@@ -108,11 +115,11 @@ fn level_gradients(o: u32, w: u32, h: u32, x: u32, y: u32, lane: u32) -> vec4<f3
 
 @compute @workgroup_size(16, 16)
 fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
+    let w = P.width;
+    let h = P.height;
     if (id.x >= w || id.y >= h) { return; }
-    let c = P.dims.z + id.y * w + id.x;
-    let g = level_gradients(P.dims.z, w, h, id.x, id.y, 0u);
+    let c = P.offset + id.y * w + id.x;
+    let g = level_gradients(P.offset, w, h, id.x, id.y, 0u);
     // Only the gradient lanes: .x is the level's value and .w was zeroed when the level was
     // written (each stored scalar is a per-lane loop on SIMD CPU drivers such as llvmpipe).
     photo[c].y = g.x;
@@ -123,19 +130,18 @@ fn gradients(@builtin(global_invocation_id) id: vec3<u32>) {
 
 // The covariance pass (thesis 6.20, 6.21) works on a copy of one level: `bilateral` writes
 // the bilateral-filtered intensity and inverse depth into .w (reading only .x), then
-// `filtered_gradients` writes their gradients into .y/.z. The uniform is `FilterParams`
-// (kernel.rs): dims = (w, h, offset, 0), src.y/.z = bit patterns of 1/(2 sigma^2) for
-// intensity and inverse depth (flat spatial kernel, Cauchy range kernel).
+// `filtered_gradients` writes their gradients into .y/.z. The level is (width, height,
+// offset); inv2_photo and inv2_rho scale the Cauchy range kernel (flat spatial kernel).
 const BILATERAL_RADIUS: u32 = 2u;
 
 @compute @workgroup_size(16, 16)
 fn bilateral(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
+    let w = P.width;
+    let h = P.height;
     if (id.x >= w || id.y >= h) { return; }
-    let o = P.dims.z;
-    let inv_i = bitcast<f32>(P.src.y);
-    let inv_r = bitcast<f32>(P.src.z);
+    let o = P.offset;
+    let inv_i = P.inv2_photo;
+    let inv_r = P.inv2_rho;
     let c = o + id.y * w + id.x;
     let ic = photo[c].x;
     let rc = geo[c].x;
@@ -173,11 +179,11 @@ fn bilateral(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(16, 16)
 fn filtered_gradients(@builtin(global_invocation_id) id: vec3<u32>) {
-    let w = P.dims.x;
-    let h = P.dims.y;
+    let w = P.width;
+    let h = P.height;
     if (id.x >= w || id.y >= h) { return; }
-    let c = P.dims.z + id.y * w + id.x;
-    let g = level_gradients(P.dims.z, w, h, id.x, id.y, 3u);
+    let c = P.offset + id.y * w + id.x;
+    let g = level_gradients(P.offset, w, h, id.x, id.y, 3u);
     photo[c].y = g.x;
     photo[c].z = g.y;
     geo[c].y = g.z;

@@ -6,17 +6,20 @@
 // |cos incidence|, linear RGB and the object id. Loops are short per invocation (BVH
 // traversal of a few hundred steps), well under llvmpipe's ~65535-iteration limit.
 
+// Host mirror: `RayParams` in src/synth/gpu.rs (a test compares the layouts).
 struct Params {
     // Columns of the world_from_camera rotation (xyz) ; w unused.
     rot0: vec4<f32>,
     rot1: vec4<f32>,
     rot2: vec4<f32>,
-    // Camera origin in the world (xyz); w unused.
+    // Camera origin in the world (xyz, m); w unused.
     origin: vec4<f32>,
     // Direction towards the light (xyz), ambient (w).
     light: vec4<f32>,
-    // x = diffuse, y = width (bitcast u32), z = height (bitcast u32), w = node count (bitcast u32).
-    misc: vec4<f32>,
+    diffuse: f32,
+    width: u32,       // rays per row and rows
+    height: u32,
+    node_count: u32,  // BVH nodes
 };
 
 struct Prim {
@@ -302,9 +305,9 @@ fn node_entry(n: Node, o: vec3<f32>, inv_d: vec3<f32>, t_max: f32) -> f32 {
 
 @compute @workgroup_size(64)
 fn raycast(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let width = bitcast<u32>(params.misc.y);
-    let height = bitcast<u32>(params.misc.z);
-    let node_count = bitcast<u32>(params.misc.w);
+    let width = params.width;
+    let height = params.height;
+    let node_count = params.node_count;
     let i = gid.x + gid.y * nwg.x * 64u;
     if (i >= width * height) {
         return;
@@ -414,7 +417,7 @@ fn raycast(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     let ndh4 = ndh2 * ndh2;
     let ndh8 = ndh4 * ndh4;
     let spec = mat.params.y * ndh8 * ndh8 * ndh8 * ndh8;
-    let shade = params.light.w + params.misc.x * lambert;
+    let shade = params.light.w + params.diffuse * lambert;
     let albedo = mat.color0.xyz + (mat.color1.xyz - mat.color0.xyz) * t;
     let rgb = albedo * shade + vec3<f32>(spec, spec, spec);
     var z = best_hit.t * c.z;

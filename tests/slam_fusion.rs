@@ -137,8 +137,8 @@ fn gpu_fusion_matches_cpu_mirror() {
             &ComputeBackend::Gpu(gpu.clone()),
         )
         .unwrap();
-        cpu.start(&kf);
-        gpu_f.start(&kf);
+        cpu.start(&kf).unwrap();
+        gpu_f.start(&kf).unwrap();
         for k in 0..4u64 {
             let p = pose(0.03 * k as f64, 0.01 * k as f64, -0.02 * k as f64);
             let cur = render(&cam, &p, 0.01, 20 + k);

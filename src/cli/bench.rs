@@ -23,8 +23,8 @@ use super::odometry::OdometryOptions;
 #[derive(clap::Subcommand)]
 pub enum Command {
     /// Odometry kernels on generated frames (no data needed): pyramid, scale estimation,
-    /// normal equations, solve, and the undistortion pass (TUM fr1 distortion), per backend
-    /// and image size.
+    /// normal equations, solve per backend and image size, and the CPU undistortion of a
+    /// frame (TUM fr1 distortion, as the I/O thread runs it).
     Kernels(Box<KernelBench>),
     /// Odometry speed and accuracy per backend on a TUM sequence, against OpenCV / Open3D run
     /// on the same data by `../shared/eval/peer_odometry.py`.
@@ -66,6 +66,19 @@ struct KernelRow {
     solve_ms: f64,
     /// Gauss-Newton iterations over all levels.
     iterations: usize,
+}
+
+/// One row of `rgbid bench kernels`' keyframe fusion and ray casting table.
+#[derive(serde::Serialize)]
+struct FrameKernelRow {
+    backend: String,
+    width: u32,
+    height: u32,
+    /// Median ms to fuse one frame into a resident keyframe (upload, kernel, counts read-back).
+    fuse_ms: f64,
+    /// Median ms to ray-cast one frame of the office scene (kernel and read-back; no sensor
+    /// model).
+    raycast_ms: f64,
 }
 
 /// One row of `rgbid bench kernels`' undistortion table.
@@ -193,7 +206,8 @@ fn kernels(a: KernelBench) -> Result<()> {
         }
     }
     println!("(align = pyramids of both frames + coarse-to-fine Gauss-Newton; the pyramid column is for both frames)");
-    let undistort = undistortion(&backends, &sizes, a.repeat)?;
+    let frame_rows = fusion_and_raycast(&backends, &sizes, a.repeat)?;
+    let undistort = undistortion(&sizes, a.repeat)?;
     if let Some(path) = &a.json {
         let adapters = backends
             .iter()
@@ -205,6 +219,7 @@ fn kernels(a: KernelBench) -> Result<()> {
         let body = serde_json::json!({
             "repeat": a.repeat.max(1),
             "rows": rows,
+            "frame_rows": frame_rows,
             "undistort_rows": undistort,
         });
         super::report::write(path, "kernels", &super::report::meta(adapters), &body)?;
@@ -212,21 +227,81 @@ fn kernels(a: KernelBench) -> Result<()> {
     Ok(())
 }
 
-/// Times the undistortion of one frame (TUM fr1 distortion) per backend and size: the CPU
-/// remap on one thread (as in the I/O thread) and the WGSL kernel with its upload and
-/// read-back.
-fn undistortion(
+/// Times keyframe fusion (one frame into a resident keyframe) and ray casting (one frame of
+/// a generated scene) per backend and size.
+fn fusion_and_raycast(
     backends: &[ComputeBackend],
     sizes: &[(u32, u32)],
     repeat: usize,
-) -> Result<Vec<UndistortRow>> {
+) -> Result<Vec<FrameKernelRow>> {
+    use rgbid::slam::{FusionParams, KeyframeFuser};
+    use rgbid::synth::{CameraModel, RenderBackend, Renderer, Scene};
+    let scene = std::sync::Arc::new(Scene::preset("office", 1)?);
+    let mut rows = Vec::new();
+    println!();
+    println!("| backend | size | fuse ms (median) | ray cast ms (median) |");
+    println!("|---|---|---|---|");
+    for backend in backends {
+        for &(w, h) in sizes {
+            let f = 525.0 * f64::from(w) / 640.0;
+            let (cx, cy) = ((f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0);
+            let cam = PinholeCamera::new(f, f, cx, cy, w, h);
+            let keyframe = test_pattern(w as usize, h as usize, 1);
+            let frame = test_pattern(w as usize, h as usize, 2);
+            let cur_from_kf = Se3::exp(&[0.01, 0.0, 0.0, 0.0, 0.005, 0.0]);
+            let mut fuser = KeyframeFuser::new(cam, FusionParams::default(), backend)?;
+            fuser.start(&keyframe.inverse_depth)?;
+            fuser.fuse(&frame.inverse_depth, &cur_from_kf)?; // warm-up
+            let mut fuse = Vec::new();
+            for _ in 0..repeat.max(1) {
+                let t = Instant::now();
+                fuser.fuse(&frame.inverse_depth, &cur_from_kf)?;
+                fuse.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            let render = match backend {
+                ComputeBackend::Cpu => RenderBackend::Cpu,
+                ComputeBackend::Gpu(ctx) => RenderBackend::Gpu(ctx.clone()),
+            };
+            let mut renderer = Renderer::new(scene.clone(), CameraModel::Pinhole(cam), &render)?;
+            let centre = scene.free_area().center();
+            let world_from_camera = Se3::new(
+                glam::DQuat::from_rotation_x(-std::f64::consts::FRAC_PI_2),
+                glam::DVec3::new(centre.x, centre.y, 1.5),
+            );
+            renderer.cast(&world_from_camera)?; // warm-up
+            let mut cast = Vec::new();
+            for _ in 0..repeat.max(1) {
+                let t = Instant::now();
+                renderer.cast(&world_from_camera)?;
+                cast.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            let row = FrameKernelRow {
+                backend: backend.name(),
+                width: w,
+                height: h,
+                fuse_ms: median(&mut fuse),
+                raycast_ms: median(&mut cast),
+            };
+            println!(
+                "| {} | {w}x{h} | {:.2} | {:.2} |",
+                row.backend, row.fuse_ms, row.raycast_ms
+            );
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
+/// Times the undistortion of one frame (TUM fr1 distortion) per size: the CPU remap on one
+/// thread, as the I/O thread runs it beside the tracking.
+fn undistortion(sizes: &[(u32, u32)], repeat: usize) -> Result<Vec<UndistortRow>> {
     let mut rows = Vec::new();
     println!();
     println!(
         "| backend | size | undistort ms (median; intensity bilinear + inverse depth nearest) |"
     );
     println!("|---|---|---|");
-    for backend in backends {
+    {
         for &(w, h) in sizes {
             // The TUM fr1 preset's intrinsics and distortion, scaled to the size.
             let fr1 = rgbid::io::CameraConfig::preset("tum_fr1")
@@ -240,28 +315,15 @@ fn undistortion(
             let f = test_pattern(w as usize, h as usize, 1);
             let (raw_i, raw_d) = (&f.intensity.data, &f.inverse_depth.data);
             let mut times = Vec::new();
-            match backend {
-                ComputeBackend::Cpu => {
-                    let (mut oi, mut od) = (vec![0.0; raw_i.len()], vec![0.0; raw_d.len()]);
-                    for _ in 0..repeat.max(1) {
-                        let t = Instant::now();
-                        map.remap_bilinear(raw_i, &mut oi);
-                        map.remap_nearest(raw_d, &mut od);
-                        times.push(t.elapsed().as_secs_f64() * 1e3);
-                    }
-                }
-                ComputeBackend::Gpu(ctx) => {
-                    let gpu = rgbid::io::GpuUndistort::new(ctx.clone(), &map)?;
-                    gpu.remap(raw_i, raw_d)?; // warm-up
-                    for _ in 0..repeat.max(1) {
-                        let t = Instant::now();
-                        gpu.remap(raw_i, raw_d)?;
-                        times.push(t.elapsed().as_secs_f64() * 1e3);
-                    }
-                }
+            let (mut oi, mut od) = (vec![0.0; raw_i.len()], vec![0.0; raw_d.len()]);
+            for _ in 0..repeat.max(1) {
+                let t = Instant::now();
+                map.remap_bilinear(raw_i, &mut oi);
+                map.remap_nearest(raw_d, &mut od);
+                times.push(t.elapsed().as_secs_f64() * 1e3);
             }
             let row = UndistortRow {
-                backend: backend.name(),
+                backend: "cpu (one thread)".into(),
                 width: w,
                 height: h,
                 undistort_ms: median(&mut times),

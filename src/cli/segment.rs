@@ -9,9 +9,9 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use rgbid::experiments::segment::{run_change_experiment, ChangeExperimentConfig};
-use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::io::tum::{OpenOptions, TumSequence};
-use rgbid::segment::{self, GpuNormals, NormalParams, SegmentConfig};
+use rgbid::segment::{self, NormalParams, SegmentConfig};
 use rgbid::synth::SensorModel;
 
 /// `rgbid segment SEQ ...` segments frames of a sequence; `experiment` is a subcommand.
@@ -291,10 +291,7 @@ fn run_segment(args: &RunArgs) -> Result<()> {
     cfg.validate()?;
     let backend = select_backend(args.backend, None)?;
     log::info!("normals on {}", backend.name());
-    let gpu = match &backend {
-        ComputeBackend::Gpu(ctx) => Some(GpuNormals::new(ctx.clone())?),
-        ComputeBackend::Cpu => None,
-    };
+    let mut normals = segment::normal_kernels(&backend)?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let csv_path = out.join("superjuts.csv");
     let mut csv = std::io::BufWriter::new(
@@ -312,13 +309,8 @@ fn run_segment(args: &RunArgs) -> Result<()> {
         let frame = seq.load(f)?;
         let (t, intensity, inv) = (frame.timestamp, frame.intensity, frame.inverse_depth);
         let t0 = Instant::now();
-        let juts = match &gpu {
-            Some(g) => {
-                let n = g.compute(&inv, &cam, &cfg.normals)?;
-                segmenter.segment_with_normals(&intensity, &inv, &cam, n, &cfg)?
-            }
-            None => segmenter.segment_keyframe(&intensity, &inv, &cam, &cfg)?,
-        };
+        let n = normals.compute(&inv, &cam, &cfg.normals)?;
+        let juts = segmenter.segment_with_normals(&intensity, &inv, &cam, n, &cfg)?;
         times.push(t0.elapsed().as_secs_f64() * 1e3);
         let (w, h) = (juts.width, juts.height);
         let stem = format!("frame_{f:05}");

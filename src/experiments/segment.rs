@@ -312,7 +312,7 @@ fn prepare(
     };
     let mut frame = seq.render_frame(index)?;
     if let Some(fuser) = fuser {
-        fuser.start(&frame.frame.inverse_depth);
+        fuser.start(&frame.frame.inverse_depth)?;
         for j in index + 1..(index + 1 + config.fuse).min(seq.len()) {
             let next = seq.render_frame(j)?;
             let cur_from_kf = next.world_from_camera.inverse() * frame.world_from_camera;

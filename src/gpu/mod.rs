@@ -12,5 +12,7 @@ mod testing;
 
 pub use backend::{describe_adapters, select_backend, BackendChoice, ComputeBackend};
 pub use context::{GpuContext, GpuError};
+#[cfg(test)]
+pub(crate) use testing::{host_layout, layout_mismatches};
 #[doc(hidden)]
 pub use testing::{no_test_gpu, test_gpu, REQUIRE_GPU_ENV};

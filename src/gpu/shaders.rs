@@ -15,10 +15,6 @@ pub const ALL: &[(&str, &str)] = &[
     ("raycast.wgsl", include_str!("../../shaders/raycast.wgsl")),
     ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
     ("fuse.wgsl", include_str!("../../shaders/fuse.wgsl")),
-    (
-        "undistort.wgsl",
-        include_str!("../../shaders/undistort.wgsl"),
-    ),
 ];
 
 /// Returns the raw source of `name`.

@@ -8,7 +8,6 @@ pub mod config;
 pub mod trajectory;
 pub mod tum;
 pub mod undistort;
-pub mod undistort_gpu;
 
 pub use config::CameraConfig;
 pub use tum::{
@@ -16,7 +15,6 @@ pub use tum::{
     SequenceEntry, TumSequence,
 };
 pub use undistort::UndistortMap;
-pub use undistort_gpu::GpuUndistort;
 
 use std::path::PathBuf;
 
@@ -158,14 +156,6 @@ pub enum IoError {
         index: usize,
         /// The number of frames.
         len: usize,
-    },
-    /// The GPU undistortion pass of a frame failed (device lost, read-back, validation).
-    #[error("{path}: GPU undistortion failed: {source}")]
-    Gpu {
-        /// The colour image of the frame.
-        path: PathBuf,
-        /// The GPU error.
-        source: crate::gpu::GpuError,
     },
 }
 

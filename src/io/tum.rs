@@ -21,11 +21,9 @@ use glam::{DQuat, DVec3};
 
 use super::config::{parse_numbers, CameraConfig};
 use super::undistort::UndistortMap;
-use super::undistort_gpu::GpuUndistort;
 use super::IoError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
-use crate::gpu::GpuContext;
 use crate::image::{rgb_to_intensity, ImageF32, RgbdFrame};
 
 /// Default tolerance when associating colour and depth time stamps, seconds.
@@ -85,7 +83,6 @@ pub struct TumSequence {
     /// Where the camera came from (preset, config file, calib.txt).
     pub camera_source: String,
     undistort: Option<Arc<UndistortMap>>,
-    gpu_undistort: Option<Arc<GpuUndistort>>,
 }
 
 impl TumSequence {
@@ -167,7 +164,6 @@ impl TumSequence {
             groundtruth: gt.is_file().then_some(gt),
             camera_source: cfg.source,
             undistort,
-            gpu_undistort: None,
         };
         seq.load(0)?;
         Ok(seq)
@@ -190,28 +186,6 @@ impl TumSequence {
         c
     }
 
-    /// Runs the undistortion of [`Self::load`] on `ctx` (`shaders/undistort.wgsl`) instead of
-    /// the CPU: the kernel is compiled and the remap table uploaded here, once. Returns
-    /// `false` (and changes nothing) when the camera has no distortion, so there is nothing
-    /// to undistort. Frames are the same as with the CPU remap up to f32 rounding of the
-    /// bilinear intensity.
-    pub fn undistort_on_gpu(&mut self, ctx: Arc<GpuContext>) -> Result<bool, IoError> {
-        let Some(map) = &self.undistort else {
-            return Ok(false);
-        };
-        let gpu = GpuUndistort::new(ctx, map).map_err(|source| IoError::Gpu {
-            path: self.root.clone(),
-            source,
-        })?;
-        self.gpu_undistort = Some(Arc::new(gpu));
-        Ok(true)
-    }
-
-    /// True when [`Self::load`] undistorts on a GPU (see [`Self::undistort_on_gpu`]).
-    pub fn undistorts_on_gpu(&self) -> bool {
-        self.gpu_undistort.is_some()
-    }
-
     /// Decodes frame `index` from disk: intensity and inverse depth (1/m), undistorted.
     pub fn load(&self, index: usize) -> Result<RgbdFrame, IoError> {
         let e = self.entries.get(index).ok_or(IoError::IndexOutOfRange {
@@ -222,10 +196,9 @@ impl TumSequence {
             camera: &self.camera,
             source: &self.camera_source,
         };
-        let remap = match (&self.gpu_undistort, &self.undistort) {
-            (Some(g), _) => Remap::Gpu(g),
-            (None, Some(m)) => Remap::Cpu(m),
-            (None, None) => Remap::None,
+        let remap = match &self.undistort {
+            Some(m) => Remap::Cpu(m),
+            None => Remap::None,
         };
         decode_frame(&e.rgb, &e.depth, cam, self.depth_factor, remap, e.timestamp)
     }
@@ -464,8 +437,6 @@ enum Remap<'a> {
     None,
     /// The remap table on the CPU.
     Cpu(&'a UndistortMap),
-    /// The same table on a GPU.
-    Gpu(&'a GpuUndistort),
 }
 
 #[derive(Clone, Copy)]
@@ -519,14 +490,6 @@ fn decode_frame(
             let mut out = vec![0.0f32; inverse_depth.len()];
             m.remap_nearest(&inverse_depth, &mut out);
             inverse_depth = out;
-        }
-        Remap::Gpu(g) => {
-            (intensity, inverse_depth) =
-                g.remap(&intensity, &inverse_depth)
-                    .map_err(|source| IoError::Gpu {
-                        path: rgb_path.into(),
-                        source,
-                    })?;
         }
     }
     let (w, h) = (rgb.width, rgb.height);

@@ -8,35 +8,26 @@ use super::OdometryError;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
+#[repr(u32)]
 pub enum Terms {
     /// Photometric and geometric (the default).
-    Both,
+    Both = 3,
     /// Photometric only.
-    Photometric,
+    Photometric = 1,
     /// Geometric only.
-    Geometric,
-}
-
-impl Terms {
-    /// Bit mask used by the kernels (1 photometric, 2 geometric).
-    pub fn mask(self) -> u32 {
-        match self {
-            Terms::Both => 3,
-            Terms::Photometric => 1,
-            Terms::Geometric => 2,
-        }
-    }
+    Geometric = 2,
 }
 
 /// Parametrisation of the geometric error.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
+#[repr(u32)]
 pub enum GeometricParam {
     /// Inverse depth, 1/m (the thesis' choice: noise roughly constant over depth).
-    InverseDepth,
+    InverseDepth = 0,
     /// Depth, m (for comparison).
-    Depth,
+    Depth = 1,
 }
 
 /// How the current frame's inverse depth is sampled at a warped point for the geometric
@@ -44,15 +35,16 @@ pub enum GeometricParam {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
+#[repr(u32)]
 pub enum GeometricSampling {
     /// The nearest pixel (thesis eq. 6.5-6.9; the default).
-    Nearest,
+    Nearest = 0,
     /// The nearest pixel extended to the warped point along its (already stored) inverse-depth
     /// gradient: a first-order sample consistent with the Jacobian, never across a depth
     /// discontinuity (the gradient is invalid there). Removes the nearest sample's bias on
     /// noiseless rendered views; not the default because it did not help on real Kinect data
     /// (docs/notes.md).
-    Linear,
+    Linear = 1,
 }
 
 /// Gradients used for the covariance of an alignment (thesis 6.20, 6.21).

@@ -4,8 +4,8 @@
 use rayon::prelude::*;
 
 use super::kernel::{
-    bilateral, covisible, downsample, gradients_of_lane, pack_level0, FilterParams, WarpParams,
-    INVALID_RESIDUAL, PARTIAL_LEN,
+    bilateral, covisible, downsample, gradients_of_lane, pack_level0, Partial, PartialSums,
+    PartialsAndSample, PyrParams, WarpParams, INVALID_RESIDUAL,
 };
 use super::rows::{accumulate_rows, first_sample_at, sample_range, Buffers, SampleWalk, Warp};
 use crate::image::RgbdFrame;
@@ -124,11 +124,11 @@ impl CpuPyramid {
     /// `(rho, drhof/du, drhof/dv, rhof)`, with `If`, `rhof` the filtered values (the raw values
     /// stay in `.x`, so residuals and IRLS weights are unchanged). Other levels are
     /// unspecified; use it only as the *current* pyramid of a normal-equation pass. Reuses
-    /// `recycle`'s buffers when the layout matches. Mirror of `GpuOdometry::filtered_level`.
+    /// `recycle`'s buffers when the layout matches. Mirror of `GpuKernels::filtered_level`.
     pub fn filtered_level(
         &self,
         level: usize,
-        f: &FilterParams,
+        f: &PyrParams,
         recycle: Option<CpuPyramid>,
     ) -> CpuPyramid {
         let total = self.photo.len();
@@ -162,6 +162,12 @@ impl CpuPyramid {
             photo,
             geo,
         }
+    }
+
+    /// Bytes of host memory this pyramid holds (capacities).
+    pub fn host_bytes(&self) -> usize {
+        self.levels.capacity() * std::mem::size_of::<LevelLayout>()
+            + (self.photo.capacity() + self.geo.capacity()) * std::mem::size_of::<[f32; 4]>()
     }
 
     fn level(&self, l: usize) -> (&[[f32; 4]], &[[f32; 4]]) {
@@ -223,7 +229,7 @@ pub fn sample_residuals(
     level: usize,
 ) -> Vec<[f32; 2]> {
     let bufs = level_buffers(reference, current, level);
-    let count = p.dims[3] as usize;
+    let count = p.samples as usize;
     let k = Warp::new(p);
     let mut out = vec![[INVALID_RESIDUAL; 2]; count];
     const BLOCK: usize = 2048;
@@ -241,18 +247,18 @@ pub fn normal_equation_partials(
     current: &CpuPyramid,
     level: usize,
     chunks: usize,
-) -> Vec<[f32; PARTIAL_LEN]> {
+) -> Vec<Partial> {
     let bufs = level_buffers(reference, current, level);
-    let h = p.dims[1] as usize;
+    let h = p.height as usize;
     let k = Warp::new(p);
     let rows_per = h.div_ceil(chunks.max(1)).max(1);
     (0..h.div_ceil(rows_per))
         .into_par_iter()
         .map(|c| {
-            let mut acc = [0.0f64; PARTIAL_LEN];
+            let mut acc = PartialSums::default();
             let rows = c * rows_per..((c + 1) * rows_per).min(h);
             accumulate_rows(&k, &bufs, rows, &mut acc, None);
-            acc.map(|v| v as f32)
+            acc.to_partial()
         })
         .collect()
 }
@@ -265,10 +271,10 @@ pub fn normal_equations_and_sample(
     current: &CpuPyramid,
     level: usize,
     chunks: usize,
-) -> super::kernel::PartialsAndSample {
+) -> PartialsAndSample {
     let bufs = level_buffers(reference, current, level);
-    let (w, h) = (p.dims[0] as usize, p.dims[1] as usize);
-    let (n, count) = (w * h, p.dims[3] as usize);
+    let (w, h) = (p.width as usize, p.height as usize);
+    let (n, count) = (w * h, p.samples as usize);
     let k = Warp::new(p);
     let rows_per = h.div_ceil(chunks.max(1)).max(1);
     let bands: Vec<_> = (0..h.div_ceil(rows_per))
@@ -279,10 +285,10 @@ pub fn normal_equations_and_sample(
             let k_lo = first_sample_at(rows.start * w, count, n).min(count);
             let k_hi = first_sample_at(rows.end * w, count, n).min(count);
             let mut sample = vec![[INVALID_RESIDUAL; 2]; k_hi - k_lo];
-            let mut acc = [0.0f64; PARTIAL_LEN];
+            let mut acc = PartialSums::default();
             let walk = SampleWalk::new(k_lo, count, n);
             accumulate_rows(&k, &bufs, rows, &mut acc, Some((&mut sample, walk)));
-            (acc.map(|v| v as f32), sample)
+            (acc.to_partial(), sample)
         })
         .collect();
     let mut parts = Vec::with_capacity(bands.len());
@@ -303,7 +309,7 @@ pub fn covisibility_counts(
 ) -> (u64, u64) {
     let (_, rg) = reference.level(level);
     let (_, cg) = current.level(level);
-    let n = (p.dims[0] * p.dims[1]) as usize;
+    let n = p.pixels();
     (0..n)
         .into_par_iter()
         .map(|i| match covisible(p, rg, cg, i) {
@@ -346,7 +352,7 @@ mod tests {
     fn bilateral_gradients_keep_edges_and_damp_noise() {
         let (w, h) = (80, 60);
         let pyr = CpuPyramid::build(&noisy_step(w, h), 1);
-        let f = FilterParams::new(w, h, 0, 3.0 * 1.7, 3.0 * 0.0012);
+        let f = PyrParams::filter(w, h, 0, 3.0 * 1.7, 3.0 * 0.0012);
         let filt = pyr.filtered_level(0, &f, None);
         // Raw values are kept for the residuals.
         for k in 0..w * h {

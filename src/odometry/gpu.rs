@@ -1,23 +1,24 @@
 //! The WGSL backend of the odometry kernels (`shaders/pyramid.wgsl`, `shaders/odometry.wgsl`).
-//! Pipelines are created once per [`GpuOdometry`]; pyramids keep their buffers and are
+//! Pipelines are created once per [`GpuKernels`]; pyramids keep their buffers and are
 //! recycled; each Gauss-Newton step is one dispatch plus a small read-back.
 
 use std::sync::Arc;
 
 use super::cpu::{pyramid_layout, LevelLayout};
-use super::kernel::{FilterParams, PyrParams, WarpParams, PARTIAL_LEN};
+use super::kernel::{Partial, PartialsAndSample, PyrParams, WarpParams};
 use crate::gpu::{shaders, GpuContext, GpuError};
 use crate::image::RgbdFrame;
 
 const WG: usize = 128;
 
 /// A pyramid read back to the CPU: `(photo, geo)` as in [`super::cpu::CpuPyramid`].
-pub type PyramidData = (Vec<[f32; 4]>, Vec<[f32; 4]>);
+#[cfg(test)]
+pub(crate) type PyramidData = (Vec<[f32; 4]>, Vec<[f32; 4]>);
 
 /// A frame's pyramid in GPU buffers.
 pub struct GpuPyramid {
     /// Level layouts.
-    pub levels: Vec<LevelLayout>,
+    pub(crate) levels: Vec<LevelLayout>,
     input: wgpu::Buffer,
     photo: wgpu::Buffer,
     geo: wgpu::Buffer,
@@ -25,8 +26,9 @@ pub struct GpuPyramid {
     id: u64,
 }
 
-/// Pipelines and scratch buffers of the odometry kernels on one device.
-pub struct GpuOdometry {
+/// The odometry kernels compiled on one GPU device, with their scratch buffers: the WGSL
+/// backend of [`super::Tracker`].
+pub struct GpuKernels {
     ctx: Arc<GpuContext>,
     pyr_layout: wgpu::BindGroupLayout,
     warp_layout: wgpu::BindGroupLayout,
@@ -41,9 +43,7 @@ pub struct GpuOdometry {
     covis: wgpu::ComputePipeline,
     pyr_uniforms: Vec<wgpu::Buffer>,
     warp_uniform: wgpu::Buffer,
-    out: wgpu::Buffer,
-    staging: wgpu::Buffer,
-    out_len: usize,
+    out: Outputs,
     /// Partials written per workgroup (subgroups per workgroup, or 1).
     slots: usize,
     next_id: u64,
@@ -57,19 +57,59 @@ fn source(name: &str) -> Result<String, GpuError> {
     })
 }
 
+/// The output buffers of the warp kernels (bindings 5-7 of `odometry.wgsl`) and one staging
+/// buffer they are copied into for a single read-back: partials first, then the sample or
+/// the counts.
+struct Outputs {
+    partials: wgpu::Buffer,
+    sample: wgpu::Buffer,
+    counts: wgpu::Buffer,
+    staging: wgpu::Buffer,
+    /// Capacities: partials, sample entries, count pairs.
+    partial_cap: usize,
+    sample_cap: usize,
+    count_cap: usize,
+}
+
+impl Outputs {
+    fn new(ctx: &GpuContext, partial_cap: usize, sample_cap: usize, count_cap: usize) -> Self {
+        let psize = std::mem::size_of::<Partial>();
+        let pair = std::mem::size_of::<[f32; 2]>();
+        let staging = partial_cap * psize + sample_cap.max(count_cap) * pair;
+        Self {
+            partials: ctx.storage("odometry partials", (partial_cap * psize) as u64),
+            sample: ctx.storage("odometry sample", (sample_cap * pair) as u64),
+            counts: ctx.storage("odometry counts", (count_cap * pair) as u64),
+            staging: ctx.staging("odometry staging", staging as u64),
+            partial_cap,
+            sample_cap,
+            count_cap,
+        }
+    }
+
+    fn bytes(&self) -> u64 {
+        self.partials.size() + self.sample.size() + self.counts.size() + self.staging.size()
+    }
+}
+
 impl GpuPyramid {
     /// Bytes of the device buffers allocated for this pyramid.
     pub(crate) fn device_bytes(&self) -> usize {
         (self.input.size() + self.photo.size() + self.geo.size()) as usize
     }
+
+    /// Bytes of host memory this pyramid holds (its level table).
+    pub(crate) fn host_bytes(&self) -> usize {
+        self.levels.capacity() * std::mem::size_of::<LevelLayout>()
+    }
 }
 
-impl GpuOdometry {
+impl GpuKernels {
     /// Bytes of the device buffers the kernels keep (parameters, partial sums, read-back
     /// staging), pyramids aside.
     pub(crate) fn device_bytes(&self) -> usize {
         let pyr: u64 = self.pyr_uniforms.iter().map(wgpu::Buffer::size).sum();
-        (pyr + self.warp_uniform.size() + self.out.size() + self.staging.size()) as usize
+        (pyr + self.warp_uniform.size() + self.out.bytes()) as usize
     }
 
     /// Compiles the kernels on `ctx` (subgroup reductions where the device has them).
@@ -80,9 +120,9 @@ impl GpuOdometry {
 
     /// Compiles the kernels on `ctx` with subgroup reductions (`subgroups`, ignored where the
     /// device lacks them) or the shared-memory fallback (to test and time both on one device).
-    pub fn with_reduction(ctx: Arc<GpuContext>, subgroups: bool) -> Result<Self, GpuError> {
+    pub(crate) fn with_reduction(ctx: Arc<GpuContext>, subgroups: bool) -> Result<Self, GpuError> {
         let pyr_layout = ctx.buffer_layout("pyramid", &[true, false, false]);
-        let warp_layout = ctx.buffer_layout("warp", &[true, true, true, true, false]);
+        let warp_layout = ctx.buffer_layout("warp", &[true, true, true, true, false, false, false]);
         let p = ctx.compute_pipelines_with_layout(
             "pyramid.wgsl",
             &source("pyramid.wgsl")?,
@@ -121,9 +161,7 @@ impl GpuOdometry {
             .try_into()
             .map_err(|_| GpuError::Validation("pipeline count".into()))?;
         let warp_uniform = ctx.uniform("warp params", std::mem::size_of::<WarpParams>() as u64);
-        let out_len = (2 * 19200 + 16 * slots * PARTIAL_LEN).next_power_of_two();
-        let out = ctx.storage("odometry out", (out_len * 4) as u64);
-        let staging = ctx.staging("odometry staging", (out_len * 4) as u64);
+        let out = Outputs::new(&ctx, 16 * slots, 19200, 16 * slots);
         Ok(Self {
             ctx,
             pyr_layout,
@@ -140,33 +178,31 @@ impl GpuOdometry {
             pyr_uniforms: Vec::new(),
             warp_uniform,
             out,
-            staging,
-            out_len,
             slots,
             next_id: 1,
             bind_cache: None,
         })
     }
 
-    /// The device context.
-    pub fn context(&self) -> &Arc<GpuContext> {
-        &self.ctx
-    }
-
-    fn ensure_out(&mut self, len: usize) {
-        if len > self.out_len {
-            self.out_len = len.next_power_of_two();
-            self.out = self.ctx.storage("odometry out", (self.out_len * 4) as u64);
-            self.staging = self
-                .ctx
-                .staging("odometry staging", (self.out_len * 4) as u64);
+    /// Grows the output buffers to hold `partials` partials, `samples` sample entries and
+    /// `counts` count pairs.
+    fn ensure_out(&mut self, partials: usize, samples: usize, counts: usize) {
+        let o = &self.out;
+        if partials > o.partial_cap || samples > o.sample_cap || counts > o.count_cap {
+            let grow = |want: usize, cap: usize| want.max(cap).next_power_of_two();
+            self.out = Outputs::new(
+                &self.ctx,
+                grow(partials, o.partial_cap),
+                grow(samples, o.sample_cap),
+                grow(counts, o.count_cap),
+            );
             self.bind_cache = None;
         }
     }
 
-    /// Uploads `frame` and builds its pyramid and gradients, reusing `recycle`'s buffers when
-    /// it has the same shape.
-    pub fn build(
+    /// Uploads `frame` and builds all levels of its pyramid and gradients (parity tests).
+    #[cfg(test)]
+    pub(crate) fn build(
         &mut self,
         frame: &RgbdFrame,
         levels: usize,
@@ -175,13 +211,14 @@ impl GpuOdometry {
         self.build_levels(frame, levels, 0, 0, recycle)
     }
 
-    /// Like [`Self::build`], for a tracker that reads only some levels: levels finer than
+    /// Uploads `frame` and builds its pyramid and gradients, reusing `recycle`'s buffers when
+    /// it has the same shape, for a tracker that reads only some levels: levels finer than
     /// `first_stored` are not written (their contents are unspecified; level 1 is then
     /// downsampled straight from the input, with the same values), and gradients are computed
     /// from level `max(first_gradient, first_stored)` on (finer stored levels keep zero
     /// gradients, as [`super::cpu::CpuPyramid::build_reusing`] leaves them). On lavapipe the
     /// full-resolution level of a 640x480 frame costs most of a full build.
-    pub fn build_levels(
+    pub(crate) fn build_levels(
         &mut self,
         frame: &RgbdFrame,
         levels: usize,
@@ -260,8 +297,9 @@ impl GpuOdometry {
                 &mut enc,
                 &self.pack,
                 PyrParams {
-                    dims: [l0.width as u32, l0.height as u32, 0, 0],
-                    src: [0; 4],
+                    width: l0.width as u32,
+                    height: l0.height as u32,
+                    ..PyrParams::default()
                 },
                 l0.width,
                 l0.height,
@@ -278,13 +316,13 @@ impl GpuOdometry {
                     &self.down
                 },
                 PyrParams {
-                    dims: [
-                        d.width as u32,
-                        d.height as u32,
-                        d.offset as u32,
-                        s.offset as u32,
-                    ],
-                    src: [s.width as u32, s.height as u32, 0, 0],
+                    width: d.width as u32,
+                    height: d.height as u32,
+                    offset: d.offset as u32,
+                    src_offset: s.offset as u32,
+                    src_width: s.width as u32,
+                    src_height: s.height as u32,
+                    ..PyrParams::default()
                 },
                 d.width,
                 d.height,
@@ -296,8 +334,10 @@ impl GpuOdometry {
                 &mut enc,
                 &self.grad,
                 PyrParams {
-                    dims: [d.width as u32, d.height as u32, d.offset as u32, 0],
-                    src: [0; 4],
+                    width: d.width as u32,
+                    height: d.height as u32,
+                    offset: d.offset as u32,
+                    ..PyrParams::default()
                 },
                 d.width,
                 d.height,
@@ -312,12 +352,12 @@ impl GpuOdometry {
     /// A copy of `level` of `src` whose gradients are those of its bilateral-filtered
     /// intensity and inverse depth, for the covariance pass (thesis 6.20, 6.21): the same
     /// values as [`super::cpu::CpuPyramid::filtered_level`] (which documents the layout).
-    /// `f.dims` must describe `level`; reuses `recycle`'s buffers when the layout matches.
-    pub fn filtered_level(
+    /// `f` must describe `level`; reuses `recycle`'s buffers when the layout matches.
+    pub(crate) fn filtered_level(
         &mut self,
         src: &GpuPyramid,
         level: usize,
-        f: &FilterParams,
+        f: &PyrParams,
         recycle: Option<GpuPyramid>,
     ) -> Result<GpuPyramid, GpuError> {
         let total = src
@@ -348,7 +388,6 @@ impl GpuOdometry {
                     .uniform("pyr params", std::mem::size_of::<PyrParams>() as u64),
             );
         }
-        // FilterParams has PyrParams' size and layout (the floats travel as bit patterns).
         let ub = &self.pyr_uniforms[0];
         self.ctx.queue.write_buffer(ub, 0, bytemuck::bytes_of(f));
         let bg = self.ctx.bind_buffers(
@@ -394,39 +433,28 @@ impl GpuOdometry {
                 &reference.geo,
                 &current.photo,
                 &current.geo,
-                &self.out,
+                &self.out.partials,
+                &self.out.sample,
+                &self.out.counts,
             ],
         );
         self.bind_cache = Some((reference.id, current.id, bg.clone()));
         bg
     }
 
-    fn run(
-        &mut self,
-        pipe: Pipe,
-        params: &WarpParams,
-        reference: &GpuPyramid,
-        current: &GpuPyramid,
-        groups: u32,
-        io: Io,
-    ) -> Result<Vec<f32>, GpuError> {
-        self.run_many(&[(pipe, groups)], params, reference, current, io)
-    }
-
     /// Runs `dispatches` (pipeline, workgroups) in one submission with the same parameters and
-    /// reads back the first `io.read` floats of the output buffer (one round trip); the first
-    /// `io.clear` floats are zeroed before the dispatches (partial slots a subgroup may not
-    /// write).
-    fn run_many(
+    /// reads back, in one round trip, the first `io.partials` partials and then either the
+    /// first `io.sample` sample entries or the first `io.counts` count pairs; the partial and
+    /// count slots read are zeroed first (a device may not write every subgroup slot).
+    fn run(
         &mut self,
         dispatches: &[(Pipe, u32)],
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
         io: Io,
-    ) -> Result<Vec<f32>, GpuError> {
-        let Io { read, clear } = io;
-        self.ensure_out(read);
+    ) -> Result<(Vec<Partial>, Vec<[f32; 2]>), GpuError> {
+        self.ensure_out(io.partials, io.sample, io.counts);
         let bg = self.bind(reference, current);
         self.ctx
             .queue
@@ -437,8 +465,14 @@ impl GpuOdometry {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("warp"),
             });
-        if self.slots > 1 && clear > 0 {
-            enc.clear_buffer(&self.out, 0, Some((clear * 4).next_multiple_of(4) as u64));
+        let psize = std::mem::size_of::<Partial>();
+        let pair = std::mem::size_of::<[f32; 2]>();
+        let (pbytes, cbytes) = ((io.partials * psize) as u64, (io.counts * pair) as u64);
+        if self.slots > 1 && pbytes > 0 {
+            enc.clear_buffer(&self.out.partials, 0, Some(pbytes));
+        }
+        if self.slots > 1 && cbytes > 0 {
+            enc.clear_buffer(&self.out.counts, 0, Some(cbytes));
         }
         for &(pipe, groups) in dispatches {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -453,26 +487,46 @@ impl GpuOdometry {
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(groups, 1, 1);
         }
-        enc.copy_buffer_to_buffer(&self.out, 0, &self.staging, 0, (read * 4) as u64);
+        let o = &self.out;
+        if pbytes > 0 {
+            enc.copy_buffer_to_buffer(&o.partials, 0, &o.staging, 0, pbytes);
+        }
+        let (pairs, tail) = if io.counts > 0 {
+            (io.counts, &o.counts)
+        } else {
+            (io.sample, &o.sample)
+        };
+        if pairs > 0 {
+            enc.copy_buffer_to_buffer(tail, 0, &o.staging, pbytes, (pairs * pair) as u64);
+        }
         self.ctx.queue.submit([enc.finish()]);
-        self.ctx.read_staging(&self.staging, read)
+        let floats = (pbytes as usize + pairs * pair) / 4;
+        let v: Vec<f32> = self.ctx.read_staging(&self.out.staging, floats)?;
+        let bytes: &[u8] = bytemuck::cast_slice(&v);
+        let (pb, tb) = bytes.split_at(pbytes as usize);
+        let parts = pb
+            .chunks_exact(psize)
+            .map(bytemuck::pod_read_unaligned::<Partial>)
+            .collect();
+        let pairs = tb
+            .chunks_exact(pair)
+            .map(bytemuck::pod_read_unaligned::<[f32; 2]>)
+            .collect();
+        Ok((parts, pairs))
     }
 
     /// The normal equations at the pose in `params` and, in the same submission and read-back,
     /// the systematic residual sample at that pose (for the next iteration's scale).
-    pub fn normal_equations_and_sample(
+    pub(crate) fn normal_equations_and_sample(
         &mut self,
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
-    ) -> Result<super::kernel::PartialsAndSample, GpuError> {
-        let n = (params.dims[0] * params.dims[1]) as usize;
+    ) -> Result<PartialsAndSample, GpuError> {
+        let n = params.pixels();
         let groups = self.ctx.reduction_groups(n, WG);
-        let count = params.dims[3] as usize;
-        let offset = groups as usize * self.slots * PARTIAL_LEN;
-        let mut p = *params;
-        p.flags[3] = offset as u32;
-        // The normal-equation kernel writes the sample itself (dims.w > 0) when it has at most
+        let count = params.samples as usize;
+        // The normal-equation kernel writes the sample itself (samples > 0) when it has at most
         // one entry per pixel; a larger sample (pixels repeated) takes the separate pass.
         let sample_pass = (Pipe::Sample, count.div_ceil(WG) as u32);
         let dispatches: &[(Pipe, u32)] = if count <= n {
@@ -480,105 +534,80 @@ impl GpuOdometry {
         } else {
             &[(Pipe::Normal, groups), sample_pass]
         };
-        let v = self.run_many(
-            dispatches,
-            &p,
-            reference,
-            current,
-            Io {
-                read: offset + 2 * count,
-                clear: offset,
-            },
-        )?;
-        let parts = v[..offset]
-            .chunks_exact(PARTIAL_LEN)
-            .map(|c| c.try_into().unwrap_or([0.0; PARTIAL_LEN]))
-            .collect();
-        let sample = v[offset..].chunks_exact(2).map(|c| [c[0], c[1]]).collect();
-        Ok((parts, sample))
+        let io = Io {
+            partials: groups as usize * self.slots,
+            sample: count,
+            counts: 0,
+        };
+        self.run(dispatches, params, reference, current, io)
     }
 
-    /// Per-workgroup partial sums of the normal equations at `level` (`params.dims` set).
-    pub fn normal_equation_partials(
+    /// Partial sums of the normal equations at the pose in `params` (no residual sample).
+    pub(crate) fn normal_equation_partials(
         &mut self,
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
-    ) -> Result<Vec<[f32; PARTIAL_LEN]>, GpuError> {
-        let n = (params.dims[0] * params.dims[1]) as usize;
+    ) -> Result<Vec<Partial>, GpuError> {
+        let n = params.pixels();
         let groups = self.ctx.reduction_groups(n, WG);
-        // No residual sample from this pass.
         let mut p = *params;
-        p.dims[3] = 0;
-        let v = self.run(
-            Pipe::Normal,
-            &p,
-            reference,
-            current,
-            groups,
-            Io {
-                read: groups as usize * self.slots * PARTIAL_LEN,
-                clear: groups as usize * self.slots * PARTIAL_LEN,
-            },
-        )?;
-        Ok(v.chunks_exact(PARTIAL_LEN)
-            .map(|c| c.try_into().unwrap_or([0.0; PARTIAL_LEN]))
-            .collect())
+        p.samples = 0;
+        let io = Io {
+            partials: groups as usize * self.slots,
+            sample: 0,
+            counts: 0,
+        };
+        Ok(self
+            .run(&[(Pipe::Normal, groups)], &p, reference, current, io)?
+            .0)
     }
 
-    /// The systematic residual sample (`params.dims[3]` samples).
-    pub fn sample_residuals(
+    /// The systematic residual sample (`params.samples` entries).
+    pub(crate) fn sample_residuals(
         &mut self,
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
     ) -> Result<Vec<[f32; 2]>, GpuError> {
-        let count = params.dims[3] as usize;
-        let v = self.run(
-            Pipe::Sample,
-            params,
-            reference,
-            current,
-            count.div_ceil(WG) as u32,
-            Io {
-                read: 2 * count,
-                clear: 0,
-            },
-        )?;
-        Ok(v.chunks_exact(2).map(|c| [c[0], c[1]]).collect())
+        let count = params.samples as usize;
+        let io = Io {
+            partials: 0,
+            sample: count,
+            counts: 0,
+        };
+        let groups = count.div_ceil(WG) as u32;
+        Ok(self
+            .run(&[(Pipe::Sample, groups)], params, reference, current, io)?
+            .1)
     }
 
     /// Covisibility counts `(pixels with depth, covisible pixels)`.
-    pub fn covisibility_counts(
+    pub(crate) fn covisibility_counts(
         &mut self,
         params: &WarpParams,
         reference: &GpuPyramid,
         current: &GpuPyramid,
     ) -> Result<(u64, u64), GpuError> {
-        let n = (params.dims[0] * params.dims[1]) as usize;
-        let groups = self.ctx.reduction_groups(n, WG);
-        let v = self.run(
-            Pipe::Covis,
-            params,
-            reference,
-            current,
-            groups,
-            Io {
-                read: 2 * groups as usize * self.slots,
-                clear: 2 * groups as usize * self.slots,
-            },
-        )?;
+        let groups = self.ctx.reduction_groups(params.pixels(), WG);
+        let io = Io {
+            partials: 0,
+            sample: 0,
+            counts: groups as usize * self.slots,
+        };
+        let (_, v) = self.run(&[(Pipe::Covis, groups)], params, reference, current, io)?;
         let mut a = 0u64;
         let mut b = 0u64;
-        for c in v.chunks_exact(2) {
+        for c in v {
             a += c[0] as u64;
             b += c[1] as u64;
         }
         Ok((a, b))
     }
 
-    /// Reads a pyramid back (for parity tests and the viewer).
-    pub fn read_pyramid(&self, p: &GpuPyramid) -> Result<PyramidData, GpuError> {
+    /// Reads a pyramid back (for parity tests).
+    #[cfg(test)]
+    pub(crate) fn read_pyramid(&self, p: &GpuPyramid) -> Result<PyramidData, GpuError> {
         let total = p
             .levels
             .last()
@@ -595,11 +624,12 @@ impl GpuOdometry {
     }
 }
 
-/// Floats of the output buffer a submission reads back, and how many it zeroes first.
+/// What a submission reads back: partials, then sample entries or count pairs.
 #[derive(Clone, Copy)]
 struct Io {
-    read: usize,
-    clear: usize,
+    partials: usize,
+    sample: usize,
+    counts: usize,
 }
 
 #[derive(Clone, Copy)]

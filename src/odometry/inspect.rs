@@ -1,16 +1,17 @@
 //! Residual and IRLS-weight images of an alignment, for inspection (the viewer's panels,
 //! residual plots, debugging a wrong convergence).
 //!
-//! The images are recomputed on the CPU through the per-pixel mirror of the kernels
-//! ([`super::kernel::pixel_terms`] and [`super::robust::weight`]), so they are the same for
-//! both backends and cost one pass over one pyramid level (a few ms at 320x240). They are laid
+//! The images are recomputed on the CPU through the mirror of the kernels (the row loop's
+//! per-pixel terms and the IRLS weight), so they are the same for both backends and cost one pass over one pyramid level (a few ms at 320x240). They are laid
 //! out on the *reference* frame's pixel grid of that level: pixel `x` holds the residual of
 //! the reference pixel `x` warped into the current frame by `cur_from_ref`.
 
 use super::config::OdometryConfig;
 use super::cpu::CpuPyramid;
-use super::kernel::{pixel_terms, WarpParams};
+use super::kernel::INVALID_RESIDUAL;
 use super::robust::weight;
+use super::rows::{pixel_terms, Buffers, Warp};
+use super::tracker::warp_params;
 use super::OdometryError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
@@ -130,28 +131,19 @@ pub fn residual_images(
     let r = CpuPyramid::build_reusing(reference, levels, level, None);
     let c = CpuPyramid::build_reusing(current, levels, level, None);
     let lay = r.levels[level];
-    let cam = camera.at_level(level);
-    let mut p = WarpParams {
-        dims: [lay.width as u32, lay.height as u32, lay.offset as u32, 0],
-        intr: [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32],
-        rot: [[0.0; 4]; 3],
-        robust: [
-            scales.sigma_photo as f32,
-            scales.sigma_geo as f32,
-            scales.nu as f32,
-            scales.nu as f32,
-        ],
-        flags: [
-            config.estimator.code(),
-            config.terms.mask(),
-            config.geometric_code(),
-            0,
-        ],
-    };
-    p.set_pose(cur_from_ref);
+    let mut p = warp_params(config, camera, level, cur_from_ref, 0);
+    p.sigma_photo = scales.sigma_photo as f32;
+    p.sigma_geo = scales.sigma_geo as f32;
+    p.nu_photo = scales.nu as f32;
+    p.nu_geo = scales.nu as f32;
     let range = lay.offset..lay.offset + lay.width * lay.height;
-    let (rp, rg) = (&r.photo[range.clone()], &r.geo[range.clone()]);
-    let (cp, cg) = (&c.photo[range.clone()], &c.geo[range]);
+    let bufs = Buffers {
+        ref_photo: &r.photo[range.clone()],
+        ref_geo: &r.geo[range.clone()],
+        cur_photo: &c.photo[range.clone()],
+        cur_geo: &c.geo[range],
+    };
+    let k = Warp::new(&p);
     let n = lay.width * lay.height;
     let mut out = [
         vec![f32::NAN; n],
@@ -159,16 +151,15 @@ pub fn residual_images(
         vec![f32::NAN; n],
         vec![f32::NAN; n],
     ];
-    let est = p.flags[0];
     for i in 0..n {
-        let t = pixel_terms(&p, rp, rg, cp, cg, i, false);
-        if let Some(res) = t.r_photo {
-            out[0][i] = res;
-            out[2][i] = weight(est, res / p.robust[0], p.robust[2]);
+        let (rp, _, rg, _) = pixel_terms::<false>(&k, &bufs, i);
+        if rp != INVALID_RESIDUAL {
+            out[0][i] = rp;
+            out[2][i] = weight(k.est, rp / k.sigma[0], k.nu[0]);
         }
-        if let Some(res) = t.r_geo {
-            out[1][i] = res;
-            out[3][i] = weight(est, res / p.robust[1], p.robust[3]);
+        if rg != INVALID_RESIDUAL {
+            out[1][i] = rg;
+            out[3][i] = weight(k.est, rg / k.sigma[1], k.nu[1]);
         }
     }
     let [photo, geo, wp, wg] = out;

@@ -9,7 +9,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::robust::weight;
+use super::config::Terms;
 
 /// Sentinel stored in the inverse-depth gradient where it is undefined.
 pub const INVALID_GRAD: f32 = 1.0e30;
@@ -21,30 +21,94 @@ pub const INVALID_RESIDUAL: f32 = 3.0e38;
 pub const MAX_REL_GRAD: f32 = 0.05;
 /// Closest point depth (m) accepted after warping.
 pub const MIN_DEPTH: f32 = 0.05;
-/// Number of f32 values per reduction partial: 21 (upper-triangular H) + 6 (g) + cost +
-/// photometric count + geometric count + (unused).
-pub const PARTIAL_LEN: usize = 30;
+/// One reduction partial: the IRLS normal equations summed over a group of pixels (a GPU
+/// workgroup or subgroup, or a CPU band of rows), in f32. Same layout as `Partial` in
+/// `shaders/odometry.wgsl` (a test compares them); finished in f64 on the CPU.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct Partial {
+    /// Upper triangle of `sum w J^T J / sigma^2`, row-major: (0,0), (0,1), .., (0,5), (1,1), ..
+    pub h: [f32; 21],
+    /// `sum w J^T r / sigma^2`.
+    pub g: [f32; 6],
+    /// `sum w (r / sigma)^2`.
+    pub cost: f32,
+    /// Valid photometric residuals.
+    pub n_photo: f32,
+    /// Valid geometric residuals.
+    pub n_geo: f32,
+}
+
+/// The f64 accumulator of one [`Partial`] on the CPU backend.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PartialSums {
+    /// See [`Partial::h`].
+    pub h: [f64; 21],
+    /// See [`Partial::g`].
+    pub g: [f64; 6],
+    /// See [`Partial::cost`].
+    pub cost: f64,
+    /// See [`Partial::n_photo`].
+    pub n_photo: f64,
+    /// See [`Partial::n_geo`].
+    pub n_geo: f64,
+}
+
+impl PartialSums {
+    /// Rounded to the f32 partial the kernels exchange.
+    pub fn to_partial(&self) -> Partial {
+        Partial {
+            h: self.h.map(|v| v as f32),
+            g: self.g.map(|v| v as f32),
+            cost: self.cost as f32,
+            n_photo: self.n_photo as f32,
+            n_geo: self.n_geo as f32,
+        }
+    }
+}
 
 /// Normal-equation partials and the residual sample taken in the same pass
 /// (`(partials, [(r_photo, r_geo)])`, see `normal_equations_and_sample` of both backends).
-pub type PartialsAndSample = (Vec<[f32; PARTIAL_LEN]>, Vec<[f32; 2]>);
+pub type PartialsAndSample = (Vec<Partial>, Vec<[f32; 2]>);
 
-/// Uniform parameters of the warp kernels (mirrors `WarpParams` in `odometry.wgsl`).
+/// Uniform parameters of the warp kernels (`WarpParams` in `odometry.wgsl`, same layout).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 pub struct WarpParams {
-    /// width, height, level offset (pixels), sample count.
-    pub dims: [u32; 4],
-    /// fx, fy, cx, cy of the level, pixels.
-    pub intr: [f32; 4],
-    /// Rows of the rotation of `cur_from_ref`; `.w` holds the translation component (m).
+    /// Level width, pixels.
+    pub width: u32,
+    /// Level height, pixels.
+    pub height: u32,
+    /// Offset of the level in the concatenated pyramid buffers, pixels.
+    pub offset: u32,
+    /// Size of the systematic residual sample (0: no sample).
+    pub samples: u32,
+    /// Focal length x of the level, pixels.
+    pub fx: f32,
+    /// Focal length y of the level, pixels.
+    pub fy: f32,
+    /// Principal point x of the level, pixels.
+    pub cx: f32,
+    /// Principal point y of the level, pixels.
+    pub cy: f32,
+    /// Rows of the rotation of `cur_from_ref`; `[3]` holds the translation component (m).
     pub rot: [[f32; 4]; 3],
-    /// sigma_I, sigma_W, nu_I, nu_W.
-    pub robust: [f32; 4],
-    /// estimator code, term mask (1 photometric, 2 geometric), geometric code (bit 0: depth
-    /// instead of inverse depth; bit 1: first-order instead of nearest inverse-depth
-    /// sampling), offset of the residual sample in the GPU output buffer.
-    pub flags: [u32; 4],
+    /// Photometric scale sigma_I, intensity levels.
+    pub sigma_photo: f32,
+    /// Geometric scale sigma_W (1/m, or m with the depth parametrisation).
+    pub sigma_geo: f32,
+    /// Student-t degrees of freedom of the photometric residuals.
+    pub nu_photo: f32,
+    /// Student-t degrees of freedom of the geometric residuals.
+    pub nu_geo: f32,
+    /// [`super::Estimator`] as `u32`.
+    pub estimator: u32,
+    /// [`Terms`] as `u32` (bit 0 photometric, bit 1 geometric).
+    pub terms: u32,
+    /// [`super::GeometricParam`] as `u32`.
+    pub geometric: u32,
+    /// [`super::GeometricSampling`] as `u32`.
+    pub sampling: u32,
 }
 
 impl WarpParams {
@@ -61,16 +125,62 @@ impl WarpParams {
             ];
         }
     }
+
+    /// Pixels of the level.
+    pub fn pixels(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Whether the photometric term is used.
+    pub fn photometric(&self) -> bool {
+        self.terms & Terms::Photometric as u32 != 0
+    }
+
+    /// Whether the geometric term is used.
+    pub fn geometric_term(&self) -> bool {
+        self.terms & Terms::Geometric as u32 != 0
+    }
 }
 
-/// Uniform parameters of the pyramid kernels (mirrors `PyrParams` in `pyramid.wgsl`).
+/// Uniform parameters of the pyramid kernels (`PyrParams` in `pyramid.wgsl`, same layout).
+/// The bilateral-gradient kernels of the covariance pass use the same block
+/// ([`PyrParams::filter`]).
 #[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct PyrParams {
-    /// destination width, height, destination offset, source offset.
-    pub dims: [u32; 4],
-    /// source width, source height, unused, unused.
-    pub src: [u32; 4],
+    /// Destination level width, pixels.
+    pub width: u32,
+    /// Destination level height, pixels.
+    pub height: u32,
+    /// Destination level offset in the pyramid buffers, pixels.
+    pub offset: u32,
+    /// Source level offset (downsampling), pixels.
+    pub src_offset: u32,
+    /// Source level width (downsampling), pixels.
+    pub src_width: u32,
+    /// Source level height (downsampling), pixels.
+    pub src_height: u32,
+    /// Bilateral filter: `1 / (2 sigma_I^2)`, 1/intensity^2.
+    pub inv2_photo: f32,
+    /// Bilateral filter: `1 / (2 sigma_rho^2)`, m^2.
+    pub inv2_rho: f32,
+}
+
+impl PyrParams {
+    /// Parameters of the bilateral-gradient kernels for a `w x h` level at `offset` with
+    /// photometric range scale `sigma_photo` (intensity levels) and inverse-depth range scale
+    /// `sigma_rho` (1/m).
+    pub fn filter(w: usize, h: usize, offset: usize, sigma_photo: f64, sigma_rho: f64) -> Self {
+        let inv2 = |s: f64| (0.5 / (s * s).max(1e-30)) as f32;
+        Self {
+            width: w as u32,
+            height: h as u32,
+            offset: offset as u32,
+            inv2_photo: inv2(sigma_photo),
+            inv2_rho: inv2(sigma_rho),
+            ..Self::default()
+        }
+    }
 }
 
 /// Level 0 packing: intensity and inverse depth into `photo.x` and `geo.x`.
@@ -147,32 +257,6 @@ pub fn gradients_of_lane(
 /// Radius (pixels) of the bilateral filter of [`bilateral`]: a 5x5 window.
 pub const BILATERAL_RADIUS: usize = 2;
 
-/// Uniform parameters of the bilateral-gradient kernels (mirrors `FilterParams` in
-/// `pyramid.wgsl`).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
-pub struct FilterParams {
-    /// width, height, level offset (pixels), unused.
-    pub dims: [u32; 4],
-    /// unused, `1 / (2 sigma_I^2)` (1/intensity^2), `1 / (2 sigma_rho^2)` (m^2), unused.
-    pub inv2: [f32; 4],
-}
-
-impl FilterParams {
-    /// Parameters for a `w x h` level at `offset` with photometric range scale `sigma_photo`
-    /// (intensity levels) and inverse-depth range scale `sigma_rho` (1/m).
-    pub fn new(w: usize, h: usize, offset: usize, sigma_photo: f64, sigma_rho: f64) -> Self {
-        let inv2 = |s: f64| (0.5 / (s * s).max(1e-30)) as f32;
-        Self {
-            dims: [w as u32, h as u32, offset as u32, 0],
-            inv2: [0.0, inv2(sigma_photo), inv2(sigma_rho), 0.0],
-        }
-    }
-}
-
-// The GPU writes `FilterParams` into a `PyrParams` uniform.
-const _: () = assert!(std::mem::size_of::<FilterParams>() == std::mem::size_of::<PyrParams>());
-
 /// Bilateral filter at (x, y) of one level, over a `(2 BILATERAL_RADIUS + 1)^2` window clamped
 /// to the image, with a flat spatial kernel and the Cauchy range kernel
 /// `1 / (1 + d^2 / (2 sigma^2))` (no transcendental per tap: the filter runs once per frame on
@@ -181,13 +265,13 @@ const _: () = assert!(std::mem::size_of::<FilterParams>() == std::mem::size_of::
 /// depth). Returns `(I_filtered, rho_filtered)`. Mirror of `bilateral` in `pyramid.wgsl`.
 #[inline]
 pub fn bilateral(
-    f: &FilterParams,
+    f: &PyrParams,
     photo: &[[f32; 4]],
     geo: &[[f32; 4]],
     x: usize,
     y: usize,
 ) -> (f32, f32) {
-    let (w, h) = (f.dims[0] as usize, f.dims[1] as usize);
+    let (w, h) = (f.width as usize, f.height as usize);
     let c = y * w + x;
     let (ic, rc) = (photo[c][0], geo[c][0]);
     let (mut si, mut wi, mut sr, mut wr) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
@@ -196,13 +280,13 @@ pub fn bilateral(
         for u in x.saturating_sub(r)..(x + r + 1).min(w) {
             let k = v * w + u;
             let di = photo[k][0] - ic;
-            let a = 1.0 / (1.0 + f.inv2[1] * di * di);
+            let a = 1.0 / (1.0 + f.inv2_photo * di * di);
             si += a * photo[k][0];
             wi += a;
             let rk = geo[k][0];
             if rc > 0.0 && rk > 0.0 {
                 let dr = rk - rc;
-                let b = 1.0 / (1.0 + f.inv2[2] * dr * dr);
+                let b = 1.0 / (1.0 + f.inv2_rho * dr * dr);
                 sr += b * rk;
                 wr += b;
             }
@@ -229,39 +313,17 @@ fn one_axis(l: f32, c: f32, r: f32, has_l: bool, has_r: bool) -> f32 {
     }
 }
 
-/// Residuals and Jacobians of one reference pixel.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct PixelTerms {
-    /// Photometric residual `I_cur(w(x)) - I_ref(x)` (intensity levels), if valid.
-    pub r_photo: Option<f32>,
-    /// Its Jacobian with respect to the left twist of `cur_from_ref`, `[v; w]`.
-    pub j_photo: [f32; 6],
-    /// Geometric residual (inverse depth 1/m, or depth m), if valid.
-    pub r_geo: Option<f32>,
-    /// Its Jacobian.
-    pub j_geo: [f32; 6],
-}
-
-#[inline]
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
 /// Reference pixel `i` back-projected with its inverse depth and moved into the current
 /// camera by `cur_from_ref` (metres); `None` where it has no depth. Mirror of `warp_point`
 /// in the WGSL.
 #[inline]
-fn warp_point(p: &WarpParams, ref_geo: &[[f32; 4]], i: usize) -> Option<[f32; 3]> {
-    let w = p.dims[0] as usize;
+pub fn warp_point(p: &WarpParams, ref_geo: &[[f32; 4]], i: usize) -> Option<[f32; 3]> {
+    let w = p.width as usize;
     let rho = ref_geo[i][0];
     if rho <= 0.0 {
         return None;
     }
-    let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
+    let (fx, fy, cx, cy) = (p.fx, p.fy, p.cx, p.cy);
     let x = (i % w) as f32;
     let y = (i / w) as f32;
     let z = 1.0 / rho;
@@ -274,144 +336,9 @@ fn warp_point(p: &WarpParams, ref_geo: &[[f32; 4]], i: usize) -> Option<[f32; 3]
     ])
 }
 
-/// Warps reference pixel `i` of the level into the current frame and evaluates the residuals
-/// and Jacobians (thesis eq. 6.5-6.13; bilinear intensity, nearest inverse depth).
-/// Mirror of `pixel_terms` in `odometry.wgsl`.
-#[inline]
-pub fn pixel_terms(
-    p: &WarpParams,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
-    i: usize,
-    want_jacobians: bool,
-) -> PixelTerms {
-    let mut out = PixelTerms::default();
-    let w = p.dims[0] as usize;
-    let h = p.dims[1] as usize;
-    let Some(q) = warp_point(p, ref_geo, i) else {
-        return out;
-    };
-    let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
-    if q[2] < MIN_DEPTH {
-        return out;
-    }
-    let iz = 1.0 / q[2];
-    let u = fx * q[0] * iz + cx;
-    let v = fy * q[1] * iz + cy;
-    if !(u >= 0.0 && v >= 0.0 && u < (w - 1) as f32 && v < (h - 1) as f32) {
-        return out;
-    }
-    let x0 = u.floor();
-    let y0 = v.floor();
-    let ax = u - x0;
-    let ay = v - y0;
-    let k = y0 as usize * w + x0 as usize;
-    let (p00, p10, p01, p11) = (
-        cur_photo[k],
-        cur_photo[k + 1],
-        cur_photo[k + w],
-        cur_photo[k + w + 1],
-    );
-    let b00 = (1.0 - ax) * (1.0 - ay);
-    let b10 = ax * (1.0 - ay);
-    let b01 = (1.0 - ax) * ay;
-    let b11 = ax * ay;
-    let mut c = [0.0f32; 3];
-    for (ch, cc) in c.iter_mut().enumerate() {
-        *cc = b00 * p00[ch] + b10 * p10[ch] + b01 * p01[ch] + b11 * p11[ch];
-    }
-    let terms = p.flags[1];
-    if terms & 1 != 0 {
-        out.r_photo = Some(c[0] - ref_photo[i][0]);
-        if want_jacobians {
-            let a = c[1] * fx * iz;
-            let b = c[2] * fy * iz;
-            let jt = [a, b, -(a * q[0] + b * q[1]) * iz];
-            let jr = cross(q, jt);
-            out.j_photo = [jt[0], jt[1], jt[2], jr[0], jr[1], jr[2]];
-        }
-    }
-    if terms & 2 != 0 {
-        let xn = (u + 0.5).floor() as usize;
-        let yn = (v + 0.5).floor() as usize;
-        let g = cur_geo[yn * w + xn];
-        if g[0] > 0.0 && g[1] != INVALID_GRAD {
-            let depth_param = p.flags[2] & 1 == 1;
-            let rho = if p.flags[2] & 2 == 2 {
-                g[0] + g[1] * (u - xn as f32) + g[2] * (v - yn as f32)
-            } else {
-                g[0]
-            };
-            let (res, gu, gv, dz) = if depth_param {
-                let ig2 = 1.0 / (rho * rho);
-                (1.0 / rho - q[2], -g[1] * ig2, -g[2] * ig2, -1.0)
-            } else {
-                (rho - iz, g[1], g[2], iz * iz)
-            };
-            out.r_geo = Some(res);
-            if want_jacobians {
-                let a = gu * fx * iz;
-                let b = gv * fy * iz;
-                let jt = [a, b, -(a * q[0] + b * q[1]) * iz + dz];
-                let jr = cross(q, jt);
-                out.j_geo = [jt[0], jt[1], jt[2], jr[0], jr[1], jr[2]];
-            }
-        }
-    }
-    out
-}
-
-/// Adds `wt * J J^T` and `wt * J r` to a partial (mirror of `accumulate` in the WGSL).
-#[inline]
-pub fn accumulate(acc: &mut [f32; PARTIAL_LEN], j: &[f32; 6], r: f32, wt: f32) {
-    let mut k = 0;
-    for a in 0..6 {
-        let wa = wt * j[a];
-        for b in a..6 {
-            acc[k] += wa * j[b];
-            k += 1;
-        }
-    }
-    for a in 0..6 {
-        acc[21 + a] += wt * j[a] * r;
-    }
-}
-
-/// Accumulates the IRLS normal equations of reference pixel `i` into `acc`.
-/// Mirror of the body of `normal_equations` in the WGSL.
-#[inline]
-pub fn accumulate_pixel(
-    p: &WarpParams,
-    ref_photo: &[[f32; 4]],
-    ref_geo: &[[f32; 4]],
-    cur_photo: &[[f32; 4]],
-    cur_geo: &[[f32; 4]],
-    i: usize,
-    acc: &mut [f32; PARTIAL_LEN],
-) {
-    let t = pixel_terms(p, ref_photo, ref_geo, cur_photo, cur_geo, i, true);
-    let est = p.flags[0];
-    if let Some(r) = t.r_photo {
-        let s = p.robust[0];
-        let z = r / s;
-        let w = weight(est, z, p.robust[2]) / (s * s);
-        accumulate(acc, &t.j_photo, r, w);
-        acc[27] += w * r * r;
-        acc[28] += 1.0;
-    }
-    if let Some(r) = t.r_geo {
-        let s = p.robust[1];
-        let z = r / s;
-        let w = weight(est, z, p.robust[3]) / (s * s);
-        accumulate(acc, &t.j_geo, r, w);
-        acc[27] += w * r * r;
-        acc[29] += 1.0;
-    }
-}
-
-/// Index of the `k`-th of `count` systematic samples among `n` pixels.
+/// Index of the `k`-th of `count` systematic samples among `n` pixels (the WGSL computes it
+/// incrementally as `sample_pixel`, the row loops as `SampleWalk`).
+#[cfg(test)]
 #[inline]
 pub fn sample_index(k: u32, count: u32, n: u32) -> u32 {
     ((u64::from(k) * u64::from(n)) / u64::from(count.max(1))) as u32
@@ -421,12 +348,12 @@ pub fn sample_index(k: u32, count: u32, n: u32) -> u32 {
 /// warps outside the current image or onto a pixel without depth, 2 if it is covisible.
 #[inline]
 pub fn covisible(p: &WarpParams, ref_geo: &[[f32; 4]], cur_geo: &[[f32; 4]], i: usize) -> u32 {
-    let w = p.dims[0] as usize;
-    let h = p.dims[1] as usize;
+    let w = p.width as usize;
+    let h = p.height as usize;
     let Some(q) = warp_point(p, ref_geo, i) else {
         return 0;
     };
-    let (fx, fy, cx, cy) = (p.intr[0], p.intr[1], p.intr[2], p.intr[3]);
+    let (fx, fy, cx, cy) = (p.fx, p.fy, p.cx, p.cy);
     if q[2] < MIN_DEPTH {
         return 1;
     }
@@ -448,93 +375,6 @@ pub fn covisible(p: &WarpParams, ref_geo: &[[f32; 4]], cur_geo: &[[f32; 4]], i: 
 mod tests {
     use super::super::robust::{HUBER_K, TUKEY_C};
     use super::*;
-
-    use crate::geometry::Se3;
-    use crate::image::{ImageF32, RgbdFrame};
-    use crate::odometry::cpu::CpuPyramid;
-
-    /// A smooth synthetic frame: a slanted plane with low-frequency texture.
-    fn smooth_frame(w: usize, h: usize) -> RgbdFrame {
-        let mut i = Vec::new();
-        let mut r = Vec::new();
-        for y in 0..h {
-            for x in 0..w {
-                let (fx, fy) = (x as f32, y as f32);
-                i.push(120.0 + 60.0 * (fx * 0.07).sin() * (fy * 0.05).cos() + 0.2 * fx);
-                // A plane: inverse depth exactly linear in the pixel coordinates, so the
-                // nearest-neighbour geometric residual has a well-defined slope.
-                r.push(0.6 + 0.0008 * fx + 0.0005 * fy);
-            }
-        }
-        RgbdFrame {
-            timestamp: 0.0,
-            intensity: ImageF32::from_vec(w, h, i).unwrap(),
-            inverse_depth: ImageF32::from_vec(w, h, r).unwrap(),
-        }
-    }
-
-    #[test]
-    fn jacobians_match_finite_differences() {
-        let (w, h) = (160usize, 120usize);
-        let f = smooth_frame(w, h);
-        let pyr = CpuPyramid::build(&f, 1);
-        let cur_from_ref = Se3::exp(&[0.01, -0.005, 0.02, 0.004, -0.006, 0.002]);
-        for (param, terms) in [(0u32, 3u32), (1, 3)] {
-            let mut p = WarpParams {
-                dims: [w as u32, h as u32, 0, 0],
-                intr: [130.0, 130.0, 79.5, 59.5],
-                rot: [[0.0; 4]; 3],
-                robust: [1.0, 1.0, 5.0, 5.0],
-                flags: [0, terms, param, 0],
-            };
-            let mut checked = 0;
-            for i in [60 * w + 80, 40 * w + 50, 70 * w + 100, 30 * w + 120] {
-                p.set_pose(&cur_from_ref);
-                let t = pixel_terms(&p, &pyr.photo, &pyr.geo, &pyr.photo, &pyr.geo, i, true);
-                let (Some(rp), Some(rg)) = (t.r_photo, t.r_geo) else {
-                    continue;
-                };
-                let _ = (rp, rg);
-                for k in 0..6 {
-                    // Small steps for the bilinear photometric residual; steps that move the warp
-                    // by several pixels for the geometric one, which samples inverse depth at the
-                    // nearest pixel (tiny steps would see a flat function).
-                    let fd = |p: &mut WarpParams, eps: f64| {
-                        let mut d = [0.0; 6];
-                        d[k] = eps;
-                        p.set_pose(&(Se3::exp(&d) * cur_from_ref));
-                        let a =
-                            pixel_terms(p, &pyr.photo, &pyr.geo, &pyr.photo, &pyr.geo, i, false);
-                        d[k] = -eps;
-                        p.set_pose(&(Se3::exp(&d) * cur_from_ref));
-                        let b =
-                            pixel_terms(p, &pyr.photo, &pyr.geo, &pyr.photo, &pyr.geo, i, false);
-                        let e = 2.0 * eps as f32;
-                        (
-                            (a.r_photo.unwrap() - b.r_photo.unwrap()) / e,
-                            (a.r_geo.unwrap() - b.r_geo.unwrap()) / e,
-                        )
-                    };
-                    let (num_p, _) = fd(&mut p, 1e-4);
-                    let (_, num_g) = fd(&mut p, 2e-2);
-                    let tol_p = 0.03 * t.j_photo.iter().map(|x| x.abs()).fold(0.0, f32::max);
-                    let tol_g = 0.1 * t.j_geo.iter().map(|x| x.abs()).fold(0.0, f32::max);
-                    assert!(
-                        (num_p - t.j_photo[k]).abs() < tol_p,
-                        "param {param} photo k={k}: fd {num_p} vs {}",
-                        t.j_photo[k]
-                    );
-                    assert!(
-                        (num_g - t.j_geo[k]).abs() < tol_g,
-                        "param {param} geo k={k}: fd {num_g} vs {}",
-                        t.j_geo[k]
-                    );
-                }
-                checked += 1;
-            }
-            assert!(checked >= 3);
-        }
-    }
 
     #[test]
     fn wgsl_constants_match_the_mirror() {
@@ -560,6 +400,115 @@ mod tests {
                 .parse()
                 .unwrap_or(f32::NAN);
             assert_eq!(value, v, "{name} differs between common.wgsl and kernel.rs");
+        }
+    }
+
+    /// The host structs of the odometry kernels, field by field, as `odometry.wgsl` and
+    /// `pyramid.wgsl` lay them out.
+    fn layouts() -> Vec<(
+        &'static str,
+        &'static str,
+        Vec<(&'static str, usize)>,
+        usize,
+    )> {
+        use crate::gpu::host_layout;
+        use std::mem::size_of;
+        vec![
+            (
+                "odometry.wgsl",
+                "WarpParams",
+                host_layout!(WarpParams {
+                    width,
+                    height,
+                    offset,
+                    samples,
+                    fx,
+                    fy,
+                    cx,
+                    cy,
+                    rot0 = rot[0] stride 16,
+                    rot1 = rot[1] stride 16,
+                    rot2 = rot[2] stride 16,
+                    sigma_photo,
+                    sigma_geo,
+                    nu_photo,
+                    nu_geo,
+                    estimator,
+                    terms,
+                    geometric,
+                    sampling,
+                }),
+                size_of::<WarpParams>(),
+            ),
+            (
+                "odometry.wgsl",
+                "Partial",
+                host_layout!(Partial {
+                    h,
+                    g,
+                    cost,
+                    n_photo,
+                    n_geo
+                }),
+                size_of::<Partial>(),
+            ),
+            (
+                "pyramid.wgsl",
+                "PyrParams",
+                host_layout!(PyrParams {
+                    width,
+                    height,
+                    offset,
+                    src_offset,
+                    src_width,
+                    src_height,
+                    inv2_photo,
+                    inv2_rho,
+                }),
+                size_of::<PyrParams>(),
+            ),
+        ]
+    }
+
+    #[test]
+    fn host_structs_match_the_wgsl_layouts() {
+        for (shader, name, host, size) in layouts() {
+            let src = crate::gpu::shaders::assembled(shader).unwrap_or_default();
+            let bad = crate::gpu::layout_mismatches(&src, name, &host, size);
+            assert!(bad.is_empty(), "{shader}:\n{}", bad.join("\n"));
+        }
+    }
+
+    /// The layout check catches a WGSL struct whose fields were reordered: two scalars of
+    /// the same type swapped (same offsets, different names), and a scalar moved behind a
+    /// `vec4` (different offsets).
+    #[test]
+    fn the_layout_check_catches_reordered_wgsl_fields() {
+        let src = crate::gpu::shaders::assembled("odometry.wgsl").unwrap_or_default();
+        let (_, _, host, size) = layouts().remove(0);
+        let swapped = src.replacen(
+            "    fx: f32,           // level intrinsics, pixels\n    fy: f32,",
+            "    fy: f32,\n    fx: f32,",
+            1,
+        );
+        let moved = src.replacen(
+            "    sigma_photo: f32,  // robust scales and Student-t degrees of freedom\n",
+            "",
+            1,
+        );
+        let moved = moved.replacen(
+            "    rot0: vec4<f32>,",
+            "    sigma_photo: f32,\n    rot0: vec4<f32>,",
+            1,
+        );
+        for (what, edited) in [("swapped", swapped), ("moved", moved)] {
+            assert_ne!(edited, src, "{what}: the edit did not apply");
+            let bad = crate::gpu::layout_mismatches(&edited, "WarpParams", &host, size);
+            assert!(
+                !bad.is_empty(),
+                "{what}: the reordered struct passed the check"
+            );
+            eprintln!("{what}:\n{}", bad.join("\n"));
         }
     }
 }

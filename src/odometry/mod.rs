@@ -15,23 +15,36 @@
 //! are `world_from_camera`. The Gauss-Newton increments are twists `[v; w]` (m, rad) of
 //! `cur_from_ref` applied on the left, which is the library's right perturbation of
 //! `ref_from_cur` ([`crate::geometry`]); covariances leave this module in that convention.
-//! Pixel work runs on the GPU (`gpu.rs`) or the CPU mirror (`cpu.rs`), chosen by
-//! [`crate::gpu::ComputeBackend`].
+//!
+//! The algorithm ([`Tracker`]) is written once against the kernel interface of `backend.rs`,
+//! implemented by the WGSL kernels ([`GpuKernels`]: `gpu.rs`, `shaders/pyramid.wgsl`,
+//! `shaders/odometry.wgsl`) and by their CPU mirror ([`CpuKernels`]: `cpu.rs`, `rows.rs`).
+//! [`Odometry`] picks one at run time from a [`crate::gpu::ComputeBackend`].
 
-pub mod config;
-pub mod cpu;
-pub mod gpu;
-pub mod inspect;
-pub mod kernel;
-pub mod robust;
+mod backend;
+mod config;
+mod cpu;
+mod gpu;
+mod inspect;
+mod kernel;
+#[cfg(test)]
+mod oracle;
+#[cfg(test)]
+mod parity_tests;
+mod robust;
 mod rows;
 mod solver;
 mod tracker;
 
+pub use backend::CpuKernels;
 pub use config::{CovarianceGradients, GeometricParam, GeometricSampling, OdometryConfig, Terms};
+pub use gpu::GpuKernels;
 pub use inspect::{residual_images, ResidualImages, RobustScales};
 pub use robust::{Estimator, ScaleMethod};
-pub use tracker::{Alignment, FrameStats, LevelStats, Odometry, StageTimes, TrackResult};
+pub use tracker::{
+    Alignment, CpuTracker, FrameStats, GpuTracker, LevelStats, Odometry, Prepared, PreparedFrame,
+    StageTimes, TrackResult, Tracker,
+};
 
 use crate::gpu::GpuError;
 
@@ -66,6 +79,9 @@ pub enum OdometryError {
         /// Requested levels.
         levels: usize,
     },
+    /// A prepared frame was given to an odometry on the other backend.
+    #[error("the frame was prepared by an odometry on the other backend")]
+    OtherBackend,
     /// No level had enough valid residuals to estimate the motion (no overlap or no depth).
     #[error("tracking failed: {0}")]
     TrackingFailed(String),

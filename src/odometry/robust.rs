@@ -8,42 +8,37 @@
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
+#[repr(u32)]
 pub enum Estimator {
     /// Plain least squares (weight 1). JSON: `"leastsquares"` (or `"least-squares"`, as on
     /// the command line).
     #[serde(alias = "least-squares")]
-    LeastSquares,
+    LeastSquares = 0,
     /// Huber with k = 1.345 (in units of sigma).
-    Huber,
+    Huber = 1,
     /// Tukey biweight with c = 4.685.
-    Tukey,
+    Tukey = 2,
     /// Student-t with estimated degrees of freedom (the thesis' default).
-    Student,
+    Student = 3,
 }
 
-impl Estimator {
-    /// Index used by the WGSL kernels (`flags.x`).
-    pub fn code(self) -> u32 {
-        match self {
-            Estimator::LeastSquares => 0,
-            Estimator::Huber => 1,
-            Estimator::Tukey => 2,
-            Estimator::Student => 3,
-        }
-    }
-}
+/// [`Estimator`] codes as the kernels receive them (`WarpParams::estimator`).
+const HUBER: u32 = Estimator::Huber as u32;
+const TUKEY: u32 = Estimator::Tukey as u32;
+const STUDENT: u32 = Estimator::Student as u32;
 
 /// Huber's tuning constant (95 % efficiency at the Gaussian).
 pub const HUBER_K: f32 = 1.345;
 /// Tukey's tuning constant (95 % efficiency at the Gaussian).
 pub const TUKEY_C: f32 = 4.685;
 
-/// IRLS weight of a normalised residual `z = r / sigma` (mirror of `robust_weight` in
-/// `shaders/odometry.wgsl`).
+/// IRLS weight of a normalised residual `z = r / sigma` for the [`Estimator`] whose code is
+/// `estimator` (mirror of `robust_weight` in `shaders/odometry.wgsl`; the kernels carry the
+/// estimator as `u32`).
 #[inline(always)]
 pub fn weight(estimator: u32, z: f32, nu: f32) -> f32 {
     match estimator {
-        1 => {
+        HUBER => {
             let a = z.abs();
             if a <= HUBER_K {
                 1.0
@@ -51,7 +46,7 @@ pub fn weight(estimator: u32, z: f32, nu: f32) -> f32 {
                 HUBER_K / a
             }
         }
-        2 => {
+        TUKEY => {
             let t = z / TUKEY_C;
             if t.abs() < 1.0 {
                 let s = 1.0 - t * t;
@@ -60,7 +55,7 @@ pub fn weight(estimator: u32, z: f32, nu: f32) -> f32 {
                 0.0
             }
         }
-        3 => (nu + 1.0) / (nu + z * z),
+        STUDENT => (nu + 1.0) / (nu + z * z),
         _ => 1.0,
     }
 }
@@ -191,7 +186,7 @@ fn gaussian_consistency(estimator: u32) -> f64 {
 }
 
 fn gaussian_consistency_uncached(estimator: u32) -> f64 {
-    if estimator == 0 || estimator == 3 {
+    if estimator != HUBER && estimator != TUKEY {
         return 1.0;
     }
     // Simpson's rule on [-12, 12].
@@ -237,7 +232,7 @@ pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> S
             nu: NU_DEFAULT,
         };
     }
-    let code = estimator.code();
+    let code = estimator as u32;
     let mut sigma2 = match method {
         ScaleMethod::Mad => mad_sigma(r).powi(2),
         _ => r.iter().map(|x| x * x).sum::<f64>() / n as f64,
@@ -319,7 +314,7 @@ pub fn update_scale(
         return estimate_scale(r, estimator, method);
     }
     let nu = prev.nu;
-    let code = estimator.code();
+    let code = estimator as u32;
     let sigma2 = match (estimator, method) {
         (_, ScaleMethod::Mad) => mad_sigma(r).powi(2),
         (Estimator::LeastSquares, _) | (_, ScaleMethod::Fixed) => {

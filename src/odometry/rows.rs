@@ -1,13 +1,16 @@
-//! The CPU backend's hot loops: the per-pixel mathematics of [`super::kernel::pixel_terms`]
-//! and [`super::kernel::accumulate_pixel`], restructured for a CPU (row-wise, scalar
-//! temporaries, a SIMD-friendly 7x8 accumulator, no integer divisions). Where the CPU has
+//! The CPU mirror of the warp kernels of `shaders/odometry.wgsl` (`pixel_terms`, the
+//! normal-equation body, `sample_residuals`): the same per-pixel mathematics, restructured for
+//! a CPU (row-wise, scalar temporaries, a SIMD-friendly 7x8 accumulator, no integer
+//! divisions). Where the CPU has
 //! AVX2 and FMA, the normal-equation loop computes eight pixels at a time in lanes (`lanes`:
 //! the same operations as the scalar [`terms`], so residuals are bit-identical) and appends
 //! their terms to the sum block eight at a time. The same equations, operation for operation
-//! up to floating-point reassociation; `tests/odometry_parity.rs` compares them with the WGSL
-//! and the unit tests below with the reference mirror and with the scalar loop.
+//! up to floating-point reassociation; `parity_tests.rs` compares them with the WGSL, and the
+//! unit tests below the lanes with the scalar loop and both with the literal transcription of
+//! the WGSL in `oracle.rs`.
 
-use super::kernel::{WarpParams, INVALID_GRAD, INVALID_RESIDUAL, MIN_DEPTH, PARTIAL_LEN};
+use super::config::{GeometricParam, GeometricSampling};
+use super::kernel::{PartialSums, WarpParams, INVALID_GRAD, INVALID_RESIDUAL, MIN_DEPTH};
 use super::robust::weight;
 
 /// The four buffers one warp reads, all of the same pyramid level: the reference frame's
@@ -23,7 +26,7 @@ pub(crate) struct Buffers<'a> {
 /// Level constants of one warp, unpacked from [`WarpParams`].
 #[derive(Clone)]
 pub(crate) struct Warp {
-    w: usize,
+    pub(crate) w: usize,
     h: usize,
     /// `(w - 1) as f32` and `(h - 1) as f32`: the last valid bilinear base coordinates.
     wm1: f32,
@@ -37,9 +40,9 @@ pub(crate) struct Warp {
     geo: bool,
     depth_param: bool,
     linear_geo: bool,
-    est: u32,
-    sigma: [f32; 2],
-    nu: [f32; 2],
+    pub(crate) est: u32,
+    pub(crate) sigma: [f32; 2],
+    pub(crate) nu: [f32; 2],
     /// `(x - cx) / fx` per column and `(y - cy) / fy` per row (the same f32 operations as the
     /// per-pixel mirror, computed once).
     rx: Vec<f32>,
@@ -49,28 +52,24 @@ pub(crate) struct Warp {
 impl Warp {
     pub(crate) fn new(p: &WarpParams) -> Self {
         Self {
-            w: p.dims[0] as usize,
-            h: p.dims[1] as usize,
-            wm1: p.dims[0].saturating_sub(1) as f32,
-            hm1: p.dims[1].saturating_sub(1) as f32,
-            fx: p.intr[0],
-            fy: p.intr[1],
-            cx: p.intr[2],
-            cy: p.intr[3],
+            w: p.width as usize,
+            h: p.height as usize,
+            wm1: p.width.saturating_sub(1) as f32,
+            hm1: p.height.saturating_sub(1) as f32,
+            fx: p.fx,
+            fy: p.fy,
+            cx: p.cx,
+            cy: p.cy,
             r: p.rot,
-            photo: p.flags[1] & 1 != 0,
-            geo: p.flags[1] & 2 != 0,
-            depth_param: p.flags[2] & 1 == 1,
-            linear_geo: p.flags[2] & 2 == 2,
-            est: p.flags[0],
-            sigma: [p.robust[0], p.robust[1]],
-            nu: [p.robust[2], p.robust[3]],
-            rx: (0..p.dims[0])
-                .map(|x| (x as f32 - p.intr[2]) / p.intr[0])
-                .collect(),
-            ry: (0..p.dims[1])
-                .map(|y| (y as f32 - p.intr[3]) / p.intr[1])
-                .collect(),
+            photo: p.photometric(),
+            geo: p.geometric_term(),
+            depth_param: p.geometric == GeometricParam::Depth as u32,
+            linear_geo: p.sampling == GeometricSampling::Linear as u32,
+            est: p.estimator,
+            sigma: [p.sigma_photo, p.sigma_geo],
+            nu: [p.nu_photo, p.nu_geo],
+            rx: (0..p.width).map(|x| (x as f32 - p.cx) / p.fx).collect(),
+            ry: (0..p.height).map(|y| (y as f32 - p.cy) / p.fy).collect(),
         }
     }
 }
@@ -151,6 +150,29 @@ fn terms<const JAC: bool>(
     (rp, jp, rg, jg)
 }
 
+/// Residuals (and Jacobians when `JAC`) of reference pixel `i` of the level, as the row loops
+/// compute them: `(r_photo, J_photo, r_geo, J_geo)`, `INVALID_RESIDUAL` where a residual is
+/// invalid (also where the pixel has no depth). The reference buffers must cache `z = 1 / rho`
+/// in `geo.w`, as [`super::cpu::CpuPyramid`] does.
+pub(crate) fn pixel_terms<const JAC: bool>(
+    k: &Warp,
+    bufs: &Buffers,
+    i: usize,
+) -> (f32, [f32; 6], f32, [f32; 6]) {
+    let g = bufs.ref_geo[i];
+    if g[0] <= 0.0 {
+        return (INVALID_RESIDUAL, [0.0; 6], INVALID_RESIDUAL, [0.0; 6]);
+    }
+    terms::<JAC>(
+        k,
+        bufs.ref_photo[i][0],
+        g[3],
+        k.rx[i % k.w],
+        k.ry[i / k.w],
+        bufs,
+    )
+}
+
 /// `[jt; q x jt]` with `jt = (a, b, -(a qx + b qy) / qz + dz)`, `a = gu fx / qz`,
 /// `b = gv fy / qz` (eq. 6.12-6.13).
 #[inline(always)]
@@ -210,7 +232,7 @@ pub(crate) fn accumulate_rows(
     k: &Warp,
     bufs: &Buffers,
     rows: std::ops::Range<usize>,
-    out: &mut [f64; PARTIAL_LEN],
+    out: &mut PartialSums,
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
     #[cfg(target_arch = "x86_64")]
@@ -232,7 +254,7 @@ fn accumulate_rows_avx2(
     k: &Warp,
     bufs: &Buffers,
     rows: std::ops::Range<usize>,
-    out: &mut [f64; PARTIAL_LEN],
+    out: &mut PartialSums,
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
     let n = k.w * k.h;
@@ -278,7 +300,7 @@ impl TermBlock {
     }
 
     #[inline(always)]
-    fn push(&mut self, j: [f32; 6], r: f32, wt: f32, out: &mut [f64; PARTIAL_LEN]) {
+    fn push(&mut self, j: [f32; 6], r: f32, wt: f32, out: &mut PartialSums) {
         // `len < BLOCK` always holds here; the mask lets the compiler drop the bounds checks.
         let i = self.len & (BLOCK - 1);
         let vals = [j[0], j[1], j[2], j[3], j[4], j[5], r];
@@ -295,13 +317,7 @@ impl TermBlock {
     /// Appends eight terms (`j[a][l]`, `r[l]`, `wt[l]` for lane `l`) at an 8-aligned slot:
     /// the block is first padded with zero-weighted, zero terms (which add exactly 0).
     #[inline(always)]
-    fn push8(
-        &mut self,
-        j: &[[f32; 8]; 6],
-        r: &[f32; 8],
-        wt: &[f32; 8],
-        out: &mut [f64; PARTIAL_LEN],
-    ) {
+    fn push8(&mut self, j: &[[f32; 8]; 6], r: &[f32; 8], wt: &[f32; 8], out: &mut PartialSums) {
         let pad = self.len.next_multiple_of(8).min(BLOCK);
         if pad > self.len {
             self.w[self.len..pad].fill(0.0);
@@ -328,7 +344,7 @@ impl TermBlock {
 
     /// Adds `sum w v_a v_b` (upper triangle, gradient, cost) of the block to `out`.
     #[inline(always)]
-    fn flush_into(&mut self, out: &mut [f64; PARTIAL_LEN]) {
+    fn flush_into(&mut self, out: &mut PartialSums) {
         let n = self.len.min(BLOCK);
         // Unused slots are zero-weighted so that the sums always run over whole blocks.
         self.w[n..].fill(0.0);
@@ -344,14 +360,14 @@ impl TermBlock {
         let mut k = 0;
         for a in 0..6 {
             for b in a..6 {
-                out[k] += f64::from(dot(&wv[a], &self.v[b]));
+                out.h[k] += f64::from(dot(&wv[a], &self.v[b]));
                 k += 1;
             }
         }
         for a in 0..6 {
-            out[21 + a] += f64::from(dot(&wv[a], &self.v[6]));
+            out.g[a] += f64::from(dot(&wv[a], &self.v[6]));
         }
-        out[27] += f64::from(dot(&wv[6], &self.v[6]));
+        out.cost += f64::from(dot(&wv[6], &self.v[6]));
         self.len = 0;
     }
 }
@@ -444,7 +460,7 @@ impl<'a> Consumer<'a> {
         &mut self,
         i: usize,
         (r_p, j_p, r_g, j_g): (f32, [f32; 6], f32, [f32; 6]),
-        out: &mut [f64; PARTIAL_LEN],
+        out: &mut PartialSums,
     ) {
         if self.sampled(i) {
             self.record([r_p, r_g]);
@@ -461,10 +477,10 @@ impl<'a> Consumer<'a> {
         }
     }
 
-    fn finish(mut self, out: &mut [f64; PARTIAL_LEN]) {
+    fn finish(mut self, out: &mut PartialSums) {
         self.buf.flush_into(out);
-        out[28] += self.n_photo as f64;
-        out[29] += self.n_geo as f64;
+        out.n_photo += self.n_photo as f64;
+        out.n_geo += self.n_geo as f64;
     }
 }
 
@@ -476,7 +492,7 @@ fn scalar_pixels(
     y: usize,
     xs: std::ops::Range<usize>,
     c: &mut Consumer,
-    out: &mut [f64; PARTIAL_LEN],
+    out: &mut PartialSums,
 ) {
     let w = k.w;
     let ry = k.ry[y];
@@ -498,7 +514,7 @@ fn accumulate_rows_body(
     k: &Warp,
     bufs: &Buffers,
     rows: std::ops::Range<usize>,
-    out: &mut [f64; PARTIAL_LEN],
+    out: &mut PartialSums,
     sample: Option<(&mut [[f32; 2]], SampleWalk)>,
 ) {
     let mut c = Consumer::new(k, sample);
@@ -585,7 +601,7 @@ mod lanes {
         k: &Warp,
         bufs: &Buffers,
         rows: std::ops::Range<usize>,
-        out: &mut [f64; PARTIAL_LEN],
+        out: &mut PartialSums,
         sample: Option<(&mut [[f32; 2]], SampleWalk)>,
     ) {
         let w = k.w;
@@ -609,7 +625,7 @@ mod lanes {
         /// The terms `e` of pixels `i0 .. i0 + 8`: their samples (the walk's pixels
         /// increase), sums and counts.
         #[inline(always)]
-        fn eight(&mut self, i0: usize, e: &Eight, out: &mut [f64; PARTIAL_LEN]) {
+        fn eight(&mut self, i0: usize, e: &Eight, out: &mut PartialSums) {
             while self.slot < self.slots.len() && self.walk.i < i0 + 8 {
                 let l = self.walk.i - i0;
                 self.record(if e.has_depth[l] {
@@ -908,7 +924,27 @@ mod tests {
     use crate::geometry::Se3;
     use crate::image::{ImageF32, RgbdFrame};
     use crate::odometry::cpu::CpuPyramid;
-    use crate::odometry::kernel::{accumulate_pixel, pixel_terms, sample_index};
+    use crate::odometry::kernel::{sample_index, Partial};
+    use crate::odometry::oracle::{accumulate_pixel, pixel_terms as oracle_terms};
+
+    /// The 28 sums of a partial (h, g, cost) in order, and the two counts.
+    fn sums(h: &[f64], g: &[f64], cost: f64) -> Vec<f64> {
+        h.iter().chain(g).copied().chain([cost]).collect()
+    }
+
+    fn sums64(p: &PartialSums) -> (Vec<f64>, f64, f64) {
+        (sums(&p.h, &p.g, p.cost), p.n_photo, p.n_geo)
+    }
+
+    fn sums32(p: &Partial) -> (Vec<f64>, f64, f64) {
+        let h: Vec<f64> = p.h.iter().map(|&v| f64::from(v)).collect();
+        let g: Vec<f64> = p.g.iter().map(|&v| f64::from(v)).collect();
+        (
+            sums(&h, &g, f64::from(p.cost)),
+            f64::from(p.n_photo),
+            f64::from(p.n_geo),
+        )
+    }
 
     fn frame(w: usize, h: usize, shift: f32) -> RgbdFrame {
         let mut i = Vec::new();
@@ -959,11 +995,23 @@ mod tests {
     ) -> WarpParams {
         let (est, terms, param) = v;
         let mut p = WarpParams {
-            dims: [w as u32, h as u32, 0, count],
-            intr: [90.0, 90.0, c[0], c[1]],
+            width: w as u32,
+            height: h as u32,
+            offset: 0,
+            samples: count,
+            fx: 90.0,
+            fy: 90.0,
+            cx: c[0],
+            cy: c[1],
             rot: [[0.0; 4]; 3],
-            robust: [4.0, if param & 1 == 1 { 0.01 } else { 0.003 }, 4.0, 6.0],
-            flags: [est, terms, param, 0],
+            sigma_photo: 4.0,
+            sigma_geo: if param & 1 == 1 { 0.01 } else { 0.003 },
+            nu_photo: 4.0,
+            nu_geo: 6.0,
+            estimator: est,
+            terms,
+            geometric: param & 1,
+            sampling: (param >> 1) & 1,
         };
         p.set_pose(pose);
         p
@@ -1000,9 +1048,9 @@ mod tests {
                 let (est, terms_mask, param) = v;
                 let p = params(w, h, [50.0, 18.0], 700, v, &pose);
                 let k = Warp::new(&p);
-                let count = p.dims[3] as usize;
+                let count = p.samples as usize;
                 let run = |lanes: bool| {
-                    let mut acc = [0.0f64; PARTIAL_LEN];
+                    let mut acc = PartialSums::default();
                     let mut smp = vec![[0.0f32; 2]; count];
                     let walk = SampleWalk::new(0, count, w * h);
                     let s = Some((&mut smp[..], walk));
@@ -1011,19 +1059,14 @@ mod tests {
                     } else {
                         accumulate_rows_body(&k, &bufs, 0..h, &mut acc, s);
                     }
-                    (acc, smp)
+                    (sums64(&acc), smp)
                 };
-                let (la, ls) = run(true);
-                let (sa, ss) = run(false);
-                assert!(
-                    sa[28] + sa[29] > 500.0,
-                    "too few terms: {} {}",
-                    sa[28],
-                    sa[29]
-                );
-                assert_eq!(la[28], sa[28], "photometric count");
-                assert_eq!(la[29], sa[29], "geometric count");
-                let scale = sa.iter().take(28).map(|v| v.abs()).fold(0.0, f64::max);
+                let ((la, lnp, lng), ls) = run(true);
+                let ((sa, snp, sng), ss) = run(false);
+                assert!(snp + sng > 500.0, "too few terms: {snp} {sng}");
+                assert_eq!(lnp, snp, "photometric count");
+                assert_eq!(lng, sng, "geometric count");
+                let scale = sa.iter().map(|v| v.abs()).fold(0.0, f64::max);
                 for i in 0..28 {
                     assert!(
                         (la[i] - sa[i]).abs() <= 1e-6 * scale,
@@ -1055,18 +1098,20 @@ mod tests {
         let pose = Se3::exp(&[0.01, -0.004, 0.02, 0.003, -0.005, 0.002]);
         for v in variants() {
             let p = params(w, h, [47.5, 35.5], 1000, v, &pose);
-            let mut want = [0.0f32; PARTIAL_LEN];
+            let mut want = Partial::default();
             for i in 0..w * h {
                 accumulate_pixel(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, &mut want);
             }
-            let mut got = [0.0f64; PARTIAL_LEN];
-            accumulate_rows(&Warp::new(&p), &bufs, 0..h, &mut got, None);
-            assert_eq!(got[28] as f32, want[28], "photometric count");
-            assert_eq!(got[29] as f32, want[29], "geometric count");
-            assert!(want[28] + want[29] > 1000.0);
-            let scale = want.iter().take(28).map(|v| v.abs()).fold(0.0, f32::max) as f64;
+            let mut acc = PartialSums::default();
+            accumulate_rows(&Warp::new(&p), &bufs, 0..h, &mut acc, None);
+            let (got, gnp, gng) = sums64(&acc);
+            let (want, wnp, wng) = sums32(&want);
+            assert_eq!(gnp, wnp, "photometric count");
+            assert_eq!(gng, wng, "geometric count");
+            assert!(wnp + wng > 1000.0);
+            let scale = want.iter().map(|v| v.abs()).fold(0.0, f64::max);
             for i in 0..28 {
-                let d = (got[i] - f64::from(want[i])).abs();
+                let d = (got[i] - want[i]).abs();
                 assert!(
                     d <= 1e-4 * scale + 1e-4 * got[i].abs(),
                     "entry {i}: {} vs {}",
@@ -1095,7 +1140,7 @@ mod tests {
             sample_range(&Warp::new(&p), &bufs, 600, count, &mut s[600..]);
             for (kk, got) in s.iter().enumerate() {
                 let i = sample_index(kk as u32, count as u32, (w * h) as u32) as usize;
-                let t = pixel_terms(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, false);
+                let t = oracle_terms(&p, &a.photo, &a.geo, &b.photo, &b.geo, i, false);
                 let want = [
                     t.r_photo.unwrap_or(INVALID_RESIDUAL),
                     t.r_geo.unwrap_or(INVALID_RESIDUAL),
@@ -1107,6 +1152,95 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    /// A smooth synthetic frame: a slanted plane with low-frequency texture.
+    fn smooth_frame(w: usize, h: usize) -> RgbdFrame {
+        let mut i = Vec::new();
+        let mut r = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let (fx, fy) = (x as f32, y as f32);
+                i.push(120.0 + 60.0 * (fx * 0.07).sin() * (fy * 0.05).cos() + 0.2 * fx);
+                // A plane: inverse depth exactly linear in the pixel coordinates, so the
+                // nearest-neighbour geometric residual has a well-defined slope.
+                r.push(0.6 + 0.0008 * fx + 0.0005 * fy);
+            }
+        }
+        RgbdFrame {
+            timestamp: 0.0,
+            intensity: ImageF32::from_vec(w, h, i).unwrap(),
+            inverse_depth: ImageF32::from_vec(w, h, r).unwrap(),
+        }
+    }
+
+    /// The Jacobians of the row loop (eq. 6.12-6.13) match central differences of its
+    /// residuals, for both geometric parametrisations.
+    #[test]
+    fn jacobians_match_finite_differences() {
+        let (w, h) = (160usize, 120usize);
+        let f = smooth_frame(w, h);
+        let pyr = CpuPyramid::build(&f, 1);
+        let bufs = Buffers {
+            ref_photo: &pyr.photo,
+            ref_geo: &pyr.geo,
+            cur_photo: &pyr.photo,
+            cur_geo: &pyr.geo,
+        };
+        let cur_from_ref = Se3::exp(&[0.01, -0.005, 0.02, 0.004, -0.006, 0.002]);
+        for param in [0u32, 1] {
+            let mut p = params(w, h, [79.5, 59.5], 0, (0, 3, param), &cur_from_ref);
+            p.fx = 130.0;
+            p.fy = 130.0;
+            let at = |p: &WarpParams, i: usize, jac: bool| {
+                let k = Warp::new(p);
+                if jac {
+                    super::pixel_terms::<true>(&k, &bufs, i)
+                } else {
+                    super::pixel_terms::<false>(&k, &bufs, i)
+                }
+            };
+            let mut checked = 0;
+            for i in [60 * w + 80, 40 * w + 50, 70 * w + 100, 30 * w + 120] {
+                p.set_pose(&cur_from_ref);
+                let (rp, j_photo, rg, j_geo) = at(&p, i, true);
+                if rp == INVALID_RESIDUAL || rg == INVALID_RESIDUAL {
+                    continue;
+                }
+                for k in 0..6 {
+                    // Small steps for the bilinear photometric residual; steps that move the warp
+                    // by several pixels for the geometric one, which samples inverse depth at the
+                    // nearest pixel (tiny steps would see a flat function).
+                    let fd = |p: &mut WarpParams, eps: f64| {
+                        let mut d = [0.0; 6];
+                        d[k] = eps;
+                        p.set_pose(&(Se3::exp(&d) * cur_from_ref));
+                        let a = at(p, i, false);
+                        d[k] = -eps;
+                        p.set_pose(&(Se3::exp(&d) * cur_from_ref));
+                        let b = at(p, i, false);
+                        let e = 2.0 * eps as f32;
+                        ((a.0 - b.0) / e, (a.2 - b.2) / e)
+                    };
+                    let (num_p, _) = fd(&mut p, 1e-4);
+                    let (_, num_g) = fd(&mut p, 2e-2);
+                    let tol_p = 0.03 * j_photo.iter().map(|x| x.abs()).fold(0.0, f32::max);
+                    let tol_g = 0.1 * j_geo.iter().map(|x| x.abs()).fold(0.0, f32::max);
+                    assert!(
+                        (num_p - j_photo[k]).abs() < tol_p,
+                        "param {param} photo k={k}: fd {num_p} vs {}",
+                        j_photo[k]
+                    );
+                    assert!(
+                        (num_g - j_geo[k]).abs() < tol_g,
+                        "param {param} geo k={k}: fd {num_g} vs {}",
+                        j_geo[k]
+                    );
+                }
+                checked += 1;
+            }
+            assert!(checked >= 3);
         }
     }
 }

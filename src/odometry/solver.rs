@@ -2,7 +2,7 @@
 
 use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 
-use super::kernel::PARTIAL_LEN;
+use super::kernel::Partial;
 
 /// The IRLS normal equations of one iteration, summed in f64.
 #[derive(Clone, Debug)]
@@ -21,29 +21,35 @@ pub struct NormalEquations {
 
 impl NormalEquations {
     /// Sums partials (f32 each) in f64.
-    pub fn from_partials(partials: &[[f32; PARTIAL_LEN]]) -> Self {
-        let mut s = [0.0f64; PARTIAL_LEN];
+    pub fn from_partials(partials: &[Partial]) -> Self {
+        let (mut hs, mut gs) = ([0.0f64; 21], [0.0f64; 6]);
+        let (mut cost, mut n_photo, mut n_geo) = (0.0f64, 0.0f64, 0.0f64);
         for p in partials {
-            for k in 0..PARTIAL_LEN {
-                s[k] += f64::from(p[k]);
+            for (s, v) in hs.iter_mut().zip(&p.h) {
+                *s += f64::from(*v);
             }
+            for (s, v) in gs.iter_mut().zip(&p.g) {
+                *s += f64::from(*v);
+            }
+            cost += f64::from(p.cost);
+            n_photo += f64::from(p.n_photo);
+            n_geo += f64::from(p.n_geo);
         }
         let mut h = Matrix6::zeros();
         let mut k = 0;
         for a in 0..6 {
             for b in a..6 {
-                h[(a, b)] = s[k];
-                h[(b, a)] = s[k];
+                h[(a, b)] = hs[k];
+                h[(b, a)] = hs[k];
                 k += 1;
             }
         }
-        let g = Vector6::from_iterator(s[21..27].iter().copied());
         Self {
             h,
-            g,
-            cost: s[27],
-            n_photo: s[28].round() as u64,
-            n_geo: s[29].round() as u64,
+            g: Vector6::from_column_slice(&gs),
+            cost,
+            n_photo: n_photo.round() as u64,
+            n_geo: n_geo.round() as u64,
         }
     }
 

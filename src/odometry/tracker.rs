@@ -2,12 +2,11 @@
 
 use std::time::Instant;
 
-use super::config::CovarianceGradients;
-use super::config::OdometryConfig;
-use super::cpu::{self, CpuPyramid};
-use super::gpu::{GpuOdometry, GpuPyramid};
-use super::kernel::{FilterParams, WarpParams, INVALID_RESIDUAL, PARTIAL_LEN};
-use super::robust::{estimate_scale, update_scale, ScaleMethod, NU_DEFAULT};
+use super::backend::{CpuKernels, Kernels};
+use super::config::{CovarianceGradients, GeometricParam, OdometryConfig};
+use super::gpu::GpuKernels;
+use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
+use super::robust::{estimate_scale, update_scale, ScaleEstimate, ScaleMethod, NU_DEFAULT};
 use super::solver::NormalEquations;
 use super::OdometryError;
 use crate::camera::PinholeCamera;
@@ -114,55 +113,87 @@ pub struct TrackResult {
     pub stats: FrameStats,
 }
 
-enum Engine {
-    Cpu,
-    Gpu(Box<GpuOdometry>),
+/// A frame prepared for alignment on the backend `K`: its pyramid and gradients, built once
+/// by [`Tracker::prepare`] and usable for any number of alignments and covisibility tests.
+/// A frame prepared on one backend cannot be given to the other:
+///
+/// ```compile_fail,E0308
+/// # use rgbid::odometry::{CpuTracker, GpuTracker};
+/// # fn f(cpu: &mut CpuTracker, gpu: &mut GpuTracker, frame: &rgbid::image::RgbdFrame)
+/// # -> Result<(), rgbid::odometry::OdometryError> {
+/// let on_cpu = cpu.prepare(frame)?;
+/// // error[E0308]: expected `Prepared<GpuKernels>`, found `Prepared<CpuKernels>`
+/// gpu.align_prepared(&on_cpu, &on_cpu, rgbid::geometry::Se3::IDENTITY)?;
+/// # Ok(()) }
+/// ```
+///
+/// while the same call with frames of its own backend compiles:
+///
+/// ```no_run
+/// # use rgbid::odometry::{CpuTracker, GpuTracker};
+/// # fn f(cpu: &mut CpuTracker, gpu: &mut GpuTracker, frame: &rgbid::image::RgbdFrame)
+/// # -> Result<(), rgbid::odometry::OdometryError> {
+/// let on_gpu = gpu.prepare(frame)?;
+/// gpu.align_prepared(&on_gpu, &on_gpu, rgbid::geometry::Se3::IDENTITY)?;
+/// let on_cpu = cpu.prepare(frame)?;
+/// cpu.align_prepared(&on_cpu, &on_cpu, rgbid::geometry::Se3::IDENTITY)?;
+/// # Ok(()) }
+/// ```
+pub struct Prepared<K: Kernels> {
+    pyramid: K::Pyramid,
+    /// Time to build the pyramid, ms.
+    build_ms: f64,
 }
 
-enum Pyramid {
-    Cpu(CpuPyramid),
-    Gpu(GpuPyramid),
+impl<K: Kernels> Prepared<K> {
+    /// Wall-clock time it took to prepare the frame (upload, pyramid, gradients), ms.
+    pub fn build_ms(&self) -> f64 {
+        self.build_ms
+    }
 }
 
-struct Reference {
-    pyramid: Pyramid,
+struct Reference<P> {
+    pyramid: P,
     world_from_ref: Se3,
 }
 
-/// Frame-by-frame dense RGB-D odometry.
+/// The scales of one Gauss-Newton iteration and what the next one starts from.
+struct Scales {
+    photo: ScaleEstimate,
+    geo: ScaleEstimate,
+}
+
+/// Frame-by-frame dense RGB-D odometry on the kernels `K` ([`CpuKernels`] or
+/// [`GpuKernels`]): the algorithm of [`Odometry`], with the backend fixed at compile time.
+/// [`Odometry`] chooses the backend at run time and wraps one of these.
 ///
-/// ```no_run
-/// # use rgbid::{odometry::*, camera::PinholeCamera, gpu::*};
-/// # fn f(frames: Vec<rgbid::image::RgbdFrame>) -> Result<(), OdometryError> {
-/// let backend = select_backend(BackendChoice::Auto, None)?;
-/// let camera = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
-/// let mut odo = Odometry::new(OdometryConfig::default(), camera, &backend)?;
-/// for f in &frames {
-///     let r = odo.track(f)?;
-///     println!("{} {:?}", f.timestamp, r.world_from_camera.translation);
-/// }
-/// # Ok(()) }
-/// ```
-pub struct Odometry {
+/// A `Tracker` is `Send`: it can move to another thread (a binding can release its
+/// interpreter lock around [`Self::track`]).
+pub struct Tracker<K: Kernels> {
     config: OdometryConfig,
     camera: PinholeCamera,
-    engine: Engine,
-    reference: Option<Reference>,
+    kernels: K,
+    reference: Option<Reference<K::Pyramid>>,
     /// `world_from_camera` of the last frame and the motion `prev_from_cur` that led to it.
     last: Option<(Se3, Se3)>,
     initial_pose: Se3,
-    spare: Option<Pyramid>,
+    spare: Option<K::Pyramid>,
     /// Buffers of the covariance pass's filtered level, recycled.
-    filtered: Option<Pyramid>,
+    filtered: Option<K::Pyramid>,
     frames: usize,
 }
 
-impl Odometry {
-    /// Creates the odometry for frames of `camera` (undistorted pinhole) on `backend`.
-    pub fn new(
+/// The tracker on the CPU mirror.
+pub type CpuTracker = Tracker<CpuKernels>;
+/// The tracker on the WGSL kernels.
+pub type GpuTracker = Tracker<GpuKernels>;
+
+impl<K: Kernels> Tracker<K> {
+    /// A tracker for frames of `camera` (undistorted pinhole) on `kernels`.
+    pub fn with_kernels(
         config: OdometryConfig,
         camera: PinholeCamera,
-        backend: &ComputeBackend,
+        kernels: K,
     ) -> Result<Self, OdometryError> {
         config.validate()?;
         camera
@@ -176,14 +207,10 @@ impl Odometry {
                 levels: config.levels,
             });
         }
-        let engine = match backend {
-            ComputeBackend::Cpu => Engine::Cpu,
-            ComputeBackend::Gpu(ctx) => Engine::Gpu(Box::new(GpuOdometry::new(ctx.clone())?)),
-        };
         Ok(Self {
             config,
             camera,
-            engine,
+            kernels,
             reference: None,
             last: None,
             initial_pose: Se3::IDENTITY,
@@ -193,36 +220,22 @@ impl Odometry {
         })
     }
 
-    /// Bytes this odometry holds between frames, `(host, device)`: the pyramids it keeps
+    /// Bytes this tracker holds between frames, `(host, device)`: the pyramids it keeps
     /// (the reference, a spare one recycled for the next frame, the covariance pass's
     /// filtered level) in host memory on the CPU backend, and on a GPU the buffers allocated
     /// for them and for the kernels' parameters, partial sums and read-back (host: only the
     /// level tables). Sums of capacities and buffer sizes; allocates nothing.
     pub fn memory_bytes(&self) -> (usize, usize) {
-        let mut host = 0;
-        let mut device = match &self.engine {
-            Engine::Cpu => 0,
-            Engine::Gpu(g) => g.device_bytes(),
-        };
+        let (mut host, mut device) = (0, self.kernels.device_bytes());
         let pyramids = [
             self.reference.as_ref().map(|r| &r.pyramid),
             self.spare.as_ref(),
             self.filtered.as_ref(),
         ];
-        let levels = |l: &Vec<super::cpu::LevelLayout>| {
-            l.capacity() * std::mem::size_of::<super::cpu::LevelLayout>()
-        };
         for p in pyramids.into_iter().flatten() {
-            match p {
-                Pyramid::Cpu(c) => {
-                    host += levels(&c.levels)
-                        + (c.photo.capacity() + c.geo.capacity()) * std::mem::size_of::<[f32; 4]>();
-                }
-                Pyramid::Gpu(g) => {
-                    host += levels(&g.levels);
-                    device += g.device_bytes();
-                }
-            }
+            let (h, d) = K::pyramid_bytes(p);
+            host += h;
+            device += d;
         }
         (host, device)
     }
@@ -230,6 +243,11 @@ impl Odometry {
     /// The configuration.
     pub fn config(&self) -> &OdometryConfig {
         &self.config
+    }
+
+    /// The camera (pixels, level 0).
+    pub fn camera(&self) -> &PinholeCamera {
+        &self.camera
     }
 
     /// Sets `world_from_camera` of the first frame (identity by default). Call before the
@@ -266,32 +284,25 @@ impl Odometry {
         }
     }
 
-    fn build(&mut self, frame: &RgbdFrame) -> Result<Pyramid, OdometryError> {
+    /// The frame's pyramid: gradients from the finest optimised level on; levels finer than
+    /// both that level and the covisibility level are never read, so a backend may skip them.
+    fn build(&mut self, frame: &RgbdFrame) -> Result<K::Pyramid, OdometryError> {
         let levels = self.config.levels;
+        let first = self.config.finest_level(self.camera.width as usize);
+        let stored = first.min(self.config.covisibility_level.min(levels - 1));
         let spare = self.spare.take();
-        Ok(match &mut self.engine {
-            Engine::Cpu => {
-                // Gradients are needed from the finest optimised level (covisibility reads only
-                // inverse depth).
-                let first = self.config.finest_level(self.camera.width as usize);
-                let recycle = match spare {
-                    Some(Pyramid::Cpu(p)) => Some(p),
-                    _ => None,
-                };
-                Pyramid::Cpu(CpuPyramid::build_reusing(frame, levels, first, recycle))
-            }
-            Engine::Gpu(g) => {
-                let recycle = match spare {
-                    Some(Pyramid::Gpu(p)) => Some(p),
-                    _ => None,
-                };
-                // Levels finer than both the finest optimised level and the covisibility level
-                // are never read: the GPU does not write them (the CPU keeps packing level 0,
-                // which costs it little).
-                let first = self.config.finest_level(self.camera.width as usize);
-                let stored = first.min(self.config.covisibility_level.min(levels - 1));
-                Pyramid::Gpu(g.build_levels(frame, levels, stored, first, recycle)?)
-            }
+        self.kernels.build(frame, levels, stored, first, spare)
+    }
+
+    /// Builds `frame`'s pyramid once for [`Self::align_prepared`] and
+    /// [`Self::covisibility_prepared`] (no tracker state is used or changed).
+    pub fn prepare(&mut self, frame: &RgbdFrame) -> Result<Prepared<K>, OdometryError> {
+        self.check_frame(frame)?;
+        let t0 = Instant::now();
+        let pyramid = self.build(frame)?;
+        Ok(Prepared {
+            pyramid,
+            build_ms: t0.elapsed().as_secs_f64() * 1e3,
         })
     }
 
@@ -400,14 +411,25 @@ impl Odometry {
         current: &RgbdFrame,
         cur_from_ref_guess: Se3,
     ) -> Result<Alignment, OdometryError> {
-        self.check_frame(reference)?;
-        self.check_frame(current)?;
         let t0 = Instant::now();
-        let r = self.build(reference)?;
-        let c = self.build(current)?;
-        let pyramid_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let mut a = self.align_pyramids(&r, &c, cur_from_ref_guess)?;
-        a.times.pyramid_ms = pyramid_ms;
+        let r = self.prepare(reference)?;
+        let c = self.prepare(current)?;
+        let mut a = self.align_pyramids(&r.pyramid, &c.pyramid, cur_from_ref_guess)?;
+        a.times.pyramid_ms = r.build_ms + c.build_ms;
+        a.times.total_ms = t0.elapsed().as_secs_f64() * 1e3;
+        Ok(a)
+    }
+
+    /// [`Self::align`] on prepared frames: no pyramid is built.
+    pub fn align_prepared(
+        &mut self,
+        reference: &Prepared<K>,
+        current: &Prepared<K>,
+        cur_from_ref_guess: Se3,
+    ) -> Result<Alignment, OdometryError> {
+        let t0 = Instant::now();
+        let mut a =
+            self.align_pyramids(&reference.pyramid, &current.pyramid, cur_from_ref_guess)?;
         a.times.total_ms = t0.elapsed().as_secs_f64() * 1e3;
         Ok(a)
     }
@@ -420,336 +442,74 @@ impl Odometry {
         current: &RgbdFrame,
         cur_from_ref: &Se3,
     ) -> Result<f64, OdometryError> {
-        let r = self.build(reference)?;
-        let c = self.build(current)?;
-        self.covisibility(&r, &c, cur_from_ref)
+        let r = self.prepare(reference)?;
+        let c = self.prepare(current)?;
+        self.covisibility(&r.pyramid, &c.pyramid, cur_from_ref)
     }
 
+    /// [`Self::covisibility_of`] on prepared frames.
+    pub fn covisibility_prepared(
+        &mut self,
+        reference: &Prepared<K>,
+        current: &Prepared<K>,
+        cur_from_ref: &Se3,
+    ) -> Result<f64, OdometryError> {
+        self.covisibility(&reference.pyramid, &current.pyramid, cur_from_ref)
+    }
+
+    /// The kernels' parameters for `level` at `cur_from_ref` with a residual sample of
+    /// `samples` pixels (scales at their neutral values).
     fn params(&self, level: usize, cur_from_ref: &Se3, samples: u32) -> WarpParams {
-        let cam = self.camera.at_level(level);
-        let (w, h) = (cam.width, cam.height);
-        let mut off = 0u32;
-        let (mut lw, mut lh) = (self.camera.width, self.camera.height);
-        for _ in 0..level {
-            off += lw * lh;
-            lw /= 2;
-            lh /= 2;
-        }
-        let mut p = WarpParams {
-            dims: [w, h, off, samples],
-            intr: [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32],
-            rot: [[0.0; 4]; 3],
-            robust: [1.0, 1.0, NU_DEFAULT as f32, NU_DEFAULT as f32],
-            flags: [
-                self.config.estimator.code(),
-                self.config.terms.mask(),
-                self.config.geometric_code(),
-                0,
-            ],
-        };
-        p.set_pose(cur_from_ref);
-        p
+        warp_params(&self.config, &self.camera, level, cur_from_ref, samples)
     }
 
     fn covisibility(
         &mut self,
-        r: &Pyramid,
-        c: &Pyramid,
+        r: &K::Pyramid,
+        c: &K::Pyramid,
         cur_from_ref: &Se3,
     ) -> Result<f64, OdometryError> {
         let level = self.config.covisibility_level.min(self.config.levels - 1);
         let fwd = self.params(level, cur_from_ref, 0);
         let bwd = self.params(level, &cur_from_ref.inverse(), 0);
-        let ((a1, b1), (a2, b2)) = match (&mut self.engine, r, c) {
-            (Engine::Cpu, Pyramid::Cpu(r), Pyramid::Cpu(c)) => (
-                cpu::covisibility_counts(&fwd, r, c, level),
-                cpu::covisibility_counts(&bwd, c, r, level),
-            ),
-            (Engine::Gpu(g), Pyramid::Gpu(r), Pyramid::Gpu(c)) => (
-                g.covisibility_counts(&fwd, r, c)?,
-                g.covisibility_counts(&bwd, c, r)?,
-            ),
-            _ => {
-                return Err(OdometryError::InvalidConfig(
-                    "pyramid from another backend".into(),
-                ))
-            }
-        };
+        let (a1, b1) = self.kernels.covisibility_counts(&fwd, r, c, level)?;
+        let (a2, b2) = self.kernels.covisibility_counts(&bwd, c, r, level)?;
         let ratio = |a: u64, b: u64| if a == 0 { 0.0 } else { b as f64 / a as f64 };
         Ok(ratio(a1, b1).min(ratio(a2, b2)))
     }
 
-    fn sample(
-        &mut self,
-        p: &WarpParams,
-        r: &Pyramid,
-        c: &Pyramid,
-        level: usize,
-    ) -> Result<Vec<[f32; 2]>, OdometryError> {
-        Ok(match (&mut self.engine, r, c) {
-            (Engine::Cpu, Pyramid::Cpu(r), Pyramid::Cpu(c)) => {
-                cpu::sample_residuals(p, r, c, level)
-            }
-            (Engine::Gpu(g), Pyramid::Gpu(r), Pyramid::Gpu(c)) => g.sample_residuals(p, r, c)?,
-            _ => {
-                return Err(OdometryError::InvalidConfig(
-                    "pyramid from another backend".into(),
-                ))
-            }
-        })
-    }
-
-    /// The covariance pass's copy of `level` of `c` with bilateral-filtered gradients.
-    fn filtered_level(
-        &mut self,
-        c: &Pyramid,
-        level: usize,
-        f: &FilterParams,
-    ) -> Result<Pyramid, OdometryError> {
-        let recycle = self.filtered.take();
-        Ok(match (&mut self.engine, c) {
-            (Engine::Cpu, Pyramid::Cpu(c)) => {
-                let recycle = match recycle {
-                    Some(Pyramid::Cpu(p)) => Some(p),
-                    _ => None,
-                };
-                Pyramid::Cpu(c.filtered_level(level, f, recycle))
-            }
-            (Engine::Gpu(g), Pyramid::Gpu(c)) => {
-                let recycle = match recycle {
-                    Some(Pyramid::Gpu(p)) => Some(p),
-                    _ => None,
-                };
-                Pyramid::Gpu(g.filtered_level(c, level, f, recycle)?)
-            }
-            _ => {
-                return Err(OdometryError::InvalidConfig(
-                    "pyramid from another backend".into(),
-                ))
-            }
-        })
-    }
-
-    fn partials(
-        &mut self,
-        p: &WarpParams,
-        r: &Pyramid,
-        c: &Pyramid,
-        level: usize,
-    ) -> Result<Vec<[f32; PARTIAL_LEN]>, OdometryError> {
-        Ok(match (&mut self.engine, r, c) {
-            (Engine::Cpu, Pyramid::Cpu(r), Pyramid::Cpu(c)) => {
-                let chunks = (rayon::current_num_threads() * 8).max(8);
-                cpu::normal_equation_partials(p, r, c, level, chunks)
-            }
-            (Engine::Gpu(g), Pyramid::Gpu(r), Pyramid::Gpu(c)) => {
-                g.normal_equation_partials(p, r, c)?
-            }
-            _ => {
-                return Err(OdometryError::InvalidConfig(
-                    "pyramid from another backend".into(),
-                ))
-            }
-        })
-    }
-
-    fn partials_and_sample(
-        &mut self,
-        p: &WarpParams,
-        r: &Pyramid,
-        c: &Pyramid,
-        level: usize,
-    ) -> Result<super::kernel::PartialsAndSample, OdometryError> {
-        Ok(match (&mut self.engine, r, c) {
-            (Engine::Cpu, Pyramid::Cpu(r), Pyramid::Cpu(c)) => {
-                let chunks = (rayon::current_num_threads() * 8).max(8);
-                cpu::normal_equations_and_sample(p, r, c, level, chunks)
-            }
-            (Engine::Gpu(g), Pyramid::Gpu(r), Pyramid::Gpu(c)) => {
-                g.normal_equations_and_sample(p, r, c)?
-            }
-            _ => {
-                return Err(OdometryError::InvalidConfig(
-                    "pyramid from another backend".into(),
-                ))
-            }
-        })
-    }
-
+    /// Coarse-to-fine Gauss-Newton from `init` (`cur_from_ref`), then the covariance.
     fn align_pyramids(
         &mut self,
-        r: &Pyramid,
-        c: &Pyramid,
+        r: &K::Pyramid,
+        c: &K::Pyramid,
         init: Se3,
     ) -> Result<Alignment, OdometryError> {
-        let cfg = self.config.clone();
         let mut cur_from_ref = init;
         let mut times = StageTimes::default();
         let mut levels = Vec::new();
-        let mut last_ne: Option<NormalEquations> = None;
-        // The level and parameters (scales) of the last normal equations solved.
-        let mut last_params: Option<(usize, WarpParams)> = None;
-        let mut any_update = false;
-        let finest = cfg.finest_level(self.camera.width as usize);
-        for level in (finest..cfg.levels).rev() {
-            let cam = self.camera.at_level(level);
-            let n = (cam.width * cam.height) as usize;
-            let samples = n.min(cfg.max_samples) as u32;
-            let mut st = LevelStats {
-                level,
-                ..Default::default()
-            };
-            let mut level_ne = None;
-            let mut prev_scale: Option<(
-                super::robust::ScaleEstimate,
-                super::robust::ScaleEstimate,
-            )> = None;
-            // The residual sample taken by the previous iteration's normal-equation pass (at
-            // the pose before its update): the scale lags one Gauss-Newton step, which saves a
-            // warp of the sample (CPU) or a round trip (GPU) per iteration.
-            let mut pending_sample: Option<Vec<[f32; 2]>> = None;
-            for _ in 0..cfg.iterations_at(level, finest) {
-                let mut p = self.params(level, &cur_from_ref, samples);
-                // Scales.
-                let ts = Instant::now();
-                let (sp, sg) = if cfg.scale == ScaleMethod::Fixed {
-                    (
-                        super::robust::ScaleEstimate {
-                            sigma: cfg.fixed_sigma_photo,
-                            nu: cfg.fixed_nu,
-                        },
-                        super::robust::ScaleEstimate {
-                            sigma: cfg.fixed_sigma_geo,
-                            nu: cfg.fixed_nu,
-                        },
-                    )
-                } else {
-                    let s = match pending_sample.take() {
-                        Some(s) => s,
-                        None => self.sample(&p, r, c, level)?,
-                    };
-                    // The two populations are independent: estimate them on two threads.
-                    let (est, method) = (cfg.estimator, cfg.scale);
-                    let population = |c: usize| -> Vec<f64> {
-                        s.iter()
-                            .filter(|v| v[c] != INVALID_RESIDUAL)
-                            .map(|v| f64::from(v[c]))
-                            .collect()
-                    };
-                    // Full estimate (scale and degrees of freedom) on the first iteration of a
-                    // level, warm-started scale updates after that.
-                    let e = match prev_scale {
-                        None => rayon::join(
-                            || estimate_scale(&population(0), est, method),
-                            || estimate_scale(&population(1), est, method),
-                        ),
-                        Some((pp, pg)) => rayon::join(
-                            || update_scale(&population(0), est, method, pp),
-                            || update_scale(&population(1), est, method, pg),
-                        ),
-                    };
-                    prev_scale = Some(e);
-                    e
-                };
-                // Guard against zero scales on noiseless data.
-                let sigma_photo = sp.sigma.max(1e-3);
-                let sigma_geo = sg
-                    .sigma
-                    .max(if cfg.geometric == super::GeometricParam::Depth {
-                        1e-5
-                    } else {
-                        1e-6
-                    });
-                let nu_photo = sp.nu.max(sg.nu);
-                p.robust = [
-                    sigma_photo as f32,
-                    sigma_geo as f32,
-                    nu_photo as f32,
-                    sg.nu as f32,
-                ];
-                times.scale_ms += ts.elapsed().as_secs_f64() * 1e3;
-                // Normal equations.
-                let tr = Instant::now();
-                let parts = if cfg.scale == ScaleMethod::Fixed {
-                    self.partials(&p, r, c, level)?
-                } else {
-                    let (parts, s) = self.partials_and_sample(&p, r, c, level)?;
-                    pending_sample = Some(s);
-                    parts
-                };
-                let ne = NormalEquations::from_partials(&parts);
-                times.reduce_ms += tr.elapsed().as_secs_f64() * 1e3;
-                let tsol = Instant::now();
-                st.sigma_photo = sigma_photo;
-                st.sigma_geo = sigma_geo;
-                st.nu_photo = nu_photo;
-                st.nu_geo = sg.nu;
-                st.n_photo = ne.n_photo;
-                st.n_geo = ne.n_geo;
-                if ne.n_photo + ne.n_geo < 12 {
-                    break;
-                }
-                let Some(delta) = ne.solve() else {
-                    break;
-                };
-                cur_from_ref = Se3::exp(&delta) * cur_from_ref;
-                any_update = true;
-                st.iterations += 1;
-                times.solve_ms += tsol.elapsed().as_secs_f64() * 1e3;
-                let norm = delta.iter().map(|x| x * x).sum::<f64>().sqrt();
-                log::trace!(
-                    "level {level} it {}: |delta| {norm:.3e} cost/n {:.4} sigma {:.3}/{:.5} nu {:.2} n {}/{}",
-                    st.iterations,
-                    ne.cost / (ne.n_photo + ne.n_geo).max(1) as f64,
-                    sigma_photo,
-                    sigma_geo,
-                    nu_photo,
-                    ne.n_photo,
-                    ne.n_geo
-                );
-                level_ne = Some(ne);
-                last_params = Some((level, p));
-                if norm < cfg.convergence {
-                    break;
-                }
+        let mut last: Option<LevelSolve> = None;
+        let finest = self.config.finest_level(self.camera.width as usize);
+        for level in (finest..self.config.levels).rev() {
+            let (stats, solve) = self.solve_level(r, c, level, &mut cur_from_ref, &mut times)?;
+            levels.push(stats);
+            if solve.is_some() {
+                last = solve;
             }
-            if level_ne.is_some() {
-                last_ne = level_ne;
-            }
-            levels.push(st);
         }
-        if !any_update {
+        let Some(mut last) = last else {
             return Err(OdometryError::TrackingFailed(
                 "no pyramid level had enough valid, well-conditioned residuals (no depth or no overlap)".into(),
             ));
-        }
-        if cfg.covariance == CovarianceGradients::Bilateral {
-            if let Some((level, mut p)) = last_params {
-                let tc = Instant::now();
-                p.set_pose(&cur_from_ref);
-                p.dims[3] = 0;
-                let sigma_rho = match cfg.geometric {
-                    super::GeometricParam::InverseDepth => f64::from(p.robust[1]),
-                    super::GeometricParam::Depth => cfg.fixed_sigma_geo,
-                };
-                let f = FilterParams::new(
-                    p.dims[0] as usize,
-                    p.dims[1] as usize,
-                    p.dims[2] as usize,
-                    cfg.bilateral_range * f64::from(p.robust[0]),
-                    cfg.bilateral_range * sigma_rho,
-                );
-                let filtered = self.filtered_level(c, level, &f)?;
-                let parts = self.partials(&p, r, &filtered, level);
-                self.filtered = Some(filtered);
-                let ne = NormalEquations::from_partials(&parts?);
-                if ne.n_photo + ne.n_geo >= 12 {
-                    last_ne = Some(ne);
-                }
-                times.covariance_ms += tc.elapsed().as_secs_f64() * 1e3;
+        };
+        if self.config.covariance == CovarianceGradients::Bilateral {
+            let tc = Instant::now();
+            if let Some(ne) = self.covariance_pass(r, c, &last, &cur_from_ref)? {
+                last.equations = ne;
             }
+            times.covariance_ms += tc.elapsed().as_secs_f64() * 1e3;
         }
-        let (covariance, condition_number) = match last_ne.as_ref().and_then(|ne| ne.covariance()) {
+        let (covariance, condition_number) = match last.equations.covariance() {
             Some((c, k)) => (Some(c), k),
             None => (None, f64::INFINITY),
         };
@@ -761,19 +521,433 @@ impl Odometry {
             times,
         })
     }
-}
 
-impl OdometryConfig {
-    /// `WarpParams::flags[2]`: bit 0 depth parametrisation, bit 1 first-order sampling.
-    pub(crate) fn geometric_code(&self) -> u32 {
-        let param = match self.geometric {
-            super::GeometricParam::InverseDepth => 0,
-            super::GeometricParam::Depth => 1,
+    /// The robust scales of one iteration: fixed, or estimated on the residual sample
+    /// (`pending`: the one the previous iteration's pass took; otherwise a sampling pass).
+    /// A level's first iteration estimates scale and degrees of freedom in full; later ones
+    /// update the previous estimate.
+    fn scales(
+        &mut self,
+        p: &WarpParams,
+        r: &K::Pyramid,
+        c: &K::Pyramid,
+        level: usize,
+        pending: Option<Vec<[f32; 2]>>,
+        previous: Option<&Scales>,
+    ) -> Result<Scales, OdometryError> {
+        let cfg = &self.config;
+        if cfg.scale == ScaleMethod::Fixed {
+            return Ok(Scales {
+                photo: ScaleEstimate {
+                    sigma: cfg.fixed_sigma_photo,
+                    nu: cfg.fixed_nu,
+                },
+                geo: ScaleEstimate {
+                    sigma: cfg.fixed_sigma_geo,
+                    nu: cfg.fixed_nu,
+                },
+            });
+        }
+        let (est, method) = (cfg.estimator, cfg.scale);
+        let s = match pending {
+            Some(s) => s,
+            None => self.kernels.sample_residuals(p, r, c, level)?,
         };
-        let sampling = match self.geometric_sampling {
-            super::config::GeometricSampling::Nearest => 0,
-            super::config::GeometricSampling::Linear => 2,
+        let population = |c: usize| -> Vec<f64> {
+            s.iter()
+                .filter(|v| v[c] != INVALID_RESIDUAL)
+                .map(|v| f64::from(v[c]))
+                .collect()
         };
-        param | sampling
+        // The two populations are independent: estimate them on two threads.
+        let (photo, geo) = match previous {
+            None => rayon::join(
+                || estimate_scale(&population(0), est, method),
+                || estimate_scale(&population(1), est, method),
+            ),
+            Some(prev) => rayon::join(
+                || update_scale(&population(0), est, method, prev.photo),
+                || update_scale(&population(1), est, method, prev.geo),
+            ),
+        };
+        Ok(Scales { photo, geo })
+    }
+
+    /// The Gauss-Newton iterations of one level, updating `cur_from_ref`; the level's
+    /// statistics and its last solved normal equations (`None` if no iteration solved).
+    fn solve_level(
+        &mut self,
+        r: &K::Pyramid,
+        c: &K::Pyramid,
+        level: usize,
+        cur_from_ref: &mut Se3,
+        times: &mut StageTimes,
+    ) -> Result<(LevelStats, Option<LevelSolve>), OdometryError> {
+        let finest = self.config.finest_level(self.camera.width as usize);
+        let cam = self.camera.at_level(level);
+        let n = (cam.width * cam.height) as usize;
+        let samples = n.min(self.config.max_samples) as u32;
+        let fixed = self.config.scale == ScaleMethod::Fixed;
+        let mut st = LevelStats {
+            level,
+            ..Default::default()
+        };
+        let mut solved = None;
+        let mut previous: Option<Scales> = None;
+        // The residual sample taken by the previous iteration's normal-equation pass (at
+        // the pose before its update): the scale lags one Gauss-Newton step, which saves a
+        // warp of the sample (CPU) or a round trip (GPU) per iteration.
+        let mut pending: Option<Vec<[f32; 2]>> = None;
+        for _ in 0..self.config.iterations_at(level, finest) {
+            let mut p = self.params(level, cur_from_ref, samples);
+            let ts = Instant::now();
+            let scales = self.scales(&p, r, c, level, pending.take(), previous.as_ref())?;
+            // Guard against zero scales on noiseless data.
+            let sigma_photo = scales.photo.sigma.max(1e-3);
+            let sigma_geo =
+                scales
+                    .geo
+                    .sigma
+                    .max(if self.config.geometric == GeometricParam::Depth {
+                        1e-5
+                    } else {
+                        1e-6
+                    });
+            let nu_photo = scales.photo.nu.max(scales.geo.nu);
+            p.sigma_photo = sigma_photo as f32;
+            p.sigma_geo = sigma_geo as f32;
+            p.nu_photo = nu_photo as f32;
+            p.nu_geo = scales.geo.nu as f32;
+            st.sigma_photo = sigma_photo;
+            st.sigma_geo = sigma_geo;
+            st.nu_photo = nu_photo;
+            st.nu_geo = scales.geo.nu;
+            if !fixed {
+                previous = Some(scales);
+            }
+            times.scale_ms += ts.elapsed().as_secs_f64() * 1e3;
+            // Normal equations.
+            let tr = Instant::now();
+            let parts = if fixed {
+                self.kernels.normal_equation_partials(&p, r, c, level)?
+            } else {
+                let (parts, s) = self.kernels.normal_equations_and_sample(&p, r, c, level)?;
+                pending = Some(s);
+                parts
+            };
+            let ne = NormalEquations::from_partials(&parts);
+            times.reduce_ms += tr.elapsed().as_secs_f64() * 1e3;
+            let tsol = Instant::now();
+            st.n_photo = ne.n_photo;
+            st.n_geo = ne.n_geo;
+            if ne.n_photo + ne.n_geo < 12 {
+                break;
+            }
+            let Some(delta) = ne.solve() else {
+                break;
+            };
+            *cur_from_ref = Se3::exp(&delta) * *cur_from_ref;
+            st.iterations += 1;
+            times.solve_ms += tsol.elapsed().as_secs_f64() * 1e3;
+            let norm = delta.iter().map(|x| x * x).sum::<f64>().sqrt();
+            log::trace!(
+                "level {level} it {}: |delta| {norm:.3e} cost/n {:.4} sigma {:.3}/{:.5} nu {:.2} n {}/{}",
+                st.iterations,
+                ne.cost / (ne.n_photo + ne.n_geo).max(1) as f64,
+                sigma_photo,
+                sigma_geo,
+                nu_photo,
+                ne.n_photo,
+                ne.n_geo
+            );
+            solved = Some(LevelSolve {
+                level,
+                params: p,
+                equations: ne,
+            });
+            if norm < self.config.convergence {
+                break;
+            }
+        }
+        Ok((st, solved))
+    }
+
+    /// The covariance pass (thesis 6.20-6.21): the normal equations once more at the final
+    /// pose on the last solved level, with the gradients of the bilateral-filtered current
+    /// level. `None` when too few residuals remain.
+    fn covariance_pass(
+        &mut self,
+        r: &K::Pyramid,
+        c: &K::Pyramid,
+        last: &LevelSolve,
+        cur_from_ref: &Se3,
+    ) -> Result<Option<NormalEquations>, OdometryError> {
+        let (level, mut p) = (last.level, last.params);
+        p.set_pose(cur_from_ref);
+        p.samples = 0;
+        let sigma_rho = match self.config.geometric {
+            GeometricParam::InverseDepth => f64::from(p.sigma_geo),
+            GeometricParam::Depth => self.config.fixed_sigma_geo,
+        };
+        let f = PyrParams::filter(
+            p.width as usize,
+            p.height as usize,
+            p.offset as usize,
+            self.config.bilateral_range * f64::from(p.sigma_photo),
+            self.config.bilateral_range * sigma_rho,
+        );
+        let recycle = self.filtered.take();
+        let filtered = self.kernels.filtered_level(c, level, &f, recycle)?;
+        let parts = self
+            .kernels
+            .normal_equation_partials(&p, r, &filtered, level);
+        self.filtered = Some(filtered);
+        let ne = NormalEquations::from_partials(&parts?);
+        Ok((ne.n_photo + ne.n_geo >= 12).then_some(ne))
     }
 }
+
+impl Tracker<CpuKernels> {
+    /// A tracker on the CPU mirror (rayon's global thread pool).
+    pub fn new_cpu(config: OdometryConfig, camera: PinholeCamera) -> Result<Self, OdometryError> {
+        Self::with_kernels(config, camera, CpuKernels::new())
+    }
+}
+
+impl Tracker<GpuKernels> {
+    /// A tracker on the WGSL kernels of `ctx` (pipelines compiled here, once).
+    pub fn new_gpu(
+        config: OdometryConfig,
+        camera: PinholeCamera,
+        ctx: std::sync::Arc<crate::gpu::GpuContext>,
+    ) -> Result<Self, OdometryError> {
+        let kernels = GpuKernels::new(ctx)?;
+        Self::with_kernels(config, camera, kernels)
+    }
+}
+
+/// The last solved normal equations of a level and the parameters they were solved with.
+struct LevelSolve {
+    level: usize,
+    params: WarpParams,
+    equations: NormalEquations,
+}
+
+/// The kernels' parameters for `level` of `camera` at `cur_from_ref` with a residual sample
+/// of `samples` pixels; the scales are neutral (set per iteration by the tracker).
+pub(crate) fn warp_params(
+    config: &OdometryConfig,
+    camera: &PinholeCamera,
+    level: usize,
+    cur_from_ref: &Se3,
+    samples: u32,
+) -> WarpParams {
+    let cam = camera.at_level(level);
+    let mut off = 0u32;
+    let (mut lw, mut lh) = (camera.width, camera.height);
+    for _ in 0..level {
+        off += lw * lh;
+        lw /= 2;
+        lh /= 2;
+    }
+    let mut p = WarpParams {
+        width: cam.width,
+        height: cam.height,
+        offset: off,
+        samples,
+        fx: cam.fx as f32,
+        fy: cam.fy as f32,
+        cx: cam.cx as f32,
+        cy: cam.cy as f32,
+        rot: [[0.0; 4]; 3],
+        sigma_photo: 1.0,
+        sigma_geo: 1.0,
+        nu_photo: NU_DEFAULT as f32,
+        nu_geo: NU_DEFAULT as f32,
+        estimator: config.estimator as u32,
+        terms: config.terms as u32,
+        geometric: config.geometric as u32,
+        sampling: config.geometric_sampling as u32,
+    };
+    p.set_pose(cur_from_ref);
+    p
+}
+
+/// A frame prepared by [`Odometry::prepare`]: its pyramid on the odometry's backend.
+pub struct PreparedFrame {
+    inner: PreparedInner,
+}
+
+enum PreparedInner {
+    Cpu(Prepared<CpuKernels>),
+    Gpu(Prepared<GpuKernels>),
+}
+
+impl PreparedFrame {
+    /// Wall-clock time it took to prepare the frame, ms.
+    pub fn build_ms(&self) -> f64 {
+        match &self.inner {
+            PreparedInner::Cpu(p) => p.build_ms(),
+            PreparedInner::Gpu(p) => p.build_ms(),
+        }
+    }
+}
+
+/// Frame-by-frame dense RGB-D odometry on the backend chosen at run time
+/// ([`ComputeBackend`]): a [`Tracker`] on the CPU mirror or on the WGSL kernels, chosen here
+/// and nowhere else.
+///
+/// `Odometry` is `Send`: it can move to another thread (bindings can release their
+/// interpreter lock around [`Self::track`]).
+///
+/// ```no_run
+/// # use rgbid::{odometry::*, camera::PinholeCamera, gpu::*};
+/// # fn f(frames: Vec<rgbid::image::RgbdFrame>) -> Result<(), OdometryError> {
+/// let backend = select_backend(BackendChoice::Auto, None)?;
+/// let camera = PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480);
+/// let mut odo = Odometry::new(OdometryConfig::default(), camera, &backend)?;
+/// for f in &frames {
+///     let r = odo.track(f)?;
+///     println!("{} {:?}", f.timestamp, r.world_from_camera.translation);
+/// }
+/// # Ok(()) }
+/// ```
+pub struct Odometry {
+    inner: Inner,
+}
+
+enum Inner {
+    Cpu(Tracker<CpuKernels>),
+    Gpu(Box<Tracker<GpuKernels>>),
+}
+
+/// Runs `$body` with `$t` bound to the tracker of either backend.
+macro_rules! on_tracker {
+    ($self:expr, $t:ident => $body:expr) => {
+        match $self {
+            Inner::Cpu($t) => $body,
+            Inner::Gpu($t) => $body,
+        }
+    };
+}
+
+impl Odometry {
+    /// Creates the odometry for frames of `camera` (undistorted pinhole) on `backend`.
+    pub fn new(
+        config: OdometryConfig,
+        camera: PinholeCamera,
+        backend: &ComputeBackend,
+    ) -> Result<Self, OdometryError> {
+        let inner = match backend {
+            ComputeBackend::Cpu => Inner::Cpu(Tracker::new_cpu(config, camera)?),
+            ComputeBackend::Gpu(ctx) => {
+                Inner::Gpu(Box::new(Tracker::new_gpu(config, camera, ctx.clone())?))
+            }
+        };
+        Ok(Self { inner })
+    }
+
+    /// See [`Tracker::memory_bytes`].
+    pub fn memory_bytes(&self) -> (usize, usize) {
+        on_tracker!(&self.inner, t => t.memory_bytes())
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &OdometryConfig {
+        on_tracker!(&self.inner, t => t.config())
+    }
+
+    /// Sets `world_from_camera` of the first frame (identity by default). Call before the
+    /// first [`Self::track`].
+    pub fn set_initial_pose(&mut self, world_from_camera: Se3) {
+        on_tracker!(&mut self.inner, t => t.set_initial_pose(world_from_camera))
+    }
+
+    /// Forgets the reference and the motion: the next [`Self::track`] starts again at
+    /// `world_from_camera` (used after relocalisation).
+    pub fn reset(&mut self, world_from_camera: Se3) {
+        on_tracker!(&mut self.inner, t => t.reset(world_from_camera))
+    }
+
+    /// See [`Tracker::track`].
+    pub fn track(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
+        on_tracker!(&mut self.inner, t => t.track(frame))
+    }
+
+    /// See [`Tracker::align`].
+    pub fn align(
+        &mut self,
+        reference: &RgbdFrame,
+        current: &RgbdFrame,
+        cur_from_ref_guess: Se3,
+    ) -> Result<Alignment, OdometryError> {
+        on_tracker!(&mut self.inner, t => t.align(reference, current, cur_from_ref_guess))
+    }
+
+    /// See [`Tracker::covisibility_of`].
+    pub fn covisibility_of(
+        &mut self,
+        reference: &RgbdFrame,
+        current: &RgbdFrame,
+        cur_from_ref: &Se3,
+    ) -> Result<f64, OdometryError> {
+        on_tracker!(&mut self.inner, t => t.covisibility_of(reference, current, cur_from_ref))
+    }
+
+    /// Builds `frame`'s pyramid once, for [`Self::align_prepared`] and
+    /// [`Self::covisibility_prepared`] (see [`Tracker::prepare`]).
+    pub fn prepare(&mut self, frame: &RgbdFrame) -> Result<PreparedFrame, OdometryError> {
+        let inner = match &mut self.inner {
+            Inner::Cpu(t) => PreparedInner::Cpu(t.prepare(frame)?),
+            Inner::Gpu(t) => PreparedInner::Gpu(t.prepare(frame)?),
+        };
+        Ok(PreparedFrame { inner })
+    }
+
+    /// [`Self::align`] on frames prepared by this odometry's [`Self::prepare`]; frames
+    /// prepared by an odometry on the other backend give [`OdometryError::OtherBackend`].
+    pub fn align_prepared(
+        &mut self,
+        reference: &PreparedFrame,
+        current: &PreparedFrame,
+        cur_from_ref_guess: Se3,
+    ) -> Result<Alignment, OdometryError> {
+        match (&mut self.inner, &reference.inner, &current.inner) {
+            (Inner::Cpu(t), PreparedInner::Cpu(r), PreparedInner::Cpu(c)) => {
+                t.align_prepared(r, c, cur_from_ref_guess)
+            }
+            (Inner::Gpu(t), PreparedInner::Gpu(r), PreparedInner::Gpu(c)) => {
+                t.align_prepared(r, c, cur_from_ref_guess)
+            }
+            _ => Err(OdometryError::OtherBackend),
+        }
+    }
+
+    /// [`Self::covisibility_of`] on frames prepared by this odometry's [`Self::prepare`].
+    pub fn covisibility_prepared(
+        &mut self,
+        reference: &PreparedFrame,
+        current: &PreparedFrame,
+        cur_from_ref: &Se3,
+    ) -> Result<f64, OdometryError> {
+        match (&mut self.inner, &reference.inner, &current.inner) {
+            (Inner::Cpu(t), PreparedInner::Cpu(r), PreparedInner::Cpu(c)) => {
+                t.covisibility_prepared(r, c, cur_from_ref)
+            }
+            (Inner::Gpu(t), PreparedInner::Gpu(r), PreparedInner::Gpu(c)) => {
+                t.covisibility_prepared(r, c, cur_from_ref)
+            }
+            _ => Err(OdometryError::OtherBackend),
+        }
+    }
+}
+
+// `Odometry` and both trackers move to other threads (bindings release their interpreter
+// lock around `track`): keep them `Send`.
+const _: fn() = || {
+    fn send<T: Send>() {}
+    send::<Odometry>();
+    send::<CpuTracker>();
+    send::<GpuTracker>();
+    send::<PreparedFrame>();
+};

@@ -10,7 +10,7 @@ use crate::image::ImageF32;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
+pub(crate) struct Params {
     width: u32,
     height: u32,
     step: u32,
@@ -23,6 +23,7 @@ struct Params {
     _pad1: [f32; 3],
 }
 
+/// Uniform block of `normals.wgsl` (`Params`, same layout; a test compares them).
 /// The normal kernel compiled once on a device; [`GpuNormals::compute`] runs it per image.
 pub struct GpuNormals {
     ctx: Arc<GpuContext>,
@@ -128,5 +129,43 @@ impl GpuNormals {
             height: h,
             data,
         })
+    }
+}
+
+impl super::NormalKernels for GpuNormals {
+    fn compute(
+        &mut self,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+        params: &NormalParams,
+    ) -> Result<NormalMap, SegmentError> {
+        GpuNormals::compute(self, inverse_depth, camera, params)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Params;
+    use crate::gpu::{host_layout, layout_mismatches, shaders};
+
+    #[test]
+    fn params_match_the_wgsl_layout() {
+        let host = host_layout!(Params {
+            width,
+            height,
+            step,
+            _pad,
+            fx,
+            fy,
+            cx,
+            cy,
+            jump_tolerance,
+            _pad1 = _pad1[0] stride 4,
+            _pad2 = _pad1[1] stride 4,
+            _pad3 = _pad1[2] stride 4,
+        });
+        let src = shaders::assembled("normals.wgsl").unwrap_or_default();
+        let bad = layout_mismatches(&src, "Params", &host, std::mem::size_of::<Params>());
+        assert!(bad.is_empty(), "{}", bad.join("\n"));
     }
 }

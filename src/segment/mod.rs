@@ -43,6 +43,43 @@ pub use normals::{
 use rayon::prelude::*;
 
 use crate::camera::{CameraError, PinholeCamera};
+
+/// The image-domain normal kernel of one backend: [`CpuNormals`] ([`normals_cpu`]) or
+/// [`GpuNormals`] (`shaders/normals.wgsl`), the same normals up to f32 rounding.
+pub trait NormalKernels: Send {
+    /// Normals of `inverse_depth` (1/m, 0 = invalid) seen by `camera`, in the camera frame.
+    fn compute(
+        &mut self,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+        params: &NormalParams,
+    ) -> Result<NormalMap, SegmentError>;
+}
+
+/// The CPU normal kernel ([`normals_cpu`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CpuNormals;
+
+impl NormalKernels for CpuNormals {
+    fn compute(
+        &mut self,
+        inverse_depth: &ImageF32,
+        camera: &PinholeCamera,
+        params: &NormalParams,
+    ) -> Result<NormalMap, SegmentError> {
+        Ok(normals_cpu(inverse_depth, camera, params))
+    }
+}
+
+/// The normal kernel of `backend` (compiled once here on a GPU).
+pub fn normal_kernels(
+    backend: &crate::gpu::ComputeBackend,
+) -> Result<Box<dyn NormalKernels>, SegmentError> {
+    Ok(match backend {
+        crate::gpu::ComputeBackend::Cpu => Box::new(CpuNormals),
+        crate::gpu::ComputeBackend::Gpu(ctx) => Box::new(GpuNormals::new(ctx.clone())?),
+    })
+}
 use crate::gpu::GpuError;
 use crate::image::ImageF32;
 

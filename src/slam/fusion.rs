@@ -1,6 +1,7 @@
 //! Keyframe inverse-depth fusion by reverse warping (thesis 6.4.2, eq. 6.24-6.25): the WGSL
 //! kernel `shaders/fuse.wgsl` and its CPU mirror [`fuse_cpu`] (same f32 operations in the
-//! same order), behind [`KeyframeFuser`] which keeps the keyframe resident on the device.
+//! same order), two implementations of one kernel interface ([`FusionKernels`]) behind
+//! [`KeyframeFuser`], which keeps the keyframe resident where the kernel runs.
 
 use std::sync::Arc;
 
@@ -60,20 +61,30 @@ impl FusionCounts {
     }
 }
 
-/// Uniform block of `fuse.wgsl` (same layout).
+/// Uniform block of `fuse.wgsl` (`Params`, same layout; a test compares them).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
-pub struct FuseUniform {
-    /// width, height, unused, unused.
-    pub dims: [u32; 4],
-    /// fx, fy, cx, cy (pixels).
-    pub intr: [f32; 4],
-    /// `cur_from_kf` rows with the translation in the last column.
-    pub fwd: [[f32; 4]; 3],
-    /// `kf_from_cur` rows with the translation in the last column.
-    pub inv: [[f32; 4]; 3],
-    /// tol_abs, tol_rel, new_weight, max_weight.
-    pub tol: [f32; 4],
+pub(crate) struct FuseUniform {
+    /// Keyframe width, pixels.
+    pub(crate) width: u32,
+    /// Keyframe height, pixels.
+    pub(crate) height: u32,
+    /// Padding to the 16-byte alignment of the WGSL's `vec4` members.
+    pub(crate) _pad: [u32; 2],
+    /// Intrinsics, pixels.
+    pub(crate) fx: f32,
+    pub(crate) fy: f32,
+    pub(crate) cx: f32,
+    pub(crate) cy: f32,
+    /// `cur_from_kf` rows with the translation (m) in the last column.
+    pub(crate) fwd: [[f32; 4]; 3],
+    /// `kf_from_cur` rows with the translation (m) in the last column.
+    pub(crate) inv: [[f32; 4]; 3],
+    /// See [`FusionParams`].
+    pub(crate) tol_abs: f32,
+    pub(crate) tol_rel: f32,
+    pub(crate) new_weight: f32,
+    pub(crate) max_weight: f32,
 }
 
 fn rows(t: &Se3) -> [[f32; 4]; 3] {
@@ -92,23 +103,21 @@ fn rows(t: &Se3) -> [[f32; 4]; 3] {
 
 impl FuseUniform {
     /// The uniform for fusing a frame at `cur_from_kf` into a keyframe of `camera`.
-    pub fn new(camera: &PinholeCamera, cur_from_kf: &Se3, params: &FusionParams) -> Self {
+    pub(crate) fn new(camera: &PinholeCamera, cur_from_kf: &Se3, params: &FusionParams) -> Self {
         FuseUniform {
-            dims: [camera.width, camera.height, 0, 0],
-            intr: [
-                camera.fx as f32,
-                camera.fy as f32,
-                camera.cx as f32,
-                camera.cy as f32,
-            ],
+            width: camera.width,
+            height: camera.height,
+            _pad: [0; 2],
+            fx: camera.fx as f32,
+            fy: camera.fy as f32,
+            cx: camera.cx as f32,
+            cy: camera.cy as f32,
             fwd: rows(cur_from_kf),
             inv: rows(&cur_from_kf.inverse()),
-            tol: [
-                params.tol_abs,
-                params.tol_rel,
-                params.new_weight,
-                params.max_weight,
-            ],
+            tol_abs: params.tol_abs,
+            tol_rel: params.tol_rel,
+            new_weight: params.new_weight,
+            max_weight: params.max_weight,
         }
     }
 }
@@ -122,7 +131,7 @@ fn xform(r: &[[f32; 4]; 3], p: [f32; 3]) -> [f32; 3] {
 /// What happened at one keyframe pixel: 0 no depth, 1 depth but not covisible, 2 covisible
 /// but inconsistent, 3 fused (then `(rho, weight)` are the new values).
 #[inline]
-pub fn fuse_pixel(
+pub(crate) fn fuse_pixel(
     u: &FuseUniform,
     x: u32,
     y: u32,
@@ -133,8 +142,8 @@ pub fn fuse_pixel(
     if !(rho > 0.0) {
         return (0, rho, weight);
     }
-    let (w, h) = (u.dims[0], u.dims[1]);
-    let [fx, fy, cx, cy] = u.intr;
+    let (w, h) = (u.width, u.height);
+    let (fx, fy, cx, cy) = (u.fx, u.fy, u.cx, u.cy);
     let z = 1.0 / rho;
     let pk = [(x as f32 - cx) / fx * z, (y as f32 - cy) / fy * z, z];
     let pc = xform(&u.fwd, pk);
@@ -160,14 +169,14 @@ pub fn fuse_pixel(
         return (2, rho, weight);
     }
     let rho_new = 1.0 / qk[2];
-    if (rho_new - rho).abs() > u.tol[0] + u.tol[1] * rho {
+    if (rho_new - rho).abs() > u.tol_abs + u.tol_rel * rho {
         return (2, rho, weight);
     }
-    let wn = u.tol[2];
+    let wn = u.new_weight;
     (
         3,
         (weight * rho + wn * rho_new) / (weight + wn),
-        (weight + wn).min(u.tol[3]),
+        (weight + wn).min(u.max_weight),
     )
 }
 
@@ -182,7 +191,17 @@ pub fn fuse_cpu(
     params: &FusionParams,
 ) -> FusionCounts {
     let u = FuseUniform::new(camera, cur_from_kf, params);
-    let w = camera.width as usize;
+    fuse_rows(kf_rho, kf_weight, cur_rho, &u)
+}
+
+/// [`fuse_pixel`] over every keyframe pixel, rows in parallel.
+fn fuse_rows(
+    kf_rho: &mut [f32],
+    kf_weight: &mut [f32],
+    cur_rho: &[f32],
+    u: &FuseUniform,
+) -> FusionCounts {
+    let w = (u.width as usize).max(1);
     kf_rho
         .par_chunks_mut(w)
         .zip(kf_weight.par_chunks_mut(w))
@@ -190,7 +209,7 @@ pub fn fuse_cpu(
         .map(|(y, (rr, ww))| {
             let mut c = FusionCounts::default();
             for x in 0..rr.len() {
-                let (code, r, wt) = fuse_pixel(&u, x as u32, y as u32, rr[x], ww[x], cur_rho);
+                let (code, r, wt) = fuse_pixel(u, x as u32, y as u32, rr[x], ww[x], cur_rho);
                 if code >= 1 {
                     c.valid += 1;
                 }
@@ -212,8 +231,48 @@ pub fn fuse_cpu(
         })
 }
 
+/// The keyframe fusion kernel of one backend, with the keyframe resident where it runs (the
+/// kernel interface [`KeyframeFuser`] is written against).
+pub(crate) trait FusionKernels: Send {
+    /// Takes a new keyframe: inverse depth `rho` (1/m, 0 = invalid) and weights.
+    fn start(&mut self, rho: Vec<f32>, weight: Vec<f32>) -> Result<(), SlamError>;
+    /// Fuses one frame's inverse depth into the resident keyframe.
+    fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError>;
+    /// The keyframe: `(rho, weight)`.
+    fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError>;
+    /// Bytes held, `(host, device)`.
+    fn memory_bytes(&self) -> (usize, usize);
+}
+
+/// The CPU mirror, with the keyframe in host memory.
+struct CpuFusion {
+    rho: Vec<f32>,
+    weight: Vec<f32>,
+}
+
+impl FusionKernels for CpuFusion {
+    fn start(&mut self, rho: Vec<f32>, weight: Vec<f32>) -> Result<(), SlamError> {
+        self.rho = rho;
+        self.weight = weight;
+        Ok(())
+    }
+
+    fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError> {
+        Ok(fuse_rows(&mut self.rho, &mut self.weight, cur_rho, u))
+    }
+
+    fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError> {
+        Ok((self.rho.clone(), self.weight.clone()))
+    }
+
+    fn memory_bytes(&self) -> (usize, usize) {
+        let f = std::mem::size_of::<f32>();
+        ((self.rho.capacity() + self.weight.capacity()) * f, 0)
+    }
+}
+
 /// The fusion kernel compiled on a device, with the keyframe's buffers resident there.
-pub struct GpuFusion {
+struct GpuFusion {
     ctx: Arc<GpuContext>,
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
@@ -225,7 +284,7 @@ pub struct GpuFusion {
 
 impl GpuFusion {
     /// Compiles `fuse.wgsl` on `ctx`.
-    pub fn new(ctx: Arc<GpuContext>) -> Result<Self, SlamError> {
+    fn new(ctx: Arc<GpuContext>) -> Result<Self, SlamError> {
         let src = shaders::assembled("fuse.wgsl").ok_or_else(|| GpuError::Shader {
             name: "fuse.wgsl".into(),
             message: "not embedded".into(),
@@ -249,21 +308,23 @@ impl GpuFusion {
             pixels: 0,
         })
     }
+}
 
+impl FusionKernels for GpuFusion {
     /// Uploads a new keyframe (`rho`, `weight`).
-    pub fn start(&mut self, rho: &[f32], weight: &[f32]) {
+    fn start(&mut self, rho: Vec<f32>, weight: Vec<f32>) -> Result<(), SlamError> {
         let ctx = &self.ctx;
         let n = rho.len();
         if self.pixels == n {
             if let Some((_, kr, kw, _)) = &self.buffers {
-                ctx.queue.write_buffer(kr, 0, bytemuck::cast_slice(rho));
-                ctx.queue.write_buffer(kw, 0, bytemuck::cast_slice(weight));
-                return;
+                ctx.queue.write_buffer(kr, 0, bytemuck::cast_slice(&rho));
+                ctx.queue.write_buffer(kw, 0, bytemuck::cast_slice(&weight));
+                return Ok(());
             }
         }
         let cur = ctx.storage("fuse current rho", (n * 4) as u64);
-        let kr = ctx.storage_init("fuse keyframe rho", rho);
-        let kw = ctx.storage_init("fuse keyframe weight", weight);
+        let kr = ctx.storage_init("fuse keyframe rho", &rho);
+        let kw = ctx.storage_init("fuse keyframe weight", &weight);
         let bind = ctx.bind_buffers(
             "fuse",
             &self.layout,
@@ -271,10 +332,11 @@ impl GpuFusion {
         );
         self.buffers = Some((cur, kr, kw, bind));
         self.pixels = n;
+        Ok(())
     }
 
     /// Fuses one frame into the resident keyframe; returns the pixel counts.
-    pub fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError> {
+    fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError> {
         let ctx = &self.ctx;
         let Some((cur, _, _, bind)) = &self.buffers else {
             return Err(SlamError::Internal("fusion before a keyframe".into()));
@@ -299,7 +361,7 @@ impl GpuFusion {
             });
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, bind, &[]);
-            pass.dispatch_workgroups(u.dims[0].div_ceil(16), u.dims[1].div_ceil(16), 1);
+            pass.dispatch_workgroups(u.width.div_ceil(16), u.height.div_ceil(16), 1);
         }
         ctx.queue.submit([enc.finish()]);
         let c: Vec<u32> = ctx.read_buffer(&self.counts, 4)?;
@@ -311,18 +373,21 @@ impl GpuFusion {
         })
     }
 
-    /// Bytes of the device buffers allocated (parameters, counts, and the resident keyframe
-    /// and current frame).
-    fn device_bytes(&self) -> usize {
+    /// Device: the buffers allocated (parameters, counts, and the resident keyframe and
+    /// current frame); nothing on the host.
+    fn memory_bytes(&self) -> (usize, usize) {
         let resident = self
             .buffers
             .as_ref()
             .map_or(0, |(cur, kr, kw, _)| cur.size() + kr.size() + kw.size());
-        (self.uniform.size() + self.counts.size() + resident) as usize
+        (
+            0,
+            (self.uniform.size() + self.counts.size() + resident) as usize,
+        )
     }
 
     /// Reads the keyframe back: `(rho, weight)`.
-    pub fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError> {
+    fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError> {
         let Some((_, kr, kw, _)) = &self.buffers else {
             return Err(SlamError::Internal("read before a keyframe".into()));
         };
@@ -332,19 +397,15 @@ impl GpuFusion {
     }
 }
 
-enum Engine {
-    Cpu,
-    Gpu(Box<GpuFusion>),
-}
-
 /// Accumulates frames into the current keyframe's inverse depth, on the GPU when the backend
-/// has one (the keyframe stays resident there) or with the CPU mirror.
+/// has one (the keyframe stays resident there) or with the CPU mirror. The backend is chosen
+/// once, in [`Self::new`].
 pub struct KeyframeFuser {
     camera: PinholeCamera,
     params: FusionParams,
-    engine: Engine,
-    rho: Vec<f32>,
-    weight: Vec<f32>,
+    kernels: Box<dyn FusionKernels>,
+    /// Pixels of the current keyframe (0 before the first).
+    pixels: usize,
 }
 
 impl KeyframeFuser {
@@ -354,46 +415,41 @@ impl KeyframeFuser {
         params: FusionParams,
         backend: &ComputeBackend,
     ) -> Result<Self, SlamError> {
-        let engine = match backend {
-            ComputeBackend::Cpu => Engine::Cpu,
-            ComputeBackend::Gpu(ctx) => Engine::Gpu(Box::new(GpuFusion::new(ctx.clone())?)),
+        let kernels: Box<dyn FusionKernels> = match backend {
+            ComputeBackend::Cpu => Box::new(CpuFusion {
+                rho: Vec::new(),
+                weight: Vec::new(),
+            }),
+            ComputeBackend::Gpu(ctx) => Box::new(GpuFusion::new(ctx.clone())?),
         };
         Ok(KeyframeFuser {
             camera,
             params,
-            engine,
-            rho: Vec::new(),
-            weight: Vec::new(),
+            kernels,
+            pixels: 0,
         })
     }
 
     /// Bytes this fuser holds, `(host, device)`: the keyframe's inverse depth and weights in
-    /// host memory, and on a GPU the buffers allocated for the resident keyframe, the frame
-    /// being fused and the kernel's parameters. Allocates nothing.
+    /// host memory on the CPU backend, and on a GPU the buffers allocated for the resident
+    /// keyframe, the frame being fused and the kernel's parameters. Allocates nothing.
     pub fn memory_bytes(&self) -> (usize, usize) {
-        let host = (self.rho.capacity() + self.weight.capacity()) * std::mem::size_of::<f32>();
-        let device = match &self.engine {
-            Engine::Cpu => 0,
-            Engine::Gpu(g) => g.device_bytes(),
-        };
-        (host, device)
+        self.kernels.memory_bytes()
     }
 
     /// Starts a keyframe from the inverse depth `rho` (1/m, 0 = invalid): weight 1 where valid.
-    pub fn start(&mut self, rho: &ImageF32) {
-        self.rho = rho
+    pub fn start(&mut self, rho: &ImageF32) -> Result<(), SlamError> {
+        let rho: Vec<f32> = rho
             .data
             .iter()
             .map(|&r| if r.is_finite() && r > 0.0 { r } else { 0.0 })
             .collect();
-        self.weight = self
-            .rho
+        let weight = rho
             .iter()
             .map(|&r| if r > 0.0 { 1.0 } else { 0.0 })
             .collect();
-        if let Engine::Gpu(g) = &mut self.engine {
-            g.start(&self.rho, &self.weight);
-        }
+        self.pixels = rho.len();
+        self.kernels.start(rho, weight)
     }
 
     /// Fuses a frame with inverse depth `cur_rho` whose pose is `cur_from_kf`.
@@ -403,37 +459,56 @@ impl KeyframeFuser {
         cur_from_kf: &Se3,
     ) -> Result<FusionCounts, SlamError> {
         if cur_rho.data.len() != (self.camera.width * self.camera.height) as usize
-            || self.rho.len() != cur_rho.data.len()
+            || self.pixels != cur_rho.data.len()
         {
             return Err(SlamError::Internal("fusion frame size mismatch".into()));
         }
-        match &mut self.engine {
-            Engine::Cpu => Ok(fuse_cpu(
-                &mut self.rho,
-                &mut self.weight,
-                &cur_rho.data,
-                &self.camera,
-                cur_from_kf,
-                &self.params,
-            )),
-            Engine::Gpu(g) => {
-                let u = FuseUniform::new(&self.camera, cur_from_kf, &self.params);
-                g.fuse(&cur_rho.data, &u)
-            }
-        }
+        let u = FuseUniform::new(&self.camera, cur_from_kf, &self.params);
+        self.kernels.fuse(&cur_rho.data, &u)
     }
 
     /// The fused keyframe: `(inverse depth, weights)` images.
     pub fn finish(&mut self) -> Result<(ImageF32, ImageF32), SlamError> {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
-        let (r, wt) = match &self.engine {
-            Engine::Cpu => (self.rho.clone(), self.weight.clone()),
-            Engine::Gpu(g) => g.read()?,
-        };
+        let (r, wt) = self.kernels.read()?;
         let rho = ImageF32::from_vec(w, h, r)
             .ok_or_else(|| SlamError::Internal("fused keyframe size".into()))?;
         let weight = ImageF32::from_vec(w, h, wt)
             .ok_or_else(|| SlamError::Internal("fused weight size".into()))?;
         Ok((rho, weight))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::FuseUniform;
+    use crate::gpu::{host_layout, layout_mismatches, shaders};
+
+    #[test]
+    fn fuse_uniform_matches_the_wgsl_layout() {
+        let host = host_layout!(FuseUniform {
+            width,
+            height,
+            _pad0 = _pad[0] stride 4,
+            _pad1 = _pad[1] stride 4,
+            fx,
+            fy,
+            cx,
+            cy,
+            rot0 = fwd[0] stride 16,
+            rot1 = fwd[1] stride 16,
+            rot2 = fwd[2] stride 16,
+            inv0 = inv[0] stride 16,
+            inv1 = inv[1] stride 16,
+            inv2 = inv[2] stride 16,
+            tol_abs,
+            tol_rel,
+            new_weight,
+            max_weight,
+        });
+        let src = shaders::assembled("fuse.wgsl").unwrap_or_default();
+        let size = std::mem::size_of::<FuseUniform>();
+        let bad = layout_mismatches(&src, "Params", &host, size);
+        assert!(bad.is_empty(), "{}", bad.join("\n"));
     }
 }

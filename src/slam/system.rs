@@ -357,7 +357,7 @@ impl Slam {
     ) -> Result<usize, SlamError> {
         let id = self.next_keyframe_id;
         self.next_keyframe_id += 1;
-        self.fuser.start(&frame.inverse_depth);
+        self.fuser.start(&frame.inverse_depth)?;
         let buffered = std::mem::take(&mut self.buffer);
         for (rho, frontworld_from_b) in &buffered {
             let b_from_kf = frontworld_from_b.inverse() * frontworld_from_camera;

@@ -1,7 +1,7 @@
 //! GPU host code of the ray caster (`shaders/raycast.wgsl`, CPU mirror in `raycast.rs`).
 //!
 //! The scene (primitives, BVH nodes, materials) and the camera's ray table are uploaded once;
-//! each frame writes a 96-byte uniform (pose and lighting), dispatches one invocation per
+//! each frame writes a uniform ([`RayParams`]: pose and lighting), dispatches one invocation per
 //! pixel and reads back colour/object and depth/incidence. The sensor model then runs on
 //! the CPU, identically for both backends.
 
@@ -16,6 +16,27 @@ use crate::gpu::GpuContext;
 
 const SHADER: &str = "raycast.wgsl";
 const WORKGROUP: u32 = 64;
+
+/// Uniform block of `raycast.wgsl` (`Params`, same layout; a test compares them).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RayParams {
+    /// Columns of the `world_from_camera` rotation in `[0..3]`.
+    pub(crate) rot0: [f32; 4],
+    pub(crate) rot1: [f32; 4],
+    pub(crate) rot2: [f32; 4],
+    /// Camera origin in the world (m) in `[0..3]`.
+    pub(crate) origin: [f32; 4],
+    /// Direction towards the light in `[0..3]`, ambient term in `[3]`.
+    pub(crate) light: [f32; 4],
+    /// Diffuse term.
+    pub(crate) diffuse: f32,
+    /// Rays per row and rows.
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    /// BVH nodes.
+    pub(crate) node_count: u32,
+}
 
 /// The WGSL ray caster with one scene and one camera's ray table uploaded.
 pub struct GpuRayCaster {
@@ -69,7 +90,7 @@ impl GpuRayCaster {
         let b_nodes = ctx.storage_init("synth nodes", &nodes);
         let b_mats = ctx.storage_init("synth materials", &materials);
         let b_rays = ctx.storage_init("synth rays", &ray_data);
-        let params = ctx.uniform("synth params", 96);
+        let params = ctx.uniform("synth params", std::mem::size_of::<RayParams>() as u64);
         let color_bytes = (pixels.max(1) * 16) as u64;
         let depth_bytes = (pixels.max(1) * 8) as u64;
         let out_color = ctx.storage("synth out color", color_bytes);
@@ -133,19 +154,20 @@ impl GpuRayCaster {
         // The kernel only needs the pixel count: width = pixels, height = 1.
         let w = self.pixels as u32;
         let l = self.lighting;
-        let mut u = [0f32; 24];
-        u[0..3].copy_from_slice(&r[0]);
-        u[4..7].copy_from_slice(&r[1]);
-        u[8..11].copy_from_slice(&r[2]);
-        u[12..15].copy_from_slice(&o);
-        u[16..20].copy_from_slice(&[l[0], l[1], l[2], l[3]]);
-        u[20] = l[4];
-        u[21] = f32::from_bits(w);
-        u[22] = f32::from_bits(1);
-        u[23] = f32::from_bits(self.node_count);
+        let u = RayParams {
+            rot0: [r[0][0], r[0][1], r[0][2], 0.0],
+            rot1: [r[1][0], r[1][1], r[1][2], 0.0],
+            rot2: [r[2][0], r[2][1], r[2][2], 0.0],
+            origin: [o[0], o[1], o[2], 0.0],
+            light: [l[0], l[1], l[2], l[3]],
+            diffuse: l[4],
+            width: w,
+            height: 1,
+            node_count: self.node_count,
+        };
         self.ctx
             .queue
-            .write_buffer(&self.params, 0, bytemuck::cast_slice(&u));
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&u));
         let groups = (self.pixels as u32).div_ceil(WORKGROUP);
         let gx = groups.min(32768);
         let gy = groups.div_ceil(gx);
@@ -181,5 +203,68 @@ impl GpuRayCaster {
                 object: c[3].to_bits(),
             })
             .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::raycast::{PackedMaterial, PackedNode, PackedPrim};
+    use super::RayParams;
+    use crate::gpu::{host_layout, layout_mismatches, shaders};
+    use std::mem::size_of;
+
+    #[test]
+    fn host_structs_match_the_wgsl_layouts() {
+        let src = shaders::assembled(super::SHADER).unwrap_or_default();
+        let structs = [
+            (
+                "Params",
+                host_layout!(RayParams {
+                    rot0,
+                    rot1,
+                    rot2,
+                    origin,
+                    light,
+                    diffuse,
+                    width,
+                    height,
+                    node_count,
+                }),
+                size_of::<RayParams>(),
+            ),
+            (
+                "Prim",
+                host_layout!(PackedPrim {
+                    center,
+                    row0 = rows[0] stride 16,
+                    row1 = rows[1] stride 16,
+                    row2 = rows[2] stride 16,
+                    anchor,
+                    extra,
+                }),
+                size_of::<PackedPrim>(),
+            ),
+            (
+                "Node",
+                host_layout!(PackedNode {
+                    bmin = min[0] stride 16,
+                    bmax = max[0] stride 16,
+                }),
+                size_of::<PackedNode>(),
+            ),
+            (
+                "Material",
+                host_layout!(PackedMaterial {
+                    color0,
+                    color1,
+                    params
+                }),
+                size_of::<PackedMaterial>(),
+            ),
+        ];
+        for (name, host, size) in structs {
+            let bad = layout_mismatches(&src, name, &host, size);
+            assert!(bad.is_empty(), "{}", bad.join("\n"));
+        }
     }
 }

@@ -282,9 +282,51 @@ pub enum RenderBackend {
     Gpu(Arc<GpuContext>),
 }
 
-enum Caster {
-    Cpu,
-    Gpu(Box<GpuRayCaster>),
+/// The ray-casting kernel of one backend (the interface [`Renderer`] is written against).
+pub(crate) trait RayCaster: Send {
+    /// Casts every ray of `rays` from `world_from_camera` through `scene`.
+    fn cast(
+        &mut self,
+        scene: &Scene,
+        rays: &RayTable,
+        world_from_camera: &Se3,
+    ) -> Result<Vec<CastSample>, SynthError>;
+    /// A short backend description.
+    fn name(&self) -> String;
+}
+
+/// The rayon mirror of `raycast.wgsl`.
+struct CpuRayCaster;
+
+impl RayCaster for CpuRayCaster {
+    fn cast(
+        &mut self,
+        scene: &Scene,
+        rays: &RayTable,
+        world_from_camera: &Se3,
+    ) -> Result<Vec<CastSample>, SynthError> {
+        Ok(cast_cpu(scene, rays, world_from_camera))
+    }
+
+    fn name(&self) -> String {
+        format!("cpu (rayon, {} threads)", rayon::current_num_threads())
+    }
+}
+
+impl RayCaster for GpuRayCaster {
+    /// The scene and rays were uploaded when the caster was made (for the renderer's own).
+    fn cast(
+        &mut self,
+        _scene: &Scene,
+        _rays: &RayTable,
+        world_from_camera: &Se3,
+    ) -> Result<Vec<CastSample>, SynthError> {
+        GpuRayCaster::cast(self, world_from_camera)
+    }
+
+    fn name(&self) -> String {
+        format!("gpu ({})", self.adapter_name())
+    }
 }
 
 /// Renders many frames of one scene through one camera, keeping the ray table (and, on the
@@ -293,7 +335,7 @@ pub struct Renderer {
     scene: Arc<Scene>,
     camera: CameraModel,
     rays: RayTable,
-    caster: Caster,
+    caster: Box<dyn RayCaster>,
 }
 
 impl Renderer {
@@ -305,11 +347,9 @@ impl Renderer {
     ) -> Result<Renderer, SynthError> {
         camera.validate()?;
         let rays = RayTable::new(&camera);
-        let caster = match backend {
-            RenderBackend::Cpu => Caster::Cpu,
-            RenderBackend::Gpu(ctx) => {
-                Caster::Gpu(Box::new(GpuRayCaster::new(ctx.clone(), &scene, &rays)?))
-            }
+        let caster: Box<dyn RayCaster> = match backend {
+            RenderBackend::Cpu => Box::new(CpuRayCaster),
+            RenderBackend::Gpu(ctx) => Box::new(GpuRayCaster::new(ctx.clone(), &scene, &rays)?),
         };
         Ok(Renderer {
             scene,
@@ -329,18 +369,12 @@ impl Renderer {
     }
     /// A short backend description.
     pub fn backend_name(&self) -> String {
-        match &self.caster {
-            Caster::Cpu => format!("cpu (rayon, {} threads)", rayon::current_num_threads()),
-            Caster::Gpu(g) => format!("gpu ({})", g.adapter_name()),
-        }
+        self.caster.name()
     }
 
     /// Ray-casts the clean samples (no sensor model).
     pub fn cast(&mut self, world_from_camera: &Se3) -> Result<Vec<CastSample>, SynthError> {
-        match &mut self.caster {
-            Caster::Cpu => Ok(cast_cpu(&self.scene, &self.rays, world_from_camera)),
-            Caster::Gpu(g) => g.cast(world_from_camera),
-        }
+        self.caster.cast(&self.scene, &self.rays, world_from_camera)
     }
 
     /// Renders one frame with the sensor model; `seed` drives the noise.
