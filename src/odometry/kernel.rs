@@ -56,7 +56,7 @@ pub struct PartialSums {
 
 impl PartialSums {
     /// Rounded to the f32 partial the kernels exchange.
-    pub fn to_partial(&self) -> Partial {
+    pub fn to_partial(self) -> Partial {
         Partial {
             h: self.h.map(|v| v as f32),
             g: self.g.map(|v| v as f32),
@@ -403,14 +403,12 @@ mod tests {
         }
     }
 
+    /// `(shader, struct, host fields and offsets, host size)`.
+    type Layout = (&'static str, &'static str, Vec<(&'static str, usize)>, usize);
+
     /// The host structs of the odometry kernels, field by field, as `odometry.wgsl` and
     /// `pyramid.wgsl` lay them out.
-    fn layouts() -> Vec<(
-        &'static str,
-        &'static str,
-        Vec<(&'static str, usize)>,
-        usize,
-    )> {
+    fn layouts() -> Vec<Layout> {
         use crate::gpu::host_layout;
         use std::mem::size_of;
         vec![

@@ -817,7 +817,7 @@ pub struct Odometry {
 }
 
 enum Inner {
-    Cpu(Tracker<CpuKernels>),
+    Cpu(Box<Tracker<CpuKernels>>),
     Gpu(Box<Tracker<GpuKernels>>),
 }
 
@@ -839,7 +839,7 @@ impl Odometry {
         backend: &ComputeBackend,
     ) -> Result<Self, OdometryError> {
         let inner = match backend {
-            ComputeBackend::Cpu => Inner::Cpu(Tracker::new_cpu(config, camera)?),
+            ComputeBackend::Cpu => Inner::Cpu(Box::new(Tracker::new_cpu(config, camera)?)),
             ComputeBackend::Gpu(ctx) => {
                 Inner::Gpu(Box::new(Tracker::new_gpu(config, camera, ctx.clone())?))
             }

@@ -241,13 +241,17 @@ impl Backend {
         query: &RgbdFrame,
         candidate_from_query_guess: Se3,
     ) -> Result<Refined, SlamError> {
-        let reference = self.keyframes[candidate].frame();
-        let a = self
-            .odometry
-            .align(&reference, query, candidate_from_query_guess.inverse())?;
+        // Each pyramid is built once, for the alignment and the covisibility.
+        let reference = self.odometry.prepare(&self.keyframes[candidate].frame())?;
+        let query = self.odometry.prepare(query)?;
+        let a = self.odometry.align_prepared(
+            &reference,
+            &query,
+            candidate_from_query_guess.inverse(),
+        )?;
         let cov = self
             .odometry
-            .covisibility_of(&reference, query, &a.cur_from_ref)?;
+            .covisibility_prepared(&reference, &query, &a.cur_from_ref)?;
         Ok((a.cur_from_ref.inverse(), a.covariance, cov))
     }
 
