@@ -99,7 +99,7 @@ fn main() -> anyhow::Result<()> {
             let mut odo = Odometry::new(cfg, cam, &ComputeBackend::Cpu)?;
             let al = odo.align(&a, &b, Se3::IDENTITY)?;
             let err = truth * al.cur_from_ref.inverse();
-            let cov = al.covariance.unwrap_or([[f64::NAN; 6]; 6]);
+            let cov = al.covariance.map_or([[f64::NAN; 6]; 6], |c| *c.rows());
             row[0] = err.translation.length() * 1e3;
             row[1] = err.angle().to_degrees();
             row[2 + m] = nees(&err.log(), &cov);

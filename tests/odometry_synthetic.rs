@@ -163,7 +163,7 @@ fn bilateral_covariance_pass(backend: &ComputeBackend) {
         let mut odo = Odometry::new(cfg, camera(), backend).expect("odometry");
         let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
         let c = al.covariance.expect("covariance");
-        let trace = (0..6).map(|i| c[i][i]).sum::<f64>();
+        let trace = (0..6).map(|i| c.rows()[i][i]).sum::<f64>();
         println!(
             "{} {covariance:?}: trace {trace:.3e}, condition {:.3e}, covariance pass {:.2} ms",
             backend.name(),

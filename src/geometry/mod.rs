@@ -11,8 +11,10 @@
 //! `a_from_b` is the covariance of that `d`. Moving it to another frame is an adjoint:
 //! `a_from_b * exp(d) * b_from_c = a_from_c * exp(Ad(c_from_b) d)`.
 
+mod covariance;
 mod se3;
 mod so3;
 
+pub use covariance::Covariance6;
 pub use se3::Se3;
 pub use so3::{skew, so3_exp, so3_log};

@@ -18,7 +18,7 @@ use super::lie::{
 };
 use super::solver::{Factor, Problem, SolveReport, SolverOptions};
 use super::GraphError;
-use crate::geometry::{skew, so3_log, Se3};
+use crate::geometry::{skew, so3_log, Covariance6, Se3};
 
 /// A pose type usable as a pose-graph vertex.
 pub trait Pose: Manifold + Copy + std::fmt::Debug {
@@ -791,6 +791,27 @@ pub fn sesync_weights(info: &[f64], n: usize, d: usize) -> (f64, f64) {
 }
 
 impl PoseGraph<Se3> {
+    /// Adds an edge whose measurement `from_from_to` has the uncertainty `covariance` (the
+    /// library's right perturbation, in the `to` frame; see [`Covariance6`]): its information
+    /// matrix is the inverse covariance. A covariance that is not positive definite gives
+    /// [`GraphError::InformationNotPositiveDefinite`].
+    pub fn add_edge_with_covariance(
+        &mut self,
+        from_id: i64,
+        to_id: i64,
+        from_from_to: Se3,
+        covariance: &Covariance6,
+    ) -> Result<usize, GraphError> {
+        let info = covariance
+            .information()
+            .ok_or(GraphError::InformationNotPositiveDefinite {
+                from: from_id,
+                to: to_id,
+            })?;
+        let info = info.iter().flatten().copied().collect();
+        self.add_edge(from_id, to_id, from_from_to, info)
+    }
+
     /// g2o's own chi2 for SE(3) edges: the error vector is `[E.t; q_xyz(E)]` (quaternion vector
     /// part with `w >= 0`) instead of the rotation vector.
     pub fn chi2_g2o_quaternion(&self) -> f64 {
@@ -829,6 +850,23 @@ impl PoseGraph<Se3> {
 mod tests {
     use super::*;
     use glam::DQuat;
+
+    #[test]
+    fn se3_edges_take_a_covariance() {
+        let mut g = PoseGraph3::default();
+        g.add_vertex(0, Se3::IDENTITY).unwrap();
+        g.add_vertex(1, Se3::IDENTITY).unwrap();
+        let z = Se3::exp(&[0.1, 0.0, 0.0, 0.0, 0.0, 0.1]);
+        let k = g
+            .add_edge_with_covariance(0, 1, z, &Covariance6::from_sigmas(0.01, 0.002))
+            .unwrap();
+        let info = &g.edges[k].information;
+        assert!((info[0] - 1e4).abs() < 1e-6 && (info[5 * 6 + 5] - 2.5e5).abs() < 1e-3);
+        assert!(matches!(
+            g.add_edge_with_covariance(0, 1, z, &Covariance6::ZERO),
+            Err(GraphError::InformationNotPositiveDefinite { from: 0, to: 1 })
+        ));
+    }
 
     fn check_jacobians<P: Pose>(xi: P, xj: P, z: P, tol: f64) {
         let d = P::DIM;

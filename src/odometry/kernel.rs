@@ -404,7 +404,12 @@ mod tests {
     }
 
     /// `(shader, struct, host fields and offsets, host size)`.
-    type Layout = (&'static str, &'static str, Vec<(&'static str, usize)>, usize);
+    type Layout = (
+        &'static str,
+        &'static str,
+        Vec<(&'static str, usize)>,
+        usize,
+    );
 
     /// The host structs of the odometry kernels, field by field, as `odometry.wgsl` and
     /// `pyramid.wgsl` lay them out.

@@ -3,6 +3,7 @@
 use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 
 use super::kernel::Partial;
+use crate::geometry::Covariance6;
 
 /// The IRLS normal equations of one iteration, summed in f64.
 #[derive(Clone, Debug)]
@@ -64,7 +65,7 @@ impl NormalEquations {
 
     /// Inverse of H (the estimate's covariance, twist order `[v; w]`) and the condition
     /// number of H.
-    pub fn covariance(&self) -> Option<([[f64; 6]; 6], f64)> {
+    pub fn covariance(&self) -> Option<(Covariance6, f64)> {
         let eig = SymmetricEigen::new(self.h);
         let max = eig.eigenvalues.max();
         let min = eig.eigenvalues.min();
@@ -78,6 +79,6 @@ impl NormalEquations {
                 *v = inv[(a, b)];
             }
         }
-        Some((c, max / min))
+        Some((Covariance6::from_rows(c), max / min))
     }
 }

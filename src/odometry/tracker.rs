@@ -10,7 +10,7 @@ use super::robust::{estimate_scale, update_scale, ScaleEstimate, ScaleMethod, NU
 use super::solver::NormalEquations;
 use super::OdometryError;
 use crate::camera::PinholeCamera;
-use crate::geometry::Se3;
+use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
 use crate::image::RgbdFrame;
 
@@ -66,7 +66,7 @@ pub struct Alignment {
     /// inverse of the Hessian on the finest level used, from the last Gauss-Newton iteration
     /// ([`CovarianceGradients::Raw`], the default) or from the covariance pass at the final
     /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`]).
-    pub covariance: Option<[[f64; 6]; 6]>,
+    pub covariance: Option<Covariance6>,
     /// Condition number of that Hessian.
     pub condition_number: f64,
     /// Per-level statistics, coarsest first.
@@ -107,8 +107,8 @@ pub struct TrackResult {
     pub world_from_camera: Se3,
     /// The frame's pose relative to the reference it was aligned to.
     pub cur_from_ref: Se3,
-    /// Covariance of `cur_from_ref` (see [`Alignment::covariance`]).
-    pub covariance: Option<[[f64; 6]; 6]>,
+    /// Covariance of the alignment to the reference (see [`Alignment::covariance`]).
+    pub covariance: Option<Covariance6>,
     /// Statistics.
     pub stats: FrameStats,
 }

@@ -8,7 +8,7 @@ use super::keyframe::{Keyframe, KeyframeLink};
 use super::memory::{keyframe_bytes, vec_bytes, MemoryAccount, MemoryBreakdown};
 use super::{information_from, SlamConfig, SlamError};
 use crate::camera::PinholeCamera;
-use crate::geometry::Se3;
+use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
 use crate::graph::{PoseGraph3, SolverOptions};
 use crate::image::{ImageF32, RgbdFrame};
@@ -95,7 +95,7 @@ pub(crate) fn loop_record_bytes(records: &Vec<LoopRecord>) -> usize {
 pub(crate) struct Relocalisation {
     pub keyframe: usize,
     pub keyframe_from_frame: Se3,
-    pub covariance: Option<[[f64; 6]; 6]>,
+    pub covariance: Option<Covariance6>,
     /// `world_from_keyframe` as the front-end knows it (front-end world).
     pub frontworld_from_keyframe: Se3,
 }
@@ -104,7 +104,7 @@ pub(crate) struct Relocalisation {
 /// description times (ms).
 type Described = (KeyframeDescription, Vec<Vec<bool>>, f64, f64);
 /// A refined loop: `candidate_from_query`, its covariance and the dense covisibility.
-type Refined = (Se3, Option<[[f64; 6]; 6]>, f64);
+type Refined = (Se3, Option<Covariance6>, f64);
 
 pub(crate) struct Backend {
     pub camera: PinholeCamera,

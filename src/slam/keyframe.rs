@@ -4,7 +4,7 @@ use glam::DVec3;
 use half::f16;
 
 use crate::camera::PinholeCamera;
-use crate::geometry::Se3;
+use crate::geometry::{Covariance6, Se3};
 use crate::image::{ImageF32, RgbdFrame};
 
 /// How a keyframe is attached to the map when it is created.
@@ -19,8 +19,8 @@ pub enum KeyframeLink {
         from: usize,
         /// `keyframe(from)_from_this`.
         from_from_this: Se3,
-        /// Covariance of the relative pose.
-        covariance: [[f64; 6]; 6],
+        /// Covariance of `from_from_this`.
+        covariance: Covariance6,
     },
     /// Relocalised against keyframe `from` after tracking was lost (or at the start of a
     /// session in a loaded map).
@@ -29,8 +29,8 @@ pub enum KeyframeLink {
         from: usize,
         /// `keyframe(from)_from_this`.
         from_from_this: Se3,
-        /// Covariance of the relative pose.
-        covariance: [[f64; 6]; 6],
+        /// Covariance of `from_from_this`.
+        covariance: Covariance6,
     },
 }
 

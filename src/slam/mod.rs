@@ -192,10 +192,10 @@ impl SlamConfig {
     }
 }
 
-/// Inverse of a 6x6 covariance as a row-major information matrix; a fallback diagonal
-/// (`sigma_t` metres, `sigma_r` radians) when it is missing or not positive definite.
+/// The information matrix of `covariance` as the pose graph takes it (row-major); a fallback
+/// diagonal (`sigma_t` metres, `sigma_r` radians) when it is missing or not positive definite.
 pub(crate) fn information_from(
-    covariance: Option<&[[f64; 6]; 6]>,
+    covariance: Option<&crate::geometry::Covariance6>,
     sigma_t: f64,
     sigma_r: f64,
 ) -> Vec<f64> {
@@ -207,23 +207,8 @@ pub(crate) fn information_from(
         }
         m
     };
-    let Some(c) = covariance else {
-        return fallback();
-    };
-    let m = nalgebra::Matrix6::from_fn(|i, j| 0.5 * (c[i][j] + c[j][i]));
-    if !m.iter().all(|v| v.is_finite()) {
-        return fallback();
-    }
-    match m.cholesky() {
-        Some(ch) => {
-            let inv = ch.inverse();
-            let out: Vec<f64> = (0..36).map(|k| inv[(k / 6, k % 6)]).collect();
-            if out.iter().all(|v| v.is_finite()) {
-                out
-            } else {
-                fallback()
-            }
-        }
+    match covariance.and_then(|c| c.information()) {
+        Some(info) => info.iter().flatten().copied().collect(),
         None => fallback(),
     }
 }

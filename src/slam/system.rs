@@ -15,7 +15,7 @@ use super::map::Map;
 use super::memory::{vec_bytes, MemoryBreakdown, MemoryReport};
 use super::{information_from, SlamConfig, SlamError};
 use crate::camera::PinholeCamera;
-use crate::geometry::Se3;
+use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
 use crate::graph::{PoseGraph3, SolverOptions};
 use crate::image::{ImageF32, RgbdFrame};
@@ -151,7 +151,7 @@ pub struct Slam {
     /// Covariance of the current keyframe relative to the chain's anchor (the newest odometry
     /// reference since the keyframe started), as a right perturbation in the anchor's frame
     /// (`[v; w]`, m and rad).
-    chain_covariance: [[f64; 6]; 6],
+    chain_covariance: Covariance6,
     /// Front-end pose of the chain's anchor.
     frontworld_from_anchor: Se3,
     lost: bool,
@@ -165,40 +165,9 @@ pub struct Slam {
     map_keyframes: usize,
 }
 
-fn add_cov(a: &mut [[f64; 6]; 6], b: &[[f64; 6]; 6]) {
-    for i in 0..6 {
-        for j in 0..6 {
-            a[i][j] += b[i][j];
-        }
-    }
-}
-
-/// Moves the covariance of a right perturbation of `x_from_a` (in frame `a`) to frame `b`,
-/// given `a_from_b`: `x_from_a exp(d) a_from_b = x_from_a a_from_b exp(Ad(b_from_a) d)`, so
-/// the result is `Ad(b_from_a) cov Ad(b_from_a)^T`.
-fn transport_covariance(cov: &[[f64; 6]; 6], a_from_b: &Se3) -> [[f64; 6]; 6] {
-    let ad = a_from_b.inverse().adjoint();
-    let mut t = [[0.0; 6]; 6];
-    for i in 0..6 {
-        for j in 0..6 {
-            t[i][j] = (0..6).map(|k| ad[i][k] * cov[k][j]).sum();
-        }
-    }
-    let mut out = [[0.0; 6]; 6];
-    for i in 0..6 {
-        for j in 0..6 {
-            out[i][j] = (0..6).map(|k| t[i][k] * ad[j][k]).sum();
-        }
-    }
-    out
-}
-
-fn default_cov() -> [[f64; 6]; 6] {
-    let mut c = [[0.0; 6]; 6];
-    for (i, row) in c.iter_mut().enumerate() {
-        row[i] = 1e-6;
-    }
-    c
+/// The covariance of a link whose odometry gave none (1 mm, 1 mrad).
+fn default_cov() -> Covariance6 {
+    Covariance6::from_diagonal([1e-6; 6])
 }
 
 impl Slam {
@@ -242,7 +211,7 @@ impl Slam {
             current: None,
             next_keyframe_id: map_keyframes,
             buffer: std::collections::VecDeque::new(),
-            chain_covariance: [[0.0; 6]; 6],
+            chain_covariance: Covariance6::ZERO,
             frontworld_from_anchor: Se3::IDENTITY,
             lost: map_keyframes > 0,
             last_pose: None,
@@ -371,7 +340,7 @@ impl Slam {
             frontworld_from_keyframe: frontworld_from_camera,
             link,
         });
-        self.chain_covariance = [[0.0; 6]; 6];
+        self.chain_covariance = Covariance6::ZERO;
         self.frontworld_from_anchor = frontworld_from_camera;
         Ok(id)
     }
@@ -578,10 +547,9 @@ impl Slam {
         // first-order composition).
         let anchor_from_camera = self.frontworld_from_anchor.inverse() * frontworld_from_camera;
         if r.stats.new_reference {
-            self.chain_covariance =
-                transport_covariance(&self.chain_covariance, &anchor_from_camera);
-            if let Some(c) = &r.covariance {
-                add_cov(&mut self.chain_covariance, c);
+            self.chain_covariance = self.chain_covariance.transported(&anchor_from_camera);
+            if let Some(c) = r.covariance {
+                self.chain_covariance = self.chain_covariance + c;
             }
             self.frontworld_from_anchor = frontworld_from_camera;
         }
@@ -604,14 +572,14 @@ impl Slam {
             let mut covariance = if r.stats.new_reference {
                 self.chain_covariance
             } else {
-                transport_covariance(&self.chain_covariance, &anchor_from_camera)
+                self.chain_covariance.transported(&anchor_from_camera)
             };
             if !r.stats.new_reference {
-                if let Some(c) = &r.covariance {
-                    add_cov(&mut covariance, c);
+                if let Some(c) = r.covariance {
+                    covariance = covariance + c;
                 }
             }
-            if covariance.iter().flatten().all(|v| *v == 0.0) {
+            if covariance.is_zero() {
                 covariance = default_cov();
             }
             self.finish_keyframe()?;
@@ -835,15 +803,8 @@ mod tests {
         let b_from_c = Se3::exp(&[0.8, 0.2, -0.3, -0.3, 0.5, 0.1]);
         let sd1 = [0.01, 0.02, 0.005, 0.004, 0.01, 0.002];
         let sd2 = [0.003, 0.001, 0.002, 0.001, 0.002, 0.003];
-        let diag = |s: &[f64; 6]| {
-            let mut c = [[0.0; 6]; 6];
-            for i in 0..6 {
-                c[i][i] = s[i] * s[i];
-            }
-            c
-        };
-        let mut predicted = transport_covariance(&diag(&sd1), &b_from_c);
-        add_cov(&mut predicted, &diag(&sd2));
+        let diag = |s: &[f64; 6]| Covariance6::from_diagonal(s.map(|v| v * v));
+        let predicted = diag(&sd1).transported(&b_from_c) + diag(&sd2);
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         let n = 40_000;
         let mut acc = [[0.0; 6]; 6];
@@ -866,9 +827,9 @@ mod tests {
             }
         }
         // Without the adjoint (the old sum C1 + C2) the prediction is far off.
-        let mut naive = diag(&sd1);
-        add_cov(&mut naive, &diag(&sd2));
-        let err = |c: &[[f64; 6]; 6]| -> f64 {
+        let naive = diag(&sd1) + diag(&sd2);
+        let err = |c: &Covariance6| -> f64 {
+            let c = c.rows();
             let mut num = 0.0;
             let mut den = 0.0;
             for i in 0..6 {
