@@ -34,6 +34,7 @@ impl Terms {
 #[serde(rename_all = "lowercase")]
 pub enum GeometricParam {
     /// Inverse depth, 1/m (the thesis' choice: noise roughly constant over depth).
+    #[serde(alias = "inverse-depth", alias = "inverse_depth")]
     InverseDepth,
     /// Depth, m (for comparison).
     Depth,
@@ -73,7 +74,7 @@ pub enum CovarianceGradients {
 
 /// Odometry options.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct OdometryConfig {
     /// Pyramid levels (level 0 = full resolution).
     pub levels: usize,
