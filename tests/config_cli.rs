@@ -39,14 +39,20 @@ fn dump<T: DeserializeOwned>(command: &str) -> T {
 
 #[test]
 fn config_dump_parses_back_to_the_defaults() {
-    assert_eq!(dump::<SlamConfig>("slam").odometry, OdometryConfig::default());
+    assert_eq!(
+        dump::<SlamConfig>("slam").odometry,
+        OdometryConfig::default()
+    );
     let slam: SlamConfig = dump("slam");
     // SlamConfig has no PartialEq (its parts do): compare the serialised forms.
     assert_eq!(
         serde_json::to_value(&slam).expect("json"),
         serde_json::to_value(SlamConfig::default()).expect("json")
     );
-    assert_eq!(dump::<OdometryConfig>("odometry"), OdometryConfig::default());
+    assert_eq!(
+        dump::<OdometryConfig>("odometry"),
+        OdometryConfig::default()
+    );
     assert_eq!(dump::<SegmentConfig>("segment"), SegmentConfig::default());
     assert_eq!(
         dump::<LoopDetectorParams>("place"),

@@ -147,7 +147,11 @@ pub struct BackendArgs {
 
 /// Writes the provenance of `output` (the configuration, version, commit, backend and
 /// command line) to its sidecar `<output>.json` and says so in the log.
-pub fn write_sidecar<T: Serialize>(output: &Path, config: &T, backend: &ComputeBackend) -> Result<()> {
+pub fn write_sidecar<T: Serialize>(
+    output: &Path,
+    config: &T,
+    backend: &ComputeBackend,
+) -> Result<()> {
     let path = Provenance::new(config, backend)?.write_sidecar(output)?;
     log::info!("provenance in {}", path.display());
     Ok(())

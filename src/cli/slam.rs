@@ -183,7 +183,15 @@ pub fn run(a: Args) -> Result<()> {
     };
     let provenance = Provenance::new(&config, &backend)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
-    let outcome = run_slam(&a, &mut source, config, &backend, vocabulary, map, &provenance);
+    let outcome = run_slam(
+        &a,
+        &mut source,
+        config,
+        &backend,
+        vocabulary,
+        map,
+        &provenance,
+    );
     match outcome {
         Ok(()) => Ok(()),
         Err(e) => Err(e.context(format!(

@@ -149,7 +149,11 @@ impl FromStr for Assignment {
         let (key, raw) = s
             .split_once('=')
             .ok_or_else(|| bad("expected KEY.PATH=VALUE"))?;
-        let path: Vec<String> = key.trim().split('.').map(|p| p.trim().to_string()).collect();
+        let path: Vec<String> = key
+            .trim()
+            .split('.')
+            .map(|p| p.trim().to_string())
+            .collect();
         if path.iter().any(String::is_empty) {
             return Err(bad("empty key in the path"));
         }
@@ -284,7 +288,10 @@ fn describe(origin: &str, path: &str, message: &str) -> SettingsError {
 }
 
 /// `base` with the keys of the file at `path` (TOML or JSON by extension) put over it.
-pub fn load_file<T: Serialize + DeserializeOwned>(base: &T, path: &Path) -> Result<T, SettingsError> {
+pub fn load_file<T: Serialize + DeserializeOwned>(
+    base: &T,
+    path: &Path,
+) -> Result<T, SettingsError> {
     let mut tree = to_tree(base)?;
     merge(&mut tree, read_tree(path)?);
     from_tree(tree, &path.display().to_string())
@@ -308,7 +315,10 @@ fn set_path(tree: &mut Value, a: &Assignment) -> Result<(), SettingsError> {
                 let len = items.len();
                 let index: usize = key.parse().map_err(|_| SettingsError::Assignment {
                     assignment: a.text.clone(),
-                    why: format!("`{}` is a list: index it with a number", a.path[..i].join(".")),
+                    why: format!(
+                        "`{}` is a list: index it with a number",
+                        a.path[..i].join(".")
+                    ),
                 })?;
                 items
                     .get_mut(index)
@@ -395,7 +405,10 @@ impl Provenance {
     pub fn new<T: Serialize>(config: &T, backend: &ComputeBackend) -> Result<Self, SettingsError> {
         let (name, adapter) = match backend {
             ComputeBackend::Cpu => ("cpu", None),
-            ComputeBackend::Gpu(g) => ("gpu", Some(format!("{} ({:?})", g.info.name, g.info.backend))),
+            ComputeBackend::Gpu(g) => (
+                "gpu",
+                Some(format!("{} ({:?})", g.info.name, g.info.backend)),
+            ),
         };
         Ok(Provenance {
             rgbid_version: VERSION.to_string(),
@@ -498,7 +511,10 @@ mod tests {
             "{e}"
         );
         let e = apply_assignments(&Outer::default(), &[set("nope.a=2")]).unwrap_err();
-        assert!(matches!(&e, SettingsError::UnknownKey { key, .. } if key == "nope"), "{e}");
+        assert!(
+            matches!(&e, SettingsError::UnknownKey { key, .. } if key == "nope"),
+            "{e}"
+        );
         let e = apply_assignments(&Outer::default(), &[set("flag=maybe")]).unwrap_err();
         assert!(
             matches!(&e, SettingsError::Invalid { key, origin, .. } if key == "flag" && origin.contains("flag=maybe")),
@@ -531,7 +547,10 @@ mod tests {
         std::fs::write(&toml_path, "[inner]\nb = 1\n").expect("write");
         let e = load_file(&base, &toml_path).unwrap_err();
         let text = e.to_string();
-        assert!(text.contains("inner.b") && text.contains("c.toml"), "{text}");
+        assert!(
+            text.contains("inner.b") && text.contains("c.toml"),
+            "{text}"
+        );
 
         std::fs::write(&toml_path, "[inner\n").expect("write");
         assert!(matches!(

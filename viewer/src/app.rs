@@ -332,7 +332,10 @@ impl ViewerApp {
                     self.message = format!("open: {e:#}");
                 }
             }
-            if ui.button(format!("synth {}", SynthOptions::DEFAULT_SPEC)).clicked() {
+            if ui
+                .button(format!("synth {}", SynthOptions::DEFAULT_SPEC))
+                .clicked()
+            {
                 let spec = SynthOptions::default().spec_of(SynthOptions::DEFAULT_SPEC, 0, None);
                 let mut cfg = match spec {
                     Ok(spec) => RunConfig::new(spec),
