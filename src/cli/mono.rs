@@ -10,13 +10,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::UnifiedCamera;
 use rgbid::eval::ate::ate;
 use rgbid::experiments::mono::{render, run as run_synthetic, SyntheticCamera, SyntheticSpec};
+use rgbid::gpu::ComputeBackend;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::mono::{load_camera, FrameReport, ImageSequence, MonoConfig, MonoSlam, PatchMode};
 use rgbid::trajectory::TimedPose;
 
 use super::bench::median;
 use super::options::{write_sidecar, ConfigArgs};
-use rgbid::gpu::ComputeBackend;
 
 /// Patch modes of `--patch`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

@@ -8,11 +8,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::geometry::Se3;
 use rgbid::image::{rgb_to_intensity, ImageF32};
 use rgbid::io::tum::{OpenOptions, TumSequence};
-
-use super::options::ConfigArgs;
 use rgbid::place::{
     extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary,
 };
+
+use super::options::ConfigArgs;
 
 /// Subcommands of `rgbid place`.
 #[derive(clap::Subcommand)]
