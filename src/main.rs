@@ -51,6 +51,10 @@ enum Command {
     Scale(cli::scale::Args),
     /// Monocular EKF SLAM for pinhole, fisheye and catadioptric cameras (unified model).
     Mono(Box<cli::mono::Args>),
+    /// Configurations as data: `rgbid config dump --command slam` prints the defaults as
+    /// TOML (a starting point for `--config`).
+    #[command(subcommand)]
+    Config(cli::config::Command),
     /// List the GPU adapters wgpu can see.
     Adapters,
 }
@@ -85,6 +89,7 @@ fn run(command: Command) -> Result<()> {
         Command::Slam(a) => cli::slam::run(a),
         Command::Scale(a) => cli::scale::run(a),
         Command::Mono(a) => cli::mono::run(*a),
+        Command::Config(c) => cli::config::run(c),
         Command::Adapters => {
             let list = rgbid::gpu::describe_adapters();
             if list.is_empty() {

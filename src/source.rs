@@ -78,6 +78,105 @@ impl SourceSpec {
     }
 }
 
+/// The options that describe a generated sequence, shared by `rgbid slam`, `rgbid demo` and
+/// the viewer (with the `clap` feature, a `clap::Args` group: `--synth`, `--frames`, `--laps`,
+/// `--width`, `--seed`).
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+pub struct SynthOptions {
+    /// Generate the sequence instead of reading a folder: `SCENE:TRAJECTORY` (e.g.
+    /// `office:loop`; `rgbid synth --help` lists the names). `rgbid demo` uses `office:loop`
+    /// when it is not given.
+    #[cfg_attr(feature = "clap", arg(long, value_name = "SCENE:TRAJECTORY"))]
+    pub synth: Option<String>,
+    /// Frames of the generated sequence, at 30 per second (>= 1).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().frames))]
+    pub frames: usize,
+    /// Laps of a `loop` trajectory over the frames (> 0; the same closed path again, so a
+    /// second lap revisits every place of the first: 1.3 revisits the start for the last
+    /// 30 % of the frames). Other trajectories ignore it.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().laps))]
+    pub laps: f64,
+    /// Image width of the generated sequence in pixels (the height is 3/4 of it).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().width))]
+    pub width: u32,
+    /// Seed of the generated scene, trajectory and sensor noise.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().seed))]
+    pub seed: u64,
+}
+
+impl Default for SynthOptions {
+    /// 390 frames (13 s) of 1.3 laps at 320 x 240, seed 7: the demo's closed loop, which
+    /// runs in about a minute on two cores without a GPU.
+    fn default() -> Self {
+        SynthOptions {
+            synth: None,
+            frames: 390,
+            laps: 1.3,
+            width: 320,
+            seed: 7,
+        }
+    }
+}
+
+impl SynthOptions {
+    /// The generated sequence when none is named (`rgbid demo`, the viewer's button).
+    pub const DEFAULT_SPEC: &'static str = "office:loop";
+
+    /// The generated sequence these options describe, or `None` without `--synth`.
+    /// `max_frames` caps the frames; `session` is the scene's session (0 = as generated).
+    pub fn spec(
+        &self,
+        session: u32,
+        max_frames: Option<usize>,
+    ) -> Result<Option<SourceSpec>, SourceError> {
+        match &self.synth {
+            Some(spec) => self.spec_of(spec, session, max_frames).map(Some),
+            None => Ok(None),
+        }
+    }
+
+    /// The sequence `spec` (`SCENE:TRAJECTORY`) with these frames, laps, width and seed.
+    pub fn spec_of(
+        &self,
+        spec: &str,
+        session: u32,
+        max_frames: Option<usize>,
+    ) -> Result<SourceSpec, SourceError> {
+        let frames = max_frames.unwrap_or(self.frames).min(self.frames);
+        if frames == 0 {
+            return Err(SourceError::Invalid("--frames must be >= 1".into()));
+        }
+        if !(self.laps.is_finite() && self.laps > 0.0) {
+            return Err(SourceError::Invalid(format!(
+                "--laps must be > 0 (got {})",
+                self.laps
+            )));
+        }
+        let traj = spec.split_once(':').map_or("loop", |(_, t)| t);
+        let lap_seconds = if TrajectoryKind::from_name(traj)? == TrajectoryKind::Loop {
+            Some(
+                SequenceConfig {
+                    frames,
+                    ..Default::default()
+                }
+                .duration()
+                    / self.laps,
+            )
+        } else {
+            None
+        };
+        Ok(SourceSpec::Synth {
+            spec: spec.to_string(),
+            frames,
+            width: self.width,
+            seed: self.seed,
+            session,
+            lap_seconds,
+        })
+    }
+}
+
 /// An opened source of frames.
 pub enum FrameSource {
     /// A TUM folder, streamed from disk.

@@ -17,7 +17,7 @@ use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::odometry::{Odometry, OdometryConfig, OdometryError};
 use rgbid::trajectory::TimedPose;
 
-use super::odometry::OdometryOptions;
+use super::options::{ConfigArgs, OdometryOptions};
 
 /// Subcommands of `rgbid bench`.
 #[derive(clap::Subcommand)]
@@ -366,8 +366,14 @@ pub struct OdometryBench {
     /// e.g. `docs/results/odometry_redkitchen.json` for `scripts/results.py`.
     #[arg(long, value_name = "FILE")]
     pub json: Option<PathBuf>,
+    /// Configuration: an `OdometryConfig` file (`rgbid config dump --command odometry`).
+    #[command(flatten)]
+    pub config: ConfigArgs,
     #[command(flatten)]
     pub odometry: OdometryOptions,
+    /// Use the GPU adapter whose name contains this (case-insensitive).
+    #[arg(long)]
+    pub adapter: Option<String>,
 }
 
 /// One row of the result table (and of the `--json` report).
@@ -459,7 +465,7 @@ fn rss_mib() -> (Option<f64>, Option<f64>) {
 }
 
 fn odometry(a: OdometryBench) -> Result<()> {
-    let config = a.odometry.config()?;
+    let config = a.odometry.config(&a.config)?;
     let mut opts = OpenOptions {
         max_frames: a.max_frames,
         ..Default::default()
@@ -483,7 +489,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
     {
         let backend = match name {
             "cpu" => ComputeBackend::Cpu,
-            "gpu" => match select_backend(BackendChoice::Gpu, a.odometry.adapter.as_deref()) {
+            "gpu" => match select_backend(BackendChoice::Gpu, a.adapter.as_deref()) {
                 Ok(b) => b,
                 Err(e) => {
                     println!("backend gpu: unavailable ({e})");

@@ -1,11 +1,13 @@
 //! Subcommand implementations of the `rgbid` binary (one file each).
 
 pub mod bench;
+pub mod config;
 pub mod demo;
 pub mod eval;
 pub mod graph;
 pub mod mono;
 pub mod odometry;
+pub mod options;
 pub mod place;
 pub mod report;
 pub mod scale;

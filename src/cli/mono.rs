@@ -10,11 +10,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::UnifiedCamera;
 use rgbid::eval::ate::ate;
 use rgbid::experiments::mono::{render, run as run_synthetic, SyntheticCamera, SyntheticSpec};
+use rgbid::gpu::ComputeBackend;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::mono::{load_camera, FrameReport, ImageSequence, MonoConfig, MonoSlam, PatchMode};
 use rgbid::trajectory::TimedPose;
 
 use super::bench::median;
+use super::options::{write_sidecar, ConfigArgs};
 
 /// Patch modes of `--patch`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -50,18 +52,23 @@ pub struct Args {
     /// Patch mode (default: warped for xi > 0, plain for pinhole cameras).
     #[arg(long, value_enum)]
     patch: Option<PatchArg>,
-    /// ZNCC threshold of a match.
-    #[arg(long, default_value_t = 0.8)]
-    zncc: f64,
-    /// Landmarks the system keeps predicted visible.
-    #[arg(long, default_value_t = 40)]
-    target_visible: usize,
-    /// Most landmarks in the filter state.
-    #[arg(long, default_value_t = 120)]
-    max_landmarks: usize,
-    /// Initial inverse depth of new landmarks, 1/m (sets the map's nominal scale).
-    #[arg(long, default_value_t = 0.5)]
-    inverse_depth: f64,
+    /// ZNCC threshold of a match, in (-1, 1) (`zncc_threshold`) [default: 0.8].
+    #[arg(long)]
+    zncc: Option<f64>,
+    /// Landmarks the system keeps predicted visible (`target_visible`) [default: 40].
+    #[arg(long)]
+    target_visible: Option<usize>,
+    /// Most landmarks in the filter state, at least --target-visible (`max_landmarks`)
+    /// [default: 120].
+    #[arg(long)]
+    max_landmarks: Option<usize>,
+    /// Initial inverse depth of new landmarks, 1/m; sets the map's nominal scale
+    /// (`initial_inverse_depth`) [default: 0.5].
+    #[arg(long)]
+    inverse_depth: Option<f64>,
+    /// Configuration: a `MonoConfig` file (`rgbid config dump --command mono`).
+    #[command(flatten)]
+    config: ConfigArgs,
     /// Run on a generated sequence (in memory, CPU renderer) instead of SEQ and report the
     /// Sim(3)-aligned error against its ground truth.
     #[arg(long, value_enum)]
@@ -104,21 +111,39 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     bar
 }
 
-fn config(args: &Args, camera: &UnifiedCamera) -> MonoConfig {
-    let patch_mode = match args.patch {
-        Some(PatchArg::Warped) => PatchMode::Warped,
-        Some(PatchArg::Plain) => PatchMode::Plain,
-        None if camera.xi > 0.0 => PatchMode::Warped,
-        None => PatchMode::Plain,
-    };
-    MonoConfig {
-        patch_mode,
-        zncc_threshold: args.zncc,
-        target_visible: args.target_visible,
-        max_landmarks: args.max_landmarks.max(args.target_visible),
-        initial_inverse_depth: args.inverse_depth,
+/// The configuration: defaults (patch mode by the camera), `--config`, the flags, `--set`.
+fn config(args: &Args, camera: &UnifiedCamera) -> Result<MonoConfig> {
+    let base = MonoConfig {
+        patch_mode: if camera.xi > 0.0 {
+            PatchMode::Warped
+        } else {
+            PatchMode::Plain
+        },
         ..MonoConfig::default()
-    }
+    };
+    let cfg = args.config.resolve(base, |c| {
+        match args.patch {
+            Some(PatchArg::Warped) => c.patch_mode = PatchMode::Warped,
+            Some(PatchArg::Plain) => c.patch_mode = PatchMode::Plain,
+            None => {}
+        }
+        if let Some(v) = args.zncc {
+            c.zncc_threshold = v;
+        }
+        if let Some(v) = args.target_visible {
+            c.target_visible = v;
+            c.max_landmarks = c.max_landmarks.max(v);
+        }
+        if let Some(v) = args.max_landmarks {
+            c.max_landmarks = v.max(c.target_visible);
+        }
+        if let Some(v) = args.inverse_depth {
+            c.initial_inverse_depth = v;
+        }
+        Ok(())
+    })?;
+    cfg.validate()?;
+    Ok(cfg)
 }
 
 fn synthetic_spec(args: &Args, kind: SynthArg) -> SyntheticSpec {
@@ -156,7 +181,7 @@ pub fn run(args: Args) -> Result<()> {
         .unwrap_or_else(|| seq_dir.join("camera.json"));
     let camera = load_camera(&camera_path)
         .with_context(|| format!("camera file {}", camera_path.display()))?;
-    let cfg = config(&args, &camera);
+    let cfg = config(&args, &camera)?;
     let mut slam = MonoSlam::new(camera, cfg.clone())?;
     let bar = progress(seq.len(), "mono");
     let mut reports = Vec::with_capacity(seq.len());
@@ -179,6 +204,7 @@ pub fn run(args: Args) -> Result<()> {
         .collect();
     if let Some(out) = &args.out {
         write_tum(out, &estimate)?;
+        write_sidecar(out, &cfg, &ComputeBackend::Cpu)?;
         println!("wrote {} poses to {}", estimate.len(), out.display());
     }
     summary(&reports, &slam, cfg.patch_mode);
@@ -273,10 +299,11 @@ fn synthetic(args: &Args, kind: SynthArg) -> Result<()> {
         spec.trajectory,
         t0.elapsed().as_secs_f64()
     );
-    let cfg = config(args, &frames.camera);
+    let cfg = config(args, &frames.camera)?;
     let r = run_synthetic(&frames, &cfg)?;
     if let Some(out) = &args.out {
         write_tum(out, &r.estimate)?;
+        write_sidecar(out, &cfg, &ComputeBackend::Cpu)?;
         println!("wrote {} poses to {}", r.estimate.len(), out.display());
     }
     let n = r.reports.len().max(1) as f64;
@@ -327,6 +354,7 @@ fn table21(args: &Args) -> Result<()> {
         "{:<8} {:>6} {:>6} {:>7} {:>7} {:>10} {:>8}",
         "patch", "zncc", "FI", "Rm", "Rf", "ATE [m]", "ms/frame"
     );
+    let base = config(args, &frames.camera)?;
     let bar = progress(6, "table 2.1");
     let mut rows = Vec::new();
     for zncc in [0.8, 0.9, 0.95] {
@@ -334,10 +362,7 @@ fn table21(args: &Args) -> Result<()> {
             let cfg = MonoConfig {
                 patch_mode: mode,
                 zncc_threshold: zncc,
-                target_visible: args.target_visible,
-                max_landmarks: args.max_landmarks.max(args.target_visible),
-                initial_inverse_depth: args.inverse_depth,
-                ..MonoConfig::default()
+                ..base.clone()
             };
             let line = match run_synthetic(&frames, &cfg) {
                 Ok(r) => {

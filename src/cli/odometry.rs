@@ -5,98 +5,13 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use rgbid::gpu::{select_backend, BackendChoice};
+use rgbid::gpu::select_backend;
 use rgbid::io::trajectory::write_tum;
 use rgbid::io::tum::{OpenOptions, TumSequence};
-use rgbid::odometry::{
-    Estimator, GeometricParam, Odometry, OdometryConfig, OdometryError, ScaleMethod, Terms,
-};
+use rgbid::odometry::{Odometry, OdometryError};
 use rgbid::trajectory::TimedPose;
 
-/// Options shared by every command that runs the odometry.
-#[derive(clap::Args, Clone, Debug)]
-pub struct OdometryOptions {
-    /// JSON file with odometry options (see `OdometryConfig`; missing keys keep defaults).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Robust estimator.
-    #[arg(long, value_enum)]
-    pub estimator: Option<Estimator>,
-    /// Scale estimation: ml (maximum likelihood), mad, or fixed (sigmaFix).
-    #[arg(long, value_enum)]
-    pub scale: Option<ScaleMethod>,
-    /// Residual terms.
-    #[arg(long, value_enum)]
-    pub terms: Option<Terms>,
-    /// Geometric error parametrisation.
-    #[arg(long, value_enum)]
-    pub geometric: Option<GeometricParam>,
-    /// Pyramid levels.
-    #[arg(long)]
-    pub levels: Option<usize>,
-    /// Finest pyramid level used (0 = full resolution).
-    #[arg(long)]
-    pub stop_level: Option<usize>,
-    /// Levels wider than this many pixels are not optimised (default 320: at 640x480 the
-    /// finest optimised level is 320x240); 0 optimises every level down to --stop-level.
-    #[arg(long)]
-    pub max_width: Option<usize>,
-    /// Align every frame to the previous one (no reference-frame keeping).
-    #[arg(long)]
-    pub frame_to_frame: bool,
-    /// Covisibility ratio below which the reference frame is switched.
-    #[arg(long)]
-    pub covisibility: Option<f64>,
-    /// Compute backend: auto (hardware GPU, else CPU), gpu (any adapter, lavapipe included), cpu.
-    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
-    pub backend: BackendChoice,
-    /// Use the GPU adapter whose name contains this (case-insensitive).
-    #[arg(long)]
-    pub adapter: Option<String>,
-}
-
-impl OdometryOptions {
-    /// The configuration these options describe.
-    pub fn config(&self) -> Result<OdometryConfig> {
-        let mut c = match &self.config {
-            Some(p) => OdometryConfig::from_json_file(p)?,
-            None => OdometryConfig::default(),
-        };
-        if let Some(v) = self.estimator {
-            c.estimator = v;
-        }
-        if let Some(v) = self.scale {
-            c.scale = v;
-        }
-        if let Some(v) = self.terms {
-            c.terms = v;
-        }
-        if let Some(v) = self.geometric {
-            c.geometric = v;
-            if v == GeometricParam::Depth && c.scale == ScaleMethod::Fixed {
-                // sigmaFix in depth units: 1 cm.
-                c.fixed_sigma_geo = 0.01;
-            }
-        }
-        if let Some(v) = self.levels {
-            c.levels = v;
-            c.covisibility_level = c.covisibility_level.min(v.saturating_sub(1));
-        }
-        if let Some(v) = self.stop_level {
-            c.stop_level = v;
-        }
-        if let Some(v) = self.max_width {
-            c.max_width = v;
-        }
-        if self.frame_to_frame {
-            c.reference_switch = None;
-        } else if let Some(v) = self.covisibility {
-            c.reference_switch = Some(v);
-        }
-        c.validate()?;
-        Ok(c)
-    }
-}
+use super::options::{write_sidecar, BackendArgs, ConfigArgs, OdometryOptions};
 
 /// Arguments of `rgbid odometry`.
 #[derive(clap::Args)]
@@ -104,7 +19,8 @@ pub struct Args {
     /// TUM-layout sequence folder (rgb.txt + depth.txt or associations.txt, rgb/, depth/).
     pub sequence: PathBuf,
     /// Output trajectory (TUM format, world_from_camera; the first pose is the ground truth's
-    /// first pose when the folder has groundtruth.txt, else identity).
+    /// first pose when the folder has groundtruth.txt, else identity). The configuration,
+    /// version, backend and command line go to `<OUT>.json` beside it.
     #[arg(long, short, default_value = "trajectory.txt")]
     pub out: PathBuf,
     /// Camera: a preset (tum_fr1, tum_fr2, tum_fr3, default) or a camera config file.
@@ -118,13 +34,18 @@ pub struct Args {
     /// Process at most this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
+    /// Configuration: an `OdometryConfig` file (`rgbid config dump --command odometry`).
+    #[command(flatten)]
+    pub config: ConfigArgs,
     #[command(flatten)]
     pub odometry: OdometryOptions,
+    #[command(flatten)]
+    pub backend: BackendArgs,
 }
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
-    let config = args.odometry.config()?;
+    let config = args.odometry.config(&args.config)?;
     let mut opts = OpenOptions {
         max_frames: args.max_frames,
         ..Default::default()
@@ -133,9 +54,9 @@ pub fn run(args: Args) -> Result<()> {
         opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
     }
     let seq = TumSequence::open(&args.sequence, &opts)?;
-    let backend = select_backend(args.odometry.backend, args.odometry.adapter.as_deref())?;
+    let backend = select_backend(args.backend.backend, args.backend.adapter.as_deref())?;
     log::info!("{} frames, backend {}", seq.len(), backend.name());
-    let mut odo = Odometry::new(config, seq.camera, &backend)?;
+    let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
     if let Some(gt) = seq
         .groundtruth
         .as_ref()
@@ -231,6 +152,7 @@ pub fn run(args: Args) -> Result<()> {
     bar.finish_and_clear();
     // Whatever happened, keep what was computed.
     write_tum(&args.out, &poses)?;
+    write_sidecar(&args.out, &config, &backend)?;
     println!("wrote {} poses to {}", poses.len(), args.out.display());
     if failures > 0 {
         println!("{failures} frames failed to track (see the log)");

@@ -12,6 +12,8 @@ use rgbid::place::{
     extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary,
 };
 
+use super::options::ConfigArgs;
+
 /// Subcommands of `rgbid place`.
 #[derive(clap::Subcommand)]
 pub enum Command {
@@ -36,12 +38,19 @@ pub struct LoopsArgs {
     /// Use every N-th frame as a keyframe.
     #[arg(long, default_value_t = 1)]
     pub every: usize,
-    /// Minimum separation between loop keyframes, in keyframes.
-    #[arg(long, default_value_t = 30)]
-    pub min_separation: usize,
-    /// Minimum normalised score of a candidate.
-    #[arg(long, default_value_t = 0.3)]
-    pub min_score: f64,
+    /// Minimum separation between loop keyframes, in keyframes (`query.min_separation`)
+    /// [default: 30].
+    #[arg(long)]
+    pub min_separation: Option<usize>,
+    /// Minimum normalised score of a candidate, in [0, 1] (`query.min_normalised_score`)
+    /// [default: 0.3].
+    #[arg(long)]
+    pub min_score: Option<f64>,
+    /// Configuration: a `LoopDetectorParams` file (`rgbid config dump --command place`; this
+    /// command starts from `query.min_separation = 30` and a `direct_index_depth` of the
+    /// vocabulary's depth less 3).
+    #[command(flatten)]
+    pub config: ConfigArgs,
     /// Camera: a preset (tum_fr1, tum_fr2, tum_fr3, default) or a camera config file (with
     /// the depth factor). Default: calib.txt beside the sequence, else the `default` preset.
     #[arg(long)]
@@ -142,10 +151,20 @@ fn loops(a: LoopsArgs) -> Result<()> {
         seq.camera.cy,
         seq.depth_factor
     );
-    let mut params = LoopDetectorParams::default();
-    params.query.min_separation = a.min_separation;
-    params.query.min_normalised_score = a.min_score;
-    params.direct_index_depth = vocab.levels().saturating_sub(3).max(1);
+    let mut base = LoopDetectorParams::default();
+    base.query.min_separation = 30;
+    base.direct_index_depth = vocab.levels().saturating_sub(3).max(1);
+    let params = a.config.resolve(base, |c| {
+        if let Some(v) = a.min_separation {
+            c.query.min_separation = v;
+        }
+        if let Some(v) = a.min_score {
+            c.query.min_normalised_score = v;
+        }
+        Ok(())
+    })?;
+    log::debug!("loop detector: {params:?}");
+    let min_separation = params.query.min_separation;
     let mut det = LoopDetector::new(vocab, params);
     let idx: Vec<usize> = (0..seq.len()).step_by(a.every.max(1)).collect();
     let pb = progress(idx.len(), "keyframes");
@@ -178,7 +197,7 @@ fn loops(a: LoopsArgs) -> Result<()> {
     );
     if let Some(gt_path) = &a.gt {
         let gt = rgbid::io::trajectory::read_tum(gt_path)?;
-        evaluate(&a, &gt, &stamps, &loops);
+        evaluate(&a, min_separation, &gt, &stamps, &loops);
     }
     Ok(())
 }
@@ -213,6 +232,7 @@ fn print_loop(l: &DetectedLoop, stamps: &[f64]) {
 /// error of the verified loops.
 fn evaluate(
     a: &LoopsArgs,
+    min_separation: usize,
     gt: &[rgbid::trajectory::TimedPose],
     stamps: &[f64],
     loops: &[DetectedLoop],
@@ -233,7 +253,7 @@ fn evaluate(
     // Queries that have a true revisit among keyframes at least min_separation older.
     let n = stamps.len();
     let with_revisit: Vec<usize> = (0..n)
-        .filter(|&i| (0..n).any(|j| j + a.min_separation <= i && revisit(i, j, 1.0)))
+        .filter(|&i| (0..n).any(|j| j + min_separation <= i && revisit(i, j, 1.0)))
         .collect();
     // A detection is correct if its pair is a revisit under a 2x looser criterion (views
     // that overlap but are slightly outside the strict one are not false positives).
@@ -260,7 +280,7 @@ fn evaluate(
         with_revisit.len(),
         a.gt_distance,
         a.gt_angle,
-        a.min_separation
+        min_separation
     );
     let precision = if loops.is_empty() {
         f64::NAN

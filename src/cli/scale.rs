@@ -9,6 +9,7 @@ use rgbid::experiments::scale::{
     standard_sequences, Estimator, ExperimentConfig, MonoEstimator, RunReport, SequenceSpec,
     WindowTruth, METHODS,
 };
+use rgbid::gpu::ComputeBackend;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::scale::plot::{plot_panels, Series};
 use rgbid::scale::walking::{GRIEVE_ALPHA, GRIEVE_BETA};
@@ -16,6 +17,8 @@ use rgbid::scale::{
     arc_length_error, calibrate, CalibrationSample, DynScale, DynScaleConfig, DynScaleResult,
     UpAxis,
 };
+
+use super::options::{write_sidecar, ConfigArgs};
 
 /// `rgbid scale TRAJ ...` scales a trajectory; `calibrate` and `experiment` are subcommands.
 #[derive(clap::Args)]
@@ -50,36 +53,42 @@ pub enum Command {
 pub struct RunArgs {
     /// Unscaled TUM trajectory (`world_from_camera`, any units).
     traj: Option<PathBuf>,
-    /// Rate the trajectory is resampled at, frames per second.
-    #[arg(long, default_value_t = 30.0)]
-    fps: f64,
-    /// Height of the walker, metres.
+    /// Rate the trajectory is resampled at, frames per second (`fps`) [default: 30].
+    #[arg(long)]
+    fps: Option<f64>,
+    /// Height of the walker, metres (`model.height`; required unless the configuration
+    /// file or --set gives it).
     #[arg(long)]
     height: Option<f64>,
-    /// alpha of V = alpha f^beta H.
-    #[arg(long, default_value_t = GRIEVE_ALPHA)]
-    alpha: f64,
-    /// beta of V = alpha f^beta H.
-    #[arg(long, default_value_t = GRIEVE_BETA)]
-    beta: f64,
-    /// Up axis in the trajectory's world frame: x, y, z (signed), auto (plane fit) or a,b,c.
-    #[arg(long, default_value = "-y", allow_hyphen_values = true)]
-    up: String,
-    /// Analysis window t_DFT, seconds.
-    #[arg(long, default_value_t = 4.0)]
-    window: f64,
-    /// Update period t_upd (section length), seconds.
-    #[arg(long, default_value_t = 1.0)]
-    update: f64,
-    /// Number of particles.
-    #[arg(long, default_value_t = 5000)]
-    particles: usize,
-    /// Scale drift of the filter, decades per sqrt(s).
-    #[arg(long, default_value_t = 0.1)]
-    sigma_drift: f64,
-    /// Seed of the particle filter.
-    #[arg(long, default_value_t = 0x5ca1e)]
-    seed: u64,
+    /// alpha of V = alpha f^beta H (`model.alpha`) [default: Grieve's].
+    #[arg(long)]
+    alpha: Option<f64>,
+    /// beta of V = alpha f^beta H (`model.beta`) [default: Grieve's].
+    #[arg(long)]
+    beta: Option<f64>,
+    /// Up axis in the trajectory's world frame: x, y, z (signed), auto (plane fit) or a,b,c
+    /// (`up`) [default: -y].
+    #[arg(long, allow_hyphen_values = true)]
+    up: Option<String>,
+    /// Analysis window t_DFT, seconds, >= 1 (`window`) [default: 4].
+    #[arg(long)]
+    window: Option<f64>,
+    /// Update period t_upd (section length), seconds, in (0, window] (`update`)
+    /// [default: 1].
+    #[arg(long)]
+    update: Option<f64>,
+    /// Number of particles, >= 10 (`filter.particles`) [default: 5000].
+    #[arg(long)]
+    particles: Option<usize>,
+    /// Scale drift of the filter, decades per sqrt(s) (`filter.sigma_drift`) [default: 0.1].
+    #[arg(long)]
+    sigma_drift: Option<f64>,
+    /// Seed of the particle filter (`seed`).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Configuration: a `DynScaleConfig` file (`rgbid config dump --command scale`).
+    #[command(flatten)]
+    config: ConfigArgs,
     /// Output: the scaled TUM trajectory (metres).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -261,20 +270,50 @@ fn run_scale(a: &RunArgs) -> Result<()> {
     let Some(path) = &a.traj else {
         bail!("give a trajectory: rgbid scale TRAJ --height H [--out scaled.txt] (or a subcommand: calibrate, experiment)");
     };
-    let Some(height) = a.height else {
+    let height_given = a.height.is_some()
+        || a.config.config.is_some()
+        || a.config
+            .set
+            .iter()
+            .any(|s| s.path.join(".") == "model.height");
+    if !height_given {
         bail!("--height (metres) is required to scale a trajectory");
-    };
+    }
     let traj = read_tum(path)?;
-    let mut cfg = DynScaleConfig::new(height, a.fps);
-    cfg.model.alpha = a.alpha;
-    cfg.model.beta = a.beta;
-    cfg.up = UpAxis::parse(&a.up)?;
-    cfg.window = a.window;
-    cfg.update = a.update;
-    cfg.filter.particles = a.particles;
-    cfg.filter.sigma_drift = a.sigma_drift;
-    cfg.seed = a.seed;
-    let r = DynScale::new(cfg)?.run(&traj)?;
+    let cfg = a.config.resolve(DynScaleConfig::default(), |c| {
+        if let Some(v) = a.height {
+            c.model.height = v;
+        }
+        if let Some(v) = a.fps {
+            c.fps = v;
+        }
+        if let Some(v) = a.alpha {
+            c.model.alpha = v;
+        }
+        if let Some(v) = a.beta {
+            c.model.beta = v;
+        }
+        if let Some(up) = &a.up {
+            c.up = UpAxis::parse(up)?;
+        }
+        if let Some(v) = a.window {
+            c.window = v;
+        }
+        if let Some(v) = a.update {
+            c.update = v;
+        }
+        if let Some(v) = a.particles {
+            c.filter.particles = v;
+        }
+        if let Some(v) = a.sigma_drift {
+            c.filter.sigma_drift = v;
+        }
+        if let Some(v) = a.seed {
+            c.seed = v;
+        }
+        Ok(())
+    })?;
+    let r = DynScale::new(cfg.clone())?.run(&traj)?;
     let u = r.up;
     println!(
         "{} poses over {:.1} s, up [{:.3} {:.3} {:.3}], {} sections",
@@ -324,6 +363,7 @@ fn run_scale(a: &RunArgs) -> Result<()> {
     }
     if let Some(out) = &a.out {
         write_tum(out, &r.scaled)?;
+        write_sidecar(out, &cfg, &ComputeBackend::Cpu)?;
         println!("wrote {}", out.display());
     }
     if let Some(p) = &a.json {

@@ -14,6 +14,8 @@ use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::segment::{self, NormalParams, SegmentConfig};
 use rgbid::synth::SensorModel;
 
+use super::options::{write_sidecar, ConfigArgs};
+
 /// `rgbid segment SEQ ...` segments frames of a sequence; `experiment` is a subcommand.
 #[derive(clap::Args)]
 #[command(args_conflicts_with_subcommands = true)]
@@ -101,27 +103,26 @@ pub struct RunArgs {
     /// Neg-entropy thresholds of the masks.
     #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.7")]
     pub thresholds: Vec<f64>,
-    /// Felzenszwalb-Huttenlocher scale k.
-    #[arg(long, default_value_t = 0.6)]
-    pub k: f32,
-    /// Minimum superjut size in pixels.
-    #[arg(long, default_value_t = 200)]
-    pub min_size: usize,
-    /// Finite-difference step of the normals, pixels.
-    #[arg(long, default_value_t = NormalParams::default().step)]
-    pub normal_step: u32,
+    /// Felzenszwalb-Huttenlocher scale k, > 0 (`k`) [default: 0.6].
+    #[arg(long)]
+    pub k: Option<f32>,
+    /// Minimum superjut size in pixels (`min_size`) [default: 200].
+    #[arg(long)]
+    pub min_size: Option<usize>,
+    /// Finite-difference step of the normals, pixels (`normals.step`) [default: 2].
+    #[arg(long)]
+    pub normal_step: Option<u32>,
     /// Half-width of the edge-aware inverse-depth smoothing before the normals, pixels
-    /// (0 = none).
-    #[arg(long, default_value_t = NormalParams::default().smooth_radius)]
-    pub smooth_radius: u32,
-    /// Up direction in the camera frame for horizontality, `x,y,z` (normalised).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "0,-1,0",
-        allow_hyphen_values = true
-    )]
-    pub up: Vec<f32>,
+    /// (0 = none) (`normals.smooth_radius`) [default: 3].
+    #[arg(long)]
+    pub smooth_radius: Option<u32>,
+    /// Up direction in the camera frame for horizontality, `x,y,z` (normalised) (`up`)
+    /// [default: 0,-1,0].
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub up: Option<Vec<f32>>,
+    /// Configuration: a `SegmentConfig` file (`rgbid config dump --command segment`).
+    #[command(flatten)]
+    pub config: ConfigArgs,
     /// Where the normal kernel runs.
     #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
     pub backend: BackendChoice,
@@ -273,27 +274,40 @@ fn run_segment(args: &RunArgs) -> Result<()> {
         );
     }
     let cam = seq.undistorted_camera();
-    if args.up.len() != 3 {
-        bail!("--up needs 3 values");
-    }
-    let ul = args.up.iter().map(|v| v * v).sum::<f32>().sqrt();
+    let cfg = args.config.resolve(SegmentConfig::default(), |c| {
+        if let Some(v) = args.k {
+            c.k = v;
+        }
+        if let Some(v) = args.min_size {
+            c.min_size = v;
+        }
+        if let Some(v) = args.normal_step {
+            c.normals.step = v;
+        }
+        if let Some(v) = args.smooth_radius {
+            c.normals.smooth_radius = v;
+        }
+        if let Some(up) = &args.up {
+            if up.len() != 3 {
+                bail!("--up needs 3 values");
+            }
+            c.up = [up[0], up[1], up[2]];
+        }
+        Ok(())
+    })?;
+    let mut cfg = cfg;
+    let ul = cfg.up.iter().map(|v| v * v).sum::<f32>().sqrt();
     if !(ul > 0.0) {
-        bail!("--up must be non-zero");
+        bail!("up must be non-zero");
     }
-    let mut cfg = SegmentConfig {
-        k: args.k,
-        min_size: args.min_size,
-        ..SegmentConfig::default()
-    };
-    cfg.normals.step = args.normal_step;
-    cfg.normals.smooth_radius = args.smooth_radius;
-    cfg.up = [args.up[0] / ul, args.up[1] / ul, args.up[2] / ul];
+    cfg.up = cfg.up.map(|v| v / ul);
     cfg.validate()?;
     let backend = select_backend(args.backend, None)?;
     log::info!("normals on {}", backend.name());
     let mut normals = segment::normal_kernels(&backend)?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let csv_path = out.join("superjuts.csv");
+    write_sidecar(&csv_path, &cfg, &backend)?;
     let mut csv = std::io::BufWriter::new(
         std::fs::File::create(&csv_path)
             .with_context(|| format!("creating {}", csv_path.display()))?,

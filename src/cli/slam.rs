@@ -1,50 +1,38 @@
 //! `rgbid slam`: the full RGB-ID SLAM system on a TUM folder or a generated sequence.
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
-use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::gpu::{select_backend, ComputeBackend};
+use rgbid::io::settings::Provenance;
 use rgbid::io::trajectory::write_tum;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
     build_model, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
-use rgbid::source::{FrameSource, SourceSpec};
-use rgbid::synth::{SequenceConfig, TrajectoryKind};
+use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
+
+use super::options::{BackendArgs, ConfigArgs, OdometryOptions};
 
 /// Arguments of `rgbid slam`.
 #[derive(clap::Args)]
 pub struct Args {
     /// TUM RGB-D folder (rgb.txt + depth.txt or associations.txt). Not needed with --synth.
     pub sequence: Option<PathBuf>,
-    /// Generate the sequence instead: `SCENE:TRAJECTORY` (e.g. `office:loop`), see
-    /// `rgbid synth --help` for the names.
-    #[arg(long)]
-    pub synth: Option<String>,
-    /// Frames of a generated sequence (30 per second).
-    #[arg(long, default_value_t = 600)]
-    pub frames: usize,
-    /// Image width of a generated sequence (height is 3/4 of it).
-    #[arg(long, default_value_t = 320)]
-    pub width: u32,
-    /// Seed of a generated sequence.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Laps of a generated `loop` trajectory over the sequence (the same closed path again,
-    /// so that the second lap revisits every place of the first).
-    #[arg(long, default_value_t = 1.0)]
-    pub laps: f64,
+    #[command(flatten)]
+    pub source: SynthOptions,
     /// Session of a generated scene (0 = reference arrangement; others move objects).
     #[arg(long, default_value_t = 0)]
     pub session: u32,
     /// Output folder: trajectory.txt (every frame), keyframes.txt, odometry.txt, loops.csv,
-    /// model.ply, timing.csv, keyframe_timing.csv, summary.json.
+    /// model.ply, timing.csv, keyframe_timing.csv, summary.json (figures, and the
+    /// configuration, version, backend and command line under `provenance`).
     #[arg(long, default_value = "slam-out")]
     pub out: PathBuf,
     /// Camera preset or calibration file for a TUM folder (see `rgbid odometry --help`).
@@ -60,88 +48,109 @@ pub struct Args {
     #[arg(long)]
     pub map_out: Option<PathBuf>,
     /// Feed frames at this rate (frames per second) as a live camera would: frames that
-    /// arrive while the system is busy are dropped and counted.
+    /// arrive while the system is busy are dropped and counted (sets `queue = 2`).
     #[arg(long)]
     pub realtime: Option<f64>,
-    /// Disable the superjut / neg-entropy masks in place recognition.
+    /// Disable the superjut / neg-entropy masks in place recognition (`masks = false`).
     #[arg(long)]
     pub no_masks: bool,
-    /// Keyframe covisibility threshold.
-    #[arg(long, default_value_t = 0.7)]
-    pub keyframe_covisibility: f64,
+    /// Keyframe covisibility threshold in [0, 1] (`keyframe_covisibility`)
+    /// [default: 0.7].
+    #[arg(long)]
+    pub keyframe_covisibility: Option<f64>,
     /// A frame whose motion since the last posed frame is faster than this (m/s) is treated as
-    /// a tracking failure (lost, then relocalised) instead of keeping a wrong pose. The default
-    /// suits handheld and worn cameras; raise it for vehicles, `inf` disables it.
-    #[arg(long, default_value_t = SlamConfig::default().lost_max_speed)]
-    pub max_speed: f64,
-    /// The same for the rotation rate (rad/s).
-    #[arg(long, default_value_t = SlamConfig::default().lost_max_angular_speed)]
-    pub max_angular_speed: f64,
+    /// a tracking failure (lost, then relocalised) instead of keeping a wrong pose
+    /// (`lost_max_speed`). The default suits handheld and worn cameras; raise it for
+    /// vehicles, `inf` disables it [default: 3].
+    #[arg(long)]
+    pub max_speed: Option<f64>,
+    /// The same for the rotation rate, rad/s (`lost_max_angular_speed`) [default: 4].
+    #[arg(long)]
+    pub max_angular_speed: Option<f64>,
     /// Do not write model.ply.
     #[arg(long)]
     pub no_model: bool,
-    /// Voxel size of the model filter, metres.
-    #[arg(long, default_value_t = 0.01)]
+    /// Voxel size of the model filter, metres (0 = no filter).
+    #[arg(long, default_value_t = ModelParams::default().voxel)]
     pub voxel: f64,
     /// Vocabulary file (default: the embedded one).
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
-    /// Compute backend.
-    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
-    pub backend: BackendChoice,
-    /// GPU adapter name filter.
-    #[arg(long)]
-    pub adapter: Option<String>,
+    /// Configuration: a `SlamConfig` file (`rgbid config dump --command slam`).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    #[command(flatten)]
+    pub odometry: OdometryOptions,
+    #[command(flatten)]
+    pub backend: BackendArgs,
 }
 
-/// The source the arguments name (a TUM folder, or `--synth` with `--laps` laps of a loop).
-#[allow(clippy::too_many_arguments)]
-pub fn source_spec(
-    sequence: Option<&Path>,
-    synth: Option<&str>,
-    camera: Option<&str>,
-    max_frames: Option<usize>,
-    frames: usize,
-    width: u32,
-    seed: u64,
-    session: u32,
-    laps: f64,
-) -> Result<SourceSpec> {
-    if let Some(spec) = synth {
-        let frames = max_frames.unwrap_or(frames).min(frames);
-        if !(laps.is_finite() && laps > 0.0) {
-            bail!("--laps must be > 0");
+impl Args {
+    /// Arguments with every option at its default (no sequence named).
+    pub fn new(out: PathBuf) -> Self {
+        Args {
+            sequence: None,
+            source: SynthOptions::default(),
+            session: 0,
+            out,
+            camera: None,
+            max_frames: None,
+            map_in: None,
+            map_out: None,
+            realtime: None,
+            no_masks: false,
+            keyframe_covisibility: None,
+            max_speed: None,
+            max_angular_speed: None,
+            no_model: false,
+            voxel: ModelParams::default().voxel,
+            vocabulary: None,
+            config: ConfigArgs::default(),
+            odometry: OdometryOptions::default(),
+            backend: BackendArgs::default(),
         }
-        let traj = spec.split_once(':').map_or("loop", |(_, t)| t);
-        let lap_seconds = if TrajectoryKind::from_name(traj)? == TrajectoryKind::Loop {
-            Some(
-                SequenceConfig {
-                    frames,
-                    ..Default::default()
-                }
-                .duration()
-                    / laps,
-            )
-        } else {
-            None
-        };
-        return Ok(SourceSpec::Synth {
-            spec: spec.to_string(),
-            frames,
-            width,
-            seed,
-            session,
-            lap_seconds,
-        });
     }
-    let Some(dir) = sequence else {
-        bail!("give a TUM folder or --synth SCENE:TRAJECTORY");
-    };
-    Ok(SourceSpec::Tum {
-        dir: dir.to_path_buf(),
-        camera: camera.map(str::to_string),
-        max_frames,
-    })
+
+    /// The SLAM configuration: defaults, `--config`, the flags, `--set`.
+    pub fn slam_config(&self) -> Result<SlamConfig> {
+        let config = self.config.resolve(SlamConfig::default(), |c| {
+            if self.no_masks {
+                c.masks = false;
+            }
+            if let Some(v) = self.keyframe_covisibility {
+                c.keyframe_covisibility = v;
+            }
+            if let Some(v) = self.max_speed {
+                c.lost_max_speed = v;
+            }
+            if let Some(v) = self.max_angular_speed {
+                c.lost_max_angular_speed = v;
+            }
+            if self.realtime.is_some() {
+                c.queue = 2;
+            }
+            self.odometry.apply(&mut c.odometry);
+            Ok(())
+        })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The source the arguments name (a TUM folder, or `--synth` with `--laps` laps of a
+    /// loop).
+    pub fn source_spec(&self) -> Result<SourceSpec> {
+        if let Some(spec) = self.source.spec(self.session, self.max_frames)? {
+            return Ok(spec);
+        }
+        let Some(dir) = &self.sequence else {
+            bail!("give a TUM folder or --synth SCENE:TRAJECTORY");
+        };
+        Ok(SourceSpec::Tum {
+            dir: dir.clone(),
+            camera: self.camera.clone(),
+            max_frames: self.max_frames,
+        })
+    }
 }
 
 fn peak_rss_mb() -> Option<f64> {
@@ -157,18 +166,9 @@ fn median(v: &mut [f64]) -> f64 {
 
 /// Runs the subcommand.
 pub fn run(a: Args) -> Result<()> {
-    let backend = select_backend(a.backend, a.adapter.as_deref())?;
-    let spec = source_spec(
-        a.sequence.as_deref(),
-        a.synth.as_deref(),
-        a.camera.as_deref(),
-        a.max_frames,
-        a.frames,
-        a.width,
-        a.seed,
-        a.session,
-        a.laps,
-    )?;
+    let config = a.slam_config()?;
+    let backend = select_backend(a.backend.backend, a.backend.adapter.as_deref())?;
+    let spec = a.source_spec()?;
     let mut source = FrameSource::open(&spec, &backend)?;
     if source.is_empty() {
         bail!("the sequence has no frames");
@@ -181,18 +181,17 @@ pub fn run(a: Args) -> Result<()> {
         Some(p) => Some(Map::load(p)?),
         None => None,
     };
-    let mut config = SlamConfig {
-        masks: !a.no_masks,
-        keyframe_covisibility: a.keyframe_covisibility,
-        lost_max_speed: a.max_speed,
-        lost_max_angular_speed: a.max_angular_speed,
-        ..Default::default()
-    };
-    if a.realtime.is_some() {
-        config.queue = 2;
-    }
+    let provenance = Provenance::new(&config, &backend)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
-    let outcome = run_slam(&a, &mut source, config, &backend, vocabulary, map);
+    let outcome = run_slam(
+        &a,
+        &mut source,
+        config,
+        &backend,
+        vocabulary,
+        map,
+        &provenance,
+    );
     match outcome {
         Ok(()) => Ok(()),
         Err(e) => Err(e.context(format!(
@@ -209,6 +208,7 @@ fn run_slam(
     backend: &ComputeBackend,
     vocabulary: Vocabulary,
     map: Option<Map>,
+    provenance: &Provenance,
 ) -> Result<()> {
     let camera = source.camera();
     let n = source.len();
@@ -301,6 +301,7 @@ fn run_slam(
         dropped,
         processed,
         wall,
+        provenance,
     )?;
     if let Some(e) = error {
         return Err(e);
@@ -318,6 +319,7 @@ fn write_outputs(
     dropped: usize,
     processed: usize,
     wall: f64,
+    provenance: &Provenance,
 ) -> Result<()> {
     let out = &a.out;
     write_tum(&out.join("trajectory.txt"), &r.trajectory)?;
@@ -513,6 +515,7 @@ fn write_outputs(
         "wall_s": wall, "model_points": model_points, "peak_rss_mb": rss,
         "instance_peak_bytes": r.memory.peak_bytes(),
         "instance_peak_breakdown_bytes": peak,
+        "provenance": provenance,
     });
     if let Some(gt) = source.groundtruth() {
         let gt_path = out.join("groundtruth.txt");

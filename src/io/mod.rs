@@ -5,6 +5,7 @@
 //! there is one) and the cause; nothing here panics on input.
 
 pub mod config;
+pub mod settings;
 pub mod trajectory;
 pub mod tum;
 pub mod undistort;

@@ -122,6 +122,7 @@ pub enum MonoError {
 
 /// Parameters of [`MonoSlam`].
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct MonoConfig {
     /// Standard deviation of the linear acceleration noise, m/s^2 (white, continuous time).
     pub sigma_linear_acceleration: f64,

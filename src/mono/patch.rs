@@ -22,6 +22,7 @@ use crate::image::ImageF32;
 
 /// How correlation patches are built.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
 pub enum PatchMode {
     /// The patch as seen at initialisation.
     #[default]

@@ -25,6 +25,7 @@ pub enum Terms {
 #[repr(u32)]
 pub enum GeometricParam {
     /// Inverse depth, 1/m (the thesis' choice: noise roughly constant over depth).
+    #[serde(alias = "inverse-depth", alias = "inverse_depth")]
     InverseDepth = 0,
     /// Depth, m (for comparison).
     Depth = 1,
@@ -65,7 +66,7 @@ pub enum CovarianceGradients {
 
 /// Odometry options.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct OdometryConfig {
     /// Pyramid levels (level 0 = full resolution).
     pub levels: usize,

@@ -10,7 +10,8 @@ use super::vocabulary::{BowVector, Scoring};
 use super::PlaceError;
 
 /// Query parameters.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct QueryParams {
     /// Most candidates returned.
     pub max_results: usize,

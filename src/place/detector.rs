@@ -10,7 +10,8 @@ use crate::camera::PinholeCamera;
 use crate::image::ImageF32;
 
 /// Parameters of [`LoopDetector`].
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct LoopDetectorParams {
     /// ORB extraction. Default: corners spread over a grid of cells
     /// ([`OrbParams::distribute`]), as ORB-SLAM's place recognition: a keyframe's bag of words

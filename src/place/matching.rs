@@ -13,7 +13,8 @@ pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
 }
 
 /// Matching parameters.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct MatchParams {
     /// Largest accepted Hamming distance (ORB-SLAM uses 50 for strict, 100 for loose).
     pub max_distance: u32,

@@ -96,7 +96,8 @@ impl KeyPoint {
 }
 
 /// ORB extraction parameters (defaults as ORB-SLAM and OpenCV: 1000 features, 8 levels, 1.2).
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct OrbParams {
     /// Target number of keypoints over all levels.
     pub n_features: usize,

@@ -78,7 +78,8 @@ pub fn horn_absolute_orientation(a: &[DVec3], b: &[DVec3]) -> Result<Se3, PlaceE
 }
 
 /// RANSAC parameters.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct RansacParams {
     /// Inlier threshold on the 3D residual `|a - a_from_b * b|`, metres, at 1 m depth; it grows
     /// linearly with the depth of `a` (depth noise of RGB-D sensors grows at least linearly).

@@ -13,7 +13,8 @@ use super::PlaceError;
 use crate::geometry::Se3;
 
 /// Verification parameters.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct VerifyParams {
     /// Descriptor matching.
     pub matching: MatchParams,

@@ -36,6 +36,7 @@ use crate::trajectory::TimedPose;
 
 /// The gravity-up direction in the trajectory's world frame.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum UpAxis {
     /// A fixed direction (normalised before use).
     Fixed([f64; 3]),
@@ -124,6 +125,7 @@ impl UpAxis {
 
 /// Settings of the dynamic scale estimation.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct DynScaleConfig {
     /// Resampling rate of the trajectory, frames per second.
     pub fps: f64,
@@ -168,6 +170,14 @@ fn default_frequency_window() -> f64 {
 
 fn default_stationary_hz() -> f64 {
     0.15
+}
+
+impl Default for DynScaleConfig {
+    /// [`DynScaleConfig::new`] for a walker of 1.70 m at 30 fps (set `model.height` to the
+    /// wearer's height).
+    fn default() -> Self {
+        DynScaleConfig::new(1.7, 30.0)
+    }
 }
 
 impl DynScaleConfig {

@@ -24,6 +24,7 @@ use crate::trajectory::TimedPose;
 
 /// Settings of the emulated loop closures and of the Sim(3) graph.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct LoopConfig {
     /// Minimum time between the two keyframes of a closure, seconds.
     pub min_separation: f64,

@@ -33,6 +33,7 @@ use super::{check_param, ScaleError};
 
 /// Settings of the particle filter (defaults: the thesis' values).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ParticleConfig {
     /// Number of particles (thesis: 5000).
     pub particles: usize,

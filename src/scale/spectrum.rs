@@ -21,6 +21,7 @@ use super::{check_param, ScaleError};
 
 /// Settings of the spectral analysis.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SpectrumConfig {
     /// Cut-off of the second-order high-pass filter, Hz (thesis: 0.7).
     pub highpass_hz: f64,

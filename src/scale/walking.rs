@@ -12,6 +12,7 @@ pub const GRIEVE_BETA: f64 = 1.7544;
 
 /// The walking model of one person: `V = alpha f^beta H`, `V` m/s, `f` steps/s, `H` metres.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct WalkingModel {
     /// Height of the walker, metres.
     pub height: f64,
@@ -19,6 +20,13 @@ pub struct WalkingModel {
     pub alpha: f64,
     /// `beta`, exponent of the step frequency.
     pub beta: f64,
+}
+
+impl Default for WalkingModel {
+    /// Grieve's model for a walker of 1.70 m.
+    fn default() -> Self {
+        WalkingModel::grieve(1.7)
+    }
 }
 
 impl WalkingModel {

@@ -121,6 +121,7 @@ pub enum SegmentError {
 
 /// Parameters of superjut segmentation. Defaults are the thesis' (k = 0.6, M = 80).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SegmentConfig {
     /// Image-domain normal estimation.
     pub normals: NormalParams,

@@ -19,7 +19,7 @@ use crate::image::ImageF32;
 
 /// Parameters of the image-domain normal estimator.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct NormalParams {
     /// Distance in pixels of the finite differences (1 = adjacent pixels; larger smooths noise).
     pub step: u32,

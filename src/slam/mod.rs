@@ -86,7 +86,8 @@ pub enum SlamError {
 }
 
 /// Configuration of the SLAM system (defaults as the thesis where it gives a value).
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SlamConfig {
     /// Dense odometry (frame-to-reference tracking, reference switch at covisibility 0.9).
     pub odometry: OdometryConfig,
@@ -94,6 +95,7 @@ pub struct SlamConfig {
     /// below this (0.7).
     pub keyframe_covisibility: f64,
     /// Keyframe inverse-depth fusion.
+    #[serde(with = "FusionParamsDef")]
     pub fusion: FusionParams,
     /// Most frames buffered since the last keyframe and fused into the next one.
     pub buffer_frames: usize,
@@ -130,6 +132,29 @@ pub struct SlamConfig {
     pub loop_min_covisibility: f64,
     /// While lost, relocalisation is tried on every n-th frame.
     pub relocalise_every: usize,
+}
+
+/// The serde form of [`FusionParams`] in a configuration: every key optional, unknown keys
+/// rejected.
+#[derive(serde::Serialize, serde::Deserialize)]
+#[serde(remote = "FusionParams", default, deny_unknown_fields)]
+struct FusionParamsDef {
+    tol_abs: f32,
+    tol_rel: f32,
+    new_weight: f32,
+    max_weight: f32,
+}
+
+impl Default for FusionParamsDef {
+    fn default() -> Self {
+        let d = FusionParams::default();
+        FusionParamsDef {
+            tol_abs: d.tol_abs,
+            tol_rel: d.tol_rel,
+            new_weight: d.new_weight,
+            max_weight: d.max_weight,
+        }
+    }
 }
 
 impl Default for SlamConfig {

@@ -13,7 +13,8 @@ use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
 
 /// Model parameters.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ModelParams {
     /// Take every `step`-th pixel in x and y.
     pub step: usize,

@@ -15,7 +15,7 @@ use rgbid::trajectory::TimedPose;
 use crate::images;
 use crate::output::{load_map, load_output, StageRow};
 use crate::scene3d::{OrbitCamera, SceneCallback};
-use crate::source::SourceSpec;
+use crate::source::{SourceSpec, SynthOptions};
 use crate::state::{colours, ViewerState};
 use crate::worker::{Command, RunConfig, Worker};
 
@@ -142,7 +142,7 @@ impl ViewerApp {
             self.state = ViewerState::from_output(folder);
             self.framed = false;
         } else if path.is_file() {
-            let run = load_map(path, 0.01)?;
+            let run = load_map(path, rgbid::slam::ModelParams::default().voxel)?;
             self.worker = None;
             self.run_config = None;
             self.state = ViewerState::from_run(run);
@@ -332,15 +332,18 @@ impl ViewerApp {
                     self.message = format!("open: {e:#}");
                 }
             }
-            if ui.button("synth office:loop").clicked() {
-                let mut cfg = RunConfig::new(SourceSpec::Synth {
-                    spec: "office:loop".into(),
-                    frames: 600,
-                    width: 320,
-                    seed: 1,
-                    session: 0,
-                    lap_seconds: None,
-                });
+            if ui
+                .button(format!("synth {}", SynthOptions::DEFAULT_SPEC))
+                .clicked()
+            {
+                let spec = SynthOptions::default().spec_of(SynthOptions::DEFAULT_SPEC, 0, None);
+                let mut cfg = match spec {
+                    Ok(spec) => RunConfig::new(spec),
+                    Err(e) => {
+                        self.message = format!("synth: {e}");
+                        return;
+                    }
+                };
                 if let Some(old) = &self.run_config {
                     cfg.backend = old.backend;
                 }
@@ -657,8 +660,12 @@ impl ViewerApp {
                 .show(&mut cols[1], |p| {
                     p.line(Line::new("reference", series(|r| r.covisibility)));
                     p.line(Line::new("keyframe", series(|r| r.keyframe_covisibility)));
-                    p.hline(HLine::new("reference switch 0.9", 0.9));
-                    p.hline(HLine::new("keyframe switch 0.7", 0.7));
+                    let defaults = rgbid::slam::SlamConfig::default();
+                    if let Some(t) = defaults.odometry.reference_switch {
+                        p.hline(HLine::new(format!("reference switch {t}"), t));
+                    }
+                    let t = defaults.keyframe_covisibility;
+                    p.hline(HLine::new(format!("keyframe switch {t}"), t));
                 });
             cols[2].label(RichText::new("robust estimator (finest level)").strong());
             Plot::new("robust")

@@ -17,7 +17,7 @@ use egui_wgpu::wgpu;
 use rgbid::gpu::BackendChoice;
 use rgbid_viewer::output::{load_map, load_output};
 use rgbid_viewer::scene3d::{self, OrbitCamera, SceneRenderer};
-use rgbid_viewer::source::SourceSpec;
+use rgbid_viewer::source::{SourceSpec, SynthOptions};
 use rgbid_viewer::state::ViewerState;
 use rgbid_viewer::worker::RunConfig;
 use rgbid_viewer::ViewerApp;
@@ -30,22 +30,8 @@ use rgbid_viewer::ViewerApp;
 struct Args {
     /// TUM RGB-D folder (or an `rgbid slam` output folder, detected by its trajectory.txt).
     sequence: Option<PathBuf>,
-    /// Generated sequence `SCENE:TRAJECTORY` (e.g. `office:loop`).
-    #[arg(long)]
-    synth: Option<String>,
-    /// Frames of a generated sequence.
-    #[arg(long, default_value_t = 600)]
-    frames: usize,
-    /// Image width of a generated sequence (height 3/4 of it).
-    #[arg(long, default_value_t = 320)]
-    width: u32,
-    /// Seed of a generated sequence.
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    /// Duration of a generated trajectory (one lap of a loop), seconds; default: the
-    /// sequence's duration (frames / 30).
-    #[arg(long)]
-    seconds: Option<f64>,
+    #[command(flatten)]
+    source: SynthOptions,
     /// Camera preset or calibration file for a TUM folder.
     #[arg(long)]
     camera: Option<String>,
@@ -94,16 +80,9 @@ fn main() -> Result<()> {
     if let Some(dir) = &a.output {
         state = ViewerState::from_output(load_output(dir)?);
     } else if let Some(map) = &a.map {
-        state = ViewerState::from_run(load_map(map, 0.01)?);
-    } else if let Some(spec) = &a.synth {
-        run = Some(RunConfig::new(SourceSpec::Synth {
-            spec: spec.clone(),
-            frames: a.frames,
-            width: a.width,
-            seed: a.seed,
-            session: 0,
-            lap_seconds: a.seconds,
-        }));
+        state = ViewerState::from_run(load_map(map, rgbid::slam::ModelParams::default().voxel)?);
+    } else if let Some(spec) = a.source.spec(0, None)? {
+        run = Some(RunConfig::new(spec));
     } else if let Some(seq) = &a.sequence {
         if seq.join("trajectory.txt").exists() {
             state = ViewerState::from_output(load_output(seq)?);

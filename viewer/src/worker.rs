@@ -30,7 +30,7 @@ pub struct RunConfig {
     pub source: SourceSpec,
     /// Compute backend of the odometry, fusion and rendering of generated sequences.
     pub backend: BackendChoice,
-    /// Keyframe covisibility threshold (0.7 in the thesis).
+    /// Keyframe covisibility threshold (`SlamConfig::keyframe_covisibility`).
     pub keyframe_covisibility: f64,
     /// Superjut / neg-entropy masks in place recognition.
     pub masks: bool,
@@ -53,11 +53,11 @@ impl RunConfig {
         RunConfig {
             source,
             backend: BackendChoice::Auto,
-            keyframe_covisibility: 0.7,
+            keyframe_covisibility: SlamConfig::default().keyframe_covisibility,
             masks: true,
             segment_keyframes: true,
             point_step: 2,
-            voxel: 0.01,
+            voxel: ModelParams::default().voxel,
             autoplay: true,
             residuals: true,
         }

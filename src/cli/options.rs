@@ -1,0 +1,158 @@
+//! Option groups shared by several commands: the configuration file and `--set` assignments,
+//! the odometry flags, the compute backend.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use rgbid::gpu::{BackendChoice, ComputeBackend};
+use rgbid::io::settings::{self, Assignment, Provenance};
+use rgbid::odometry::{Estimator, GeometricParam, OdometryConfig, ScaleMethod, Terms};
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+
+/// `--config FILE` and `--set KEY.PATH=VALUE`: the command's configuration as data.
+///
+/// Precedence, lowest first: the defaults, `--config`, the command's own flags, `--set`.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ConfigArgs {
+    /// Configuration file, TOML or JSON (by the extension). Any subset of the keys: missing
+    /// ones keep their defaults, an unknown key is an error. `rgbid config dump --command
+    /// NAME` prints every key with its default. Precedence, lowest first: defaults, --config,
+    /// the command's flags, --set.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Set one configuration value over the file and the flags, e.g. `--set
+    /// odometry.estimator=huber` (slam, demo) or `--set estimator=huber` (odometry). The
+    /// value is read as TOML (`3`, `0.5`, `true`, `[6, 8, 10]`), anything else as a string;
+    /// `null` clears an optional value. Repeatable.
+    #[arg(long = "set", value_name = "KEY.PATH=VALUE")]
+    pub set: Vec<Assignment>,
+}
+
+impl ConfigArgs {
+    /// `base`, then the file of `--config`, then `flags` (the command's explicit flags), then
+    /// the `--set` assignments.
+    pub fn resolve<T: Serialize + DeserializeOwned>(
+        &self,
+        base: T,
+        flags: impl FnOnce(&mut T) -> Result<()>,
+    ) -> Result<T> {
+        let mut config = match &self.config {
+            Some(p) => settings::load_file(&base, p)?,
+            None => base,
+        };
+        flags(&mut config)?;
+        if !self.set.is_empty() {
+            config = settings::apply_assignments(&config, &self.set)?;
+        }
+        Ok(config)
+    }
+}
+
+/// The odometry flags shared by every command that runs the odometry (`odometry`, `slam`,
+/// `demo`, `bench odometry`). Each one given overrides the configuration file.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct OdometryOptions {
+    /// Robust estimator [default: student].
+    #[arg(long, value_enum)]
+    pub estimator: Option<Estimator>,
+    /// Scale estimation: ml (maximum likelihood), mad, or fixed (sigmaFix) [default: ml].
+    #[arg(long, value_enum)]
+    pub scale: Option<ScaleMethod>,
+    /// Residual terms [default: both].
+    #[arg(long, value_enum)]
+    pub terms: Option<Terms>,
+    /// Geometric error parametrisation [default: inverse-depth].
+    #[arg(long, value_enum)]
+    pub geometric: Option<GeometricParam>,
+    /// Pyramid levels, 1 to 8 [default: 4].
+    #[arg(long)]
+    pub levels: Option<usize>,
+    /// Finest pyramid level used, below --levels (0 = full resolution) [default: 0].
+    #[arg(long)]
+    pub stop_level: Option<usize>,
+    /// Levels wider than this many pixels are not optimised (at 640x480 the finest optimised
+    /// level is then 320x240); 0 optimises every level down to --stop-level [default: 320].
+    #[arg(long)]
+    pub max_width: Option<usize>,
+    /// Align every frame to the previous one (no reference-frame keeping).
+    #[arg(long)]
+    pub frame_to_frame: bool,
+    /// Covisibility ratio in [0, 1] below which the reference frame is switched
+    /// [default: 0.9].
+    #[arg(long)]
+    pub covisibility: Option<f64>,
+}
+
+impl OdometryOptions {
+    /// Puts the flags that were given onto `c`.
+    pub fn apply(&self, c: &mut OdometryConfig) {
+        if let Some(v) = self.estimator {
+            c.estimator = v;
+        }
+        if let Some(v) = self.scale {
+            c.scale = v;
+        }
+        if let Some(v) = self.terms {
+            c.terms = v;
+        }
+        if let Some(v) = self.geometric {
+            c.geometric = v;
+            if v == GeometricParam::Depth && c.scale == ScaleMethod::Fixed {
+                // sigmaFix in depth units: 1 cm.
+                c.fixed_sigma_geo = 0.01;
+            }
+        }
+        if let Some(v) = self.levels {
+            c.levels = v;
+            c.covisibility_level = c.covisibility_level.min(v.saturating_sub(1));
+        }
+        if let Some(v) = self.stop_level {
+            c.stop_level = v;
+        }
+        if let Some(v) = self.max_width {
+            c.max_width = v;
+        }
+        if self.frame_to_frame {
+            c.reference_switch = None;
+        } else if let Some(v) = self.covisibility {
+            c.reference_switch = Some(v);
+        }
+    }
+
+    /// The odometry configuration of `rgbid odometry` and `rgbid bench odometry`: defaults,
+    /// the `--config` file (an `OdometryConfig`, e.g. today's JSON files), these flags,
+    /// `--set`; validated.
+    pub fn config(&self, files: &ConfigArgs) -> Result<OdometryConfig> {
+        let c = files.resolve(OdometryConfig::default(), |c| {
+            self.apply(c);
+            Ok(())
+        })?;
+        c.validate()?;
+        Ok(c)
+    }
+}
+
+/// `--backend` and `--adapter`.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct BackendArgs {
+    /// Compute backend: auto (a hardware GPU, else the CPU), gpu (any adapter, lavapipe
+    /// included), cpu (rayon).
+    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
+    pub backend: BackendChoice,
+    /// Use the GPU adapter whose name contains this (case-insensitive).
+    #[arg(long)]
+    pub adapter: Option<String>,
+}
+
+/// Writes the provenance of `output` (the configuration, version, commit, backend and
+/// command line) to its sidecar `<output>.json` and says so in the log.
+pub fn write_sidecar<T: Serialize>(
+    output: &Path,
+    config: &T,
+    backend: &ComputeBackend,
+) -> Result<()> {
+    let path = Provenance::new(config, backend)?.write_sidecar(output)?;
+    log::info!("provenance in {}", path.display());
+    Ok(())
+}
