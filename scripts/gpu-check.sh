@@ -14,26 +14,34 @@ if [ -z "${VK_DRIVER_FILES:-}" ] && [ -f /usr/local/nvidia/share/vulkan/icd.d/nv
     export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 fi
 start=$(date +%s)
-"$B/bin/rgbid" adapters >"$OUT/adapters.txt" 2>&1
+# The binaries travel gzipped; unpack them beside the outputs.
+BIN="$OUT/.bin"
+mkdir -p "$BIN"
+for f in "$B"/bin/*.gz; do
+    gzip -dc "$f" >"$BIN/$(basename "$f" .gz)"
+done
+chmod +x "$BIN"/*
+"$BIN/rgbid" adapters >"$OUT/adapters.txt" 2>&1
 
 # GPU tests: every test executable, `gpu_*` ignored tests only.
 : >"$OUT/tests.tsv"
-for t in "$B"/bin/test-*; do
+for t in "$BIN"/test-*; do
     name=$(basename "$t")
     log="$OUT/$name.log"
     t0=$(date +%s.%N)
     "$t" --ignored gpu_ --test-threads 1 >"$log" 2>&1
     rc=$?
     t1=$(date +%s.%N)
-    passed=$(grep -c '^test .* ok$' "$log")
-    failed=$(grep -c '^test .* FAILED$' "$log")
+    # From libtest's summary lines (test lines can be interleaved with driver messages).
+    passed=$(grep -o '[0-9]\+ passed' "$log" | awk '{s += $1} END {print s + 0}')
+    failed=$(grep -o '[0-9]\+ failed' "$log" | awk '{s += $1} END {print s + 0}')
     printf '%s\t%s\t%s\t%s\t%s\n' "$name" "$rc" "$passed" "$failed" \
         "$(awk "BEGIN{printf \"%.1f\", $t1 - $t0}")" >>"$OUT/tests.tsv"
     echo "$name: exit $rc, $passed passed, $failed failed"
 done
 
 # Benchmarks: odometry per stage, keyframe fusion and ray casting, per backend and size.
-"$B/bin/rgbid" --log warn bench kernels --backends cpu,gpu --sizes 640x480,320x240 \
+"$BIN/rgbid" --log warn bench kernels --backends cpu,gpu --sizes 640x480,320x240 \
     --repeat 15 --json "$OUT/kernels.json" | tee "$OUT/kernels.txt"
 end=$(date +%s)
 
@@ -55,3 +63,4 @@ doc["tests"] = [
 json.dump(doc, open(f"{out}/gpu-check.json", "w"), indent=1)
 print(f"wrote {out}/gpu-check.json ({seconds} s)")
 PY
+rm -rf "$BIN"
