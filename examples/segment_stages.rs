@@ -91,7 +91,7 @@ fn main() -> anyhow::Result<()> {
             frames.push(f);
             continue;
         }
-        let (w, h) = (f.intensity.width, f.intensity.height);
+        let (w, h) = (f.intensity().width(), f.intensity().height());
         let mut best = vec![f64::INFINITY; names.len()];
         let mut best_cpu = vec![f64::INFINITY; names.len()];
         let mut juts = None;
@@ -107,12 +107,12 @@ fn main() -> anyhow::Result<()> {
                 *s = Instant::now();
             };
             let mut s = Instant::now();
-            let n = segment::normals_cpu(&f.inverse_depth, &cam, &cfg.normals);
+            let n = segment::normals_cpu(f.inverse_depth(), &cam, &cfg.normals);
             lap(0, &mut s);
-            let p = segment::points_from_inverse_depth(&f.inverse_depth, &cam);
+            let p = segment::points_from_inverse_depth(f.inverse_depth(), &cam);
             lap(1, &mut s);
             let mut e =
-                graph::image_edges(w, h, &p, &n.data, &f.inverse_depth.data, cfg.jump_ratio);
+                graph::image_edges(w, h, &p, &n.data, f.inverse_depth().data(), cfg.jump_ratio);
             lap(2, &mut s);
             graph::sort_edges(&mut e);
             lap(3, &mut s);
@@ -126,7 +126,7 @@ fn main() -> anyhow::Result<()> {
                 h,
                 &p,
                 &n.data,
-                &f.inverse_depth.data,
+                f.inverse_depth().data(),
                 cfg.jump_ratio,
                 cfg.k,
                 cfg.min_size,
@@ -135,7 +135,7 @@ fn main() -> anyhow::Result<()> {
             anyhow::ensure!(fused == (labels.clone(), count), "fused graph differs");
             lap(5, &mut s);
             let texture: Vec<(usize, f32)> = segment::features::eigen_transform_samples(
-                &f.intensity,
+                f.intensity(),
                 cfg.texture_window,
                 cfg.texture_first,
                 cfg.texture_stride,
@@ -145,7 +145,7 @@ fn main() -> anyhow::Result<()> {
             .collect();
             lap(6, &mut s);
             let smooth =
-                segment::smooth_inverse_depth(&f.inverse_depth, &cfg.normals, Some(&labels));
+                segment::smooth_inverse_depth(f.inverse_depth(), &cfg.normals, Some(&labels));
             lap(7, &mut s);
             let feature_normals = smooth.map(|sm| {
                 let mut data = segment::normals_cpu(&sm, &cam, &cfg.normals).data;
@@ -171,7 +171,8 @@ fn main() -> anyhow::Result<()> {
             cur_cpu[10] = [0, 1, 5, 6, 7, 8, 9].iter().map(|&k| cur_cpu[k]).sum();
             let c2 = cpu_ms();
             let s2 = Instant::now();
-            juts = Some(segmenter.segment_keyframe(&f.intensity, &f.inverse_depth, &cam, &cfg)?);
+            juts =
+                Some(segmenter.segment_keyframe(f.intensity(), f.inverse_depth(), &cam, &cfg)?);
             cur[11] = s2.elapsed().as_secs_f64() * 1e3;
             cur_cpu[11] = cpu_ms() - c2;
             for (b, c) in best.iter_mut().zip(&cur) {
@@ -236,7 +237,7 @@ fn main() -> anyhow::Result<()> {
     for _ in 0..reps.max(1) {
         for f in &frames {
             let (c0, s0) = (cpu_ms(), Instant::now());
-            let juts = segmenter.segment_keyframe(&f.intensity, &f.inverse_depth, &cam, &cfg)?;
+            let juts = segmenter.segment_keyframe(f.intensity(), f.inverse_depth(), &cam, &cfg)?;
             wall.push(s0.elapsed().as_secs_f64() * 1e3);
             cpu.push(cpu_ms() - c0);
             drop(juts);

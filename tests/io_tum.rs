@@ -90,15 +90,15 @@ fn tiny_sequence_round_trip() {
             .contains(&format!("{:.6}", e.timestamp + 0.005)));
         let f = seq.load(i).unwrap();
         assert_eq!((f.width(), f.height()), (W as usize, H as usize));
-        assert_eq!(f.timestamp, e.timestamp);
+        assert_eq!(f.timestamp(), e.timestamp);
         for (x, y) in [(0u32, 0u32), (5, 7), (31, 23), (17, 3)] {
             let c = colour(i, x, y);
             let want = rgb_to_intensity(c[0], c[1], c[2]);
-            assert_eq!(f.intensity.at(x as usize, y as usize), want);
+            assert_eq!(f.intensity().at(x as usize, y as usize), want);
             let d = raw_depth(i, x, y);
             let want_inv = if d == 0 { 0.0 } else { 5000.0 / f32::from(d) };
             assert_eq!(
-                f.inverse_depth.at(x as usize, y as usize),
+                f.inverse_depth().at(x as usize, y as usize),
                 want_inv,
                 "({x},{y})"
             );
@@ -167,7 +167,7 @@ fn associations_file_takes_precedence_and_calib_txt_is_used() {
     assert!(seq.entries[0].depth.ends_with("depth/1.033333.png"));
     let f = seq.load(0).unwrap();
     let d = raw_depth(1, 3, 4);
-    assert_eq!(f.inverse_depth.at(3, 4), 5000.0 / f32::from(d));
+    assert_eq!(f.inverse_depth().at(3, 4), 5000.0 / f32::from(d));
 }
 
 #[test]
@@ -196,12 +196,12 @@ fn distorted_camera_is_undistorted_on_load() {
         .load(0)
         .unwrap();
     let map = UndistortMap::new(&cfg.camera);
-    assert_eq!(f.intensity, map.intensity(&plain.intensity).unwrap());
+    assert_eq!(f.intensity(), &map.intensity(plain.intensity()).unwrap());
     assert_eq!(
-        f.inverse_depth,
-        map.inverse_depth(&plain.inverse_depth).unwrap()
+        f.inverse_depth(),
+        &map.inverse_depth(plain.inverse_depth()).unwrap()
     );
-    assert_ne!(f.intensity, plain.intensity);
+    assert_ne!(f.intensity(), plain.intensity());
     assert!(seq.undistorted_camera().distortion.is_zero());
 }
 
@@ -218,10 +218,10 @@ fn jpeg_colour_and_loose_pairs() {
     let f = load_pair_frame(&dir.join("c.jpg"), &dir.join("d.png"), &cam, 1000.0).unwrap();
     let want = rgb_to_intensity(100, 150, 200);
     assert!(
-        f.intensity.data.iter().all(|v| (v - want).abs() < 3.0),
+        f.intensity().data().iter().all(|v| (v - want).abs() < 3.0),
         "JPEG is lossy but close"
     );
-    assert!(f.inverse_depth.data.iter().all(|&v| v == 0.5));
+    assert!(f.inverse_depth().data().iter().all(|&v| v == 0.5));
 
     std::fs::write(
         dir.join("pose.txt"),
@@ -271,8 +271,8 @@ fn real_data_redkitchen_and_tum_pair() {
         let f = seq.load(i).unwrap();
         assert_eq!((f.width(), f.height()), (640, 480));
         let mut inv: Vec<f32> = f
-            .inverse_depth
-            .data
+            .inverse_depth()
+            .data()
             .iter()
             .copied()
             .filter(|&d| d > 0.0)
@@ -281,7 +281,7 @@ fn real_data_redkitchen_and_tum_pair() {
         inv.sort_by(f32::total_cmp);
         let median_m = 1.0 / inv[inv.len() / 2];
         assert!((0.4..5.0).contains(&median_m), "median depth {median_m} m");
-        let mean_i = f.intensity.data.iter().sum::<f32>() / f.intensity.data.len() as f32;
+        let mean_i = f.intensity().data().iter().sum::<f32>() / f.intensity().data().len() as f32;
         assert!((20.0..235.0).contains(&mean_i));
     }
 
@@ -300,7 +300,14 @@ fn real_data_redkitchen_and_tum_pair() {
     )
     .unwrap();
     assert_eq!((f.width(), f.height()), (640, 480));
-    assert!(f.inverse_depth.data.iter().filter(|&&d| d > 0.0).count() > 100_000);
+    assert!(
+        f.inverse_depth()
+            .data()
+            .iter()
+            .filter(|&&d| d > 0.0)
+            .count()
+            > 100_000
+    );
     let prev = read_pose_file(&case.join("pose_prev.txt")).unwrap();
     let curr = read_pose_file(&case.join("pose_curr.txt")).unwrap();
     let prev_from_curr = prev.inverse() * curr;

@@ -14,7 +14,7 @@ use rgbid::mono::input::load_grey;
 use rgbid::mono::{ImageSequence, MonoConfig, MonoError, MonoSlam};
 
 fn save_grey(path: &Path, img: &ImageF32) {
-    let g = GrayImage::from_fn(img.width as u32, img.height as u32, |x, y| {
+    let g = GrayImage::from_fn(img.width() as u32, img.height() as u32, |x, y| {
         Luma([img.at(x as usize, y as usize).round().clamp(0.0, 255.0) as u8])
     });
     g.save(path).expect("save png");

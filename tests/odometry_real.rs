@@ -151,7 +151,7 @@ fn redkitchen_default_metrics() -> rgbid::eval::TrajectoryMetrics {
         }
         let r = odo.track(&f).expect("track");
         est.push(rgbid::trajectory::TimedPose {
-            timestamp: f.timestamp,
+            timestamp: f.timestamp(),
             world_from_camera: r.world_from_camera,
         });
     }

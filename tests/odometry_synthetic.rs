@@ -87,13 +87,13 @@ fn add_moving_object(f: &mut RgbdFrame) {
     let (w, h) = (f.width(), f.height());
     let (ow, oh) = ((w as f64 * 0.5) as usize, (h as f64 * 0.4) as usize);
     let (x0, y0) = (w / 4, h / 3);
-    let src = f.intensity.clone();
+    let src = f.intensity().clone();
     for y in 0..oh {
         for x in 0..ow {
             let (dx, dy) = (x0 + x, y0 + y);
             let (sx, sy) = ((x * 7 + 13) % w, (y * 5 + 3) % h);
-            f.intensity.data[dy * w + dx] = src.data[sy * w + sx];
-            f.inverse_depth.data[dy * w + dx] = 1.0 / 0.9;
+            f.intensity_mut().data_mut()[dy * w + dx] = src.data()[sy * w + sx];
+            f.inverse_depth_mut().data_mut()[dy * w + dx] = 1.0 / 0.9;
         }
     }
 }

@@ -79,7 +79,7 @@ fn render(
                     acc += scene.value(scene_from_pixel(q));
                 }
             }
-            img.data[y * w + x] = acc / 9.0;
+            img.data_mut()[y * w + x] = acc / 9.0;
         }
     }
     img
@@ -227,7 +227,7 @@ fn keypoints_are_spread_over_the_image_and_respect_the_mask() {
     let mut mask = ImageF32::filled(w, h, 0.0);
     for y in 0..h {
         for x in 0..w / 2 {
-            mask.data[y * w + x] = 1.0;
+            mask.data_mut()[y * w + x] = 1.0;
         }
     }
     for distribute in [false, true] {

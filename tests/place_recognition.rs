@@ -426,8 +426,8 @@ impl PlaneWorld {
                 let o = world_from_camera.translation;
                 let t = (2.0 - o.z) / ray.z;
                 let p = o + ray * t;
-                img.data[v * w + u] = self.sample(p.x, p.y);
-                inv.data[v * w + u] = (1.0 / t) as f32;
+                img.data_mut()[v * w + u] = self.sample(p.x, p.y);
+                inv.data_mut()[v * w + u] = (1.0 / t) as f32;
             }
         }
         (img, inv)

@@ -34,7 +34,7 @@ fn scene(w: usize, h: usize, cam: &PinholeCamera, seed: u64) -> ImageF32 {
                 continue; // hole
             }
             let noise: f64 = rng.random_range(-0.004..0.004);
-            img.data[v * w + u] = (1.0 / (z * (1.0 + noise))) as f32;
+            img.data_mut()[v * w + u] = (1.0 / (z * (1.0 + noise))) as f32;
         }
     }
     img

@@ -83,7 +83,7 @@ fn render(scene: &[Prim], noise: f64, seed: u64) -> ImageF32 {
                 } else {
                     0.0
                 };
-                img.data[v * W + u] = (1.0 / (z * (1.0 + n))) as f32;
+                img.data_mut()[v * W + u] = (1.0 / (z * (1.0 + n))) as f32;
             }
         }
     }
@@ -92,7 +92,7 @@ fn render(scene: &[Prim], noise: f64, seed: u64) -> ImageF32 {
 
 fn textured() -> ImageF32 {
     let mut img = ImageF32::filled(W, H, 0.0);
-    for (i, v) in img.data.iter_mut().enumerate() {
+    for (i, v) in img.data_mut().iter_mut().enumerate() {
         *v = ((i * 37 % 101) as f32) * 2.0;
     }
     img

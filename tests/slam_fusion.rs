@@ -48,7 +48,7 @@ fn render(cam: &PinholeCamera, world_from_camera: &Se3, noise: f64, seed: u64) -
             }
             // Depth along the camera z axis = t (d has z = 1 in the camera frame).
             let z = t * (1.0 + noise * (rng.random::<f64>() * 2.0 - 1.0) * 1.732);
-            img.data[v * w + u] = (1.0 / z) as f32;
+            img.data_mut()[v * w + u] = (1.0 / z) as f32;
         }
     }
     img
@@ -63,14 +63,14 @@ fn fusion_averages_noise_and_counts_covisibility() {
     let cam = camera(160, 120);
     let kf_pose = pose(0.0, 0.0, 0.0);
     let truth = render(&cam, &kf_pose, 0.0, 1);
-    let mut rho = render(&cam, &kf_pose, 0.01, 2).data;
+    let mut rho = render(&cam, &kf_pose, 0.01, 2).into_data();
     let mut weight: Vec<f32> = rho
         .iter()
         .map(|&r| if r > 0.0 { 1.0 } else { 0.0 })
         .collect();
     let err = |r: &[f32]| {
         let (mut s, mut n) = (0.0, 0);
-        for (a, b) in r.iter().zip(truth.data.iter()) {
+        for (a, b) in r.iter().zip(truth.data().iter()) {
             if *a > 0.0 && *b > 0.0 {
                 s += f64::from((1.0 / a - 1.0 / b).abs());
                 n += 1;
@@ -88,7 +88,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
         last = Some(fuse_cpu(
             &mut rho,
             &mut weight,
-            &cur.data,
+            cur.data(),
             &cam,
             &cur_from_kf,
             &params,
@@ -111,7 +111,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
     let c = fuse_cpu(
         &mut rho,
         &mut weight,
-        &cur.data,
+        cur.data(),
         &cam,
         &away.inverse(),
         &params,
@@ -157,11 +157,11 @@ fn gpu_fusion_matches_cpu_mirror() {
         }
         let (rc, wc) = cpu.finish().unwrap();
         let (rg, wg) = gpu_f.finish().unwrap();
-        let n = rc.data.len();
+        let n = rc.data().len();
         let mut differ = 0;
         for i in 0..n {
-            let (a, b) = (rc.data[i], rg.data[i]);
-            if (a - b).abs() > 1e-5 * a.abs().max(1e-3) || wc.data[i] != wg.data[i] {
+            let (a, b) = (rc.data()[i], rg.data()[i]);
+            if (a - b).abs() > 1e-5 * a.abs().max(1e-3) || wc.data()[i] != wg.data()[i] {
                 differ += 1;
             }
         }

@@ -332,8 +332,16 @@ fn lost_tracking_is_reported_and_relocalised() {
     let (r, reports) = run(&mut seq, cam, SlamConfig::default(), None, |i, frame| {
         if covered.contains(&i) {
             // Covered sensor: black image, no depth.
-            frame.intensity.data.iter_mut().for_each(|v| *v = 0.0);
-            frame.inverse_depth.data.iter_mut().for_each(|v| *v = 0.0);
+            frame
+                .intensity_mut()
+                .data_mut()
+                .iter_mut()
+                .for_each(|v| *v = 0.0);
+            frame
+                .inverse_depth_mut()
+                .data_mut()
+                .iter_mut()
+                .for_each(|v| *v = 0.0);
         }
     });
     for i in covered.clone() {

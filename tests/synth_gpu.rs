@@ -82,9 +82,9 @@ fn gpu_ray_caster_matches_cpu() {
             let fb = gpu.render(&pose, &sensor, 3).unwrap();
             let dv = fa
                 .inverse_depth
-                .data
+                .data()
                 .iter()
-                .zip(&fb.inverse_depth.data)
+                .zip(fb.inverse_depth.data())
                 .filter(|(p, q)| (**p - **q).abs() > 1e-3)
                 .count();
             assert!(

@@ -46,8 +46,8 @@ fn presets_render_with_depth_and_texture_everywhere() {
                 &SensorModel::noiseless(),
                 1,
             );
-            let n = f.inverse_depth.data.len() as f64;
-            let valid = f.inverse_depth.data.iter().filter(|d| **d > 0.0).count() as f64 / n;
+            let n = f.inverse_depth.data().len() as f64;
+            let valid = f.inverse_depth.data().iter().filter(|d| **d > 0.0).count() as f64 / n;
             assert!(
                 valid > 0.97,
                 "{name} view {k}: only {valid:.3} of pixels have depth"
@@ -80,7 +80,7 @@ fn presets_render_with_depth_and_texture_everywhere() {
             );
             let kvalid = kinect
                 .inverse_depth
-                .data
+                .data()
                 .iter()
                 .filter(|d| **d > 0.0)
                 .count() as f64
@@ -119,7 +119,7 @@ fn rendering_is_deterministic_and_seeded() {
 
 fn bilinear(img: &rgbid::image::ImageF32, p: DVec2) -> Option<f32> {
     let (x0, y0) = (p.x.floor(), p.y.floor());
-    if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= img.width as f64 || y0 + 1.0 >= img.height as f64 {
+    if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= img.width() as f64 || y0 + 1.0 >= img.height() as f64 {
         return None;
     }
     let (fx, fy) = ((p.x - x0) as f32, (p.y - y0) as f32);
@@ -238,8 +238,8 @@ fn inverse_depth_noise_does_not_grow_with_depth() {
             &sensor,
             100 + k,
         );
-        for (i, &inv) in f.inverse_depth.data.iter().enumerate() {
-            let z = f64::from(f.true_depth.data[i]);
+        for (i, &inv) in f.inverse_depth.data().iter().enumerate() {
+            let z = f64::from(f.true_depth.data()[i]);
             if inv <= 0.0 || z <= 0.0 {
                 continue;
             }

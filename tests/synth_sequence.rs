@@ -283,7 +283,7 @@ fn tum_folder_is_complete_and_byte_identical() {
     let f0 = seq.next().unwrap().unwrap();
     let mut valid = 0;
     for (i, px) in depth.pixels().enumerate() {
-        let inv = f0.frame.inverse_depth.data[i];
+        let inv = f0.frame.inverse_depth.data()[i];
         if px.0[0] == 0 {
             assert_eq!(inv, 0.0);
         } else {

@@ -250,12 +250,12 @@ fn fusion_and_raycast(
             let frame = test_pattern(w as usize, h as usize, 2);
             let cur_from_kf = Se3::exp(&[0.01, 0.0, 0.0, 0.0, 0.005, 0.0]);
             let mut fuser = KeyframeFuser::new(cam, FusionParams::default(), backend)?;
-            fuser.start(&keyframe.inverse_depth)?;
-            fuser.fuse(&frame.inverse_depth, &cur_from_kf)?; // warm-up
+            fuser.start(keyframe.inverse_depth())?;
+            fuser.fuse(frame.inverse_depth(), &cur_from_kf)?; // warm-up
             let mut fuse = Vec::new();
             for _ in 0..repeat.max(1) {
                 let t = Instant::now();
-                fuser.fuse(&frame.inverse_depth, &cur_from_kf)?;
+                fuser.fuse(frame.inverse_depth(), &cur_from_kf)?;
                 fuse.push(t.elapsed().as_secs_f64() * 1e3);
             }
             let render = match backend {
@@ -313,7 +313,7 @@ fn undistortion(sizes: &[(u32, u32)], repeat: usize) -> Result<Vec<UndistortRow>
             cam.distortion = fr1.distortion;
             let map = rgbid::io::UndistortMap::new(&cam);
             let f = test_pattern(w as usize, h as usize, 1);
-            let (raw_i, raw_d) = (&f.intensity.data, &f.inverse_depth.data);
+            let (raw_i, raw_d) = (&f.intensity().data(), &f.inverse_depth().data());
             let mut times = Vec::new();
             let (mut oi, mut od) = (vec![0.0; raw_i.len()], vec![0.0; raw_d.len()]);
             for _ in 0..repeat.max(1) {
@@ -536,7 +536,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
                 Err(e) => return Err(e.into()),
             };
             poses.push(TimedPose {
-                timestamp: frame.timestamp,
+                timestamp: frame.timestamp(),
                 world_from_camera: r.world_from_camera,
             });
             if i > 0 {

@@ -107,7 +107,7 @@ pub fn run(args: Args) -> Result<()> {
             Ok(r) => {
                 last_pose = Some(r.world_from_camera);
                 poses.push(TimedPose {
-                    timestamp: frame.timestamp,
+                    timestamp: frame.timestamp(),
                     world_from_camera: r.world_from_camera,
                 });
                 if let Some(f) = csv.as_mut() {
@@ -126,11 +126,11 @@ pub fn run(args: Args) -> Result<()> {
                 failures += 1;
                 log::warn!(
                     "frame {i} ({:.3} s): {m}; keeping the previous pose",
-                    frame.timestamp
+                    frame.timestamp()
                 );
                 if let Some(p) = last_pose {
                     poses.push(TimedPose {
-                        timestamp: frame.timestamp,
+                        timestamp: frame.timestamp(),
                         world_from_camera: p,
                     });
                 }
@@ -138,7 +138,7 @@ pub fn run(args: Args) -> Result<()> {
                     writeln!(
                         f,
                         "{i},{:.6},,,,,,,,,,,,,,,tracking_failed",
-                        frame.timestamp
+                        frame.timestamp()
                     )?;
                 }
             }

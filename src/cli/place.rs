@@ -174,13 +174,13 @@ fn loops(a: LoopsArgs) -> Result<()> {
     for &i in &idx {
         let frame = seq.load(i)?;
         let t0 = Instant::now();
-        let desc = det.describe(&frame.intensity, &frame.inverse_depth, &seq.camera, &[])?;
+        let desc = det.describe(frame.intensity(), frame.inverse_depth(), &seq.camera, &[])?;
         let t1 = Instant::now();
         let (_, found) = det.insert(desc)?;
         let t2 = Instant::now();
         t_desc.push((t1 - t0).as_secs_f64() * 1e3);
         t_query.push((t2 - t1).as_secs_f64() * 1e3);
-        stamps.push(frame.timestamp);
+        stamps.push(frame.timestamp());
         if let Some(l) = found {
             pb.suspend(|| print_loop(&l, &stamps));
             loops.push(l);
@@ -345,8 +345,8 @@ fn bench(a: BenchArgs) -> Result<()> {
     }
     println!(
         "{}x{}: {} keypoints; median ORB {:.2} ms, BoW ({} words) {:.2} ms, over {} runs on {} threads",
-        img.width,
-        img.height,
+        img.width(),
+        img.height(),
         f.len(),
         median(&mut t_orb),
         vocab.num_words(),

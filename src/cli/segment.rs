@@ -321,10 +321,10 @@ fn run_segment(args: &RunArgs) -> Result<()> {
     let mut segmenter = segment::Segmenter::new();
     for &f in &frames {
         let frame = seq.load(f)?;
-        let (t, intensity, inv) = (frame.timestamp, frame.intensity, frame.inverse_depth);
+        let (t, intensity, inv) = (frame.timestamp(), frame.intensity(), frame.inverse_depth());
         let t0 = Instant::now();
-        let n = normals.compute(&inv, &cam, &cfg.normals)?;
-        let juts = segmenter.segment_with_normals(&intensity, &inv, &cam, n, &cfg)?;
+        let n = normals.compute(inv, &cam, &cfg.normals)?;
+        let juts = segmenter.segment_with_normals(intensity, inv, &cam, n, &cfg)?;
         times.push(t0.elapsed().as_secs_f64() * 1e3);
         let (w, h) = (juts.width, juts.height);
         let stem = format!("frame_{f:05}");
@@ -333,7 +333,7 @@ fn run_segment(args: &RunArgs) -> Result<()> {
             .save(out.join(format!("{stem}_segments.png")))?;
         let ne = juts
             .neg_entropy_image()
-            .data
+            .data()
             .iter()
             .map(|v| {
                 if v.is_nan() {

@@ -180,11 +180,7 @@ pub fn procedural_image(w: usize, h: usize, seed: u64) -> ImageF32 {
                 / 4.0
         })
         .collect();
-    ImageF32 {
-        width: w,
-        height: h,
-        data,
-    }
+    ImageF32::from_vec(w, h, data).unwrap_or_else(|| ImageF32::filled(w, h, 0.0))
 }
 
 fn train(a: TrainArgs) -> Result<()> {

@@ -150,6 +150,14 @@ pub enum IoError {
         /// The value.
         factor: f64,
     },
+    /// A decoded frame's buffers do not fit together.
+    #[error("{path}: {source}")]
+    Frame {
+        /// The colour image of the frame.
+        path: PathBuf,
+        /// What did not fit.
+        source: crate::image::ImageError,
+    },
     /// A frame index past the end of the sequence.
     #[error("frame {index} requested but the sequence has {len} frames")]
     IndexOutOfRange {

@@ -24,7 +24,7 @@ use super::undistort::UndistortMap;
 use super::IoError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
-use crate::image::{rgb_to_intensity, ImageF32, RgbdFrame};
+use crate::image::{ColourImage, DepthBuffer, ImageBuffer, RgbdFrame};
 
 /// Default tolerance when associating colour and depth time stamps, seconds.
 pub const DEFAULT_MAX_TIME_DIFFERENCE: f64 = 0.02;
@@ -454,7 +454,7 @@ fn decode_frame(
     remap: Remap<'_>,
     timestamp: f64,
 ) -> Result<RgbdFrame, IoError> {
-    let (rgb, depth) = rayon::join(|| decode_intensity(rgb_path), || decode_depth(depth_path));
+    let (rgb, depth) = rayon::join(|| decode_colour(rgb_path), || decode_depth(depth_path));
     let (rgb, depth) = (rgb?, depth?);
     if (rgb.width, rgb.height) != (depth.width, depth.height) {
         return Err(IoError::ImageSizeMismatch {
@@ -474,38 +474,52 @@ fn decode_frame(
         });
     }
     check_depth_scale(&depth.raw, depth_factor, depth_path)?;
-    let factor = depth_factor as f32;
-    let mut inverse_depth: Vec<f32> = depth
-        .raw
-        .iter()
-        .map(|&d| if d == 0 { 0.0 } else { factor / f32::from(d) })
-        .collect();
-    let mut intensity = rgb.data;
+    let image = match &rgb.pixels {
+        RawPixels::Gray(g) => ImageBuffer::Gray(g),
+        RawPixels::Rgb(c) => ImageBuffer::Rgb(c),
+    };
+    let depth_buffer = DepthBuffer::U16 {
+        data: &depth.raw,
+        factor: depth_factor,
+    };
+    let mut frame = RgbdFrame::from_buffers(timestamp, rgb.width, rgb.height, image, depth_buffer)
+        .map_err(|source| IoError::Frame {
+            path: rgb_path.into(),
+            source,
+        })?;
     match remap {
         Remap::None => {}
         Remap::Cpu(m) => {
-            let mut out = vec![0.0f32; intensity.len()];
-            m.remap_bilinear(&intensity, &mut out);
-            intensity = out;
-            let mut out = vec![0.0f32; inverse_depth.len()];
-            m.remap_nearest(&inverse_depth, &mut out);
-            inverse_depth = out;
+            let mut out = vec![0.0f32; frame.intensity.data.len()];
+            m.remap_bilinear(&frame.intensity.data, &mut out);
+            frame.intensity.data = out;
+            let mut out = vec![0.0f32; frame.inverse_depth.data.len()];
+            m.remap_nearest(&frame.inverse_depth.data, &mut out);
+            frame.inverse_depth.data = out;
+            if let Some(c) = &frame.colour {
+                frame.colour = Some(remap_colour(m, c));
+            }
         }
     }
-    let (w, h) = (rgb.width, rgb.height);
-    Ok(RgbdFrame {
-        timestamp,
-        intensity: ImageF32 {
-            width: w,
-            height: h,
-            data: intensity,
-        },
-        inverse_depth: ImageF32 {
-            width: w,
-            height: h,
-            data: inverse_depth,
-        },
-    })
+    Ok(frame)
+}
+
+/// `colour` undistorted channel by channel (bilinear, rounded to the nearest byte).
+fn remap_colour(m: &UndistortMap, colour: &ColourImage) -> ColourImage {
+    let n = colour.width() * colour.height();
+    let mut rgb = vec![0u8; 3 * n];
+    let (mut plane, mut out) = (vec![0.0f32; n], vec![0.0f32; n]);
+    for ch in 0..3 {
+        for (p, px) in plane.iter_mut().zip(colour.rgb().chunks_exact(3)) {
+            *p = f32::from(px[ch]);
+        }
+        m.remap_bilinear(&plane, &mut out);
+        for (px, v) in rgb.chunks_exact_mut(3).zip(&out) {
+            px[ch] = v.round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    // The size is the frame's by construction.
+    ColourImage::from_rgb(colour.width(), colour.height(), rgb).unwrap_or_else(|_| colour.clone())
 }
 
 fn read_image(path: &Path) -> Result<image::DynamicImage, IoError> {
@@ -525,33 +539,31 @@ fn read_image(path: &Path) -> Result<image::DynamicImage, IoError> {
     })
 }
 
-fn decode_intensity(path: &Path) -> Result<ImageF32, IoError> {
+/// A decoded colour image: grey or RGB bytes, as stored.
+struct RawImage {
+    width: usize,
+    height: usize,
+    pixels: RawPixels,
+}
+
+enum RawPixels {
+    Gray(Vec<u8>),
+    Rgb(Vec<u8>),
+}
+
+fn decode_colour(path: &Path) -> Result<RawImage, IoError> {
     use image::DynamicImage as D;
     let img = read_image(path)?;
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let data: Vec<f32> = match &img {
-        D::ImageRgb8(b) => b
-            .as_raw()
-            .chunks_exact(3)
-            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
-            .collect(),
-        D::ImageRgba8(b) => b
-            .as_raw()
-            .chunks_exact(4)
-            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
-            .collect(),
-        D::ImageLuma8(b) => b.as_raw().iter().map(|&v| f32::from(v)).collect(),
-        other => other
-            .to_rgb8()
-            .as_raw()
-            .chunks_exact(3)
-            .map(|p| rgb_to_intensity(p[0], p[1], p[2]))
-            .collect(),
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    let pixels = match img {
+        D::ImageLuma8(b) => RawPixels::Gray(b.into_raw()),
+        D::ImageRgb8(b) => RawPixels::Rgb(b.into_raw()),
+        other => RawPixels::Rgb(other.to_rgb8().into_raw()),
     };
-    Ok(ImageF32 {
-        width: w,
-        height: h,
-        data,
+    Ok(RawImage {
+        width,
+        height,
+        pixels,
     })
 }
 

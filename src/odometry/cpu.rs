@@ -345,6 +345,7 @@ mod tests {
             timestamp: 0.0,
             intensity: ImageF32::from_vec(w, h, i).unwrap(),
             inverse_depth: ImageF32::from_vec(w, h, r).unwrap(),
+            colour: None,
         }
     }
 

@@ -218,6 +218,7 @@ mod tests {
                     height: 60,
                     data: rho,
                 },
+                colour: None,
             }
         };
         (cam, render(&Se3::IDENTITY), render(cur_from_ref))

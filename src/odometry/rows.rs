@@ -970,6 +970,7 @@ mod tests {
             timestamp: 0.0,
             intensity: ImageF32::from_vec(w, h, i).unwrap(),
             inverse_depth: ImageF32::from_vec(w, h, r).unwrap(),
+            colour: None,
         }
     }
 
@@ -1172,6 +1173,7 @@ mod tests {
             timestamp: 0.0,
             intensity: ImageF32::from_vec(w, h, i).unwrap(),
             inverse_depth: ImageF32::from_vec(w, h, r).unwrap(),
+            colour: None,
         }
     }
 

@@ -126,6 +126,7 @@ impl Keyframe {
             timestamp: self.timestamp,
             intensity: self.intensity_image(),
             inverse_depth: self.inverse_depth_image(),
+            colour: None,
         }
     }
 

@@ -27,14 +27,14 @@ pub fn turbo(t: f32) -> Color32 {
 /// Grey image of intensities in [0, 255].
 pub fn intensity_image(img: &ImageF32) -> ColorImage {
     let pixels = img
-        .data
+        .data()
         .iter()
         .map(|&v| {
             let g = v.clamp(0.0, 255.0) as u8;
             Color32::from_gray(g)
         })
         .collect();
-    ColorImage::new([img.width, img.height], pixels)
+    ColorImage::new([img.width(), img.height()], pixels)
 }
 
 /// The value below which `q` (0-1) of the positive finite values lie; `None` when there are none.
@@ -56,11 +56,11 @@ pub fn quantile_positive(values: &[f32], q: f32) -> Option<f32> {
 /// (0) black. With `max = None` the 98th percentile of the valid values is used.
 pub fn inverse_depth_image(img: &ImageF32, max: Option<f32>) -> ColorImage {
     let max = max
-        .or_else(|| quantile_positive(&img.data, 0.98))
+        .or_else(|| quantile_positive(img.data(), 0.98))
         .filter(|m| *m > 0.0)
         .unwrap_or(1.0);
     let pixels = img
-        .data
+        .data()
         .iter()
         .map(|&rho| {
             if rho > 0.0 && rho.is_finite() {
@@ -70,20 +70,20 @@ pub fn inverse_depth_image(img: &ImageF32, max: Option<f32>) -> ColorImage {
             }
         })
         .collect();
-    ColorImage::new([img.width, img.height], pixels)
+    ColorImage::new([img.width(), img.height()], pixels)
 }
 
 /// Signed residuals on a blue-white-red scale saturating at `+-scale` (red positive);
 /// pixels without a residual (NaN) are black. With `scale = None` the 95th percentile of
 /// the absolute residuals is used.
 pub fn signed_image(img: &ImageF32, scale: Option<f32>) -> ColorImage {
-    let abs: Vec<f32> = img.data.iter().map(|v| v.abs()).collect();
+    let abs: Vec<f32> = img.data().iter().map(|v| v.abs()).collect();
     let s = scale
         .or_else(|| quantile_positive(&abs, 0.95))
         .filter(|s| *s > 0.0)
         .unwrap_or(1.0);
     let pixels = img
-        .data
+        .data()
         .iter()
         .map(|&r| {
             if !r.is_finite() {
@@ -98,14 +98,14 @@ pub fn signed_image(img: &ImageF32, scale: Option<f32>) -> ColorImage {
             }
         })
         .collect();
-    ColorImage::new([img.width, img.height], pixels)
+    ColorImage::new([img.width(), img.height()], pixels)
 }
 
 /// IRLS weights in [0, 1] through the turbo map (0 = blue, outliers; 1 = red); pixels
 /// without a residual (NaN) are black.
 pub fn weight_image(img: &ImageF32) -> ColorImage {
     let pixels = img
-        .data
+        .data()
         .iter()
         .map(|&w| {
             if w.is_finite() {
@@ -115,14 +115,14 @@ pub fn weight_image(img: &ImageF32) -> ColorImage {
             }
         })
         .collect();
-    ColorImage::new([img.width, img.height], pixels)
+    ColorImage::new([img.width(), img.height()], pixels)
 }
 
 /// The intensity image with each keypoint drawn as a circle (2.5 px at pyramid level 0,
 /// growing with the detection scale): green where `kept`, orange where a mask drops it.
 pub fn keypoints_overlay(intensity: &ImageF32, keypoints: &[KeypointMark]) -> ColorImage {
     let mut img = intensity_image(intensity);
-    let (w, h) = (intensity.width as i64, intensity.height as i64);
+    let (w, h) = (intensity.width() as i64, intensity.height() as i64);
     for k in keypoints {
         let colour = if k.kept {
             Color32::from_rgb(60, 230, 90)
@@ -172,13 +172,13 @@ pub fn loop_matches_image(
     candidate: &ImageF32,
     matches: &[PixelMatch],
 ) -> ColorImage {
-    let w = query.width.max(candidate.width);
-    let h = query.height + LOOP_GAP + candidate.height;
+    let w = query.width().max(candidate.width());
+    let h = query.height() + LOOP_GAP + candidate.height();
     let mut img = ColorImage::new([w, h], vec![Color32::BLACK; w * h]);
-    for (src, y0) in [(query, 0), (candidate, query.height + LOOP_GAP)] {
-        for y in 0..src.height {
-            for x in 0..src.width {
-                let g = src.data[y * src.width + x].clamp(0.0, 255.0) as u8;
+    for (src, y0) in [(query, 0), (candidate, query.height() + LOOP_GAP)] {
+        for y in 0..src.height() {
+            for x in 0..src.width() {
+                let g = src.data()[y * src.width() + x].clamp(0.0, 255.0) as u8;
                 img.pixels[(y0 + y) * w + x] = Color32::from_gray(g);
             }
         }
@@ -189,7 +189,7 @@ pub fn loop_matches_image(
             img.pixels[y as usize * w + x as usize] = c;
         }
     };
-    let segments = loop_match_segments(matches, query.height);
+    let segments = loop_match_segments(matches, query.height());
     let n = segments.len();
     for (i, (a, b)) in segments.iter().enumerate() {
         let c = loop_match_colour(i, n);
@@ -218,7 +218,7 @@ pub fn rgb_image(width: usize, height: usize, rgb: &[u8]) -> Option<ColorImage> 
 /// half); pixels without a segment (non-finite or zero value) show the intensity only.
 pub fn neg_entropy_overlay(neg_entropy: &ImageF32, intensity: Option<&ImageF32>) -> ColorImage {
     let finite: Vec<f32> = neg_entropy
-        .data
+        .data()
         .iter()
         .copied()
         .filter(|v| v.is_finite())
@@ -227,13 +227,13 @@ pub fn neg_entropy_overlay(neg_entropy: &ImageF32, intensity: Option<&ImageF32>)
     let hi = finite.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     let span = if hi > lo { hi - lo } else { 1.0 };
     let pixels = neg_entropy
-        .data
+        .data()
         .iter()
         .enumerate()
         .map(|(i, &v)| {
             let g = intensity
-                .filter(|im| im.data.len() == neg_entropy.data.len())
-                .map_or(0.0, |im| im.data[i].clamp(0.0, 255.0));
+                .filter(|im| im.data().len() == neg_entropy.data().len())
+                .map_or(0.0, |im| im.data()[i].clamp(0.0, 255.0));
             if v.is_finite() && v != 0.0 {
                 let c = turbo((v - lo) / span);
                 let mix = |a: u8| (0.5 * f32::from(a) + 0.5 * g) as u8;
@@ -243,7 +243,7 @@ pub fn neg_entropy_overlay(neg_entropy: &ImageF32, intensity: Option<&ImageF32>)
             }
         })
         .collect();
-    ColorImage::new([neg_entropy.width, neg_entropy.height], pixels)
+    ColorImage::new([neg_entropy.width(), neg_entropy.height()], pixels)
 }
 
 #[cfg(test)]
@@ -268,7 +268,7 @@ mod tests {
         assert_eq!(c.pixels[0], Color32::BLACK);
         assert_eq!(c.pixels[3], Color32::BLACK);
         assert_eq!(c.pixels[4], turbo(1.0));
-        assert_eq!(quantile_positive(&img.data, 1.0), Some(2.0));
+        assert_eq!(quantile_positive(img.data(), 1.0), Some(2.0));
         assert_eq!(quantile_positive(&[0.0, -1.0], 0.5), None);
     }
 
@@ -313,7 +313,7 @@ mod tests {
         let q = ImageF32::from_vec(40, 30, vec![100.0; 1200]).unwrap();
         let c = ImageF32::from_vec(40, 30, vec![50.0; 1200]).unwrap();
         let matches = [([5.0, 6.0], [30.0, 20.0]), ([35.0, 25.0], [4.0, 3.0])];
-        let segs = loop_match_segments(&matches, q.height);
+        let segs = loop_match_segments(&matches, q.height());
         assert_eq!(segs[0], ([5.0, 6.0], [30.0, 20.0 + 34.0]));
         assert_eq!(segs[1], ([35.0, 25.0], [4.0, 3.0 + 34.0]));
         let img = loop_matches_image(&q, &c, &matches);

@@ -292,7 +292,7 @@ pub fn frame_points(
     for y in (0..h).step_by(step) {
         for x in (0..w).step_by(step) {
             let i = y * w + x;
-            let rho = frame.inverse_depth.data[i];
+            let rho = frame.inverse_depth().data()[i];
             if rho > 0.0 && rho.is_finite() {
                 let z = 1.0 / f64::from(rho);
                 let p = DVec3::new(
@@ -300,7 +300,7 @@ pub fn frame_points(
                     (y as f64 - camera.cy) / camera.fy * z,
                     z,
                 );
-                let g = frame.intensity.data[i].clamp(0.0, 255.0) as u8;
+                let g = frame.intensity().data()[i].clamp(0.0, 255.0) as u8;
                 out.push((world_from_camera.transform_point(p), g));
             }
         }
@@ -356,8 +356,8 @@ fn keyframe_keypoints(
     f.keypoints
         .iter()
         .map(|k| {
-            let (x, y) = k.nearest_pixel(neg_entropy.width, neg_entropy.height);
-            let v = neg_entropy.data.get(y * neg_entropy.width + x).copied();
+            let (x, y) = k.nearest_pixel(neg_entropy.width(), neg_entropy.height());
+            let v = neg_entropy.data().get(y * neg_entropy.width() + x).copied();
             KeypointMark {
                 x: k.uv.x as f32,
                 y: k.uv.y as f32,
@@ -380,20 +380,18 @@ impl KeyframeImages {
     /// Keeps `intensity` (0-255) as keyframe `id`'s image.
     pub fn insert(&mut self, id: usize, intensity: &ImageF32) {
         let bytes = intensity
-            .data
+            .data()
             .iter()
             .map(|&v| v.round().clamp(0.0, 255.0) as u8)
             .collect();
         self.images
-            .insert(id, (intensity.width, intensity.height, bytes));
+            .insert(id, (intensity.width(), intensity.height(), bytes));
     }
 
     /// Keyframe `id`'s intensity (0-255), if kept.
     pub fn get(&self, id: usize) -> Option<ImageF32> {
-        self.images.get(&id).map(|(w, h, bytes)| ImageF32 {
-            width: *w,
-            height: *h,
-            data: bytes.iter().map(|&v| f32::from(v)).collect(),
+        self.images.get(&id).and_then(|(w, h, bytes)| {
+            ImageF32::from_vec(*w, *h, bytes.iter().map(|&v| f32::from(v)).collect())
         })
     }
 }
@@ -485,14 +483,14 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
             FrameStatus::NewKeyframe | FrameStatus::Relocalised
         ) {
             if let Some((id, _)) = report.record.keyframe {
-                keyframe_images.insert(id, &frame.intensity);
+                keyframe_images.insert(id, frame.intensity());
             }
         }
         let new_loops = slam.loops_since(loops_seen);
         loops_seen += new_loops.len();
         let loop_updates: Vec<LoopUpdate> = new_loops
             .iter()
-            .map(|l| LoopUpdate::new(l, &keyframe_images, Some(&frame.intensity)))
+            .map(|l| LoopUpdate::new(l, &keyframe_images, Some(frame.intensity())))
             .collect();
         let residuals = if config.residuals {
             frame_residuals(
@@ -522,8 +520,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                 let seg = if config.segment_keyframes {
                     segmenter
                         .segment_keyframe(
-                            &frame.intensity,
-                            &frame.inverse_depth,
+                            frame.intensity(),
+                            frame.inverse_depth(),
                             &camera,
                             &SegmentConfig::default(),
                         )
@@ -536,7 +534,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                     .as_ref()
                     .map(|s| {
                         keyframe_keypoints(
-                            &frame.intensity,
+                            frame.intensity(),
                             &s.neg_entropy_image(),
                             &orb_params,
                             mask_threshold,
@@ -558,8 +556,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         };
         send(Update::Frame(Box::new(FrameUpdate {
             index: i,
-            intensity: frame.intensity,
-            inverse_depth: frame.inverse_depth,
+            intensity: frame.intensity().clone(),
+            inverse_depth: frame.inverse_depth().clone(),
             report,
             residuals,
             load_ms,

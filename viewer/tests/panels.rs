@@ -331,7 +331,10 @@ fn loop_panels_show_the_inlier_matches_of_a_closed_loop() {
             .as_ref()
             .expect("candidate keyframe image"),
     );
-    assert_eq!((q.width, q.height, c.width, c.height), (160, 120, 160, 120));
+    assert_eq!(
+        (q.width(), q.height(), c.width(), c.height()),
+        (160, 120, 160, 120)
+    );
     // Every match end is an ORB keypoint of its keyframe image.
     let orb = rgbid::slam::SlamConfig::default().detector.orb;
     let keypoints = |img: &rgbid::image::ImageF32| -> Vec<[f32; 2]> {
@@ -348,8 +351,8 @@ fn loop_panels_show_the_inlier_matches_of_a_closed_loop() {
         assert!(kc.contains(b), "candidate match {b:?} is not a keypoint");
     }
     // The drawn lines join those points (candidate image below the query's).
-    let dy = (q.height + rgbid_viewer::images::LOOP_GAP) as f32;
-    let segments = rgbid_viewer::images::loop_match_segments(&l.matches, q.height);
+    let dy = (q.height() + rgbid_viewer::images::LOOP_GAP) as f32;
+    let segments = rgbid_viewer::images::loop_match_segments(&l.matches, q.height());
     for ((a, b), (s, e)) in l.matches.iter().zip(&segments) {
         assert_eq!((a, [b[0], b[1] + dy]), (s, *e));
     }
