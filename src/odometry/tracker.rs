@@ -808,7 +808,7 @@ impl PreparedFrame {
 /// let mut odo = Odometry::new(OdometryConfig::default(), camera, &backend)?;
 /// for f in &frames {
 ///     let r = odo.track(f)?;
-///     println!("{} {:?}", f.timestamp, r.world_from_camera.translation);
+///     println!("{} {:?}", f.timestamp(), r.world_from_camera.translation);
 /// }
 /// # Ok(()) }
 /// ```
