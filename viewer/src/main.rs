@@ -105,7 +105,7 @@ fn main() -> Result<()> {
             lap_seconds: a.seconds,
         }));
     } else if let Some(seq) = &a.sequence {
-        if seq.join("trajectory.txt").exists() {
+        if rgbid::io::run_folder::RunFolder::is_run_folder(seq) {
             state = ViewerState::from_output(load_output(seq)?);
         } else {
             run = Some(RunConfig::new(SourceSpec::Tum {
@@ -132,6 +132,7 @@ fn main() -> Result<()> {
         options,
         Box::new(move |cc| {
             let mut app = ViewerApp::new(state, run);
+            app.frame_bench = rgbid_viewer::app::FrameBench::from_env();
             if let Some(rs) = &cc.wgpu_render_state {
                 scene3d::install(rs, 1);
                 app.has_3d = true;
