@@ -761,7 +761,7 @@ impl ViewerApp {
                 .on_hover_text("draw a uniform subsample (for software renderers such as lavapipe)")
                 .changed()
             {
-                self.point_budget = limited.then_some(250_000);
+                self.point_budget = limited.then_some(crate::scene3d::SOFTWARE_POINT_BUDGET);
             }
             if let Some(b) = &mut self.point_budget {
                 ui.add(

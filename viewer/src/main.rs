@@ -136,9 +136,9 @@ fn main() -> Result<()> {
             if let Some(rs) = &cc.wgpu_render_state {
                 scene3d::install(rs, 1);
                 app.has_3d = true;
-                // Software adapters (lavapipe) rasterise ~2 M points/s: keep the view fluid.
+                // Software adapters (lavapipe): keep the view fluid (see the constant).
                 if rs.adapter.get_info().device_type == wgpu::DeviceType::Cpu {
-                    app.point_budget = Some(250_000);
+                    app.point_budget = Some(scene3d::SOFTWARE_POINT_BUDGET);
                 }
             }
             if let Some(n) = bench_points {
