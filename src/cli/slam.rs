@@ -1,6 +1,5 @@
 //! `rgbid slam`: the full RGB-ID SLAM system on a TUM folder or a generated sequence.
 
-use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -9,12 +8,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::gpu::{select_backend, ComputeBackend};
+use rgbid::io::run_folder::{FrameRow, KeyframeTimingRow, LoopRow, RunFolderWriter, RunSummary};
 use rgbid::io::settings::Provenance;
-use rgbid::io::trajectory::write_tum;
 use rgbid::place::Vocabulary;
-use rgbid::slam::{
-    build_model, write_ply, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
-};
+use rgbid::slam::{build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult};
 use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
 
@@ -182,7 +179,8 @@ pub fn run(a: Args) -> Result<()> {
         None => None,
     };
     let provenance = Provenance::new(&config, &backend)?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
+    // Per-frame rows are appended and flushed as they come (see `rgbid::io::run_folder`).
+    let writer = RunFolderWriter::create(&a.out).with_context(|| format!("{}", a.out.display()))?;
     let outcome = run_slam(
         &a,
         &mut source,
@@ -191,6 +189,7 @@ pub fn run(a: Args) -> Result<()> {
         vocabulary,
         map,
         &provenance,
+        writer,
     );
     match outcome {
         Ok(()) => Ok(()),
@@ -201,6 +200,7 @@ pub fn run(a: Args) -> Result<()> {
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn run_slam(
     a: &Args,
     source: &mut FrameSource,
@@ -209,6 +209,7 @@ fn run_slam(
     vocabulary: Vocabulary,
     map: Option<Map>,
     provenance: &Provenance,
+    mut writer: RunFolderWriter,
 ) -> Result<()> {
     let camera = source.camera();
     let n = source.len();
@@ -258,6 +259,10 @@ fn run_slam(
         load_ms.push(tl.elapsed().as_secs_f64() * 1e3);
         match slam.process(&frame) {
             Ok(r) => {
+                if let Err(e) = write_frame(&mut writer, &slam, &r.record) {
+                    error = Some(e.context(format!("frame {i}")));
+                    break;
+                }
                 if r.status == FrameStatus::Lost {
                     lost += 1;
                 }
@@ -294,6 +299,7 @@ fn run_slam(
     let wall = t0.elapsed().as_secs_f64();
     write_outputs(
         a,
+        writer,
         source,
         &camera,
         &result,
@@ -309,9 +315,29 @@ fn run_slam(
     Ok(())
 }
 
+/// Appends a frame's row, its front-end pose and the loops checked since the last call.
+fn write_frame(
+    writer: &mut RunFolderWriter,
+    slam: &Slam,
+    record: &rgbid::slam::FrameRecord,
+) -> Result<()> {
+    writer.frame(&FrameRow::from(record))?;
+    if let Some(p) = record.frontworld_from_camera {
+        writer.odometry_pose(&TimedPose {
+            timestamp: record.timestamp,
+            world_from_camera: p,
+        })?;
+    }
+    for l in slam.loops_since(writer.loops_written()) {
+        writer.loop_checked(&LoopRow::from(&l))?;
+    }
+    Ok(())
+}
+
 #[allow(clippy::too_many_arguments)]
 fn write_outputs(
     a: &Args,
+    mut writer: RunFolderWriter,
     source: &FrameSource,
     camera: &PinholeCamera,
     r: &SlamResult,
@@ -322,8 +348,7 @@ fn write_outputs(
     provenance: &Provenance,
 ) -> Result<()> {
     let out = &a.out;
-    write_tum(&out.join("trajectory.txt"), &r.trajectory)?;
-    write_tum(&out.join("odometry.txt"), &r.odometry)?;
+    writer.trajectory(&r.trajectory)?;
     let kf_traj: Vec<TimedPose> = r
         .keyframes()
         .iter()
@@ -333,65 +358,14 @@ fn write_outputs(
             world_from_camera: *p,
         })
         .collect();
-    write_tum(&out.join("keyframes.txt"), &kf_traj)?;
-    let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("loops.csv"))?);
-    writeln!(f, "query,candidate,inliers,refine_translation_m,refine_rotation_rad,covisibility,accepted,relocalisation,reason")?;
-    for l in &r.loops {
-        writeln!(
-            f,
-            "{},{},{},{:.4},{:.4},{:.3},{},{},\"{}\"",
-            l.query,
-            l.candidate,
-            l.inliers,
-            l.refine_translation,
-            l.refine_rotation,
-            l.covisibility,
-            l.accepted,
-            l.relocalisation,
-            l.reason
-        )?;
+    writer.keyframes(&kf_traj)?;
+    // Loops the back-end found after the last frame's call.
+    for l in r.loops.iter().skip(writer.loops_written()) {
+        writer.loop_checked(&LoopRow::from(l))?;
     }
-    f.flush()?;
-    let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("timing.csv"))?);
-    writeln!(f, "index,timestamp,status,frontend_ms,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,fusion_ms,covisibility,keyframe_covisibility,sigma_photo,sigma_geo,nu,condition_number,iterations")?;
-    for fr in &r.frames {
-        let t = &fr.times;
-        writeln!(
-            f,
-            "{},{:.6},{:?},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.4},{:.4},{:.4},{:.7},{:.3},{:.4e},{}",
-            fr.index,
-            fr.timestamp,
-            fr.status,
-            fr.frontend_ms,
-            t.pyramid_ms,
-            t.scale_ms,
-            t.reduce_ms,
-            t.solve_ms,
-            t.covisibility_ms,
-            fr.fusion_ms,
-            fr.covisibility,
-            fr.keyframe_covisibility,
-            fr.diagnostics.sigma_photo,
-            fr.diagnostics.sigma_geo,
-            fr.diagnostics.nu,
-            fr.diagnostics.condition_number,
-            fr.diagnostics.iterations
-        )?;
-    }
-    f.flush()?;
-    let mut f = std::io::BufWriter::new(std::fs::File::create(out.join("keyframe_timing.csv"))?);
-    writeln!(
-        f,
-        "id,segment_ms,describe_ms,query_ms,align_ms,optimise_ms,total_ms"
-    )?;
     for t in &r.timings {
-        writeln!(
-            f,
-            "{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3}",
-            t.id, t.segment_ms, t.describe_ms, t.query_ms, t.align_ms, t.optimise_ms, t.total_ms
-        )?;
+        writer.keyframe_timing(&KeyframeTimingRow::from(t))?;
     }
-    f.flush()?;
     let mut model_points = 0;
     if !a.no_model {
         let params = ModelParams {
@@ -400,7 +374,7 @@ fn write_outputs(
         };
         let filtered = build_model(r.keyframes(), &r.keyframe_poses, camera, &params);
         model_points = filtered.len();
-        write_ply(&out.join("model.ply"), &filtered)?;
+        writer.model(&filtered)?;
     }
     if let Some(p) = &a.map_out {
         r.map.save(p)?;
@@ -509,17 +483,32 @@ fn write_outputs(
         mb(peak.records),
         mb(peak.gpu)
     );
-    let mut summary = serde_json::json!({
-        "frames": processed, "dropped": dropped, "tracked": tracked, "lost": lost,
-        "relocalised": reloc, "keyframes": r.keyframes().len(), "loops_accepted": accepted,
-        "wall_s": wall, "model_points": model_points, "peak_rss_mb": rss,
-        "instance_peak_bytes": r.memory.peak_bytes(),
-        "instance_peak_breakdown_bytes": peak,
-        "provenance": provenance,
-    });
+    let mut summary = RunSummary {
+        frames: processed,
+        dropped,
+        tracked,
+        lost,
+        relocalised: reloc,
+        keyframes: r.keyframes().len(),
+        loops_accepted: accepted,
+        wall_s: wall,
+        model_points,
+        peak_rss_mb: rss,
+        ..Default::default()
+    };
+    summary.extra.insert(
+        "instance_peak_bytes".into(),
+        serde_json::json!(r.memory.peak_bytes()),
+    );
+    summary.extra.insert(
+        "instance_peak_breakdown_bytes".into(),
+        serde_json::to_value(peak)?,
+    );
+    summary
+        .extra
+        .insert("provenance".into(), serde_json::to_value(provenance)?);
     if let Some(gt) = source.groundtruth() {
-        let gt_path = out.join("groundtruth.txt");
-        write_tum(&gt_path, &gt)?;
+        writer.groundtruth(&gt)?;
         let opts = EvalOptions::default();
         for (name, est) in [("slam", &r.trajectory), ("odometry", &r.odometry)] {
             if est.len() < 2 {
@@ -536,17 +525,22 @@ fn write_outputs(
                         "{name:<9} ATE rmse {:.4} m (max {:.4}), RPE {:.4} m/s over {} poses",
                         m.ate.translation.rmse, m.ate.translation.max, rpe, m.matched
                     );
-                    summary[format!("{name}_ate_rmse")] = serde_json::json!(m.ate.translation.rmse);
-                    summary[format!("{name}_rpe_rmse")] = serde_json::json!(rpe);
+                    let (ate, rpe_slot) = if name == "slam" {
+                        (&mut summary.slam_ate_rmse, &mut summary.slam_rpe_rmse)
+                    } else {
+                        (
+                            &mut summary.odometry_ate_rmse,
+                            &mut summary.odometry_rpe_rmse,
+                        )
+                    };
+                    *ate = Some(m.ate.translation.rmse);
+                    *rpe_slot = Some(rpe);
                 }
                 Err(e) => println!("{name}: evaluation failed: {e}"),
             }
         }
     }
-    std::fs::write(
-        out.join("summary.json"),
-        serde_json::to_string_pretty(&summary)?,
-    )?;
+    writer.finish(summary)?;
     println!("wrote {}", out.display());
     Ok(())
 }

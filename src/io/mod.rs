@@ -1,10 +1,12 @@
 //! File formats: TUM RGB-D sequence folders, TUM trajectories, camera configuration files,
-//! and (as they land) g2o / iSAM pose graphs and PLY point clouds.
+//! PLY point clouds ([`ply`]) and the run folder of a SLAM run ([`run_folder`]).
 //!
 //! Every reader reports malformed input as an [`IoError`] naming the file, the line (where
 //! there is one) and the cause; nothing here panics on input.
 
 pub mod config;
+pub mod ply;
+pub mod run_folder;
 pub mod settings;
 pub mod trajectory;
 pub mod tum;
@@ -37,6 +39,15 @@ pub enum IoError {
         path: PathBuf,
         /// 1-based line number.
         line: usize,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The file's content is malformed in a way that has no line (binary files, JSON
+    /// structure, versions).
+    #[error("{path}: {message}")]
+    Malformed {
+        /// The file.
+        path: PathBuf,
         /// What is wrong with it.
         message: String,
     },

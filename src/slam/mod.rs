@@ -25,6 +25,7 @@ pub mod keyframe;
 pub mod map;
 mod memory;
 pub mod model;
+mod rows;
 mod system;
 
 pub use backend::{KeyframeTiming, LoopRecord};
@@ -32,7 +33,7 @@ pub use fusion::{fuse_cpu, FusionCounts, FusionParams, KeyframeFuser};
 pub use keyframe::{Keyframe, KeyframeLink};
 pub use map::{Map, MapError, MAP_VERSION};
 pub use memory::{MemoryBreakdown, MemoryReport};
-pub use model::{build_model, voxel_filter, write_ply, ModelParams};
+pub use model::{build_model, voxel_filter, ModelParams};
 pub use system::{FrameRecord, FrameReport, FrameStatus, OdometryDiagnostics, Slam, SlamResult};
 
 use crate::odometry::OdometryConfig;

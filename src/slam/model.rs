@@ -1,14 +1,11 @@
 //! The 3D model: keyframe point clouds placed by the optimised poses, each keyframe adding
-//! only what the previous keyframe did not already see, voxel-grid filtered, as PLY.
+//! only what the previous keyframe did not already see, voxel-grid filtered (written as PLY by [`crate::io::ply`]).
 
 use std::collections::HashMap;
-use std::io::Write;
-use std::path::Path;
 
 use glam::DVec3;
 
 use super::keyframe::Keyframe;
-use super::map::MapError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
 
@@ -141,29 +138,4 @@ pub fn voxel_filter(points: &[(DVec3, u8)], size: f64) -> Vec<(DVec3, u8)> {
         grid.add(*p, *i);
     }
     grid.points()
-}
-
-/// Writes points as a binary little-endian PLY with grey colour.
-pub fn write_ply(path: &Path, points: &[(DVec3, u8)]) -> Result<(), MapError> {
-    let io = |source| MapError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let f = std::fs::File::create(path).map_err(io)?;
-    let mut w = std::io::BufWriter::new(f);
-    write!(
-        w,
-        "ply\nformat binary_little_endian 1.0\ncomment rgbid model\nelement vertex {}\n\
-         property float x\nproperty float y\nproperty float z\n\
-         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
-        points.len()
-    )
-    .map_err(io)?;
-    for (p, i) in points {
-        for v in [p.x as f32, p.y as f32, p.z as f32] {
-            w.write_all(&v.to_le_bytes()).map_err(io)?;
-        }
-        w.write_all(&[*i, *i, *i]).map_err(io)?;
-    }
-    w.flush().map_err(io)
 }

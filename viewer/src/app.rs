@@ -81,6 +81,44 @@ pub struct ViewerApp {
     frame_ms: VecDeque<f64>,
     last_ui: Option<Instant>,
     screenshot_message: Arc<Mutex<Option<String>>>,
+    /// The frame-time measurement of [`FrameBench`], when asked for.
+    pub frame_bench: Option<FrameBench>,
+}
+
+/// A frame-time measurement in the window: once the run has finished (or at once when showing
+/// a folder or map), the 3D camera orbits a little every frame for `frames` frames (so the
+/// whole UI and the 3D view are drawn again each time); then one line with the median and
+/// 95th-percentile time between frames goes to stdout, followed by a line `ready`. Enabled by
+/// the environment variable `RGBID_VIEWER_FRAME_BENCH=FRAMES` (see [`FrameBench::from_env`]).
+#[derive(Clone, Debug, Default)]
+pub struct FrameBench {
+    /// Frames to measure.
+    pub frames: usize,
+    /// Times between frames so far, milliseconds.
+    pub times_ms: Vec<f64>,
+    /// Median UI frame time of the live run (before the measurement), milliseconds.
+    pub live_ms: Option<f64>,
+    last: Option<Instant>,
+    done: bool,
+}
+
+impl FrameBench {
+    /// Environment variable that enables the measurement (a number of frames).
+    pub const ENV: &'static str = "RGBID_VIEWER_FRAME_BENCH";
+
+    /// The measurement asked for by [`Self::ENV`], if set to a positive number.
+    pub fn from_env() -> Option<Self> {
+        let frames: usize = std::env::var(Self::ENV).ok()?.trim().parse().ok()?;
+        (frames > 0).then(|| FrameBench {
+            frames,
+            ..Default::default()
+        })
+    }
+
+    /// Whether the measurement has finished and was reported.
+    pub fn done(&self) -> bool {
+        self.done
+    }
 }
 
 impl ViewerApp {
@@ -107,6 +145,7 @@ impl ViewerApp {
             frame_ms: VecDeque::new(),
             last_ui: None,
             screenshot_message: Arc::new(Mutex::new(None)),
+            frame_bench: None,
         };
         if app.run_config.is_some() {
             app.restart();
@@ -135,7 +174,7 @@ impl ViewerApp {
     /// Opens a path: an `rgbid slam` output folder (has trajectory.txt), a saved map file, or
     /// a TUM RGB-D folder (starts SLAM).
     pub fn open(&mut self, path: &Path) -> Result<()> {
-        if path.is_dir() && path.join("trajectory.txt").exists() {
+        if path.is_dir() && rgbid::io::run_folder::RunFolder::is_run_folder(path) {
             let folder = load_output(path)?;
             self.worker = None;
             self.run_config = None;
@@ -729,7 +768,7 @@ impl ViewerApp {
                 .on_hover_text("draw a uniform subsample (for software renderers such as lavapipe)")
                 .changed()
             {
-                self.point_budget = limited.then_some(250_000);
+                self.point_budget = limited.then_some(crate::scene3d::SOFTWARE_POINT_BUDGET);
             }
             if let Some(b) = &mut self.point_budget {
                 ui.add(
@@ -826,7 +865,7 @@ impl ViewerApp {
                 .collect(),
         };
         let p = self.export_dir.join("model.ply");
-        rgbid::slam::write_ply(&p, &pts)?;
+        rgbid::io::ply::write_ply_grey(&p, &pts)?;
         Ok(p)
     }
 
@@ -903,6 +942,53 @@ impl eframe::App for ViewerApp {
         if running || changed {
             ui.ctx().request_repaint();
         }
+        if !running && self.state.error.is_none() {
+            self.step_frame_bench(ui.ctx());
+        }
+    }
+}
+
+impl ViewerApp {
+    /// One frame of the [`FrameBench`] measurement (no-op when none is active).
+    fn step_frame_bench(&mut self, ctx: &egui::Context) {
+        let live_ms = self.median_frame_ms();
+        let Some(b) = &mut self.frame_bench else {
+            return;
+        };
+        if b.done {
+            return;
+        }
+        if b.live_ms.is_none() {
+            b.live_ms = Some(live_ms.unwrap_or(f64::NAN));
+        }
+        let now = Instant::now();
+        if let Some(t) = b.last.replace(now) {
+            b.times_ms.push((now - t).as_secs_f64() * 1e3);
+        }
+        if b.times_ms.len() >= b.frames {
+            b.done = true;
+            let mut v = b.times_ms.clone();
+            v.sort_by(f64::total_cmp);
+            let q = |f: f64| v[((v.len() - 1) as f64 * f).round() as usize];
+            let drawn = self.point_budget.map_or(self.state.point_count(), |b| {
+                self.state.point_count().min(b as usize)
+            });
+            let size = ctx.content_rect().size() * ctx.pixels_per_point();
+            println!(
+                "ui frame: median {:.1} ms, p95 {:.1} ms over {} frames (orbiting); {} points, {drawn} drawn; window {}x{}; live run: median {:.1} ms",
+                q(0.5),
+                q(0.95),
+                v.len(),
+                self.state.point_count(),
+                size.x.round(),
+                size.y.round(),
+                b.live_ms.unwrap_or(f64::NAN),
+            );
+            println!("ready");
+            return;
+        }
+        self.camera.orbit(4.0, 0.0);
+        ctx.request_repaint();
     }
 }
 

@@ -84,7 +84,7 @@ fn main() -> Result<()> {
     } else if let Some(spec) = a.source.spec(0, None)? {
         run = Some(RunConfig::new(spec));
     } else if let Some(seq) = &a.sequence {
-        if seq.join("trajectory.txt").exists() {
+        if rgbid::io::run_folder::RunFolder::is_run_folder(seq) {
             state = ViewerState::from_output(load_output(seq)?);
         } else {
             run = Some(RunConfig::new(SourceSpec::Tum {
@@ -111,12 +111,13 @@ fn main() -> Result<()> {
         options,
         Box::new(move |cc| {
             let mut app = ViewerApp::new(state, run);
+            app.frame_bench = rgbid_viewer::app::FrameBench::from_env();
             if let Some(rs) = &cc.wgpu_render_state {
                 scene3d::install(rs, 1);
                 app.has_3d = true;
-                // Software adapters (lavapipe) rasterise ~2 M points/s: keep the view fluid.
+                // Software adapters (lavapipe): keep the view fluid (see the constant).
                 if rs.adapter.get_info().device_type == wgpu::DeviceType::Cpu {
-                    app.point_budget = Some(250_000);
+                    app.point_budget = Some(scene3d::SOFTWARE_POINT_BUDGET);
                 }
             }
             if let Some(n) = bench_points {

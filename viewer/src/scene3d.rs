@@ -1,8 +1,11 @@
 //! The 3D view: keyframe point clouds, trajectories, keyframe frusta and loop edges drawn with
-//! wgpu inside egui (an `egui_wgpu` paint callback). The geometry lives in two vertex buffers
-//! (points as a point list, segments as a line list) that are uploaded only when the
-//! geometry's version changes; every repaint only writes the 64-byte camera uniform, draws
-//! into an offscreen colour + depth target and copies it into egui's render pass.
+//! wgpu inside egui (an `egui_wgpu` paint callback). The geometry lives in two GPU buffers
+//! (points, and segments as a line list) that are uploaded only when the geometry's version
+//! changes; every repaint writes the camera uniform, splats the points with two compute
+//! passes (`shaders/splat.wgsl`: one pixel per point, nearest wins; software rasterisers such
+//! as lavapipe draw point primitives about ten times slower), resolves them into an offscreen
+//! colour + depth target, draws the lines there with depth test, and copies the target into
+//! egui's render pass.
 
 use std::sync::Arc;
 
@@ -14,6 +17,13 @@ use wgpu::util::DeviceExt;
 
 /// WGSL of the 3D view.
 pub const SHADER: &str = include_str!("../shaders/scene.wgsl");
+/// WGSL of the point splatting (compute) and its resolve pass.
+pub const SPLAT_SHADER: &str = include_str!("../shaders/splat.wgsl");
+/// Point budget on software adapters (lavapipe): the splat passes take about 25 ms per
+/// million points on two cores, so two million keep the 3D view near 50 ms per frame there.
+pub const SOFTWARE_POINT_BUDGET: u32 = 2_000_000;
+/// Threads per workgroup of the splat kernels (`@workgroup_size` in `splat.wgsl`).
+const SPLAT_GROUP: u32 = 256;
 /// Format of the offscreen colour target (gamma-encoded like egui's colours).
 pub const OFFSCREEN_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 /// Format of the offscreen depth target.
@@ -258,7 +268,12 @@ pub fn perspective_rh(fov_y: f32, aspect: f32, near: f32, far: f32) -> Mat4 {
 
 /// GPU side of the 3D view. Lives in egui_wgpu's callback resources.
 pub struct SceneRenderer {
-    point_pipeline: wgpu::RenderPipeline,
+    splat_depth_pipeline: wgpu::ComputePipeline,
+    splat_colour_pipeline: wgpu::ComputePipeline,
+    splat_layout: wgpu::BindGroupLayout,
+    resolve_pipeline: wgpu::RenderPipeline,
+    resolve_layout: wgpu::BindGroupLayout,
+    params_buffer: wgpu::Buffer,
     line_pipeline: wgpu::RenderPipeline,
     blit_pipeline: wgpu::RenderPipeline,
     camera_buffer: wgpu::Buffer,
@@ -279,6 +294,11 @@ struct Offscreen {
     colour_view: wgpu::TextureView,
     depth_view: wgpu::TextureView,
     blit_group: wgpu::BindGroup,
+    /// Per pixel: depth key of the nearest point (0 = none), see `splat.wgsl`.
+    splat_depth: wgpu::Buffer,
+    /// Per pixel: RGBA8 colour of the nearest point.
+    splat_colour: wgpu::Buffer,
+    resolve_group: wgpu::BindGroup,
 }
 
 impl SceneRenderer {
@@ -376,7 +396,6 @@ impl SceneRenderer {
                 cache: None,
             })
         };
-        let point_pipeline = scene_pipeline(wgpu::PrimitiveTopology::PointList, "scene points");
         let line_pipeline = scene_pipeline(wgpu::PrimitiveTopology::LineList, "scene lines");
         let blit_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("scene blit"),
@@ -412,6 +431,101 @@ impl SceneRenderer {
             multiview_mask: None,
             cache: None,
         });
+        let splat_module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("rgbid-viewer splat"),
+            source: wgpu::ShaderSource::Wgsl(SPLAT_SHADER.into()),
+        });
+        let entry = |binding, visibility, ty| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility,
+            ty,
+            count: None,
+        };
+        let uniform = wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        };
+        let storage = |read_only| wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        };
+        let compute = wgpu::ShaderStages::COMPUTE;
+        let splat_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene splat"),
+            entries: &[
+                entry(0, compute, uniform),
+                entry(1, compute, uniform),
+                entry(2, compute, storage(true)),
+                entry(3, compute, storage(false)),
+                entry(4, compute, storage(false)),
+            ],
+        });
+        let fragment = wgpu::ShaderStages::FRAGMENT;
+        let resolve_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene splat resolve"),
+            entries: &[
+                entry(0, fragment, uniform),
+                entry(1, fragment, storage(true)),
+                entry(2, fragment, storage(true)),
+            ],
+        });
+        let splat_pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("scene splat"),
+            bind_group_layouts: &[Some(&splat_layout)],
+            immediate_size: 0,
+        });
+        let splat_pipeline = |entry_point, label| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(label),
+                layout: Some(&splat_pl),
+                module: &splat_module,
+                entry_point: Some(entry_point),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let splat_depth_pipeline = splat_pipeline("splat_depth", "scene splat depth");
+        let splat_colour_pipeline = splat_pipeline("splat_colour", "scene splat colour");
+        let resolve_pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("scene splat resolve"),
+            bind_group_layouts: &[Some(&resolve_layout)],
+            immediate_size: 0,
+        });
+        let resolve_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("scene splat resolve"),
+            layout: Some(&resolve_pl),
+            vertex: wgpu::VertexState {
+                module: &splat_module,
+                entry_point: Some("vs_resolve"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &splat_module,
+                entry_point: Some("fs_resolve"),
+                compilation_options: Default::default(),
+                targets: &[Some(OFFSCREEN_FORMAT.into())],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let params_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("scene splat params"),
+            size: 16,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         let camera_buffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("scene camera"),
             size: 64,
@@ -433,7 +547,12 @@ impl SceneRenderer {
             ..Default::default()
         });
         SceneRenderer {
-            point_pipeline,
+            splat_depth_pipeline,
+            splat_colour_pipeline,
+            splat_layout,
+            resolve_pipeline,
+            resolve_layout,
+            params_buffer,
             line_pipeline,
             blit_pipeline,
             camera_buffer,
@@ -457,7 +576,8 @@ impl SceneRenderer {
                     device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                         label: Some(label),
                         contents: bytemuck::cast_slice(v),
-                        usage: wgpu::BufferUsages::VERTEX,
+                        // Lines are drawn from it, points read by the splat kernels.
+                        usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
                     }),
                     v.len() as u32,
                 )
@@ -530,12 +650,44 @@ impl SceneRenderer {
                 },
             ],
         });
+        let pixels = u64::from(size[0]) * u64::from(size[1]);
+        let splat_buffer = |label, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: 4 * pixels,
+                usage: wgpu::BufferUsages::STORAGE | usage,
+                mapped_at_creation: false,
+            })
+        };
+        let splat_depth = splat_buffer("scene splat depth", wgpu::BufferUsages::COPY_DST);
+        let splat_colour = splat_buffer("scene splat colour", wgpu::BufferUsages::empty());
+        let resolve_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scene splat resolve"),
+            layout: &self.resolve_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: self.params_buffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: splat_depth.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: splat_colour.as_entire_binding(),
+                },
+            ],
+        });
         self.target = Some(Offscreen {
             size,
             colour,
             colour_view,
             depth_view,
             blit_group,
+            splat_depth,
+            splat_colour,
+            resolve_group,
         });
     }
 
@@ -558,6 +710,53 @@ impl SceneRenderer {
         let Some(target) = &self.target else {
             return;
         };
+        let count = self
+            .points
+            .as_ref()
+            .map_or(0, |(_, n)| (*n).min(self.point_budget));
+        if let (Some((points, _)), true) = (&self.points, count > 0) {
+            let groups = count.div_ceil(SPLAT_GROUP);
+            let (gx, gy) = (groups.min(65_535), groups.div_ceil(65_535));
+            let params = [target.size[0], target.size[1], count, gx * SPLAT_GROUP];
+            queue.write_buffer(&self.params_buffer, 0, bytemuck::cast_slice(&params));
+            encoder.clear_buffer(&target.splat_depth, 0, None);
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("scene splat"),
+                layout: &self.splat_layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: self.camera_buffer.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: self.params_buffer.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: points.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: target.splat_depth.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 4,
+                        resource: target.splat_colour.as_entire_binding(),
+                    },
+                ],
+            });
+            // Two passes: every point's depth is in before the colours are chosen.
+            for pipeline in [&self.splat_depth_pipeline, &self.splat_colour_pipeline] {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("scene splat"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(0, &group, &[]);
+                pass.dispatch_workgroups(gx, gy, 1);
+            }
+        }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("scene"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -586,16 +785,17 @@ impl SceneRenderer {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_bind_group(0, &self.camera_group, &[]);
+        if count > 0 {
+            // The points' colour and depth first, so that the lines are depth-tested.
+            pass.set_pipeline(&self.resolve_pipeline);
+            pass.set_bind_group(0, &target.resolve_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
         if let Some((buf, n)) = &self.lines {
             pass.set_pipeline(&self.line_pipeline);
+            pass.set_bind_group(0, &self.camera_group, &[]);
             pass.set_vertex_buffer(0, buf.slice(..));
             pass.draw(0..*n, 0..1);
-        }
-        if let Some((buf, n)) = &self.points {
-            pass.set_pipeline(&self.point_pipeline);
-            pass.set_vertex_buffer(0, buf.slice(..));
-            pass.draw(0..(*n).min(self.point_budget), 0..1);
         }
     }
 

@@ -1,0 +1,361 @@
+//! PLY point clouds, read and written in one place: the model of a SLAM run (`model.ply` of a
+//! run folder), exports of the viewer, and clouds from other tools.
+//!
+//! The writer produces binary little-endian PLY with one `vertex` element of `float x y z`
+//! and `uchar red green blue`. The reader takes binary (little- or big-endian) and ASCII
+//! files with any scalar property types and extra elements (faces are skipped when they come
+//! after the vertices); it needs `x`, `y` and `z`, and uses `red`, `green`, `blue` when present.
+
+use std::io::Write;
+use std::path::Path;
+
+use glam::DVec3;
+
+use super::IoError;
+
+/// Colour given to points of a file without colour properties.
+pub const DEFAULT_COLOUR: [u8; 3] = [200, 200, 200];
+
+/// Writes `points` (world positions in metres, RGB colour) as binary little-endian PLY
+/// (overwrites `path`). Positions are stored as 32-bit floats.
+pub fn write_ply(path: &Path, points: &[(DVec3, [u8; 3])]) -> Result<(), IoError> {
+    write_iter(path, points.len(), points.iter().copied())
+}
+
+/// Writes grey points (`(position, intensity)`, as the SLAM model holds them) as PLY with
+/// red = green = blue = intensity.
+pub fn write_ply_grey(path: &Path, points: &[(DVec3, u8)]) -> Result<(), IoError> {
+    write_iter(
+        path,
+        points.len(),
+        points.iter().map(|(p, g)| (*p, [*g; 3])),
+    )
+}
+
+fn write_iter(
+    path: &Path,
+    count: usize,
+    points: impl Iterator<Item = (DVec3, [u8; 3])>,
+) -> Result<(), IoError> {
+    let io = |e| IoError::file(path, e);
+    let f = std::fs::File::create(path).map_err(io)?;
+    let mut w = std::io::BufWriter::new(f);
+    write!(
+        w,
+        "ply\nformat binary_little_endian 1.0\ncomment rgbid model\nelement vertex {count}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    .map_err(io)?;
+    let mut record = [0u8; 15];
+    for (p, c) in points {
+        for (k, v) in [p.x as f32, p.y as f32, p.z as f32].iter().enumerate() {
+            record[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
+        }
+        record[12..].copy_from_slice(&c);
+        w.write_all(&record).map_err(io)?;
+    }
+    w.flush().map_err(io)
+}
+
+/// Reads a PLY point cloud: positions and RGB colours ([`DEFAULT_COLOUR`] when the file has
+/// none). Errors name the file and what is wrong.
+pub fn read_ply(path: &Path) -> Result<Vec<(DVec3, [u8; 3])>, IoError> {
+    let bytes = std::fs::read(path).map_err(|e| IoError::file(path, e))?;
+    parse_ply(&bytes).map_err(|message| IoError::Malformed {
+        path: path.to_path_buf(),
+        message,
+    })
+}
+
+/// Reads a PLY point cloud as grey points (the mean of red, green and blue).
+pub fn read_ply_grey(path: &Path) -> Result<Vec<(DVec3, u8)>, IoError> {
+    Ok(read_ply(path)?
+        .into_iter()
+        .map(|(p, c)| (p, grey(c)))
+        .collect())
+}
+
+/// Grey value of an RGB colour: the rounded mean of the channels.
+pub fn grey(c: [u8; 3]) -> u8 {
+    ((u16::from(c[0]) + u16::from(c[1]) + u16::from(c[2]) + 1) / 3) as u8
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Format {
+    Ascii,
+    Little,
+    Big,
+}
+
+#[derive(Clone, Copy)]
+enum Scalar {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl Scalar {
+    fn parse(t: &str) -> Result<Self, String> {
+        Ok(match t {
+            "char" | "int8" => Scalar::I8,
+            "uchar" | "uint8" => Scalar::U8,
+            "short" | "int16" => Scalar::I16,
+            "ushort" | "uint16" => Scalar::U16,
+            "int" | "int32" => Scalar::I32,
+            "uint" | "uint32" => Scalar::U32,
+            "float" | "float32" => Scalar::F32,
+            "double" | "float64" => Scalar::F64,
+            _ => return Err(format!("unsupported property type {t}")),
+        })
+    }
+
+    fn size(self) -> usize {
+        match self {
+            Scalar::I8 | Scalar::U8 => 1,
+            Scalar::I16 | Scalar::U16 => 2,
+            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
+            Scalar::F64 => 8,
+        }
+    }
+
+    /// The value at the start of `b` (at least `size()` bytes).
+    fn read(self, b: &[u8], big: bool) -> f64 {
+        macro_rules! get {
+            ($t:ty, $n:expr) => {{
+                let mut a = [0u8; $n];
+                a.copy_from_slice(&b[..$n]);
+                if big {
+                    f64::from(<$t>::from_be_bytes(a))
+                } else {
+                    f64::from(<$t>::from_le_bytes(a))
+                }
+            }};
+        }
+        match self {
+            Scalar::I8 => f64::from(b[0] as i8),
+            Scalar::U8 => f64::from(b[0]),
+            Scalar::I16 => get!(i16, 2),
+            Scalar::U16 => get!(u16, 2),
+            Scalar::I32 => get!(i32, 4),
+            Scalar::U32 => get!(u32, 4),
+            Scalar::F32 => get!(f32, 4),
+            Scalar::F64 => get!(f64, 8),
+        }
+    }
+}
+
+/// One property of an element: a named scalar, or a list (its count and item types are
+/// checked; lists are only skipped, in ASCII files).
+enum Property {
+    Scalar(String, Scalar),
+    List,
+}
+
+struct Element {
+    name: String,
+    count: usize,
+    properties: Vec<Property>,
+}
+
+/// Parses the bytes of a PLY file (see [`read_ply`]); the error says what is wrong.
+pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
+    const END: &[u8] = b"end_header";
+    let Some(end) = bytes.windows(END.len()).position(|w| w == END) else {
+        return Err("no end_header line".into());
+    };
+    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "header is not UTF-8")?;
+    // The body starts after the end_header line's newline (\n or \r\n).
+    let mut body_start = end + END.len();
+    while body_start < bytes.len() && bytes[body_start] != b'\n' {
+        body_start += 1;
+    }
+    let body = bytes.get(body_start + 1..).unwrap_or_default();
+    let mut lines = header.lines();
+    if lines.next().map(str::trim) != Some("ply") {
+        return Err("not a PLY file (no 'ply' on the first line)".into());
+    }
+    let mut format = None;
+    let mut elements: Vec<Element> = Vec::new();
+    for l in lines {
+        let w: Vec<&str> = l.split_whitespace().collect();
+        match w.as_slice() {
+            ["format", "ascii", _] => format = Some(Format::Ascii),
+            ["format", "binary_little_endian", _] => format = Some(Format::Little),
+            ["format", "binary_big_endian", _] => format = Some(Format::Big),
+            ["format", f, ..] => return Err(format!("unsupported PLY format {f}")),
+            ["element", name, n] => elements.push(Element {
+                name: name.to_string(),
+                count: n
+                    .parse()
+                    .map_err(|_| format!("element {name}: count '{n}' is not a number"))?,
+                properties: Vec::new(),
+            }),
+            ["property", "list", c, t, _] => {
+                let e = elements.last_mut().ok_or("property before any element")?;
+                Scalar::parse(c)?;
+                Scalar::parse(t)?;
+                e.properties.push(Property::List);
+            }
+            ["property", t, name] => {
+                let e = elements.last_mut().ok_or("property before any element")?;
+                e.properties
+                    .push(Property::Scalar(name.to_string(), Scalar::parse(t)?));
+            }
+            _ => {}
+        }
+    }
+    let format = format.ok_or("no format line")?;
+    let Some(vi) = elements.iter().position(|e| e.name == "vertex") else {
+        return Err("no vertex element".into());
+    };
+    // Elements before the vertices must be skipped, which needs fixed-size records.
+    let mut skip_bytes = 0usize;
+    let mut skip_lines = 0usize;
+    for e in &elements[..vi] {
+        skip_lines += e.count;
+        for p in &e.properties {
+            match p {
+                Property::Scalar(_, s) => {
+                    skip_bytes = skip_bytes.saturating_add(e.count.saturating_mul(s.size()))
+                }
+                Property::List if format != Format::Ascii => {
+                    return Err(format!(
+                        "element {} with a list property comes before the vertices",
+                        e.name
+                    ))
+                }
+                Property::List => {}
+            }
+        }
+    }
+    let vertex = &elements[vi];
+    let mut names = Vec::new();
+    let mut types = Vec::new();
+    for p in &vertex.properties {
+        match p {
+            Property::Scalar(n, t) => {
+                names.push(n.as_str());
+                types.push(*t);
+            }
+            Property::List => return Err("list property in the vertex element".into()),
+        }
+    }
+    let find = |n: &str| names.iter().position(|&m| m == n);
+    let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
+        return Err("the vertex element needs x, y and z".into());
+    };
+    let rgb = match (find("red"), find("green"), find("blue")) {
+        (Some(r), Some(g), Some(b)) => Some([r, g, b]),
+        _ => None,
+    };
+    let count = vertex.count;
+    let colour = |v: &dyn Fn(usize) -> f64| match rgb {
+        Some(k) => k.map(|k| v(k).clamp(0.0, 255.0) as u8),
+        None => DEFAULT_COLOUR,
+    };
+    let mut out = Vec::with_capacity(count.min(50_000_000));
+    if format == Format::Ascii {
+        let text = std::str::from_utf8(body).map_err(|_| "ASCII body is not UTF-8")?;
+        let mut rows = text
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .skip(skip_lines);
+        for n in 0..count {
+            let line = rows
+                .next()
+                .ok_or_else(|| format!("file ends early: {n} of {count} vertices"))?;
+            let v: Vec<f64> = line
+                .split_whitespace()
+                .map(str::parse::<f64>)
+                .collect::<Result<_, _>>()
+                .map_err(|e| format!("vertex {n}: {e}"))?;
+            if v.len() < names.len() {
+                return Err(format!(
+                    "vertex {n}: {} values, expected {}",
+                    v.len(),
+                    names.len()
+                ));
+            }
+            out.push((DVec3::new(v[ix], v[iy], v[iz]), colour(&|k| v[k])));
+        }
+    } else {
+        let big = format == Format::Big;
+        let mut offsets = Vec::with_capacity(types.len());
+        let mut stride = 0usize;
+        for t in &types {
+            offsets.push(stride);
+            stride += t.size();
+        }
+        let need = count.saturating_mul(stride).saturating_add(skip_bytes);
+        if body.len() < need {
+            return Err(format!(
+                "file ends early: {count} vertices of {stride} bytes need {need} bytes, {} present",
+                body.len()
+            ));
+        }
+        for rec in body[skip_bytes..].chunks_exact(stride.max(1)).take(count) {
+            let v = |k: usize| types[k].read(&rec[offsets[k]..], big);
+            out.push((DVec3::new(v(ix), v(iy), v(iz)), colour(&v)));
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_colour_and_grey() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let pts = vec![
+            (DVec3::new(1.0, -2.0, 3.5), [7u8, 8, 9]),
+            (DVec3::new(0.25, 0.5, 0.75), [200, 100, 0]),
+        ];
+        write_ply(&p, &pts).unwrap();
+        assert_eq!(read_ply(&p).unwrap(), pts);
+        let grey_pts = vec![(DVec3::new(1.0, 2.0, 3.0), 77u8)];
+        write_ply_grey(&p, &grey_pts).unwrap();
+        assert_eq!(read_ply_grey(&p).unwrap(), grey_pts);
+        write_ply(&p, &[]).unwrap();
+        assert!(read_ply(&p).unwrap().is_empty());
+    }
+
+    #[test]
+    fn other_layouts() {
+        // ASCII with a face element after the vertices and no colour.
+        let ok = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n1 2 3\n3 0 0 0\n").unwrap();
+        assert_eq!(ok, vec![(DVec3::new(1.0, 2.0, 3.0), DEFAULT_COLOUR)]);
+        // Big-endian doubles with colour, CRLF header.
+        let mut b = b"ply\r\nformat binary_big_endian 1.0\r\nelement vertex 1\r\nproperty double x\r\nproperty double y\r\nproperty double z\r\nproperty uchar red\r\nproperty uchar green\r\nproperty uchar blue\r\nend_header\r\n".to_vec();
+        for v in [1.5f64, -2.0, 4.0] {
+            b.extend_from_slice(&v.to_be_bytes());
+        }
+        b.extend_from_slice(&[1, 2, 3]);
+        assert_eq!(
+            parse_ply(&b).unwrap(),
+            vec![(DVec3::new(1.5, -2.0, 4.0), [1, 2, 3])]
+        );
+    }
+
+    #[test]
+    fn errors_instead_of_panics() {
+        assert!(parse_ply(b"").is_err());
+        let short = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0";
+        assert!(parse_ply(short).unwrap_err().contains("ends early"));
+        let no_y = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n";
+        assert!(parse_ply(no_y).unwrap_err().contains("x, y and z"));
+        let bad = b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n";
+        assert!(parse_ply(bad).unwrap_err().contains("1 of 2"));
+        let dir = tempfile::tempdir().unwrap();
+        let e = read_ply(&dir.path().join("none.ply")).unwrap_err();
+        assert!(e.to_string().contains("none.ply"), "{e}");
+    }
+}
