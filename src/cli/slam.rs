@@ -346,9 +346,9 @@ fn write_outputs(
             l.refine_translation,
             l.refine_rotation,
             l.covisibility,
-            l.accepted,
+            l.verdict.is_accepted(),
             l.relocalisation,
-            l.reason
+            l.verdict.reason()
         )?;
     }
     f.flush()?;
@@ -439,7 +439,7 @@ fn write_outputs(
     let accepted = r
         .loops
         .iter()
-        .filter(|l| l.accepted && !l.relocalisation)
+        .filter(|l| l.verdict.is_accepted() && !l.relocalisation)
         .count();
     println!(
         "frames {processed} (dropped {dropped}), tracked {tracked}, lost {lost}, relocalised {reloc}; \
