@@ -350,6 +350,12 @@ impl SlamEvents {
         }
     }
 
+    /// Every event, oldest first, waiting for each: ends when the system has finished and
+    /// the queue is empty.
+    pub fn iter(&self) -> impl Iterator<Item = SlamEvent> + '_ {
+        std::iter::from_fn(|| self.recv().ok())
+    }
+
     /// The events queued now, oldest first, without waiting.
     pub fn try_iter(&self) -> impl Iterator<Item = SlamEvent> + '_ {
         std::iter::from_fn(|| self.try_recv().ok())
