@@ -405,7 +405,7 @@ impl Backend {
         if self.events.on() {
             let (labels, neg_entropy) = superjuts.unzip();
             self.events
-                .push(SlamEvent::KeyframeDescribed(Box::new(KeyframeDescribed {
+                .push(SlamEvent::KeyframeDescribed(KeyframeDescribed {
                     id: kf.id,
                     labels,
                     neg_entropy: neg_entropy.unwrap_or_default(),
@@ -413,7 +413,7 @@ impl Backend {
                     mask_flags: flags.clone(),
                     segment_ms: seg_ms,
                     describe_ms: desc_ms,
-                })));
+                }));
         }
         let t = Instant::now();
         let (id, detected) = self.detector.insert(desc)?;
@@ -527,8 +527,7 @@ impl Backend {
     /// a poisoned lock still takes it, so no record is lost), and sends it as an event.
     fn record_loop(&mut self, record: LoopRecord) {
         if self.events.on() {
-            self.events
-                .push(SlamEvent::LoopChecked(Box::new(record.clone())));
+            self.events.push(SlamEvent::LoopChecked(record.clone()));
         }
         self.shared
             .lock()

@@ -13,6 +13,27 @@
 //! Keyframe ids are the ids of [`Keyframe::id`](super::Keyframe::id) and
 //! [`LoopRecord`]; frame indices count the frames given to [`Slam::process`](super::Slam::process)
 //! from 0.
+//!
+//! ```no_run
+//! # use rgbid::slam::{Slam, SlamError, SlamEvent};
+//! # fn f(mut slam: Slam, frames: Vec<rgbid::image::RgbdFrame>) -> Result<(), SlamError> {
+//! let events = slam.events();
+//! for frame in &frames {
+//!     slam.process(frame)?;
+//!     for event in events.try_iter() {
+//!         if let SlamEvent::LoopChecked(l) = event {
+//!             println!("loop {} -> {}: {}", l.query, l.candidate, l.verdict);
+//!         }
+//!     }
+//! }
+//! let result = slam.finish()?;
+//! // The rest (the back-end's last keyframes, the final optimisation), to the end.
+//! for event in events.iter() {
+//!     println!("{event:?}");
+//! }
+//! println!("{} keyframes; dropped {:?}", result.keyframes().len(), events.dropped());
+//! # Ok(()) }
+//! ```
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -28,6 +49,9 @@ use crate::place::KeyPoint;
 
 /// One thing the SLAM system did. Events are `Send`; they are made only while the stream is
 /// on (see the [module docs](self)).
+// A few events per keyframe: their size (a keyframe link holds a 6x6 covariance) does not
+// matter, and unboxed variants are simpler to match.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 #[non_exhaustive]
 pub enum SlamEvent {
@@ -47,11 +71,11 @@ pub enum SlamEvent {
     },
     /// The back-end described a keyframe for place recognition: superjuts, neg-entropy
     /// masks, ORB keypoints.
-    KeyframeDescribed(Box<KeyframeDescribed>),
+    KeyframeDescribed(KeyframeDescribed),
     /// The back-end checked a loop (or a relocalisation) candidate that passed the
     /// geometric verification: the record, with its verdict, exactly as it is in
     /// [`SlamResult::loops`](super::SlamResult::loops).
-    LoopChecked(Box<LoopRecord>),
+    LoopChecked(LoopRecord),
     /// The keyframe pose graph was optimised (a loop cluster closed, or the final
     /// optimisation in [`Slam::finish`](super::Slam::finish)).
     GraphOptimised {
@@ -391,7 +415,7 @@ mod tests {
     use super::*;
 
     fn described(id: usize) -> SlamEvent {
-        SlamEvent::KeyframeDescribed(Box::new(KeyframeDescribed {
+        SlamEvent::KeyframeDescribed(KeyframeDescribed {
             id,
             labels: Some(SuperjutLabels {
                 width: 2,
@@ -403,7 +427,7 @@ mod tests {
             mask_flags: Vec::new(),
             segment_ms: 0.0,
             describe_ms: 0.0,
-        }))
+        })
     }
 
     fn lost(i: usize) -> SlamEvent {
