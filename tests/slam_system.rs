@@ -11,7 +11,8 @@ use rgbid::gpu::ComputeBackend;
 use rgbid::image::RgbdFrame;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    FrameReport, FrameStatus, Map, MapError, Slam, SlamConfig, SlamError, SlamResult,
+    EventOptions, FrameReport, FrameStatus, KeyframeLink, Map, MapError, Slam, SlamConfig,
+    SlamError, SlamEvent, SlamResult,
 };
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
@@ -74,8 +75,21 @@ fn run(
     cam: PinholeCamera,
     config: SlamConfig,
     map: Option<Map>,
-    mut modify: impl FnMut(usize, &mut RgbdFrame),
+    modify: impl FnMut(usize, &mut RgbdFrame),
 ) -> (SlamResult, Vec<FrameReport>) {
+    let (r, reports, _) = run_observed(seq, cam, config, map, modify);
+    (r, reports)
+}
+
+/// [`run`] with the event stream on, read after every frame and to its end after `finish`
+/// (so nothing may be dropped).
+fn run_observed(
+    seq: &mut Sequence,
+    cam: PinholeCamera,
+    config: SlamConfig,
+    map: Option<Map>,
+    mut modify: impl FnMut(usize, &mut RgbdFrame),
+) -> (SlamResult, Vec<FrameReport>, Vec<SlamEvent>) {
     let mut slam = Slam::new(
         config,
         cam,
@@ -84,14 +98,92 @@ fn run(
         map,
     )
     .unwrap();
+    // Bounds no run here reaches: a reader after every frame must lose nothing.
+    let events = slam.events_with(EventOptions {
+        capacity: 1 << 20,
+        images: 1 << 20,
+    });
+    let mut got = Vec::new();
     let mut reports = Vec::new();
     for i in 0..seq.len() {
         let f = seq.render_frame(i).unwrap();
         let mut frame = f.frame.to_rgbd_frame(f.timestamp);
         modify(i, &mut frame);
         reports.push(slam.process(&frame).unwrap());
+        got.extend(events.try_iter());
     }
-    (slam.finish().unwrap(), reports)
+    let r = slam.finish().unwrap();
+    got.extend(events.clone());
+    assert_eq!(
+        events.dropped().total(),
+        0,
+        "a reader after every frame lost events"
+    );
+    (r, reports, got)
+}
+
+/// One keyframe-created and one keyframe-described event per keyframe, in id order, that
+/// agree with the keyframes of the result.
+fn check_keyframe_events(r: &SlamResult, events: &[SlamEvent], thresholds: usize) {
+    let created: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            SlamEvent::KeyframeCreated {
+                id,
+                frame_index,
+                timestamp,
+                world_from_keyframe,
+                ..
+            } => Some((*id, *frame_index, *timestamp, *world_from_keyframe)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(created.len(), r.keyframes().len());
+    for ((id, frame_index, timestamp, pose), kf) in created.iter().zip(r.keyframes()) {
+        assert_eq!(
+            (*id, *frame_index, *timestamp),
+            (kf.id, kf.frame_index, kf.timestamp)
+        );
+        assert!(pose.is_finite());
+    }
+    let described: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            SlamEvent::KeyframeDescribed(d) => Some(d),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(described.len(), r.keyframes().len());
+    for (d, kf) in described.iter().zip(r.keyframes()) {
+        assert_eq!(d.id, kf.id);
+        let labels = d.labels.as_ref().expect("label image");
+        assert_eq!(labels.labels.len(), kf.width * kf.height);
+        assert!(!d.neg_entropy.is_empty() && !d.keypoints.is_empty());
+        assert_eq!(d.mask_flags.len(), 1 + thresholds);
+        assert!(d.mask_flags.iter().all(|f| f.len() == d.keypoints.len()));
+        assert_eq!(d.mask_flags, r.map.mask_flags[kf.id]);
+        let img = d.neg_entropy_image().unwrap();
+        assert!(img.data().iter().any(|v| v.is_finite()));
+    }
+}
+
+/// The loop-checked events are the result's loop records, in order.
+fn check_loop_events(r: &SlamResult, events: &[SlamEvent]) {
+    let checked: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            SlamEvent::LoopChecked(l) => Some(l),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(checked.len(), r.loops.len());
+    for (a, b) in checked.iter().zip(&r.loops) {
+        assert_eq!(
+            (a.query, a.candidate, a.inliers, a.relocalisation, a.verdict),
+            (b.query, b.candidate, b.inliers, b.relocalisation, b.verdict)
+        );
+        assert_eq!(a.verdict.reason().is_empty(), a.verdict.is_accepted());
+    }
 }
 
 fn statuses(reports: &[FrameReport]) -> Vec<FrameStatus> {
@@ -329,21 +421,22 @@ fn lost_tracking_is_reported_and_relocalised() {
     let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 60, 300, 9, 9, cam);
     let gt = seq.ground_truth();
     let covered = 30..34;
-    let (r, reports) = run(&mut seq, cam, SlamConfig::default(), None, |i, frame| {
-        if covered.contains(&i) {
-            // Covered sensor: black image, no depth.
-            frame
-                .intensity_mut()
-                .data_mut()
-                .iter_mut()
-                .for_each(|v| *v = 0.0);
-            frame
-                .inverse_depth_mut()
-                .data_mut()
-                .iter_mut()
-                .for_each(|v| *v = 0.0);
-        }
-    });
+    let (r, reports, events) =
+        run_observed(&mut seq, cam, SlamConfig::default(), None, |i, frame| {
+            if covered.contains(&i) {
+                // Covered sensor: black image, no depth.
+                frame
+                    .intensity_mut()
+                    .data_mut()
+                    .iter_mut()
+                    .for_each(|v| *v = 0.0);
+                frame
+                    .inverse_depth_mut()
+                    .data_mut()
+                    .iter_mut()
+                    .for_each(|v| *v = 0.0);
+            }
+        });
     for i in covered.clone() {
         assert!(
             reports[i].world_from_camera.is_none(),
@@ -363,6 +456,40 @@ fn lost_tracking_is_reported_and_relocalised() {
         "no relocalisation soon after: {status:?}"
     );
     assert_eq!(r.trajectory.len(), 60 - 4 - back.unwrap());
+    // Events: lost once at the first covered frame, relocalised where the report says, with
+    // a keyframe started there and linked to the keyframe it relocalised against.
+    let lost: Vec<usize> = events
+        .iter()
+        .filter_map(|e| match e {
+            SlamEvent::Lost { frame_index, .. } => Some(*frame_index),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(lost, vec![30]);
+    let reloc: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            SlamEvent::Relocalised {
+                frame_index,
+                keyframe,
+                new_keyframe,
+                world_from_camera,
+                ..
+            } => Some((*frame_index, *keyframe, *new_keyframe, *world_from_camera)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(reloc.len(), 1, "{reloc:?}");
+    let (frame, against, new_kf, pose) = reloc[0];
+    assert_eq!(frame, 34 + back.unwrap());
+    let reported = reports[frame].world_from_camera.unwrap();
+    assert!((reported.inverse() * pose).translation.length() < 1e-9);
+    assert!(events.iter().any(|e| matches!(
+        e,
+        SlamEvent::KeyframeCreated { id, frame_index, link: KeyframeLink::Relocalised { from, .. }, .. }
+            if *id == new_kf && *frame_index == frame && *from == against
+    )));
+    check_loop_events(&r, &events);
     // Same map frame before and after the loss.
     let m = evaluate(&gt, &r.trajectory, &EvalOptions::default()).unwrap();
     assert!(
@@ -381,9 +508,37 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
     // 240 frames per lap (8 s), two laps.
     let mut seq = sequence_with_noise(scene, TrajectoryKind::Loop, 480, 240, 2, 2, cam);
     let gt = seq.ground_truth();
-    let (r, reports) = run(&mut seq, cam, SlamConfig::default(), None, |_, _| {});
+    let (r, reports, events) = run_observed(&mut seq, cam, SlamConfig::default(), None, |_, _| {});
     assert!(statuses(&reports).iter().all(|s| *s != FrameStatus::Lost));
-    let accepted = r.loops.iter().filter(|l| l.accepted).count();
+    check_keyframe_events(&r, &events, SlamConfig::default().mask_thresholds.len());
+    check_loop_events(&r, &events);
+    // The graph is optimised once a loop is accepted, over every keyframe made by then.
+    let first_accepted = events
+        .iter()
+        .position(|e| matches!(e, SlamEvent::LoopChecked(l) if l.verdict.is_accepted()))
+        .expect("an accepted loop event");
+    let optimised: Vec<(usize, usize)> = events[first_accepted..]
+        .iter()
+        .filter_map(|e| match e {
+            SlamEvent::GraphOptimised {
+                world_from_keyframe,
+                loops,
+                ..
+            } => Some((world_from_keyframe.len(), *loops)),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        !optimised.is_empty(),
+        "no graph-optimised event after a loop"
+    );
+    for (n, loops) in optimised {
+        assert!(
+            n >= 2 && n <= r.keyframes().len() && loops >= 1,
+            "{n} {loops}"
+        );
+    }
+    let accepted = r.loops.iter().filter(|l| l.verdict.is_accepted()).count();
     assert!(
         accepted >= 3,
         "only {accepted} loops accepted: {:?}",
@@ -440,4 +595,40 @@ fn implausibly_fast_motion_is_lost_not_a_wrong_pose() {
         worst < 0.05,
         "a frame kept a pose {worst} m off: {status:?}"
     );
+}
+
+/// A consumer that never reads neither blocks nor slows the run: with tiny bounds the queue
+/// drops label images and then whole events, and counts them.
+#[test]
+fn events_never_block_a_run_whose_consumer_does_not_read() {
+    let cam = camera(192);
+    let scene = Scene::preset("office", 3).unwrap();
+    let mut seq = sequence(scene, TrajectoryKind::Handheld, 60, 3, cam);
+    let mut slam = Slam::new(
+        SlamConfig::default(),
+        cam,
+        &ComputeBackend::Cpu,
+        Vocabulary::embedded_default().unwrap(),
+        None,
+    )
+    .unwrap();
+    let events = slam.events_with(EventOptions {
+        capacity: 1,
+        images: 0,
+    });
+    for i in 0..seq.len() {
+        let f = seq.render_frame(i).unwrap();
+        slam.process(&f.frame.to_rgbd_frame(f.timestamp)).unwrap();
+    }
+    let r = slam.finish().unwrap();
+    assert!(r.keyframes().len() >= 2);
+    let dropped = events.dropped();
+    assert!(dropped.events > 0, "{dropped:?}");
+    assert_eq!(dropped.images as usize, r.keyframes().len(), "{dropped:?}");
+    // The one event left, then the end of the stream.
+    assert!(events.try_recv().is_ok());
+    assert!(matches!(
+        events.try_recv(),
+        Err(std::sync::mpsc::TryRecvError::Disconnected)
+    ));
 }

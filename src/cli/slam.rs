@@ -413,7 +413,7 @@ fn write_outputs(
     let accepted = r
         .loops
         .iter()
-        .filter(|l| l.accepted && !l.relocalisation)
+        .filter(|l| l.verdict.is_accepted() && !l.relocalisation)
         .count();
     println!(
         "frames {processed} (dropped {dropped}), tracked {tracked}, lost {lost}, relocalised {reloc}; \

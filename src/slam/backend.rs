@@ -4,6 +4,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use super::events::{EventHub, KeyframeDescribed, SlamEvent, SuperjutLabels};
 use super::keyframe::{Keyframe, KeyframeLink};
 use super::memory::{keyframe_bytes, vec_bytes, MemoryAccount, MemoryBreakdown};
 use super::{information_from, SlamConfig, SlamError};
@@ -40,12 +41,62 @@ pub struct LoopRecord {
     pub refine_rotation: f64,
     /// Dense covisibility of the two keyframes at the refined pose.
     pub covisibility: f64,
-    /// Whether it became a graph edge.
-    pub accepted: bool,
-    /// Why it was rejected (empty when accepted).
-    pub reason: String,
+    /// Whether it became a graph edge (for relocalisation: the frame's pose), and if not, why.
+    pub verdict: LoopVerdict,
     /// True when it came from relocalisation rather than loop detection.
     pub relocalisation: bool,
+}
+
+/// What the back-end decided about a loop candidate that passed the geometric verification.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LoopVerdict {
+    /// It became a graph edge (for relocalisation: the frame's pose).
+    Accepted,
+    /// Rejected: the dense covisibility of the two images at the refined pose is below
+    /// `SlamConfig::loop_min_covisibility`.
+    LowCovisibility {
+        /// The covisibility (fraction of pixels, 0-1).
+        covisibility: f64,
+    },
+    /// Rejected: the dense refinement moved the RANSAC pose by more than
+    /// `SlamConfig::loop_max_refine_translation` or `SlamConfig::loop_max_refine_rotation`.
+    RefinementMoved {
+        /// Translation change, metres.
+        translation: f64,
+        /// Rotation change, radians.
+        rotation: f64,
+    },
+}
+
+impl LoopVerdict {
+    /// Whether the loop was accepted.
+    pub fn is_accepted(&self) -> bool {
+        matches!(self, LoopVerdict::Accepted)
+    }
+
+    /// Why it was rejected, in words (empty when accepted), as the loops file writes it.
+    pub fn reason(&self) -> String {
+        match self {
+            LoopVerdict::Accepted => String::new(),
+            LoopVerdict::LowCovisibility { covisibility } => {
+                format!("covisibility {covisibility:.2}")
+            }
+            LoopVerdict::RefinementMoved {
+                translation,
+                rotation,
+            } => format!("dense refinement moved {translation:.3} m / {rotation:.3} rad"),
+        }
+    }
+}
+
+/// `accepted`, or the reason of the rejection.
+impl std::fmt::Display for LoopVerdict {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            LoopVerdict::Accepted => f.write_str("accepted"),
+            _ => f.write_str(&self.reason()),
+        }
+    }
 }
 
 /// Back-end cost of one keyframe, milliseconds (table 6.3).
@@ -83,11 +134,7 @@ pub(crate) struct Shared {
 
 /// Bytes of loop records.
 pub(crate) fn loop_record_bytes(records: &Vec<LoopRecord>) -> usize {
-    vec_bytes(records)
-        + records
-            .iter()
-            .map(|r| vec_bytes(&r.matches) + r.reason.capacity())
-            .sum::<usize>()
+    vec_bytes(records) + records.iter().map(|r| vec_bytes(&r.matches)).sum::<usize>()
 }
 
 /// Answer to a relocalisation request.
@@ -100,9 +147,15 @@ pub(crate) struct Relocalisation {
     pub frontworld_from_keyframe: Se3,
 }
 
-/// A keyframe's description, its per-mask feature flags, and the segmentation and
-/// description times (ms).
-type Described = (KeyframeDescription, Vec<Vec<bool>>, f64, f64);
+/// A keyframe's description, its per-mask feature flags, the segmentation and description
+/// times (ms), and the superjut labels with each superjut's neg-entropy (with masks).
+type Described = (
+    KeyframeDescription,
+    Vec<Vec<bool>>,
+    f64,
+    f64,
+    Option<(SuperjutLabels, Vec<f64>)>,
+);
 /// A refined loop: `candidate_from_query`, its covariance and the dense covisibility.
 type Refined = (Se3, Option<Covariance6>, f64);
 
@@ -125,6 +178,8 @@ pub(crate) struct Backend {
     pub segmenter: Segmenter,
     /// Bytes of the vocabulary (it does not change).
     vocabulary_bytes: usize,
+    /// The event stream (shared with the front-end and the receivers).
+    events: Arc<EventHub>,
 }
 
 fn mask_image(m: &crate::segment::Mask) -> ImageF32 {
@@ -142,6 +197,7 @@ impl Backend {
         backend: &ComputeBackend,
         vocabulary: Vocabulary,
         shared: Arc<Mutex<Shared>>,
+        events: Arc<EventHub>,
     ) -> Result<Self, SlamError> {
         let mut ocfg = config.odometry.clone();
         ocfg.reference_switch = None;
@@ -162,6 +218,7 @@ impl Backend {
             map_keyframes: 0,
             segmenter: Segmenter::new(),
             vocabulary_bytes,
+            events,
         })
     }
 
@@ -199,10 +256,14 @@ impl Backend {
     }
 
     /// Masks (as images) of a keyframe: empty without masks, else the full image first and
-    /// one per threshold.
-    fn masks(&mut self, frame: &RgbdFrame) -> Result<Vec<ImageF32>, SlamError> {
+    /// one per threshold; with them the superjut labels and neg-entropies.
+    #[allow(clippy::type_complexity)]
+    fn masks(
+        &mut self,
+        frame: &RgbdFrame,
+    ) -> Result<(Vec<ImageF32>, Option<(SuperjutLabels, Vec<f64>)>), SlamError> {
         if !self.config.masks {
-            return Ok(Vec::new());
+            return Ok((Vec::new(), None));
         }
         let sj = self.segmenter.segment_keyframe(
             &frame.intensity,
@@ -214,12 +275,18 @@ impl Backend {
         for m in sj.masks(&self.config.mask_thresholds) {
             out.push(mask_image(&m));
         }
-        Ok(out)
+        let neg_entropy = sj.segments.iter().map(|s| s.neg_entropy).collect();
+        let labels = SuperjutLabels {
+            width: sj.width,
+            height: sj.height,
+            labels: sj.labels,
+        };
+        Ok((out, Some((labels, neg_entropy))))
     }
 
     pub fn describe(&mut self, frame: &RgbdFrame) -> Result<Described, SlamError> {
         let t = Instant::now();
-        let masks = self.masks(frame)?;
+        let (masks, superjuts) = self.masks(frame)?;
         let segment_ms = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
         let refs: Vec<&ImageF32> = masks.iter().collect();
@@ -230,7 +297,13 @@ impl Backend {
             .iter()
             .map(|m| keypoints_inside(&desc.features, m))
             .collect();
-        Ok((desc, flags, segment_ms, t.elapsed().as_secs_f64() * 1e3))
+        Ok((
+            desc,
+            flags,
+            segment_ms,
+            t.elapsed().as_secs_f64() * 1e3,
+            superjuts,
+        ))
     }
 
     /// Dense refinement of `candidate_from_query_guess` between keyframe `candidate` and
@@ -263,22 +336,29 @@ impl Backend {
         Ok(self.graph.poses[idx])
     }
 
-    /// How far the dense refinement moved the RANSAC pose (metres, radians) and why the
-    /// result is rejected (empty when accepted).
-    fn check_refined(&self, guess: &Se3, refined: &Se3, covisibility: f64) -> (f64, f64, String) {
+    /// How far the dense refinement moved the RANSAC pose (metres, radians) and the verdict.
+    fn check_refined(
+        &self,
+        guess: &Se3,
+        refined: &Se3,
+        covisibility: f64,
+    ) -> (f64, f64, LoopVerdict) {
         let delta = guess.inverse() * *refined;
         let dt = delta.translation.length();
         let dr = delta.rotation.to_axis_angle().1.abs();
-        let reason = if covisibility < self.config.loop_min_covisibility {
-            format!("covisibility {covisibility:.2}")
+        let verdict = if covisibility < self.config.loop_min_covisibility {
+            LoopVerdict::LowCovisibility { covisibility }
         } else if dt > self.config.loop_max_refine_translation
             || dr > self.config.loop_max_refine_rotation
         {
-            format!("dense refinement moved {dt:.3} m / {dr:.3} rad")
+            LoopVerdict::RefinementMoved {
+                translation: dt,
+                rotation: dr,
+            }
         } else {
-            String::new()
+            LoopVerdict::Accepted
         };
-        (dt, dr, reason)
+        (dt, dr, verdict)
     }
 
     /// Adds a keyframe of a loaded map (already described; its pose is final and fixed).
@@ -319,9 +399,22 @@ impl Backend {
             )));
         }
         let frame = kf.frame();
-        let (desc, flags, seg_ms, desc_ms) = self.describe(&frame)?;
+        let (desc, flags, seg_ms, desc_ms, superjuts) = self.describe(&frame)?;
         timing.segment_ms = seg_ms;
         timing.describe_ms = desc_ms;
+        if self.events.on() {
+            let (labels, neg_entropy) = superjuts.unzip();
+            self.events
+                .push(SlamEvent::KeyframeDescribed(KeyframeDescribed {
+                    id: kf.id,
+                    labels,
+                    neg_entropy: neg_entropy.unwrap_or_default(),
+                    keypoints: desc.features.keypoints.clone(),
+                    mask_flags: flags.clone(),
+                    segment_ms: seg_ms,
+                    describe_ms: desc_ms,
+                }));
+        }
         let t = Instant::now();
         let (id, detected) = self.detector.insert(desc)?;
         timing.query_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -366,8 +459,8 @@ impl Backend {
             let guess = d.loop_match.query_from_candidate.inverse();
             let (refined, cov, covis) = self.refine(d.candidate_id, &frame, guess)?;
             timing.align_ms = t.elapsed().as_secs_f64() * 1e3;
-            let (dt, dr, reason) = self.check_refined(&guess, &refined, covis);
-            let accepted = reason.is_empty();
+            let (dt, dr, verdict) = self.check_refined(&guess, &refined, covis);
+            let accepted = verdict.is_accepted();
             if accepted {
                 let info = information_from(cov.as_ref(), 0.01, 0.01);
                 self.graph
@@ -398,8 +491,7 @@ impl Backend {
                 refine_translation: dt,
                 refine_rotation: dr,
                 covisibility: covis,
-                accepted,
-                reason,
+                verdict,
                 relocalisation: false,
             });
         }
@@ -420,7 +512,11 @@ impl Backend {
         if let Ok(mut s) = self.shared.lock() {
             s.correction = correction;
             s.keyframes = self.keyframes.len();
-            s.loops = s.loop_records.iter().filter(|l| l.accepted).count();
+            s.loops = s
+                .loop_records
+                .iter()
+                .filter(|l| l.verdict.is_accepted())
+                .count();
         }
         timing.total_ms = t0.elapsed().as_secs_f64() * 1e3;
         self.timings.push(timing);
@@ -428,8 +524,11 @@ impl Backend {
     }
 
     /// Keeps a loop record in the state shared with the front-end's caller (the only copy;
-    /// a poisoned lock still takes it, so no record is lost).
+    /// a poisoned lock still takes it, so no record is lost), and sends it as an event.
     fn record_loop(&mut self, record: LoopRecord) {
+        if self.events.on() {
+            self.events.push(SlamEvent::LoopChecked(record.clone()));
+        }
         self.shared
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -448,10 +547,24 @@ impl Backend {
             ..Default::default()
         };
         self.graph.optimize(&opts)?;
+        let mut loops = 0;
         if let Ok(mut s) = self.shared.lock() {
             s.optimisations += 1;
+            loops = s
+                .loop_records
+                .iter()
+                .filter(|l| l.verdict.is_accepted())
+                .count();
         }
-        Ok(t.elapsed().as_secs_f64() * 1e3)
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        if self.events.on() {
+            self.events.push(SlamEvent::GraphOptimised {
+                world_from_keyframe: self.keyframe_poses(),
+                loops,
+                optimise_ms: ms,
+            });
+        }
+        Ok(ms)
     }
 
     /// Relocalises `frame` against the keyframes: ORB + BoW query, verification, dense
@@ -460,14 +573,14 @@ impl Backend {
         if self.keyframes.is_empty() {
             return Ok(None);
         }
-        let (desc, _, _, _) = self.describe(frame)?;
+        let (desc, ..) = self.describe(frame)?;
         let Some(d) = self.detector.relocalise(&desc, 5)? else {
             return Ok(None);
         };
         let guess = d.loop_match.query_from_candidate.inverse();
         let (refined, cov, covis) = self.refine(d.candidate_id, frame, guess)?;
-        let (dt, dr, reason) = self.check_refined(&guess, &refined, covis);
-        let ok = reason.is_empty();
+        let (dt, dr, verdict) = self.check_refined(&guess, &refined, covis);
+        let ok = verdict.is_accepted();
         let candidate = self.detector.keyframe(d.candidate_id).ok_or_else(|| {
             SlamError::Internal(format!(
                 "relocalisation candidate {} has no description",
@@ -486,8 +599,7 @@ impl Backend {
             refine_translation: dt,
             refine_rotation: dr,
             covisibility: covis,
-            accepted: ok,
-            reason,
+            verdict,
             relocalisation: true,
         });
         if !ok {

@@ -1,6 +1,6 @@
 //! Keyframe inverse-depth fusion by reverse warping (thesis 6.4.2, eq. 6.24-6.25): the WGSL
 //! kernel `shaders/fuse.wgsl` and its CPU mirror [`fuse_cpu`] (same f32 operations in the
-//! same order), two implementations of one kernel interface ([`FusionKernels`]) behind
+//! same order), two implementations of one kernel interface (`FusionKernels`) behind
 //! [`KeyframeFuser`], which keeps the keyframe resident where the kernel runs.
 
 use std::sync::Arc;

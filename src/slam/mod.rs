@@ -20,6 +20,7 @@
 //! ```
 
 mod backend;
+pub mod events;
 pub mod fusion;
 pub mod keyframe;
 pub mod map;
@@ -28,7 +29,10 @@ pub mod model;
 mod rows;
 mod system;
 
-pub use backend::{KeyframeTiming, LoopRecord};
+pub use backend::{KeyframeTiming, LoopRecord, LoopVerdict};
+pub use events::{
+    EventDrops, EventOptions, KeyframeDescribed, SlamEvent, SlamEvents, SuperjutLabels,
+};
 pub use fusion::{fuse_cpu, FusionCounts, FusionParams, KeyframeFuser};
 pub use keyframe::{Keyframe, KeyframeLink};
 pub use map::{Map, MapError, MAP_VERSION};

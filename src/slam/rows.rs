@@ -50,9 +50,9 @@ impl From<&LoopRecord> for LoopRow {
             refine_translation_m: round(l.refine_translation, 5),
             refine_rotation_rad: round(l.refine_rotation, 5),
             covisibility: round(l.covisibility, 4),
-            accepted: l.accepted,
+            accepted: l.verdict.is_accepted(),
             relocalisation: l.relocalisation,
-            reason: l.reason.clone(),
+            reason: l.verdict.reason().to_string(),
         }
     }
 }

@@ -9,6 +9,7 @@ use std::time::Instant;
 use super::backend::{
     loop_record_bytes, Backend, KeyframeTiming, LoopRecord, Relocalisation, Shared,
 };
+use super::events::{EventHub, EventOptions, SlamEvent, SlamEvents};
 use super::fusion::KeyframeFuser;
 use super::keyframe::{Keyframe, KeyframeLink};
 use super::map::Map;
@@ -163,6 +164,8 @@ pub struct Slam {
     shared: Arc<Mutex<Shared>>,
     session: u32,
     map_keyframes: usize,
+    /// The event stream (off until [`Slam::events`] is called).
+    events: Arc<EventHub>,
 }
 
 /// The covariance of a link whose odometry gave none (1 mm, 1 mrad).
@@ -184,7 +187,15 @@ impl Slam {
         let odometry = Odometry::new(config.odometry.clone(), camera, backend)?;
         let fuser = KeyframeFuser::new(camera, config.fusion, backend)?;
         let shared = Arc::new(Mutex::new(Shared::default()));
-        let mut back = Backend::new(camera, config.clone(), backend, vocabulary, shared.clone())?;
+        let events = Arc::new(EventHub::default());
+        let mut back = Backend::new(
+            camera,
+            config.clone(),
+            backend,
+            vocabulary,
+            shared.clone(),
+            events.clone(),
+        )?;
         let mut session = 0;
         if let Some(map) = map {
             if map.camera != camera {
@@ -221,7 +232,28 @@ impl Slam {
             shared,
             session,
             map_keyframes,
+            events,
         })
+    }
+
+    /// Turns the event stream on (bounds: [`EventOptions::default`]) and returns its
+    /// receiver; see [`events`](super::events). Call it before the first
+    /// [`process`](Self::process) to see every event; until it is called no event is made,
+    /// so a run that does not want them pays nothing. Calling it again returns another
+    /// receiver of the same queue.
+    ///
+    /// The system never waits for the receiver: when it lags, the oldest label images and,
+    /// past the event bound, the oldest events are dropped ([`SlamEvents::dropped`]). The
+    /// stream ends (the receiver reports "disconnected" once empty) when the system has
+    /// finished or is dropped.
+    pub fn events(&self) -> SlamEvents {
+        self.events_with(EventOptions::default())
+    }
+
+    /// [`Self::events`] with other bounds.
+    pub fn events_with(&self, options: EventOptions) -> SlamEvents {
+        self.events.start(options);
+        SlamEvents::new(self.events.clone())
     }
 
     /// Number of frames processed.
@@ -340,6 +372,15 @@ impl Slam {
             frontworld_from_keyframe: frontworld_from_camera,
             link,
         });
+        if self.events.on() {
+            self.events.push(SlamEvent::KeyframeCreated {
+                id,
+                frame_index: index,
+                timestamp: frame.timestamp,
+                world_from_keyframe: self.correction() * frontworld_from_camera,
+                link,
+            });
+        }
         self.chain_covariance = Covariance6::ZERO;
         self.frontworld_from_anchor = frontworld_from_camera;
         Ok(id)
@@ -445,6 +486,15 @@ impl Slam {
             return Ok(None);
         };
         let frontworld_from_camera = r.frontworld_from_keyframe * r.keyframe_from_frame;
+        if self.events.on() {
+            self.events.push(SlamEvent::Relocalised {
+                frame_index: index,
+                timestamp: frame.timestamp,
+                keyframe: r.keyframe,
+                new_keyframe: self.next_keyframe_id,
+                world_from_camera: self.correction() * frontworld_from_camera,
+            });
+        }
         self.odometry.reset(frontworld_from_camera);
         // The first tracked frame builds the odometry reference.
         self.odometry.track(frame)?;
@@ -523,6 +573,12 @@ impl Slam {
         });
         let Some(r) = tracked.filter(|_| ok) else {
             // Lost: the current keyframe is finished and the frame gets no pose.
+            if self.events.on() {
+                self.events.push(SlamEvent::Lost {
+                    frame_index: index,
+                    timestamp: frame.timestamp,
+                });
+            }
             self.finish_keyframe()?;
             self.buffer.clear();
             self.lost = true;
@@ -677,6 +733,7 @@ impl Drop for Slam {
         if let Some(h) = self.handle.take() {
             let _ = h.join();
         }
+        self.events.close();
     }
 }
 

@@ -185,8 +185,8 @@ impl LoopUpdate {
             query: record.query,
             candidate: record.candidate,
             inliers: record.inliers,
-            accepted: record.accepted,
-            reason: record.reason.clone(),
+            accepted: record.verdict.is_accepted(),
+            reason: record.verdict.reason(),
             relocalisation: record.relocalisation,
             query_image,
             candidate_image: keyframes.get(record.candidate),
@@ -595,7 +595,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     let loops = result
         .loops
         .iter()
-        .filter(|l| l.accepted && !l.relocalisation)
+        .filter(|l| l.verdict.is_accepted() && !l.relocalisation)
         .filter_map(|l| Some((index_of(l.query)?, index_of(l.candidate)?)))
         .collect();
     let model = build_model(
