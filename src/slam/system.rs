@@ -140,6 +140,9 @@ struct CurrentKeyframe {
 }
 
 /// The RGB-ID SLAM system (see the module docs).
+///
+/// `Slam` is `Send`: it can move to another thread (bindings can release their interpreter
+/// lock around [`Slam::process`]).
 pub struct Slam {
     config: SlamConfig,
     camera: PinholeCamera,
@@ -839,6 +842,12 @@ fn optimise_frames(
         })
         .collect())
 }
+
+// `Slam` moves to other threads (bindings release their interpreter lock around `process`).
+const _: fn() = || {
+    fn send<T: Send>() {}
+    send::<Slam>();
+};
 
 #[cfg(test)]
 mod tests {
