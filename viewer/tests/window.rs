@@ -176,8 +176,12 @@ fn gpu_window_under_xvfb_draws_all_panels() {
         &[
             "--synth",
             "office:loop",
+            // A third of the loop in 90 frames: the per-frame motion of the demo's
+            // 390 frames over 1.3 laps, so every frame tracks and keyframes add points.
             "--frames",
             "90",
+            "--laps",
+            "0.3",
             "--width",
             "160",
             "--backend",
