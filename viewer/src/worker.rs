@@ -554,10 +554,11 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         } else {
             None
         };
+        let (intensity, inverse_depth) = frame.into_images();
         send(Update::Frame(Box::new(FrameUpdate {
             index: i,
-            intensity: frame.intensity().clone(),
-            inverse_depth: frame.inverse_depth().clone(),
+            intensity,
+            inverse_depth,
             report,
             residuals,
             load_ms,
