@@ -26,8 +26,9 @@
 use std::io::Write;
 use std::time::Instant;
 
+use rgbid::internals::{segment_features, segment_graph as graph};
 use rgbid::io::tum::{OpenOptions, TumSequence};
-use rgbid::segment::{self, graph, SegmentConfig, Segmenter, SphereBins};
+use rgbid::segment::{self, SegmentConfig, Segmenter, SphereBins};
 
 fn main() -> anyhow::Result<()> {
     let mut step = 30usize;
@@ -134,7 +135,7 @@ fn main() -> anyhow::Result<()> {
             );
             anyhow::ensure!(fused == (labels.clone(), count), "fused graph differs");
             lap(5, &mut s);
-            let texture: Vec<(usize, f32)> = segment::features::eigen_transform_samples(
+            let texture: Vec<(usize, f32)> = segment_features::eigen_transform_samples(
                 f.intensity(),
                 cfg.texture_window,
                 cfg.texture_first,
@@ -157,7 +158,7 @@ fn main() -> anyhow::Result<()> {
                 data
             });
             lap(8, &mut s);
-            let _ = segment::features::superjut_features(
+            let _ = segment_features::superjut_features(
                 &labels,
                 feature_normals.as_deref().unwrap_or(&n.data),
                 &p,

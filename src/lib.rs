@@ -47,3 +47,12 @@ pub mod slam;
 // Experiments.
 #[cfg(feature = "experiments")]
 pub mod experiments;
+
+/// Internal stages for the repository's own profiling examples (feature `internals`); not a
+/// stable API.
+#[cfg(feature = "internals")]
+#[doc(hidden)]
+pub mod internals {
+    pub use crate::segment::features as segment_features;
+    pub use crate::segment::graph as segment_graph;
+}

@@ -10,8 +10,7 @@ use rgbid::camera::UnifiedCamera;
 use rgbid::experiments::mono::{render, SyntheticCamera, SyntheticSpec};
 use rgbid::image::ImageF32;
 use rgbid::io::trajectory::{read_tum, write_tum};
-use rgbid::mono::input::load_grey;
-use rgbid::mono::{ImageSequence, MonoConfig, MonoError, MonoSlam};
+use rgbid::mono::{load_grey, ImageSequence, MonoConfig, MonoError, MonoSlam};
 
 fn save_grey(path: &Path, img: &ImageF32) {
     let g = GrayImage::from_fn(img.width() as u32, img.height() as u32, |x, y| {

@@ -367,7 +367,7 @@ fn recursive_scaling_is_continuous_and_landmarks_follow_their_anchor() {
     assert!(up.dot(DVec3::NEG_Y).abs() > 0.97, "up {up:?}");
     for w in r.sections.windows(2) {
         let t = w[1].t_start;
-        let p = rgbid::scale::dynscale::interpolate_position(&run.est, t);
+        let p = rgbid::scale::interpolate_position(&run.est, t);
         let before = DVec3::from_array(w[0].origin_scaled)
             + w[0].scale * (p - DVec3::from_array(w[0].origin_raw));
         let after = r.scale_position(t + 1e-9, p);

@@ -6,7 +6,8 @@
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
 use rgbid::image::ImageF32;
-use rgbid::segment::{normals_cpu, GpuNormals, NormalParams};
+use rgbid::gpu::ComputeBackend;
+use rgbid::segment::{normal_kernels, normals_cpu, NormalParams};
 
 /// A sphere in front of a slanted wall, with holes and depth noise: planes, curved surface,
 /// depth discontinuities, invalid pixels and image borders all occur.
@@ -46,7 +47,7 @@ fn gpu_normals_match_the_cpu_mirror() {
     let Some(ctx) = rgbid::gpu::test_gpu("gpu_normals_match_the_cpu_mirror") else {
         return;
     };
-    let kernel = GpuNormals::new(ctx).unwrap();
+    let mut kernel = normal_kernels(&ComputeBackend::Gpu(ctx)).unwrap();
     for (w, h, step) in [(160usize, 120usize, 1u32), (203, 97, 2), (640, 480, 2)] {
         let cam = PinholeCamera::new(
             0.8 * w as f64,

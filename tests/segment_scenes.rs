@@ -4,7 +4,7 @@
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
 use rgbid::image::ImageF32;
-use rgbid::segment::{self, mesh, SegmentConfig, Segmenter, SphereBins, Superjuts, NO_SEGMENT};
+use rgbid::segment::{self, SegmentConfig, Segmenter, SphereBins, Superjuts, NO_SEGMENT};
 
 const W: usize = 160;
 const H: usize = 120;
@@ -418,7 +418,7 @@ fn golden_spiral_bins_have_near_equal_areas() {
 fn mesh_normals_and_segmentation_match_the_image_path() {
     let rho = render(&two_boxes(), 0.0, 1);
     let cam = camera();
-    let m = mesh::triangulate_depth(&rho, &cam, 0.05);
+    let m = segment::triangulate_depth(&rho, &cam, 0.05);
     assert!(m.triangles.len() > W * H);
     // Vertex normals on the table top point up (-y in the camera frame).
     let top = cam.project(glam::DVec3::new(0.0, 0.6, 1.6)).unwrap();
@@ -440,7 +440,7 @@ fn mesh_normals_and_segmentation_match_the_image_path() {
     assert_ne!(labels[v], labels[vf]);
     assert!(segs[labels[v] as usize].neg_entropy > 0.9);
     // Projecting the labelled mesh back into the image reproduces the vertex labels.
-    let img = mesh::project_labels(&m, &labels, &cam, &rgbid::geometry::Se3::default());
+    let img = segment::project_labels(&m, &labels, &cam, &rgbid::geometry::Se3::default());
     let (mut agree, mut total) = (0, 0);
     for (vi, &p) in m.pixel_of_vertex.iter().enumerate() {
         if img[p as usize] != NO_SEGMENT {
@@ -469,7 +469,7 @@ fn point_cloud_triangulation_with_spade_segments_a_sphere_on_a_wall() {
         .filter(|(i, p)| p[2] > 0.0 && (i * 7919) % 3 == 0)
         .map(|(_, p)| p)
         .collect();
-    let m = mesh::triangulate_points(&pts, 0.1).unwrap();
+    let m = segment::triangulate_points(&pts, 0.1).unwrap();
     assert!(m.triangles.len() > pts.len());
     let cfg = SegmentConfig {
         min_size: 50,

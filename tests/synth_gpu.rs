@@ -6,9 +6,8 @@ use std::sync::Arc;
 
 use glam::DVec3;
 use rgbid::camera::{PinholeCamera, UnifiedCamera};
-use rgbid::synth::raycast::NO_OBJECT;
 use rgbid::synth::trajectory::camera_pose;
-use rgbid::synth::{CameraModel, RenderBackend, Renderer, Scene, SensorModel};
+use rgbid::synth::{CameraModel, RenderBackend, Renderer, Scene, SensorModel, NO_OBJECT};
 
 #[test]
 #[ignore = "needs a GPU adapter"]

@@ -212,7 +212,7 @@ fn kernels(a: KernelBench) -> Result<()> {
         let adapters = backends
             .iter()
             .filter_map(|b| match b {
-                ComputeBackend::Gpu(ctx) => Some(ctx.info.name.clone()),
+                ComputeBackend::Gpu(ctx) => Some(ctx.adapter_info().name.clone()),
                 ComputeBackend::Cpu => None,
             })
             .collect();
@@ -500,7 +500,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
         };
         let label = backend.name();
         if let ComputeBackend::Gpu(ctx) = &backend {
-            adapters.push(ctx.info.name.clone());
+            adapters.push(ctx.adapter_info().name.clone());
         }
         let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
         if let (Some(gt), Some(e)) = (&gt, seq.entries.first()) {

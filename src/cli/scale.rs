@@ -11,11 +11,9 @@ use rgbid::experiments::scale::{
 };
 use rgbid::gpu::ComputeBackend;
 use rgbid::io::trajectory::{read_tum, write_tum};
-use rgbid::scale::plot::{plot_panels, Series};
-use rgbid::scale::walking::{GRIEVE_ALPHA, GRIEVE_BETA};
 use rgbid::scale::{
-    arc_length_error, calibrate, CalibrationSample, DynScale, DynScaleConfig, DynScaleResult,
-    UpAxis,
+    arc_length_error, calibrate, plot_panels, CalibrationSample, DynScale, DynScaleConfig,
+    DynScaleResult, Series, UpAxis, GRIEVE_ALPHA, GRIEVE_BETA,
 };
 
 use super::options::{write_sidecar, ConfigArgs};

@@ -53,28 +53,36 @@ pub enum GpuError {
 /// behind an `Arc`; each user creates its pipelines once and keeps them.
 pub struct GpuContext {
     /// The device.
-    pub device: wgpu::Device,
+    pub(crate) device: wgpu::Device,
     /// Its queue.
-    pub queue: wgpu::Queue,
+    pub(crate) queue: wgpu::Queue,
     /// Adapter information (name, backend, device type).
-    pub info: wgpu::AdapterInfo,
+    pub(crate) info: wgpu::AdapterInfo,
     /// True for software adapters (lavapipe/llvmpipe, WARP): fewer, larger workgroups win there.
-    pub is_software: bool,
+    pub(crate) is_software: bool,
     /// True when `Features::SUBGROUP` was enabled on the device.
-    pub has_subgroups: bool,
-    /// Device limits.
-    pub limits: wgpu::Limits,
+    pub(crate) has_subgroups: bool,
     lost: Arc<AtomicBool>,
     lost_message: Arc<Mutex<String>>,
     error: Arc<Mutex<Option<String>>>,
 }
 
 /// How long a single wait on the GPU may take before it is treated as a hang.
-pub const GPU_WAIT_TIMEOUT: Duration = Duration::from_secs(60);
+pub(crate) const GPU_WAIT_TIMEOUT: Duration = Duration::from_secs(60);
 
 impl GpuContext {
+    /// The adapter's name, backend and device type.
+    pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
+        &self.info
+    }
+
+    /// True for software adapters (lavapipe/llvmpipe, WARP).
+    pub fn is_software(&self) -> bool {
+        self.is_software
+    }
+
     /// Creates a device on `adapter`.
-    pub fn from_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
+    pub(crate) fn from_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
         let info = adapter.get_info();
         let wanted = wgpu::Features::SUBGROUP;
         let required_features = adapter.features() & wanted;
@@ -90,7 +98,7 @@ impl GpuContext {
         let desc = wgpu::DeviceDescriptor {
             label: Some("rgbid"),
             required_features,
-            required_limits: required_limits.clone(),
+            required_limits,
             experimental_features: wgpu::ExperimentalFeatures::disabled(),
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
@@ -143,7 +151,6 @@ impl GpuContext {
             info,
             is_software,
             has_subgroups: required_features.contains(wgpu::Features::SUBGROUP),
-            limits: required_limits,
             lost,
             lost_message,
             error,
@@ -151,7 +158,7 @@ impl GpuContext {
     }
 
     /// Returns an error if the device was lost or an uncaptured validation error occurred.
-    pub fn check(&self) -> Result<(), GpuError> {
+    pub(crate) fn check(&self) -> Result<(), GpuError> {
         if self.lost.load(Ordering::SeqCst) {
             let m = self
                 .lost_message
@@ -169,7 +176,7 @@ impl GpuContext {
     }
 
     /// Waits for all submitted work, with a timeout, and reports loss or validation errors.
-    pub fn wait(&self) -> Result<(), GpuError> {
+    pub(crate) fn wait(&self) -> Result<(), GpuError> {
         let r = self.device.poll(wgpu::PollType::Wait {
             submission_index: None,
             timeout: Some(GPU_WAIT_TIMEOUT),
@@ -184,7 +191,7 @@ impl GpuContext {
 
     /// Compiles a WGSL module and creates one compute pipeline per entry point, with an
     /// automatically derived layout. Errors name the shader.
-    pub fn compute_pipelines(
+    pub(crate) fn compute_pipelines(
         &self,
         name: &str,
         source: &str,
@@ -195,7 +202,7 @@ impl GpuContext {
 
     /// Like [`Self::compute_pipelines`], with an explicit bind-group layout (group 0) shared by
     /// all entry points, so one bind group serves every kernel of the module.
-    pub fn compute_pipelines_with_layout(
+    pub(crate) fn compute_pipelines_with_layout(
         &self,
         name: &str,
         source: &str,
@@ -242,7 +249,11 @@ impl GpuContext {
 
     /// A bind-group layout of compute-stage buffers: binding 0 a uniform, then one storage
     /// buffer per entry of `storage_read_only` (true = read-only).
-    pub fn buffer_layout(&self, label: &str, storage_read_only: &[bool]) -> wgpu::BindGroupLayout {
+    pub(crate) fn buffer_layout(
+        &self,
+        label: &str,
+        storage_read_only: &[bool],
+    ) -> wgpu::BindGroupLayout {
         let mut entries = vec![wgpu::BindGroupLayoutEntry {
             binding: 0,
             visibility: wgpu::ShaderStages::COMPUTE,
@@ -273,7 +284,7 @@ impl GpuContext {
     }
 
     /// A bind group binding `buffers` whole, in order, to bindings 0, 1, ...
-    pub fn bind_buffers(
+    pub(crate) fn bind_buffers(
         &self,
         label: &str,
         layout: &wgpu::BindGroupLayout,
@@ -295,7 +306,7 @@ impl GpuContext {
     }
 
     /// A storage buffer initialised with `data`, usable as copy source and destination.
-    pub fn storage_init<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
+    pub(crate) fn storage_init<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -307,7 +318,7 @@ impl GpuContext {
     }
 
     /// An uninitialised (zeroed) storage buffer of `bytes` bytes.
-    pub fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+    pub(crate) fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes.max(16),
@@ -319,7 +330,7 @@ impl GpuContext {
     }
 
     /// A uniform buffer of `bytes` bytes, written with `queue.write_buffer`.
-    pub fn uniform(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+    pub(crate) fn uniform(&self, label: &str, bytes: u64) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes.max(16),
@@ -329,7 +340,7 @@ impl GpuContext {
     }
 
     /// A buffer for reading results back to the CPU.
-    pub fn staging(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+    pub(crate) fn staging(&self, label: &str, bytes: u64) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes.max(16),
@@ -340,7 +351,7 @@ impl GpuContext {
 
     /// Maps `staging` (already filled by a submitted copy), waits, and returns the first
     /// `count` values.
-    pub fn read_staging<T: bytemuck::Pod>(
+    pub(crate) fn read_staging<T: bytemuck::Pod>(
         &self,
         staging: &wgpu::Buffer,
         count: usize,
@@ -369,7 +380,7 @@ impl GpuContext {
 
     /// Copies `count` values of `src` to a new staging buffer and reads them back (slow path
     /// for tests and one-off reads; hot loops keep their own staging buffers).
-    pub fn read_buffer<T: bytemuck::Pod>(
+    pub(crate) fn read_buffer<T: bytemuck::Pod>(
         &self,
         src: &wgpu::Buffer,
         count: usize,
@@ -388,7 +399,7 @@ impl GpuContext {
 
     /// Workgroup count for a reduction over `items` items with `threads` threads per group:
     /// few large groups on software adapters, enough to fill a real GPU otherwise.
-    pub fn reduction_groups(&self, items: usize, threads: usize) -> u32 {
+    pub(crate) fn reduction_groups(&self, items: usize, threads: usize) -> u32 {
         // Software: at least ~16 pixels per invocation, but several groups even on small
         // levels so that every driver thread gets work (80x60: 3 groups, not 1).
         let per_thread = if self.is_software { 16 } else { 8 };

@@ -7,7 +7,7 @@
 
 mod backend;
 mod context;
-pub mod shaders;
+pub(crate) mod shaders;
 mod testing;
 
 pub use backend::{describe_adapters, select_backend, BackendChoice, ComputeBackend};

@@ -35,3 +35,34 @@ pub fn assembled(name: &str) -> Option<String> {
     out.push_str(src);
     Some(out)
 }
+
+/// Every WGSL kernel parses and validates with naga, on any machine (no GPU needed), so a
+/// broken shader fails `cargo test` with the file and line.
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn all_shaders_parse_and_validate() {
+        let mut failures = Vec::new();
+        for (name, _) in super::ALL {
+            let src = super::assembled(name).expect("listed shader exists");
+            match naga::front::wgsl::parse_str(&src) {
+                Err(e) => failures.push(format!("{name}: {}", e.emit_to_string(&src))),
+                Ok(module) => {
+                    let caps =
+                        naga::valid::Capabilities::default() | naga::valid::Capabilities::SUBGROUP;
+                    if let Err(e) =
+                        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps)
+                            .validate(&module)
+                    {
+                        failures.push(format!("{name}: {}", e.emit_to_string(&src)));
+                    }
+                }
+            }
+        }
+        assert!(
+            failures.is_empty(),
+            "shader errors:\n{}",
+            failures.join("\n")
+        );
+    }
+}

@@ -9,7 +9,7 @@
 
 use glam::{DMat3, DQuat, DVec2, DVec3};
 
-use crate::geometry::{skew, so3_exp, so3_log, Se3};
+use crate::geometry::{skew, so3_exp, Se3};
 
 /// A variable the solver can update: a point of a manifold with a `DIM`-dimensional
 /// tangent space and a retraction.
@@ -249,11 +249,6 @@ pub fn so3_right_jacobian_inverse(phi: DVec3) -> DMat3 {
     DMat3::IDENTITY + k * 0.5 + k * k * c
 }
 
-/// Rotation-vector error `Log(a^-1 b)` (radians) of two rotations.
-pub fn rotation_error(a: DQuat, b: DQuat) -> DVec3 {
-    so3_log(a.conjugate() * b)
-}
-
 /// Lower Cholesky factor `L` (row-major, `n x n`) with `m = L L^T`, or `None` when `m`
 /// (row-major, symmetric) is not positive definite or not finite.
 pub fn cholesky_lower(m: &[f64], n: usize) -> Option<Vec<f64>> {
@@ -330,6 +325,7 @@ pub fn project_to_so3(m: DMat3) -> DMat3 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::so3_log;
 
     #[test]
     fn se2_inverse_and_compose() {

@@ -1,11 +1,12 @@
 //! Pose-graph and curve-graph optimisation (thesis ch. 7).
 //!
-//! - [`solver`]: sparse non-linear least squares over manifold variables (LM / GN, robust
+//! - [`Problem`]: sparse non-linear least squares over manifold variables (LM / GN, robust
 //!   kernels, faer sparse Cholesky with AMD ordering and a reused symbolic analysis).
-//! - [`lie`]: SE(2), Sim(3) types and the [`Manifold`] trait (also for `Se3`, `DVec2`, `DVec3`).
-//! - [`pose_graph`]: SE(2)/SE(3)/Sim(3) pose graphs (eq. 7.1-7.6), chi2 and the SE-Sync
+//! - [`Se2`], [`Sim3`] and the [`Manifold`] trait (also for `Se3`, `DVec2`, `DVec3`).
+//! - [`PoseGraph`]: SE(2)/SE(3)/Sim(3) pose graphs (eq. 7.1-7.6), chi2 and the SE-Sync
 //!   objective.
-//! - [`init`]: spanning-tree, linear 2D and chordal 3D initialisation.
+//! - [`initialize_2d`], [`initialize_3d`]: spanning-tree, linear 2D and chordal 3D
+//!   initialisation.
 //! - [`g2o`], [`isam`]: the g2o and iSAM text formats (read and write).
 //!
 //! Vertices are `world_from_body` transforms, edges `from_from_to` measurements with an
@@ -15,12 +16,12 @@ pub mod curve;
 pub mod eval;
 pub mod g2o;
 pub mod incremental;
-pub mod init;
+pub(crate) mod init;
 pub mod isam;
-pub mod lie;
+pub(crate) mod lie;
 pub mod planar;
-pub mod pose_graph;
-pub mod solver;
+pub(crate) mod pose_graph;
+pub(crate) mod solver;
 
 pub use init::{initialize_2d, initialize_3d, InitMethod};
 pub use lie::{Manifold, Se2, Sim3};

@@ -16,6 +16,7 @@ pub struct Corner {
     pub score: f32,
 }
 
+#[cfg(test)]
 /// FAST-9 score at `(x, y)`: `None` when it is not a corner (fewer than 9 contiguous circle
 /// pixels all brighter than `centre + t` or all darker than `centre - t`). The caller keeps
 /// `(x, y)` at least 3 pixels from the border.

@@ -22,8 +22,6 @@ pub const LANDMARK_DIM: usize = 6;
 
 /// 2x6 Jacobian.
 pub type Mat2x6 = SMatrix<f64, 2, 6>;
-/// 6x3 Jacobian.
-pub type Mat6x3 = SMatrix<f64, 6, 3>;
 
 /// An anchored inverse-depth landmark.
 #[derive(Clone, Copy, Debug, PartialEq)]

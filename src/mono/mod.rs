@@ -16,25 +16,25 @@
 //! ([`MonoConfig::initial_inverse_depth`]); evaluate with a similarity (Sim(3)) alignment.
 //! Pixel coordinates: integer values at pixel centres; intensity in `[0, 255]`.
 //!
-//! Files: [`state`] (camera state, constant-velocity motion model with its closed-form
-//! discrete error model), [`landmark`] (inverse-depth parametrisation, measurement model and
-//! Jacobians, initialisation with covariance), [`fast`] (FAST-9 corners), [`patch`] (ZNCC and
-//! catadioptric patch warping), [`filter`] (the SLAM loop: prediction, active search,
-//! 1-point RANSAC, update, map management, statistics), [`input`] (image-only sequences and
-//! camera files). Runs on generated sequences with ground truth are in
+//! Parts: [`CameraState`] (camera state, constant-velocity motion model with its closed-form
+//! discrete error model), [`InverseDepthLandmark`] (inverse-depth parametrisation, measurement
+//! model and Jacobians, initialisation with covariance), FAST-9 corners, ZNCC and catadioptric
+//! patch warping ([`PatchMode`]), [`MonoSlam`] (the SLAM loop: prediction, active search,
+//! 1-point RANSAC, update, map management, statistics), [`ImageSequence`] and [`load_camera`]
+//! (image-only sequences and camera files). Runs on generated sequences with ground truth are in
 //! `rgbid::experiments::mono` (feature `experiments`).
 
-pub mod fast;
-pub mod filter;
-pub mod input;
-pub mod landmark;
-pub mod patch;
-pub mod state;
+pub(crate) mod fast;
+pub(crate) mod filter;
+pub(crate) mod input;
+pub(crate) mod landmark;
+pub(crate) mod patch;
+pub(crate) mod state;
 
 use std::path::PathBuf;
 
 pub use filter::{FrameReport, MonoSlam, MonoStats, StageTimes};
-pub use input::{load_camera, ImageSequence};
+pub use input::{load_camera, load_grey, unified_from_model, ImageSequence};
 pub use landmark::InverseDepthLandmark;
 pub use patch::PatchMode;
 pub use state::CameraState;

@@ -49,6 +49,7 @@ pub fn sample_bilinear(img: &ImageF32, x: f64, y: f64) -> Option<f32> {
     Some(top * (1.0 - fy) + bottom * fy)
 }
 
+#[cfg(test)]
 /// Zero-mean normalised cross-correlation of two equally long patches, in `[-1, 1]`;
 /// `0` when either is flat.
 pub fn zncc(a: &[f32], b: &[f32]) -> f64 {

@@ -130,6 +130,7 @@ impl CameraState {
     }
 }
 
+#[cfg(test)]
 /// Error-state difference `b - a` (`[dr, dtheta, dv, dw]`, rotation on the left), the
 /// inverse of [`CameraState::corrected`].
 pub fn error_between(a: &CameraState, b: &CameraState) -> [f64; 12] {

@@ -51,6 +51,7 @@ pub struct CpuPyramid {
 }
 
 impl CpuPyramid {
+    #[cfg(test)]
     /// Builds the pyramid and gradients of `frame` with `levels` levels.
     pub fn build(frame: &RgbdFrame, levels: usize) -> CpuPyramid {
         Self::build_reusing(frame, levels, 0, None)

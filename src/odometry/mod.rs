@@ -16,9 +16,8 @@
 //! `cur_from_ref` applied on the left, which is the library's right perturbation of
 //! `ref_from_cur` ([`crate::geometry`]); covariances leave this module in that convention.
 //!
-//! The algorithm ([`Tracker`]) is written once against the kernel interface of `backend.rs`,
-//! implemented by the WGSL kernels ([`GpuKernels`]: `gpu.rs`, `shaders/pyramid.wgsl`,
-//! `shaders/odometry.wgsl`) and by their CPU mirror ([`CpuKernels`]: `cpu.rs`, `rows.rs`).
+//! The algorithm is written once against a kernel interface implemented by the WGSL kernels
+//! (`shaders/pyramid.wgsl`, `shaders/odometry.wgsl`) and by their rayon CPU mirror;
 //! [`Odometry`] picks one at run time from a [`crate::gpu::ComputeBackend`].
 
 mod backend;
@@ -36,14 +35,11 @@ mod rows;
 mod solver;
 mod tracker;
 
-pub use backend::CpuKernels;
 pub use config::{CovarianceGradients, GeometricParam, GeometricSampling, OdometryConfig, Terms};
-pub use gpu::GpuKernels;
 pub use inspect::{residual_images, ResidualImages, RobustScales};
 pub use robust::{Estimator, ScaleMethod};
 pub use tracker::{
-    Alignment, CpuTracker, FrameStats, GpuTracker, LevelStats, Odometry, Prepared, PreparedFrame,
-    StageTimes, TrackResult, Tracker,
+    Alignment, FrameStats, LevelStats, Odometry, PreparedFrame, StageTimes, TrackResult,
 };
 
 use crate::gpu::GpuError;

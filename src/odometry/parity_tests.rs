@@ -263,8 +263,8 @@ fn gpu_tracker_matches_cpu_tracker() {
     };
     let camera = crate::camera::PinholeCamera::new(262.5, 262.5, 159.75, 119.75, 320, 240);
     let config = super::OdometryConfig::default();
-    let mut cpu = super::Tracker::new_cpu(config.clone(), camera).expect("cpu tracker");
-    let mut gpu = super::Tracker::new_gpu(config, camera, ctx).expect("gpu tracker");
+    let mut cpu = super::tracker::Tracker::new_cpu(config.clone(), camera).expect("cpu tracker");
+    let mut gpu = super::tracker::Tracker::new_gpu(config, camera, ctx).expect("gpu tracker");
     let (a, b) = (test_pattern(320, 240, 1), test_pattern(320, 240, 2));
     let pc = cpu.prepare(&a).expect("prepare");
     let qc = cpu.prepare(&b).expect("prepare");

@@ -245,11 +245,6 @@ impl<K: Kernels> Tracker<K> {
         &self.config
     }
 
-    /// The camera (pixels, level 0).
-    pub fn camera(&self) -> &PinholeCamera {
-        &self.camera
-    }
-
     /// Sets `world_from_camera` of the first frame (identity by default). Call before the
     /// first [`Self::track`].
     pub fn set_initial_pose(&mut self, world_from_camera: Se3) {
@@ -794,8 +789,7 @@ impl PreparedFrame {
 }
 
 /// Frame-by-frame dense RGB-D odometry on the backend chosen at run time
-/// ([`ComputeBackend`]): a [`Tracker`] on the CPU mirror or on the WGSL kernels, chosen here
-/// and nowhere else.
+/// ([`ComputeBackend`]): the same algorithm on the rayon CPU mirror or on the WGSL kernels.
 ///
 /// `Odometry` is `Send`: it can move to another thread (bindings can release their
 /// interpreter lock around [`Self::track`]).
@@ -847,7 +841,11 @@ impl Odometry {
         Ok(Self { inner })
     }
 
-    /// See [`Tracker::memory_bytes`].
+    /// Bytes this odometry holds between frames, `(host, device)`: the pyramids it keeps
+    /// (the reference, a spare one recycled for the next frame, the covariance pass's
+    /// filtered level) in host memory on the CPU backend, and on a GPU the buffers allocated
+    /// for them and for the kernels' parameters, partial sums and read-back (host: only the
+    /// level tables). Sums of capacities and buffer sizes; allocates nothing.
     pub fn memory_bytes(&self) -> (usize, usize) {
         on_tracker!(&self.inner, t => t.memory_bytes())
     }
@@ -869,12 +867,14 @@ impl Odometry {
         on_tracker!(&mut self.inner, t => t.reset(world_from_camera))
     }
 
-    /// See [`Tracker::track`].
+    /// Tracks `frame`: aligns it to the current reference (constant-velocity guess), returns
+    /// its `world_from_camera`, and switches the reference when covisibility is low.
     pub fn track(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
         on_tracker!(&mut self.inner, t => t.track(frame))
     }
 
-    /// See [`Tracker::align`].
+    /// Aligns `current` to `reference` starting from `cur_from_ref_guess` (no tracking state
+    /// is used or changed). This is the two-view entry point (loop closures, tests).
     pub fn align(
         &mut self,
         reference: &RgbdFrame,
@@ -884,7 +884,8 @@ impl Odometry {
         on_tracker!(&mut self.inner, t => t.align(reference, current, cur_from_ref_guess))
     }
 
-    /// See [`Tracker::covisibility_of`].
+    /// Dense covisibility ratio of two frames given `cur_from_ref` (eq. 6.10: the minimum over
+    /// both directions of the fraction of pixels with depth that land on a pixel with depth).
     pub fn covisibility_of(
         &mut self,
         reference: &RgbdFrame,
@@ -895,7 +896,7 @@ impl Odometry {
     }
 
     /// Builds `frame`'s pyramid once, for [`Self::align_prepared`] and
-    /// [`Self::covisibility_prepared`] (see [`Tracker::prepare`]).
+    /// [`Self::covisibility_prepared`] (no tracking state is used or changed).
     pub fn prepare(&mut self, frame: &RgbdFrame) -> Result<PreparedFrame, OdometryError> {
         let inner = match &mut self.inner {
             Inner::Cpu(t) => PreparedInner::Cpu(t.prepare(frame)?),

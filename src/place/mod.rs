@@ -7,18 +7,18 @@
 //! depth is 1/m with `0` meaning "no measurement"; 3D points are in the keyframe's camera frame
 //! (x right, y down, z forward, metres); relative poses are named `a_from_b`.
 //!
-//! Pipeline: [`orb::extract_orb`] -> [`vocabulary::Vocabulary::transform`] (BoW + direct index)
-//! -> [`database::KeyframeDatabase::query`] -> [`matching`] -> [`verify::verify_loop`].
-//! [`detector::LoopDetector`] strings these together for a stream of keyframes.
+//! Pipeline: [`extract_orb`] -> [`Vocabulary::transform`] (BoW + direct index)
+//! -> [`KeyframeDatabase::query`] -> [`match_descriptors`] -> [`verify_loop`].
+//! [`LoopDetector`] strings these together for a stream of keyframes.
 
-pub mod database;
-pub mod detector;
-pub mod matching;
-pub mod orb;
-pub mod pattern;
-pub mod ransac;
-pub mod verify;
-pub mod vocabulary;
+pub(crate) mod database;
+pub(crate) mod detector;
+pub(crate) mod matching;
+pub(crate) mod orb;
+pub(crate) mod pattern;
+pub(crate) mod ransac;
+pub(crate) mod verify;
+pub(crate) mod vocabulary;
 
 pub use database::{Candidate, KeyframeDatabase, QueryParams};
 pub use detector::{DetectedLoop, KeyframeDescription, LoopDetector, LoopDetectorParams};

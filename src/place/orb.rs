@@ -223,6 +223,7 @@ impl Gray {
         }
     }
 
+    #[cfg(test)]
     fn to_f32(&self) -> ImageF32 {
         ImageF32 {
             width: self.width,
@@ -795,17 +796,6 @@ fn detect_level(
     out
 }
 
-/// The 8-bit pyramid: level 0 is the rounded image, level `l` is `1 / scale^l` of its size.
-fn build_gray_pyramid(image: &ImageF32, params: &OrbParams) -> Vec<Gray> {
-    let sizes = level_sizes(image.width, image.height, params);
-    let mut levels = vec![Gray::from_f32(image)];
-    for &(w, h) in &sizes[1..] {
-        let next = resize_bilinear(&levels[levels.len() - 1], w, h);
-        levels.push(next);
-    }
-    levels
-}
-
 /// Sizes of the pyramid levels of a `width x height` image, level 0 first: `1 / scale^l` of
 /// it, rounded, down to the last level that still has a descriptor border.
 fn level_sizes(width: usize, height: usize, params: &OrbParams) -> Vec<(usize, usize)> {
@@ -820,15 +810,6 @@ fn level_sizes(width: usize, height: usize, params: &OrbParams) -> Vec<(usize, u
         sizes.push((w, h));
     }
     sizes
-}
-
-/// The image pyramid the extractor works on: level 0 is the image rounded to integer
-/// intensities, level `l` is `1 / scale^l` of its size (bilinear from level `l - 1`).
-pub fn build_pyramid(image: &ImageF32, params: &OrbParams) -> Vec<ImageF32> {
-    build_gray_pyramid(image, params)
-        .iter()
-        .map(Gray::to_f32)
-        .collect()
 }
 
 /// Detects, selects and describes the keypoints of pyramid level `l`.

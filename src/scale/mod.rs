@@ -9,38 +9,45 @@
 //! it drifts (eq. 3.20-3.30); the trajectory is then rescaled section by section
 //! (eq. 3.31-3.33, Algorithm 1).
 //!
-//! - [`spectrum`]: offset removal, second-order high-pass at 0.7 Hz, PSD by FFT, step
+//! - [`StepAnalysis`]: offset removal, second-order high-pass at 0.7 Hz, PSD by FFT, step
 //!   frequency peak in 1-3 Hz, Parseval power and walking / standing detection (3.15-3.19).
-//! - [`walking`]: the speed model and its calibration by a power fit (3.11, 3.4.1).
-//! - [`particle`]: the particle filter over `(V_SLAM, log10 s)`.
-//! - [`dynscale`]: Algorithm 1 (sliding window `t_DFT`, update every `t_upd`), recursive
-//!   section scaling of positions, velocities and landmarks (3.31-3.35).
-//! - [`drift`]: an emulator of monocular SLAM output (pose noise + drifting scale) from a
-//!   ground-truth trajectory, for experiments.
-//! - [`loops`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
-//! - [`metric`]: position error against ground truth by normalised arc length (3.36).
-//! - [`plot`]: PNG line plots of frequency, scale and speed per section (figs. 3.7-3.8).
+//! - [`WalkingModel`]: the speed model and its calibration by a power fit ([`calibrate`];
+//!   3.11, 3.4.1).
+//! - [`ScaleFilter`]: the particle filter over `(V_SLAM, log10 s)`.
+//! - [`DynScale`], [`LiveDynScale`]: Algorithm 1 (sliding window `t_DFT`, update every
+//!   `t_upd`), recursive section scaling of positions, velocities and landmarks (3.31-3.35).
+//! - [`emulate_monocular`]: an emulator of monocular SLAM output (pose noise + drifting scale)
+//!   from a ground-truth trajectory, for experiments.
+//! - [`optim_sim3`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
+//! - [`arc_length_error`]: position error against ground truth by normalised arc length (3.36).
+//! - [`plot_panels`]: PNG line plots of frequency, scale and speed per section
+//!   (figs. 3.7-3.8).
 //!
 //! Frames: trajectories are `world_from_camera` in the trajectory's own world frame (for a
 //! monocular SLAM output, usually the first camera: x right, y down, z forward). Units: seconds,
 //! Hz (steps per second), metres for metric quantities, "SLAM units" for unscaled ones. The
 //! scale `s` maps SLAM units to metres: `p_metric = s p_slam`.
 
-pub mod drift;
-pub mod dynscale;
-pub mod loops;
-pub mod metric;
-pub mod particle;
-pub mod plot;
-pub mod spectrum;
-pub mod walking;
+pub(crate) mod drift;
+pub(crate) mod dynscale;
+pub(crate) mod loops;
+pub(crate) mod metric;
+pub(crate) mod particle;
+pub(crate) mod plot;
+pub(crate) mod spectrum;
+pub(crate) mod walking;
 
 pub use drift::{emulate_monocular, DriftModel, EmulatedRun};
-pub use dynscale::{DynScale, DynScaleConfig, DynScaleResult, LiveDynScale, Section, UpAxis};
+pub use dynscale::{
+    check_trajectory, interpolate_position, DynScale, DynScaleConfig, DynScaleResult, LiveDynScale,
+    Section, UpAxis,
+};
+pub use loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
 pub use metric::{arc_length_error, ArcLengthError};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
+pub use plot::{plot_panels, Series};
 pub use spectrum::{HighPass, SpectrumConfig, StepAnalysis};
-pub use walking::{calibrate, CalibrationSample, WalkingModel};
+pub use walking::{calibrate, CalibrationSample, WalkingModel, GRIEVE_ALPHA, GRIEVE_BETA};
 
 /// Errors of the scale estimation.
 #[derive(Debug, thiserror::Error)]

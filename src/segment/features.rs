@@ -25,7 +25,7 @@ pub fn golden_spiral(m: usize) -> Vec<[f32; 3]> {
 /// Nearest-point binning of unit vectors onto a set of sphere points.
 ///
 /// A unit vector is looked up in a cube map of the sphere (6 faces of
-/// [`CUBE_GRID`]` x `[`CUBE_GRID`] cells): each cell lists, in index order, the only bins that
+/// `CUBE_GRID x CUBE_GRID` cells): each cell lists, in index order, the only bins that
 /// can be nearest to a direction inside it, so a query costs a few dot products and returns
 /// exactly what a brute-force search would (the lowest index among exact ties). Other vectors
 /// (not of unit length, or not finite) use a search pruned by `z`: bins are sorted by `z`, so

@@ -471,6 +471,7 @@ impl Merger {
     }
 }
 
+#[cfg(any(test, feature = "internals"))]
 /// Felzenszwalb-Huttenlocher segmentation of the 8-connected image graph: the same labels as
 /// [`felzenszwalb`]`(width * height, e, k, min_size, active)` with `e` the edges of
 /// [`image_edges`] sorted by [`sort_edges`], computed without the whole sorted edge list:
@@ -504,6 +505,7 @@ pub fn segment_image_graph(
     )
 }
 
+#[cfg(any(test, feature = "internals"))]
 /// [`segment_image_graph`] with its buffers in `scratch`, kept there for the next call (the
 /// same labels, whatever `scratch` held before).
 #[allow(clippy::too_many_arguments)]
@@ -615,6 +617,7 @@ pub struct GraphScratch {
 }
 
 impl GraphScratch {
+    #[cfg(any(test, feature = "internals"))]
     /// Empty buffers (the first image allocates them).
     pub fn new() -> Self {
         Self::default()
@@ -1135,6 +1138,7 @@ impl<'t> TiledMerger<'t> {
     }
 }
 
+#[cfg(any(test, feature = "internals"))]
 /// Edges of the 8-connected image graph between pixels with normals, weighted by
 /// [`convexity_weight`], or [`JUMP_WEIGHT`] where the inverse depth of the two pixels differs
 /// by more than `jump_ratio` of the larger (per pixel of distance).

@@ -92,7 +92,7 @@ impl TriMesh {
     }
 
     /// Mesh edges weighted by [`convexity_weight`] (needs vertex normals).
-    pub fn weighted_edges(&self) -> Vec<Edge> {
+    pub(crate) fn weighted_edges(&self) -> Vec<Edge> {
         self.edges()
             .into_iter()
             .filter_map(|(a, b)| {

@@ -4,12 +4,11 @@
 //! A keyframe (intensity in `[0, 255]`, inverse depth in 1/m with 0 = no measurement, pinhole
 //! camera with x right, y down, z forward) is segmented by 3D structure into *superjuts*:
 //!
-//! 1. normals from the inverse-depth image ([`normals_cpu`], WGSL kernel [`GpuNormals`];
-//!    thesis eq. 5.2) or from a triangle mesh ([`mesh`]; thesis 5.3.1);
+//! 1. normals from the inverse-depth image ([`normals_cpu`], or the WGSL kernel through
+//!    [`normal_kernels`]; thesis eq. 5.2) or from a triangle mesh ([`TriMesh`]; thesis 5.3.1);
 //! 2. an 8-connected pixel graph (or the mesh edges) weighted by the convex/concave
-//!    criterion ([`graph::convexity_weight`], eq. 5.1 / 6.26) and Felzenszwalb-Huttenlocher
-//!    merging with `k = 0.6` and a minimum segment size ([`graph::felzenszwalb`]; for images
-//!    [`graph::segment_image_graph`], which overlaps the edge sort with the merging);
+//!    criterion (eq. 5.1 / 6.26) and Felzenszwalb-Huttenlocher merging with `k = 0.6` and a
+//!    minimum segment size (for images the edge sort overlaps the merging);
 //! 3. per superjut ([`Superjut`]): histogram of normals over `M = 80` golden-section-spiral
 //!    bins, Shannon entropy, neg-entropy `1 - H / ln M` (5.4), planarity, horizontality with
 //!    respect to a configurable up axis, and the eigen-transform texture response;
@@ -26,16 +25,22 @@
 //! # Ok::<(), SegmentError>(())
 //! ```
 
+#[cfg(feature = "internals")]
 pub mod features;
+#[cfg(not(feature = "internals"))]
+pub(crate) mod features;
 mod gpu;
+#[cfg(feature = "internals")]
 pub mod graph;
-pub mod mesh;
+#[cfg(not(feature = "internals"))]
+pub(crate) mod graph;
+pub(crate) mod mesh;
 mod normals;
 
 pub use features::{golden_spiral, SphereBins, Superjut};
-pub use gpu::GpuNormals;
+pub(crate) use gpu::GpuNormals;
 pub use graph::NO_SEGMENT;
-pub use mesh::TriMesh;
+pub use mesh::{project_labels, triangulate_depth, triangulate_points, TriMesh};
 pub use normals::{
     normals_cpu, points_from_inverse_depth, smooth_inverse_depth, NormalMap, NormalParams,
 };
@@ -44,8 +49,9 @@ use rayon::prelude::*;
 
 use crate::camera::{CameraError, PinholeCamera};
 
-/// The image-domain normal kernel of one backend: [`CpuNormals`] ([`normals_cpu`]) or
-/// [`GpuNormals`] (`shaders/normals.wgsl`), the same normals up to f32 rounding.
+/// The image-domain normal kernel of one backend: the CPU mirror ([`normals_cpu`]) or the WGSL
+/// kernel (`shaders/normals.wgsl`), the same normals up to f32 rounding; made by
+/// [`normal_kernels`].
 pub trait NormalKernels: Send {
     /// Normals of `inverse_depth` (1/m, 0 = invalid) seen by `camera`, in the camera frame.
     fn compute(
@@ -58,7 +64,7 @@ pub trait NormalKernels: Send {
 
 /// The CPU normal kernel ([`normals_cpu`]).
 #[derive(Clone, Copy, Debug, Default)]
-pub struct CpuNormals;
+pub(crate) struct CpuNormals;
 
 impl NormalKernels for CpuNormals {
     fn compute(
@@ -451,7 +457,7 @@ impl Segmenter {
         self.segment_with_normals(intensity, inverse_depth, camera, normals, config)
     }
 
-    /// Segments a keyframe whose normals were already computed (e.g. by [`GpuNormals`]).
+    /// Segments a keyframe whose normals were already computed (e.g. by a [`NormalKernels`]).
     pub fn segment_with_normals(
         &mut self,
         intensity: &ImageF32,
@@ -623,7 +629,7 @@ pub fn segment_keyframe(
     Segmenter::new().segment_keyframe(intensity, inverse_depth, camera, config)
 }
 
-/// Segments a keyframe whose normals were already computed (e.g. by [`GpuNormals`]), with a
+/// Segments a keyframe whose normals were already computed (e.g. by a [`NormalKernels`]), with a
 /// fresh [`Segmenter`] (allocating per call, as [`segment_keyframe`]; see
 /// [`Segmenter::segment_with_normals`]).
 pub fn segment_with_normals(

@@ -180,6 +180,7 @@ pub(crate) fn fuse_pixel(
     )
 }
 
+#[cfg(test)]
 /// CPU mirror of the `fuse` kernel: updates `kf_rho` / `kf_weight` (row-major, the camera's
 /// size) in place with the frame whose inverse depth is `cur_rho`, at `cur_from_kf`.
 pub fn fuse_cpu(

@@ -21,11 +21,13 @@
 
 mod backend;
 pub mod events;
-pub mod fusion;
-pub mod keyframe;
-pub mod map;
+pub(crate) mod fusion;
+#[cfg(test)]
+mod fusion_tests;
+pub(crate) mod keyframe;
+pub(crate) mod map;
 mod memory;
-pub mod model;
+pub(crate) mod model;
 mod rows;
 mod system;
 
@@ -33,7 +35,9 @@ pub use backend::{KeyframeTiming, LoopRecord, LoopVerdict};
 pub use events::{
     EventDrops, EventOptions, KeyframeDescribed, SlamEvent, SlamEvents, SuperjutLabels,
 };
-pub use fusion::{fuse_cpu, FusionCounts, FusionParams, KeyframeFuser};
+#[doc(hidden)]
+pub use fusion::KeyframeFuser;
+pub use fusion::{FusionCounts, FusionParams};
 pub use keyframe::{Keyframe, KeyframeLink};
 pub use map::{Map, MapError, MAP_VERSION};
 pub use memory::{MemoryBreakdown, MemoryReport};

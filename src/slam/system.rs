@@ -240,7 +240,7 @@ impl Slam {
     }
 
     /// Turns the event stream on (bounds: [`EventOptions::default`]) and returns its
-    /// receiver; see [`events`](super::events). Call it before the first
+    /// receiver; see [`crate::slam::events`]. Call it before the first
     /// [`process`](Self::process) to see every event; until it is called no event is made,
     /// so a run that does not want them pays nothing. Calling it again returns another
     /// receiver of the same queue.

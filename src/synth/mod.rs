@@ -16,20 +16,17 @@
 
 mod bvh;
 mod gpu;
-pub mod raycast;
+pub(crate) mod raycast;
 mod render;
 mod scene;
 mod sensor;
-pub mod sequence;
+pub(crate) mod sequence;
 pub mod trajectory;
 pub mod tum_export;
 
 pub use bvh::Aabb;
-pub use gpu::GpuRayCaster;
-pub use render::{
-    cast_cpu, finish_frame, render, render_pinhole, CameraModel, RayTable, RenderBackend,
-    RenderedFrame, Renderer,
-};
+pub use raycast::NO_OBJECT;
+pub use render::{render, render_pinhole, CameraModel, RenderBackend, RenderedFrame, Renderer};
 pub use scene::{
     FreeArea, FurnitureStyle, Layout, ObjectKind, Primitive, Scene, SceneObject, SceneParams,
     Shape, PRESETS,

@@ -13,8 +13,7 @@ use rgbid::camera::PinholeCamera;
 use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::image::{ImageF32, RgbdFrame};
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
-use rgbid::place::orb::{extract_orb, OrbParams};
-use rgbid::place::{PixelMatch, Vocabulary};
+use rgbid::place::{extract_orb, OrbParams, PixelMatch, Vocabulary};
 use rgbid::segment::{SegmentConfig, Segmenter};
 use rgbid::slam::{
     build_model, voxel_filter, FrameReport, FrameStatus, LoopRecord, ModelParams, Slam, SlamConfig,

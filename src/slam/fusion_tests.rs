@@ -1,12 +1,12 @@
-//! Keyframe fusion (`shaders/fuse.wgsl` and its CPU mirror) and the map file.
-
+//! Keyframe fusion: the CPU mirror against noise and covisibility, and the WGSL kernel against
+//! the mirror.
+use super::fusion::{fuse_cpu, FusionParams, KeyframeFuser};
+use crate::camera::PinholeCamera;
+use crate::geometry::Se3;
+use crate::gpu::ComputeBackend;
+use crate::image::ImageF32;
 use glam::{DQuat, DVec3};
 use rand::{Rng, SeedableRng};
-use rgbid::camera::PinholeCamera;
-use rgbid::geometry::Se3;
-use rgbid::gpu::ComputeBackend;
-use rgbid::image::ImageF32;
-use rgbid::slam::{fuse_cpu, FusionParams, KeyframeFuser};
 
 fn camera(w: u32, h: u32) -> PinholeCamera {
     let f = 525.0 * f64::from(w) / 640.0;
@@ -123,7 +123,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
 #[test]
 #[ignore = "needs a GPU adapter"]
 fn gpu_fusion_matches_cpu_mirror() {
-    let Some(gpu) = rgbid::gpu::test_gpu("gpu_fusion_matches_cpu_mirror") else {
+    let Some(gpu) = crate::gpu::test_gpu("gpu_fusion_matches_cpu_mirror") else {
         return;
     };
     for (w, h) in [(160u32, 120u32), (203, 97), (640, 480)] {
