@@ -5,8 +5,8 @@
 
 use rand::{Rng, SeedableRng};
 use rgbid::camera::PinholeCamera;
-use rgbid::image::ImageF32;
 use rgbid::gpu::ComputeBackend;
+use rgbid::image::ImageF32;
 use rgbid::segment::{normal_kernels, normals_cpu, NormalParams};
 
 /// A sphere in front of a slanted wall, with holes and depth noise: planes, curved surface,

@@ -115,30 +115,9 @@ pub struct TrackResult {
 
 /// A frame prepared for alignment on the backend `K`: its pyramid and gradients, built once
 /// by [`Tracker::prepare`] and usable for any number of alignments and covisibility tests.
-/// A frame prepared on one backend cannot be given to the other:
-///
-/// ```compile_fail,E0308
-/// # use rgbid::odometry::{CpuTracker, GpuTracker};
-/// # fn f(cpu: &mut CpuTracker, gpu: &mut GpuTracker, frame: &rgbid::image::RgbdFrame)
-/// # -> Result<(), rgbid::odometry::OdometryError> {
-/// let on_cpu = cpu.prepare(frame)?;
-/// // error[E0308]: expected `Prepared<GpuKernels>`, found `Prepared<CpuKernels>`
-/// gpu.align_prepared(&on_cpu, &on_cpu, rgbid::geometry::Se3::IDENTITY)?;
-/// # Ok(()) }
-/// ```
-///
-/// while the same call with frames of its own backend compiles:
-///
-/// ```no_run
-/// # use rgbid::odometry::{CpuTracker, GpuTracker};
-/// # fn f(cpu: &mut CpuTracker, gpu: &mut GpuTracker, frame: &rgbid::image::RgbdFrame)
-/// # -> Result<(), rgbid::odometry::OdometryError> {
-/// let on_gpu = gpu.prepare(frame)?;
-/// gpu.align_prepared(&on_gpu, &on_gpu, rgbid::geometry::Se3::IDENTITY)?;
-/// let on_cpu = cpu.prepare(frame)?;
-/// cpu.align_prepared(&on_cpu, &on_cpu, rgbid::geometry::Se3::IDENTITY)?;
-/// # Ok(()) }
-/// ```
+/// The backend is part of the type, so a frame prepared on one backend cannot be given to a
+/// tracker of the other (`Prepared<CpuKernels>` is not `Prepared<GpuKernels>`); only the
+/// type-erased [`PreparedFrame`] checks it at run time.
 pub struct Prepared<K: Kernels> {
     pyramid: K::Pyramid,
     /// Time to build the pyramid, ms.
@@ -825,6 +804,18 @@ macro_rules! on_tracker {
     };
 }
 
+/// Runs `$body` with the tracker and two prepared frames of the same backend; frames prepared
+/// on the other backend give [`OdometryError::OtherBackend`].
+macro_rules! on_prepared {
+    ($self:expr, $a:expr, $b:expr, ($t:ident, $r:ident, $c:ident) => $body:expr) => {
+        match (&mut $self.inner, &$a.inner, &$b.inner) {
+            (Inner::Cpu($t), PreparedInner::Cpu($r), PreparedInner::Cpu($c)) => $body,
+            (Inner::Gpu($t), PreparedInner::Gpu($r), PreparedInner::Gpu($c)) => $body,
+            _ => Err(OdometryError::OtherBackend),
+        }
+    };
+}
+
 impl Odometry {
     /// Creates the odometry for frames of `camera` (undistorted pinhole) on `backend`.
     pub fn new(
@@ -913,15 +904,9 @@ impl Odometry {
         current: &PreparedFrame,
         cur_from_ref_guess: Se3,
     ) -> Result<Alignment, OdometryError> {
-        match (&mut self.inner, &reference.inner, &current.inner) {
-            (Inner::Cpu(t), PreparedInner::Cpu(r), PreparedInner::Cpu(c)) => {
-                t.align_prepared(r, c, cur_from_ref_guess)
-            }
-            (Inner::Gpu(t), PreparedInner::Gpu(r), PreparedInner::Gpu(c)) => {
-                t.align_prepared(r, c, cur_from_ref_guess)
-            }
-            _ => Err(OdometryError::OtherBackend),
-        }
+        on_prepared!(self, reference, current, (t, r, c) => {
+            t.align_prepared(r, c, cur_from_ref_guess)
+        })
     }
 
     /// [`Self::covisibility_of`] on frames prepared by this odometry's [`Self::prepare`].
@@ -931,15 +916,9 @@ impl Odometry {
         current: &PreparedFrame,
         cur_from_ref: &Se3,
     ) -> Result<f64, OdometryError> {
-        match (&mut self.inner, &reference.inner, &current.inner) {
-            (Inner::Cpu(t), PreparedInner::Cpu(r), PreparedInner::Cpu(c)) => {
-                t.covisibility_prepared(r, c, cur_from_ref)
-            }
-            (Inner::Gpu(t), PreparedInner::Gpu(r), PreparedInner::Gpu(c)) => {
-                t.covisibility_prepared(r, c, cur_from_ref)
-            }
-            _ => Err(OdometryError::OtherBackend),
-        }
+        on_prepared!(self, reference, current, (t, r, c) => {
+            t.covisibility_prepared(r, c, cur_from_ref)
+        })
     }
 }
 

@@ -13,11 +13,12 @@ use rgbid::io::trajectory::write_tum;
 use rgbid::trajectory::TimedPose;
 
 use crate::images;
-use crate::output::{load_map, load_output, StageRow};
+use crate::output::{known, load_map, load_output};
 use crate::scene3d::{OrbitCamera, SceneCallback};
 use crate::source::{SourceSpec, SynthOptions};
 use crate::state::{colours, ViewerState};
 use crate::worker::{Command, RunConfig, Worker};
+use rgbid::io::run_folder::FrameRow;
 
 /// Textures of the image panels, re-uploaded when the panels' version changes.
 #[derive(Default)]
@@ -665,7 +666,7 @@ impl ViewerApp {
         let height = (ui.available_height() - 24.0).max(80.0);
         // Unknown values (NaN: lost frames, the first frame's diagnostics) are left out; the
         // tessellator must not see them.
-        let series = |f: fn(&StageRow) -> f64| -> PlotPoints<'static> {
+        let series = |f: fn(&FrameRow) -> f64| -> PlotPoints<'static> {
             stages
                 .iter()
                 .map(|r| [r.index as f64, f(r)])
@@ -713,12 +714,12 @@ impl ViewerApp {
                 .x_axis_label("frame")
                 .include_y(0.0)
                 .show(&mut cols[2], |p| {
-                    p.line(Line::new("sigma_I", series(|r| r.sigma_photo)));
+                    p.line(Line::new("sigma_I", series(|r| known(r.sigma_photo))));
                     p.line(Line::new(
                         "sigma_W x1000 (1/m)",
-                        series(|r| 1e3 * r.sigma_geo),
+                        series(|r| 1e3 * known(r.sigma_geo)),
                     ));
-                    p.line(Line::new("nu", series(|r| r.nu)));
+                    p.line(Line::new("nu", series(|r| known(r.nu))));
                 });
             cols[3].label(RichText::new("Hessian condition (log10)").strong());
             Plot::new("condition")
@@ -728,7 +729,7 @@ impl ViewerApp {
                 .show(&mut cols[3], |p| {
                     p.line(Line::new(
                         "log10 cond",
-                        series(|r| r.condition_number.log10()),
+                        series(|r| known(r.condition_number).log10()),
                     ));
                 });
             if has_error {

@@ -10,69 +10,9 @@ use rgbid::trajectory::TimedPose;
 
 use crate::worker::FinishedRun;
 
-/// One row of per-frame statistics (live from `FrameReport`s or from timing.csv).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct StageRow {
-    /// Frame index.
-    pub index: usize,
-    /// Front-end total, ms.
-    pub frontend_ms: f64,
-    /// Pyramid construction, ms.
-    pub pyramid_ms: f64,
-    /// Robust scale estimation, ms.
-    pub scale_ms: f64,
-    /// Residuals + normal-equation reduction, ms.
-    pub reduce_ms: f64,
-    /// 6x6 solves, ms.
-    pub solve_ms: f64,
-    /// Covisibility, ms.
-    pub covisibility_ms: f64,
-    /// Keyframe fusion, ms.
-    pub fusion_ms: f64,
-    /// Covisibility with the odometry reference.
-    pub covisibility: f64,
-    /// Covisibility of the keyframe with the frame.
-    pub keyframe_covisibility: f64,
-    /// Photometric residual scale sigma_I at the finest level, intensity levels (NaN when
-    /// unknown: lost frames, older timing files).
-    pub sigma_photo: f64,
-    /// Geometric residual scale sigma_W at the finest level, 1/m (NaN when unknown).
-    pub sigma_geo: f64,
-    /// Student-t degrees of freedom (NaN when unknown).
-    pub nu: f64,
-    /// Condition number of the final Hessian (NaN when unknown).
-    pub condition_number: f64,
-}
-
-impl StageRow {
-    /// The row of a live frame record.
-    pub fn from_record(r: &rgbid::slam::FrameRecord) -> Self {
-        Self::from_row(&FrameRow::from(r))
-    }
-
-    /// The row of a run folder's `timing.csv` line.
-    pub fn from_row(r: &FrameRow) -> Self {
-        StageRow {
-            index: r.index,
-            frontend_ms: r.frontend_ms,
-            pyramid_ms: r.pyramid_ms,
-            scale_ms: r.scale_ms,
-            reduce_ms: r.reduce_ms,
-            solve_ms: r.solve_ms,
-            covisibility_ms: r.covisibility_ms,
-            fusion_ms: r.fusion_ms,
-            covisibility: r.covisibility,
-            keyframe_covisibility: r.keyframe_covisibility,
-            sigma_photo: known(r.sigma_photo),
-            sigma_geo: known(r.sigma_geo),
-            nu: known(r.nu),
-            condition_number: known(r.condition_number),
-        }
-    }
-}
-
-/// A diagnostic value, NaN where the front-end did not fill it (missing, or 0 on lost frames).
-fn known(v: Option<f64>) -> f64 {
+/// A diagnostic value of a frame row, NaN where the front-end did not fill it (missing, or 0
+/// on lost frames), so plots leave it out.
+pub fn known(v: Option<f64>) -> f64 {
     match v {
         Some(v) if v > 0.0 && v.is_finite() => v,
         _ => f64::NAN,
@@ -87,7 +27,7 @@ pub struct OutputFolder {
     /// Ground truth, if groundtruth.txt exists.
     pub groundtruth: Option<Vec<TimedPose>>,
     /// Per-frame statistics, if timing.csv exists.
-    pub stages: Vec<StageRow>,
+    pub stages: Vec<FrameRow>,
 }
 
 /// Loads an output folder of `rgbid slam` (see [`RunFolder::read`]: a trajectory is required,
@@ -103,7 +43,7 @@ pub fn load_output(dir: &Path) -> Result<OutputFolder> {
         .map(|l| (l.query, l.candidate))
         .collect();
     Ok(OutputFolder {
-        stages: folder.frames.iter().map(StageRow::from_row).collect(),
+        stages: folder.frames,
         groundtruth: folder.groundtruth,
         run: FinishedRun {
             trajectory: folder.trajectory,
@@ -194,8 +134,8 @@ mod tests {
         assert_eq!(f.run.trajectory.len(), 2);
         assert_eq!(f.run.model.len(), 1);
         assert_eq!(f.stages[0].fusion_ms, 0.6);
-        assert!(f.stages[0].sigma_photo.is_nan());
-        assert_eq!(f.stages[0].nu, 5.5);
+        assert!(known(f.stages[0].sigma_photo).is_nan());
+        assert_eq!(f.stages[0].nu, Some(5.5));
         std::fs::remove_dir_all(&dir).ok();
         assert!(load_output(&dir).is_err());
     }

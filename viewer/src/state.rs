@@ -6,14 +6,16 @@ use std::sync::Arc;
 use glam::DVec3;
 use rgbid::geometry::Se3;
 use rgbid::image::ImageF32;
+use rgbid::io::run_folder::FrameRow;
 use rgbid::odometry::ResidualImages;
 use rgbid::slam::FrameStatus;
 use rgbid::trajectory::TimedPose;
 
-use crate::output::{OutputFolder, StageRow};
+use crate::output::OutputFolder;
 use crate::scene3d::{Geometry, Vertex};
 use crate::worker::{
-    FinishedRun, FrameUpdate, KeyframeUpdate, KeypointMark, LoopUpdate, StartInfo, Update,
+    FinishedRun, FrameUpdate, KeyframeDescription, KeyframeUpdate, KeypointMark, LoopUpdate,
+    StartInfo, Update,
 };
 
 /// Colours of the 3D view (RGBA8).
@@ -83,7 +85,7 @@ pub struct ViewerState {
     /// Image panels.
     pub panels: Panels,
     /// Per-frame statistics for the plots.
-    pub stages: Vec<StageRow>,
+    pub stages: Vec<FrameRow>,
     /// Position error against ground truth per frame index (first pose aligned), metres.
     pub position_error: Vec<[f64; 2]>,
     /// Live `world_from_camera` of tracked frames (time stamp, pose).
@@ -155,6 +157,7 @@ impl ViewerState {
             }
             Update::Frame(f) => self.apply_frame(*f),
             Update::Keyframe(k) => self.apply_keyframe(*k),
+            Update::KeyframeDescribed(d) => self.apply_description(*d),
             Update::Loop(l) => {
                 if l.accepted {
                     self.panels.loop_accepted = Some(*l);
@@ -180,7 +183,7 @@ impl ViewerState {
         self.keyframe_count = r.keyframes;
         self.loop_count = r.loops;
         self.frames_processed += 1;
-        self.stages.push(StageRow::from_record(&r.record));
+        self.stages.push(FrameRow::from(&r.record));
         if let Some(pose) = r.world_from_camera {
             let tp = TimedPose {
                 timestamp: r.record.timestamp,
@@ -211,13 +214,16 @@ impl ViewerState {
     fn apply_keyframe(&mut self, k: KeyframeUpdate) {
         self.live_keyframes
             .push((k.world_from_keyframe, Arc::new(k.points)));
-        self.panels.keyframe_intensity = self.panels.intensity.clone();
-        self.panels.superjuts = k.superjuts;
-        self.panels.neg_entropy = k.neg_entropy;
-        self.panels.keypoints = k.keypoints;
-        self.panels.version += 1;
         self.geometry_dirty = true;
         self.points_dirty = true;
+    }
+
+    fn apply_description(&mut self, d: KeyframeDescription) {
+        self.panels.keyframe_intensity = d.intensity;
+        self.panels.superjuts = d.superjuts;
+        self.panels.neg_entropy = d.neg_entropy;
+        self.panels.keypoints = d.keypoints;
+        self.panels.version += 1;
     }
 
     /// Per-frame position error of the final trajectory (replaces the live one).

@@ -13,10 +13,11 @@ use rgbid::camera::PinholeCamera;
 use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::image::{ImageF32, RgbdFrame};
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
-use rgbid::place::{extract_orb, OrbParams, PixelMatch, Vocabulary};
-use rgbid::segment::{SegmentConfig, Segmenter};
+use rgbid::place::{PixelMatch, Vocabulary};
+use rgbid::segment::label_colour;
 use rgbid::slam::{
-    build_model, voxel_filter, FrameReport, FrameStatus, LoopRecord, ModelParams, Slam, SlamConfig,
+    build_model, voxel_filter, EventOptions, FrameReport, FrameStatus, KeyframeDescribed,
+    LoopRecord, ModelParams, Slam, SlamConfig, SlamEvent, SlamEvents,
 };
 use rgbid::trajectory::TimedPose;
 
@@ -33,7 +34,8 @@ pub struct RunConfig {
     pub keyframe_covisibility: f64,
     /// Superjut / neg-entropy masks in place recognition.
     pub masks: bool,
-    /// Segment every new keyframe for the superjut panels (costs back-end-like time).
+    /// Receive the superjut label image of every keyframe the back-end describes, for the
+    /// superjut and neg-entropy panels (the back-end segments keyframes only with masks on).
     pub segment_keyframes: bool,
     /// Every n-th pixel of a new keyframe becomes a live point.
     pub point_step: usize,
@@ -119,16 +121,56 @@ pub struct KeyframeUpdate {
     pub world_from_keyframe: rgbid::geometry::Se3,
     /// Points in world coordinates with intensity, from the frame's inverse depth.
     pub points: Vec<(DVec3, u8)>,
-    /// Superjut colours (RGB8, row-major), if segmentation is on and succeeded.
+}
+
+/// What the SLAM back-end found in a keyframe when it described it for place recognition
+/// ([`SlamEvent::KeyframeDescribed`]); it arrives some frames after the keyframe started.
+#[derive(Clone, Debug)]
+pub struct KeyframeDescription {
+    /// Keyframe id.
+    pub id: usize,
+    /// The keyframe's intensity (0-255) as the back-end keeps it, if the worker has it.
+    pub intensity: Option<ImageF32>,
+    /// Superjut colours (RGB8, row-major), when the back-end segmented the keyframe (masks
+    /// on) and the label image was received.
     pub superjuts: Option<(usize, usize, Vec<u8>)>,
-    /// Neg-entropy per pixel, if segmentation is on and succeeded.
+    /// Neg-entropy of each pixel's superjut, with the superjut colours.
     pub neg_entropy: Option<ImageF32>,
-    /// ORB keypoints of the keyframe as SLAM's back-end extracts them: level-0 pixel `(x, y)`,
-    /// patch diameter (pixels), and whether the first neg-entropy mask keeps it (empty when
-    /// segmentation is off).
+    /// The back-end's ORB keypoints: level-0 pixel `(x, y)`, patch diameter (pixels), and
+    /// whether the first neg-entropy mask keeps it.
     pub keypoints: Vec<KeypointMark>,
-    /// Segmentation time, milliseconds.
+    /// The back-end's segmentation and masks time, milliseconds.
     pub segment_ms: f64,
+}
+
+impl KeyframeDescription {
+    /// The panel images of `d`, with the keyframe's intensity from `keyframes`.
+    pub fn new(d: &KeyframeDescribed, keyframes: &KeyframeImages) -> Self {
+        // mask_flags[0] is the whole image; [1] the first neg-entropy threshold.
+        let kept = d.mask_flags.get(1);
+        let keypoints = d
+            .keypoints
+            .iter()
+            .enumerate()
+            .map(|(i, k)| KeypointMark {
+                x: k.uv.x as f32,
+                y: k.uv.y as f32,
+                size: k.size,
+                kept: kept.is_none_or(|m| m.get(i).copied().unwrap_or(false)),
+            })
+            .collect();
+        KeyframeDescription {
+            id: d.id,
+            intensity: keyframes.get(d.id),
+            superjuts: d.labels.as_ref().map(|l| {
+                let rgb = l.labels.iter().flat_map(|&s| label_colour(s)).collect();
+                (l.width, l.height, rgb)
+            }),
+            neg_entropy: d.neg_entropy_image(),
+            keypoints,
+            segment_ms: d.segment_ms,
+        }
+    }
 }
 
 /// One ORB keypoint for the keyframe panel.
@@ -218,6 +260,8 @@ pub enum Update {
     Frame(Box<FrameUpdate>),
     /// The frame just sent started a keyframe.
     Keyframe(Box<KeyframeUpdate>),
+    /// The back-end described a keyframe (superjuts, neg-entropy, keypoints).
+    KeyframeDescribed(Box<KeyframeDescription>),
     /// The back-end verified a loop (sent in the order they were found).
     Loop(Box<LoopUpdate>),
     /// The run finished.
@@ -339,34 +383,6 @@ fn frame_residuals(
     .ok()
 }
 
-/// ORB keypoints of a keyframe, flagged by whether the neg-entropy mask at `threshold` keeps
-/// them (all kept without a threshold); empty when extraction fails.
-fn keyframe_keypoints(
-    intensity: &ImageF32,
-    neg_entropy: &ImageF32,
-    params: &OrbParams,
-    threshold: Option<f64>,
-) -> Vec<KeypointMark> {
-    let Ok(f) = extract_orb(intensity, None, params)
-        .map_err(|e| log::warn!("ORB for the keyframe panel: {e}"))
-    else {
-        return Vec::new();
-    };
-    f.keypoints
-        .iter()
-        .map(|k| {
-            let (x, y) = k.nearest_pixel(neg_entropy.width(), neg_entropy.height());
-            let v = neg_entropy.data().get(y * neg_entropy.width() + x).copied();
-            KeypointMark {
-                x: k.uv.x as f32,
-                y: k.uv.y as f32,
-                size: k.size,
-                kept: threshold.is_none_or(|t| v.is_some_and(|v| f64::from(v) >= t)),
-            }
-        })
-        .collect()
-}
-
 /// Keyframe intensities by keyframe id, as the back-end keeps them: rounded to 8 bits (as
 /// [`rgbid::slam::Keyframe::pack`]), so keypoints found on them are the back-end's, and one
 /// byte per pixel.
@@ -395,6 +411,27 @@ impl KeyframeImages {
     }
 }
 
+/// The UI messages of the SLAM events queued so far: keyframe descriptions and checked loops
+/// (relocalisation attempts show `frame`, the frame being relocalised, as their query side).
+fn backend_updates(
+    events: &SlamEvents,
+    keyframes: &KeyframeImages,
+    frame: Option<&ImageF32>,
+) -> Vec<Update> {
+    events
+        .try_iter()
+        .filter_map(|e| match e {
+            SlamEvent::KeyframeDescribed(d) => Some(Update::KeyframeDescribed(Box::new(
+                KeyframeDescription::new(&d, keyframes),
+            ))),
+            SlamEvent::LoopChecked(l) => Some(Update::Loop(Box::new(LoopUpdate::new(
+                &l, keyframes, frame,
+            )))),
+            _ => None,
+        })
+        .collect()
+}
+
 enum Pace {
     Paused,
     Playing,
@@ -414,15 +451,10 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         slam_config.mask_thresholds.clear();
     }
     let odometry_config = slam_config.odometry.clone();
-    let orb_params = slam_config.detector.orb.clone();
-    let mask_threshold = slam_config.mask_thresholds.first().copied();
     let mut reference: Option<(RgbdFrame, rgbid::geometry::Se3)> = None;
-    // One segmenter (and its buffers) for every keyframe panel.
-    let mut segmenter = Segmenter::new();
     // Keyframe images by id as the back-end keeps them (intensity rounded to 8 bits), for
-    // the loop panel; loop records seen so far.
+    // the keyframe and loop panels.
     let mut keyframe_images = KeyframeImages::default();
-    let mut loops_seen = 0;
     let mut slam = Slam::new(
         slam_config,
         camera,
@@ -430,6 +462,13 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         Vocabulary::embedded_default()?,
         None,
     )?;
+    // The panels show what the back-end did: its keyframe descriptions and loop checks. A
+    // few label images are enough (the panels show the latest); without the superjut panels
+    // none are kept.
+    let events = slam.events_with(EventOptions {
+        images: if config.segment_keyframes { 4 } else { 0 },
+        ..EventOptions::default()
+    });
     let send = |u: Update| tx.send(u).map_err(|_| anyhow::anyhow!("the viewer closed"));
     send(Update::Started(Box::new(StartInfo {
         frames: source.len(),
@@ -485,12 +524,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                 keyframe_images.insert(id, frame.intensity());
             }
         }
-        let new_loops = slam.loops_since(loops_seen);
-        loops_seen += new_loops.len();
-        let loop_updates: Vec<LoopUpdate> = new_loops
-            .iter()
-            .map(|l| LoopUpdate::new(l, &keyframe_images, Some(frame.intensity())))
-            .collect();
+        let backend_updates = backend_updates(&events, &keyframe_images, Some(frame.intensity()));
         let residuals = if config.residuals {
             frame_residuals(
                 &frame,
@@ -513,43 +547,13 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
             reference = None;
         }
         let keyframe = if report.status == FrameStatus::NewKeyframe {
-            report.world_from_camera.map(|world_from_keyframe| {
-                let points = frame_points(&frame, &camera, &world_from_keyframe, config.point_step);
-                let t = Instant::now();
-                let seg = if config.segment_keyframes {
-                    segmenter
-                        .segment_keyframe(
-                            frame.intensity(),
-                            frame.inverse_depth(),
-                            &camera,
-                            &SegmentConfig::default(),
-                        )
-                        .map_err(|e| log::warn!("segmentation of frame {i}: {e}"))
-                        .ok()
-                } else {
-                    None
-                };
-                let keypoints = seg
-                    .as_ref()
-                    .map(|s| {
-                        keyframe_keypoints(
-                            frame.intensity(),
-                            &s.neg_entropy_image(),
-                            &orb_params,
-                            mask_threshold,
-                        )
-                    })
-                    .unwrap_or_default();
-                KeyframeUpdate {
+            report
+                .world_from_camera
+                .map(|world_from_keyframe| KeyframeUpdate {
                     frame_index: i,
-                    keypoints,
                     world_from_keyframe,
-                    points,
-                    superjuts: seg.as_ref().map(|s| (s.width, s.height, s.colour_image())),
-                    neg_entropy: seg.as_ref().map(|s| s.neg_entropy_image()),
-                    segment_ms: t.elapsed().as_secs_f64() * 1e3,
-                }
-            })
+                    points: frame_points(&frame, &camera, &world_from_keyframe, config.point_step),
+                })
         } else {
             None
         };
@@ -565,8 +569,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         if let Some(k) = keyframe {
             send(Update::Keyframe(Box::new(k)))?;
         }
-        for l in loop_updates {
-            send(Update::Loop(Box::new(l)))?;
+        for u in backend_updates {
+            send(u)?;
         }
         if matches!(pace, Pace::Stepping) {
             pace = Pace::Paused;
@@ -574,13 +578,9 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         i += 1;
     }
     let result = slam.finish()?;
-    // Loops of the last keyframes, verified while the back-end finished.
-    for l in result.loops.iter().skip(loops_seen) {
-        send(Update::Loop(Box::new(LoopUpdate::new(
-            l,
-            &keyframe_images,
-            None,
-        ))))?;
+    // The last keyframes' descriptions and loops, from the back-end's finish.
+    for u in backend_updates(&events, &keyframe_images, None) {
+        send(u)?;
     }
     let keyframes: Vec<TimedPose> = result
         .keyframes()

@@ -87,7 +87,7 @@ fn worker_streams_frames_keyframes_and_finishes_accurately() {
         state
             .stages
             .iter()
-            .filter(|r| r.sigma_photo.is_finite())
+            .filter(|r| r.sigma_photo.is_some_and(|s| s > 0.0 && s.is_finite()))
             .count()
             >= FRAMES - 1
     );
