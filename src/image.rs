@@ -156,7 +156,8 @@ pub enum ImageBuffer<'a> {
 #[derive(Clone, Copy, Debug)]
 pub enum DepthBuffer<'a> {
     /// Raw 16-bit depth with `factor` units per metre (TUM 5000, millimetre sensors 1000);
-    /// 0 means no measurement.
+    /// 0 and 65535 (the saturated value 7-Scenes and other datasets write for "no
+    /// measurement") mean no measurement.
     U16 {
         /// The raw values.
         data: &'a [u16],
@@ -393,7 +394,13 @@ impl RgbdFrame {
 pub(crate) fn inverse_depth_from_u16(raw: &[u16], factor: f64) -> Vec<f32> {
     let factor = factor as f32;
     raw.iter()
-        .map(|&d| if d == 0 { 0.0 } else { factor / f32::from(d) })
+        .map(|&d| {
+            if d == 0 || d == u16::MAX {
+                0.0
+            } else {
+                factor / f32::from(d)
+            }
+        })
         .collect()
 }
 

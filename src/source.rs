@@ -7,9 +7,8 @@ use std::sync::Arc;
 use crate::camera::PinholeCamera;
 use crate::gpu::ComputeBackend;
 use crate::image::RgbdFrame;
-use crate::io::trajectory::read_tum;
 use crate::io::tum::{OpenOptions, TumSequence};
-use crate::io::IoError;
+use crate::io::{IoError, Layout};
 use crate::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, SynthError, Trajectory,
     TrajectoryKind,
@@ -33,10 +32,13 @@ pub enum SourceError {
 /// What to open: a description that can be sent to another thread and reopened.
 #[derive(Clone, Debug, PartialEq)]
 pub enum SourceSpec {
-    /// A TUM RGB-D folder (rgb.txt + depth.txt or associations.txt).
+    /// An RGB-D sequence folder: TUM RGB-D (rgb.txt + depth.txt or associations.txt) or
+    /// another [`Layout`] (ETH3D, 7-Scenes, Replica).
     Tum {
         /// The folder.
         dir: PathBuf,
+        /// Its layout; `None` detects it from the folder's content.
+        format: Option<Layout>,
         /// Camera preset or calibration file (see `rgbid odometry --help`); `None` = the
         /// folder's `calib.txt`, else the default preset.
         camera: Option<String>,
@@ -255,11 +257,13 @@ impl FrameSource {
             }
             SourceSpec::Tum {
                 dir,
+                format,
                 camera,
                 max_frames,
             } => {
                 let mut opts = OpenOptions {
                     max_frames: *max_frames,
+                    layout: *format,
                     ..Default::default()
                 };
                 if let Some(c) = camera {
@@ -306,7 +310,7 @@ impl FrameSource {
     /// `groundtruth.txt` that cannot be read counts as none).
     pub fn groundtruth(&self) -> Option<Vec<TimedPose>> {
         match self {
-            FrameSource::Tum(s) => s.groundtruth.as_ref().and_then(|p| read_tum(p).ok()),
+            FrameSource::Tum(s) => s.ground_truth().ok().flatten(),
             FrameSource::Synth(s, _) => Some(s.ground_truth()),
         }
     }

@@ -475,10 +475,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
     }
     let seq = TumSequence::open(&a.sequence, &opts)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
-    let gt = seq
-        .groundtruth
-        .as_ref()
-        .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
+    let gt = seq.ground_truth()?;
     let mut rows = Vec::new();
     let mut adapters = Vec::new();
     for name in a
@@ -690,10 +687,7 @@ fn run_peers(a: &OdometryBench, seq: &TumSequence) -> Result<Vec<Row>> {
         max_frames: a.max_frames,
     };
     let runs = run_odometry_peers(&opts, &seq.root, &a.out.join("peers"))?;
-    let gt = seq
-        .groundtruth
-        .as_ref()
-        .and_then(|p| rgbid::io::trajectory::read_tum(p).ok());
+    let gt = seq.ground_truth()?;
     let mut rows = Vec::new();
     for run in runs {
         // Re-evaluate the peers' trajectories with rgbid's own metrics, like rgbid's rows.

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use rgbid::eval::{evaluate, EvalOptions, RpeDelta, RpeResult};
 use rgbid::io::trajectory::read_tum;
+use rgbid::trajectory::TimedPose;
 
 /// Arguments of `rgbid eval`.
 #[derive(clap::Args)]
@@ -46,10 +47,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 /// Reads two TUM trajectories and prints ATE / RPE with the default options.
-pub fn print_against(gt: &std::path::Path, est: &std::path::Path) -> anyhow::Result<()> {
-    let g = read_tum(gt).with_context(|| format!("reading ground truth {}", gt.display()))?;
+pub fn print_against(g: &[TimedPose], est: &std::path::Path) -> anyhow::Result<()> {
     let e = read_tum(est).with_context(|| format!("reading estimate {}", est.display()))?;
-    let m = evaluate(&g, &e, &EvalOptions::default())?;
+    let m = evaluate(g, &e, &EvalOptions::default())?;
     print_metrics(&m, false, 1.0);
     Ok(())
 }

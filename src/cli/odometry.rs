@@ -8,6 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::gpu::select_backend;
 use rgbid::io::trajectory::write_tum;
 use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::io::Layout;
 use rgbid::odometry::{Odometry, OdometryError};
 use rgbid::trajectory::TimedPose;
 
@@ -23,10 +24,18 @@ pub struct Args {
     /// version, backend and command line go to `<OUT>.json` beside it.
     #[arg(long, short, default_value = "trajectory.txt")]
     pub out: PathBuf,
-    /// Camera: a preset (tum_fr1, tum_fr2, tum_fr3, default) or a camera config file.
-    /// Default: calib.txt beside the sequence, else the `default` preset.
+    /// Camera: a preset (default, tum_fr1, tum_fr2, tum_fr3, icl_nuim, 7scenes, replica) or a
+    /// camera config file. Default: the layout's own camera (ETH3D calibration.txt, the
+    /// 7scenes or replica preset), else calib.txt beside the sequence, else `default`.
     #[arg(long)]
     pub camera: Option<String>,
+    /// Layout of the sequence folder: tum (also Bonn, ICL-NUIM), eth3d, 7scenes (one seq-NN
+    /// folder), replica (NICE-SLAM's rendering) [default: detected from its content].
+    #[arg(long, value_enum)]
+    pub format: Option<Layout>,
+    /// Frame rate of layouts without time stamps (7scenes, replica), Hz (> 0).
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
     /// Per-frame CSV of statistics (time per stage, sigma, nu, iterations, covisibility,
     /// condition number).
     #[arg(long)]
@@ -48,6 +57,8 @@ pub fn run(args: Args) -> Result<()> {
     let config = args.odometry.config(&args.config)?;
     let mut opts = OpenOptions {
         max_frames: args.max_frames,
+        layout: args.format,
+        frame_rate: args.fps,
         ..Default::default()
     };
     if let Some(c) = &args.camera {
@@ -57,11 +68,8 @@ pub fn run(args: Args) -> Result<()> {
     let backend = select_backend(args.backend.backend, args.backend.adapter.as_deref())?;
     log::info!("{} frames, backend {}", seq.len(), backend.name());
     let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
-    if let Some(gt) = seq
-        .groundtruth
-        .as_ref()
-        .and_then(|p| rgbid::io::trajectory::read_tum(p).ok())
-    {
+    let groundtruth = seq.ground_truth()?;
+    if let Some(gt) = &groundtruth {
         if let (Some(first), Some(e)) = (gt.first(), seq.entries.first()) {
             // Start at the ground truth's pose nearest to the first frame, so that the estimate
             // and the ground truth share a frame even before alignment.
@@ -158,7 +166,7 @@ pub fn run(args: Args) -> Result<()> {
         println!("{failures} frames failed to track (see the log)");
     }
     outcome?;
-    if let Some(gt) = &seq.groundtruth {
+    if let Some(gt) = &groundtruth {
         crate::cli::eval::print_against(gt, &args.out)?;
     }
     Ok(())

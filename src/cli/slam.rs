@@ -10,6 +10,7 @@ use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::gpu::{select_backend, ComputeBackend};
 use rgbid::io::run_folder::{FrameRow, KeyframeTimingRow, LoopRow, RunFolderWriter, RunSummary};
 use rgbid::io::settings::Provenance;
+use rgbid::io::Layout;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult};
 use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
@@ -32,9 +33,12 @@ pub struct Args {
     /// configuration, version, backend and command line under `provenance`).
     #[arg(long, default_value = "slam-out")]
     pub out: PathBuf,
-    /// Camera preset or calibration file for a TUM folder (see `rgbid odometry --help`).
+    /// Camera preset or calibration file for a sequence folder (see `rgbid odometry --help`).
     #[arg(long)]
     pub camera: Option<String>,
+    /// Layout of the sequence folder [default: detected from its content].
+    #[arg(long, value_enum)]
+    pub format: Option<Layout>,
     /// Only the first N frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -91,6 +95,7 @@ impl Args {
             session: 0,
             out,
             camera: None,
+            format: None,
             max_frames: None,
             map_in: None,
             map_out: None,
@@ -144,6 +149,7 @@ impl Args {
         };
         Ok(SourceSpec::Tum {
             dir: dir.clone(),
+            format: self.format,
             camera: self.camera.clone(),
             max_frames: self.max_frames,
         })

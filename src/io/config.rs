@@ -16,7 +16,9 @@ use super::IoError;
 use crate::camera::{BrownConrady, PinholeCamera};
 
 /// Names of the built-in camera presets.
-pub const PRESETS: [&str; 4] = ["default", "tum_fr1", "tum_fr2", "tum_fr3"];
+pub const PRESETS: [&str; 7] = [
+    "default", "tum_fr1", "tum_fr2", "tum_fr3", "icl_nuim", "7scenes", "replica",
+];
 
 /// TUM's depth factor: raw 16-bit depth units per metre.
 pub const TUM_DEPTH_FACTOR: f64 = 5000.0;
@@ -33,12 +35,25 @@ pub struct CameraConfig {
 }
 
 impl CameraConfig {
-    /// A built-in preset (`default`, `tum_fr1`, `tum_fr2`, `tum_fr3`), all 640 x 480 with
-    /// depth factor 5000. `tum_fr1`/`tum_fr2` carry the official TUM RGB-D intrinsics and
-    /// distortion of the Freiburg 1/2 Kinects; `tum_fr3` is the (already undistorted) Freiburg 3
-    /// camera; `default` is the ROS default (525, 525, 319.5, 239.5) without distortion.
+    /// A built-in preset. 640 x 480 with depth factor 5000: `tum_fr1`/`tum_fr2` carry the
+    /// official TUM RGB-D intrinsics and distortion of the Freiburg 1/2 Kinects; `tum_fr3` is
+    /// the (already undistorted) Freiburg 3 camera; `default` is the ROS default (525, 525,
+    /// 319.5, 239.5) without distortion; `icl_nuim` is ICL-NUIM's TUM-compatible variant
+    /// (481.2, 480, 319.5, 239.5). `7scenes`: Microsoft 7-Scenes (585, 585, 320, 240; 640 x
+    /// 480, millimetre depth). `replica`: Replica as rendered for NICE-SLAM (600, 600, 599.5,
+    /// 339.5; 1200 x 680, depth factor 6553.5).
     pub fn preset(name: &str) -> Option<CameraConfig> {
+        let other = |fx, fy, cx, cy, w, h, depth_factor| {
+            Some(CameraConfig {
+                camera: PinholeCamera::new(fx, fy, cx, cy, w, h),
+                depth_factor,
+                source: format!("preset {name}"),
+            })
+        };
         let (fx, fy, cx, cy, d) = match name.to_ascii_lowercase().as_str() {
+            "icl_nuim" | "icl" => return other(481.2, 480.0, 319.5, 239.5, 640, 480, 5000.0),
+            "7scenes" | "7-scenes" => return other(585.0, 585.0, 320.0, 240.0, 640, 480, 1000.0),
+            "replica" => return other(600.0, 600.0, 599.5, 339.5, 1200, 680, 6553.5),
             "default" => (525.0, 525.0, 319.5, 239.5, BrownConrady::default()),
             "tum_fr1" | "fr1" | "freiburg1" => (
                 517.3,
@@ -329,7 +344,12 @@ mod tests {
         for p in PRESETS {
             let c = CameraConfig::preset(p).unwrap();
             c.validate(Path::new(p)).unwrap();
-            assert_eq!(c.depth_factor, 5000.0);
+            let want = match p {
+                "7scenes" => 1000.0,
+                "replica" => 6553.5,
+                _ => 5000.0,
+            };
+            assert_eq!(c.depth_factor, want, "{p}");
         }
         assert!(
             CameraConfig::preset("tum_fr1")

@@ -5,6 +5,7 @@
 //! there is one) and the cause; nothing here panics on input.
 
 pub mod config;
+pub mod layouts;
 pub mod ply;
 pub mod run_folder;
 pub mod settings;
@@ -13,6 +14,7 @@ pub mod tum;
 pub mod undistort;
 
 pub use config::CameraConfig;
+pub use layouts::Layout;
 pub use tum::{
     load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions,
     SequenceEntry, TumSequence,

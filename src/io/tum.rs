@@ -20,11 +20,13 @@ use std::sync::Arc;
 use glam::{DQuat, DVec3};
 
 use super::config::{parse_numbers, CameraConfig};
+use super::layouts::{layout_camera, list_frames, Layout, Truth};
 use super::undistort::UndistortMap;
 use super::IoError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
 use crate::image::{ColourImage, DepthBuffer, ImageBuffer, RgbdFrame};
+use crate::trajectory::TimedPose;
 
 /// Default tolerance when associating colour and depth time stamps, seconds.
 pub const DEFAULT_MAX_TIME_DIFFERENCE: f64 = 0.02;
@@ -54,6 +56,10 @@ pub struct OpenOptions {
     pub camera: Option<CameraConfig>,
     /// Keep only the first this many frames.
     pub max_frames: Option<usize>,
+    /// The folder's layout; `None` detects it from the content ([`Layout::detect`]).
+    pub layout: Option<Layout>,
+    /// Frame rate of layouts without time stamps (7-Scenes, Replica), Hz (default 30).
+    pub frame_rate: f64,
 }
 
 impl Default for OpenOptions {
@@ -62,11 +68,14 @@ impl Default for OpenOptions {
             max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE,
             camera: None,
             max_frames: None,
+            layout: None,
+            frame_rate: 30.0,
         }
     }
 }
 
-/// An opened TUM RGB-D sequence; frames are decoded from disk on demand by [`Self::load`].
+/// An opened RGB-D sequence folder: TUM RGB-D, or another [`Layout`] (ETH3D, 7-Scenes,
+/// Replica); frames are decoded from disk on demand by [`Self::load`].
 #[derive(Clone, Debug)]
 pub struct TumSequence {
     /// The sequence folder.
@@ -78,11 +87,15 @@ pub struct TumSequence {
     pub depth_factor: f64,
     /// The frames, in time order.
     pub entries: Vec<SequenceEntry>,
-    /// `groundtruth.txt` when the folder has one.
+    /// `groundtruth.txt` when the folder has one (TUM and ETH3D; see [`Self::ground_truth`]
+    /// for every layout).
     pub groundtruth: Option<PathBuf>,
+    /// The folder's layout.
+    pub layout: Layout,
     /// Where the camera came from (preset, config file, calib.txt).
     pub camera_source: String,
     undistort: Option<Arc<UndistortMap>>,
+    truth: Truth,
 }
 
 impl TumSequence {
@@ -92,9 +105,11 @@ impl TumSequence {
         if !dir.is_dir() {
             return Err(IoError::MissingFolder { path: dir.into() });
         }
-        let cfg = match &opts.camera {
-            Some(c) => c.clone(),
-            None => {
+        let layout = opts.layout.unwrap_or_else(|| Layout::detect(dir));
+        let cfg = match (&opts.camera, layout_camera(layout, dir)?) {
+            (Some(c), _) => c.clone(),
+            (None, Some(c)) => c,
+            (None, None) => {
                 let calib = dir.join("calib.txt");
                 if calib.is_file() {
                     CameraConfig::from_calib_txt(&calib)?
@@ -107,11 +122,24 @@ impl TumSequence {
             }
         };
         cfg.validate(Path::new(&cfg.source))?;
-        log::info!("{}: camera from {}", dir.display(), cfg.source);
+        log::info!(
+            "{}: {layout} layout, camera from {}",
+            dir.display(),
+            cfg.source
+        );
 
+        let gt = dir.join("groundtruth.txt");
+        let listing = match layout {
+            Layout::SevenScenes | Layout::Replica => {
+                Some(list_frames(layout, dir, opts.frame_rate, opts.max_frames)?)
+            }
+            Layout::Tum | Layout::Eth3d => None,
+        };
         let assoc = dir.join("associations.txt");
-        let mut entries = if assoc.is_file() {
-            read_associations(dir, &assoc)?
+        let (mut entries, truth) = if let Some(l) = listing {
+            (l.entries, l.truth)
+        } else if assoc.is_file() {
+            (read_associations(dir, &assoc)?, Truth::None)
         } else {
             let (rgb_txt, depth_txt) = (dir.join("rgb.txt"), dir.join("depth.txt"));
             for p in [&rgb_txt, &depth_txt] {
@@ -134,14 +162,19 @@ impl TumSequence {
                     closest: closest_difference(&ta, &tb),
                 });
             }
-            pairs
+            let entries = pairs
                 .into_iter()
                 .map(|(i, j)| SequenceEntry {
                     timestamp: rgb[i].0,
                     rgb: rgb[i].1.clone(),
                     depth: depth[j].1.clone(),
                 })
-                .collect()
+                .collect();
+            (entries, Truth::None)
+        };
+        let truth = match truth {
+            Truth::None if gt.is_file() => Truth::TumFile(gt.clone()),
+            t => t,
         };
         entries.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
         if let Some(n) = opts.max_frames {
@@ -153,7 +186,6 @@ impl TumSequence {
                 message: "the sequence has no frames".into(),
             });
         }
-        let gt = dir.join("groundtruth.txt");
         let undistort =
             (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
         let seq = TumSequence {
@@ -161,9 +193,11 @@ impl TumSequence {
             camera: cfg.camera,
             depth_factor: cfg.depth_factor,
             entries,
-            groundtruth: gt.is_file().then_some(gt),
+            groundtruth: matches!(truth, Truth::TumFile(_)).then_some(gt),
+            layout,
             camera_source: cfg.source,
             undistort,
+            truth,
         };
         seq.load(0)?;
         Ok(seq)
@@ -172,6 +206,13 @@ impl TumSequence {
     /// Number of frames.
     pub fn len(&self) -> usize {
         self.entries.len()
+    }
+
+    /// The sequence's ground truth (`world_from_camera` with time stamps), when its layout
+    /// has one: `groundtruth.txt` (TUM, ETH3D), the per-frame pose files (7-Scenes) or
+    /// `traj.txt` (Replica).
+    pub fn ground_truth(&self) -> Result<Option<Vec<TimedPose>>, IoError> {
+        self.truth.read(&self.entries)
     }
 
     /// True when there are no frames (never after a successful [`Self::open`]).
@@ -596,7 +637,7 @@ fn check_depth_scale(raw: &[u16], factor: f64, path: &Path) -> Result<(), IoErro
         .iter()
         .step_by(stride)
         .copied()
-        .filter(|&d| d > 0)
+        .filter(|&d| d > 0 && d < u16::MAX)
         .collect();
     if sample.len() < 20 {
         return Ok(()); // too few measurements to judge; not a scale error

@@ -194,6 +194,7 @@ impl ViewerApp {
                 .map_or(BackendChoice::Auto, |c| c.backend);
             let mut cfg = RunConfig::new(SourceSpec::Tum {
                 dir: path.to_path_buf(),
+                format: None,
                 camera: None,
                 max_frames: None,
             });

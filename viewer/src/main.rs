@@ -89,6 +89,7 @@ fn main() -> Result<()> {
         } else {
             run = Some(RunConfig::new(SourceSpec::Tum {
                 dir: seq.clone(),
+                format: None,
                 camera: a.camera.clone(),
                 max_frames: a.max_frames,
             }));
