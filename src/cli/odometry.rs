@@ -25,7 +25,7 @@ pub struct Args {
     #[arg(long, short, default_value = "trajectory.txt")]
     pub out: PathBuf,
     /// Camera: a preset (default, tum_fr1, tum_fr2, tum_fr3, icl_nuim, 7scenes, replica) or a
-    /// camera config file. Default: the layout's own camera (ETH3D calibration.txt, the
+    /// camera file (calib.txt, OpenCV / ORB-SLAM .yaml, or `key = value` lines). Default: the layout's own camera (ETH3D calibration.txt, the
     /// 7scenes or replica preset), else calib.txt beside the sequence, else `default`.
     #[arg(long)]
     pub camera: Option<String>,

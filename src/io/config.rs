@@ -279,7 +279,8 @@ impl CameraConfig {
         Ok(cfg)
     }
 
-    /// A preset name or, failing that, the path of a config file (for a `--camera` flag).
+    /// A preset name or, failing that, the path of a camera file (for a `--camera` flag):
+    /// `calib.txt`, OpenCV / ORB-SLAM YAML (`.yaml`, `.yml`), else `key = value` lines.
     pub fn from_name_or_path(s: &str) -> Result<CameraConfig, IoError> {
         if let Some(c) = Self::preset(s) {
             return Ok(c);
@@ -288,6 +289,13 @@ impl CameraConfig {
         if p.is_file() {
             if p.file_name().is_some_and(|n| n == "calib.txt") {
                 return Self::from_calib_txt(&p);
+            }
+            let ext = p
+                .extension()
+                .and_then(|e| e.to_str())
+                .map(str::to_ascii_lowercase);
+            if matches!(ext.as_deref(), Some("yaml" | "yml")) {
+                return Self::from_opencv_yaml(&p);
             }
             return Self::from_file(&p);
         }

@@ -6,6 +6,7 @@
 
 pub mod config;
 pub mod layouts;
+mod opencv_yaml;
 pub mod ply;
 pub mod run_folder;
 pub mod settings;
