@@ -91,7 +91,7 @@ impl CameraConfig {
         };
         let size = |name: &str| -> Result<u32, IoError> {
             let v = need(name)?;
-            if v >= 1.0 && v <= 65535.0 && v.fract() == 0.0 {
+            if (1.0..=65535.0).contains(&v) && v.fract() == 0.0 {
                 Ok(v as u32)
             } else {
                 Err(bad(format!(
