@@ -1,19 +1,24 @@
-//! `rgbid eval GT EST`: ATE and RPE of an estimated TUM trajectory against ground truth.
+//! `rgbid eval GT EST`: ATE and RPE of an estimated trajectory against ground truth (TUM, KITTI
+//! or EuRoC files, detected).
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use rgbid::eval::{evaluate, EvalOptions, RpeDelta, RpeResult};
-use rgbid::io::trajectory::read_tum;
+use rgbid::io::trajectory::read_trajectory;
 use rgbid::trajectory::TimedPose;
 
 /// Arguments of `rgbid eval`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Ground-truth trajectory (TUM format, `world_from_camera`).
+    /// Ground-truth trajectory, `world_from_camera`: TUM, KITTI (with `times.txt` beside) or
+    /// EuRoC CSV, detected from the file.
     pub gt: PathBuf,
-    /// Estimated trajectory (TUM format).
+    /// Estimated trajectory (any of the same formats).
     pub est: PathBuf,
+    /// Seconds added to the estimate's time stamps before matching (a clock offset).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub t_offset: f64,
     /// Print one JSON line instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -30,8 +35,14 @@ pub struct Args {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let gt = read_tum(&args.gt).context("reading ground truth")?;
-    let est = read_tum(&args.est).context("reading estimate")?;
+    if !args.t_offset.is_finite() {
+        anyhow::bail!("--t-offset must be a finite number of seconds");
+    }
+    let gt = read_trajectory(&args.gt).context("reading ground truth")?;
+    let mut est = read_trajectory(&args.est).context("reading estimate")?;
+    for p in &mut est {
+        p.timestamp += args.t_offset;
+    }
     let opts = EvalOptions {
         max_time_difference: args.max_diff,
         delta: RpeDelta::Seconds(args.delta),
@@ -48,7 +59,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// Reads two TUM trajectories and prints ATE / RPE with the default options.
 pub fn print_against(g: &[TimedPose], est: &std::path::Path) -> anyhow::Result<()> {
-    let e = read_tum(est).with_context(|| format!("reading estimate {}", est.display()))?;
+    let e = read_trajectory(est).with_context(|| format!("reading estimate {}", est.display()))?;
     let m = evaluate(g, &e, &EvalOptions::default())?;
     print_metrics(&m, false, 1.0);
     Ok(())

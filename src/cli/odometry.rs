@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::gpu::select_backend;
-use rgbid::io::trajectory::write_tum;
+use rgbid::io::trajectory::{write_trajectory, TrajectoryFormat};
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::io::Layout;
 use rgbid::odometry::{Odometry, OdometryError};
@@ -24,6 +24,10 @@ pub struct Args {
     /// version, backend and command line go to `<OUT>.json` beside it.
     #[arg(long, short, default_value = "trajectory.txt")]
     pub out: PathBuf,
+    /// Format of the output trajectory: tum, kitti (also writes `<stem>.times.txt`), euroc
+    /// [default: from the extension: .csv euroc, .kitti kitti, else tum].
+    #[arg(long, value_enum)]
+    pub traj_format: Option<TrajectoryFormat>,
     /// Camera: a preset (default, tum_fr1, tum_fr2, tum_fr3, icl_nuim, 7scenes, replica) or a
     /// camera file (calib.txt, OpenCV / ORB-SLAM .yaml, or `key = value` lines). Default: the layout's own camera (ETH3D calibration.txt, the
     /// 7scenes or replica preset), else calib.txt beside the sequence, else `default`.
@@ -159,7 +163,10 @@ pub fn run(args: Args) -> Result<()> {
     }
     bar.finish_and_clear();
     // Whatever happened, keep what was computed.
-    write_tum(&args.out, &poses)?;
+    let format = args
+        .traj_format
+        .unwrap_or_else(|| TrajectoryFormat::from_extension(&args.out));
+    write_trajectory(&args.out, &poses, format)?;
     write_sidecar(&args.out, &config, &backend)?;
     println!("wrote {} poses to {}", poses.len(), args.out.display());
     if failures > 0 {
