@@ -17,10 +17,11 @@ use super::options::{write_sidecar, BackendArgs, ConfigArgs, OdometryOptions};
 /// Arguments of `rgbid odometry`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// TUM-layout sequence folder (rgb.txt + depth.txt or associations.txt, rgb/, depth/).
+    /// Sequence folder: TUM layout (rgb.txt + depth.txt or associations.txt), or ETH3D,
+    /// 7-Scenes, Replica (see --format).
     pub sequence: PathBuf,
-    /// Output trajectory (TUM format, world_from_camera; the first pose is the ground truth's
-    /// first pose when the folder has groundtruth.txt, else identity). The configuration,
+    /// Output trajectory (world_from_camera, see --traj-format; the first pose is the ground
+    /// truth's first pose when the folder has ground truth, else identity). The configuration,
     /// version, backend and command line go to `<OUT>.json` beside it.
     #[arg(long, short, default_value = "trajectory.txt")]
     pub out: PathBuf,
