@@ -33,7 +33,9 @@ fn eval(gt: &Path, est: &Path, extra: &[&str]) -> (f64, f64, u64) {
     let m: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
     (
         m["ate"]["translation"]["rmse"].as_f64().expect("ate"),
-        m["rpe_frame"]["translation_m"]["rmse"].as_f64().expect("rpe"),
+        m["rpe_frame"]["translation_m"]["rmse"]
+            .as_f64()
+            .expect("rpe"),
         m["matched"].as_u64().expect("matched"),
     )
 }

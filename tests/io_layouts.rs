@@ -260,3 +260,70 @@ fn replica_folder_reads_its_trajectory_file() {
     let e = TumSequence::open(d, &OpenOptions::default()).unwrap_err();
     assert!(matches!(e, IoError::CameraSizeMismatch { .. }), "{e}");
 }
+
+#[test]
+fn scannet_colour_is_resampled_onto_the_depth_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for sub in ["color", "depth", "pose", "intrinsic"] {
+        std::fs::create_dir_all(d.join(sub)).unwrap();
+    }
+    // ScanNet's colour camera sees a wider, finer image than its depth camera; scaled down
+    // here (colour 324 x 242, depth 160 x 120) to keep the test fast.
+    let colour_cam = PinholeCamera::new(290.0, 290.0, 161.5, 120.5, 324, 242);
+    let depth_cam = PinholeCamera::new(144.0, 144.0, 79.5, 59.5, 160, 120);
+    let colour = render(&colour_cam);
+    let depth = render(&depth_cam);
+    let matrix = |c: &PinholeCamera| {
+        format!(
+            "{} 0 {} 0\n0 {} {} 0\n0 0 1 0\n0 0 0 1\n",
+            c.fx, c.cx, c.fy, c.cy
+        )
+    };
+    std::fs::write(d.join("intrinsic/intrinsic_color.txt"), matrix(&colour_cam)).unwrap();
+    std::fs::write(d.join("intrinsic/intrinsic_depth.txt"), matrix(&depth_cam)).unwrap();
+    for (i, ((p, rgb, _), (_, _, z))) in colour.iter().zip(&depth).enumerate() {
+        save_rgb(&d.join(format!("color/{i}.jpg")), 324, 242, rgb);
+        save_depth(&d.join(format!("depth/{i}.png")), 160, 120, z, 1000.0, 0);
+        let rows: Vec<String> = if i == 4 {
+            // The exporter writes -inf where the scan's tracking was lost.
+            vec!["-inf -inf -inf -inf".to_string(); 4]
+        } else {
+            matrix_rows(&p.world_from_camera)
+                .chunks(4)
+                .map(|r| {
+                    r.iter()
+                        .map(|v| format!("{v:.9}"))
+                        .collect::<Vec<_>>()
+                        .join(" ")
+                })
+                .collect()
+        };
+        std::fs::write(d.join(format!("pose/{i}.txt")), rows.join("\n") + "\n").unwrap();
+    }
+    assert_eq!(Layout::detect(d), Layout::ScanNet);
+    let seq = TumSequence::open(d, &OpenOptions::default()).unwrap();
+    assert_eq!((seq.camera.width, seq.camera.height), (160, 120));
+    assert_eq!(seq.camera.fx, 144.0);
+    // The resampled intensity is the depth camera's view: compare with a render by it.
+    let f = seq.load(0).unwrap();
+    let direct = render_pinhole(
+        &Scene::preset("office", 3).unwrap(),
+        &depth_cam,
+        &depth[0].0.world_from_camera,
+        &SensorModel::noiseless(),
+        0,
+    );
+    let diffs: Vec<f32> = f
+        .intensity()
+        .data()
+        .iter()
+        .zip(direct.intensity.data())
+        .map(|(a, b)| (a - b).abs())
+        .collect();
+    let mean = diffs.iter().sum::<f32>() / diffs.len() as f32;
+    assert!(mean < 6.0, "mean |resampled - direct| = {mean} grey levels");
+    let gt = seq.ground_truth().unwrap().unwrap();
+    assert_eq!(gt.len(), FRAMES - 1, "the -inf pose is left out");
+    assert!(gt.iter().all(|p| (p.timestamp - 4.0 / 30.0).abs() > 1e-9));
+}

@@ -35,7 +35,8 @@ pub struct Args {
     #[arg(long)]
     pub camera: Option<String>,
     /// Layout of the sequence folder: tum (also Bonn, ICL-NUIM), eth3d, 7scenes (one seq-NN
-    /// folder), replica (NICE-SLAM's rendering) [default: detected from its content].
+    /// folder), scannet (the exporter's color/ depth/ pose/ intrinsic/), replica (NICE-SLAM's
+    /// rendering) [default: detected from its content].
     #[arg(long, value_enum)]
     pub format: Option<Layout>,
     /// Frame rate of layouts without time stamps (7scenes, replica), Hz (> 0).

@@ -7,9 +7,10 @@
 //! | [`Layout::Tum`] | `rgb.txt` + `depth.txt` (or `associations.txt`) | `calib.txt` or a preset | 5000 / m | `groundtruth.txt` (TUM lines) |
 //! | [`Layout::Eth3d`] | `rgb.txt` + `depth.txt`, `calibration.txt` (`fx fy cx cy`) | `calibration.txt`, size from the first image | 5000 / m | `groundtruth.txt` |
 //! | [`Layout::SevenScenes`] | `frame-NNNNNN.color.png` (or `.jpg`), `frame-NNNNNN.depth.png` in one `seq-NN` folder | preset `7scenes` (585, 585, 320, 240) | mm, 65535 = none | `frame-NNNNNN.pose.txt` (4x4 camera-to-world) |
+//! | [`Layout::ScanNet`] | `color/N.jpg` (1296 x 968), `depth/N.png` (640 x 480), `intrinsic/intrinsic_{color,depth}.txt` as the ScanNet exporter writes them | `intrinsic_depth.txt`; colour resampled onto the depth camera through `intrinsic_color.txt` | mm | `pose/N.txt` (4x4 camera-to-world; frames whose pose is not finite are left out) |
 //! | [`Layout::Replica`] | `results/frameNNNNNN.jpg`, `results/depthNNNNNN.png` | preset `replica` (600, 600, 599.5, 339.5, 1200 x 680) | 6553.5 / m | `traj.txt` (one row-major 4x4 camera-to-world per line) |
 //!
-//! Layouts without time stamps (7-Scenes, Replica) get `index / frame_rate` seconds
+//! Layouts without time stamps (7-Scenes, ScanNet, Replica) get `index / frame_rate` seconds
 //! ([`OpenOptions::frame_rate`](super::tum::OpenOptions::frame_rate), default 30 Hz).
 //! ICL-NUIM's TUM-compatible sequences are TUM folders; their camera is the preset
 //! `icl_nuim`.
@@ -37,13 +38,16 @@ pub enum Layout {
     /// Microsoft 7-Scenes, one `seq-NN` folder as distributed.
     #[cfg_attr(feature = "clap", value(name = "7scenes"))]
     SevenScenes,
+    /// A ScanNet scene as its exporter writes it: `color/`, `depth/`, `pose/`, `intrinsic/`.
+    #[cfg_attr(feature = "clap", value(name = "scannet"))]
+    ScanNet,
     /// Replica as rendered for NICE-SLAM: `results/` and `traj.txt`.
     Replica,
 }
 
 impl Layout {
     /// Every layout's name, as [`Self::from_name`] reads it.
-    pub const NAMES: [&'static str; 4] = ["tum", "eth3d", "7scenes", "replica"];
+    pub const NAMES: [&'static str; 5] = ["tum", "eth3d", "7scenes", "scannet", "replica"];
 
     /// The layout of a name in [`Self::NAMES`] (case-insensitive).
     pub fn from_name(name: &str) -> Option<Layout> {
@@ -51,6 +55,7 @@ impl Layout {
             "tum" => Some(Layout::Tum),
             "eth3d" => Some(Layout::Eth3d),
             "7scenes" | "7-scenes" | "sevenscenes" => Some(Layout::SevenScenes),
+            "scannet" => Some(Layout::ScanNet),
             "replica" => Some(Layout::Replica),
             _ => None,
         }
@@ -62,18 +67,22 @@ impl Layout {
             Layout::Tum => "tum",
             Layout::Eth3d => "eth3d",
             Layout::SevenScenes => "7scenes",
+            Layout::ScanNet => "scannet",
             Layout::Replica => "replica",
         }
     }
 
     /// The layout of `dir` from its content: `calibration.txt` beside TUM lists is ETH3D,
-    /// `frame-000000.color.*` is 7-Scenes, `results/` with `traj.txt` is Replica, anything
-    /// else is read as TUM (whose reader then names what is missing).
+    /// `frame-000000.color.*` is 7-Scenes, `intrinsic/intrinsic_depth.txt` is ScanNet,
+    /// `results/` with `traj.txt` is Replica, anything else is read as TUM (whose reader then
+    /// names what is missing).
     pub fn detect(dir: &Path) -> Layout {
         if dir.join("calibration.txt").is_file() && dir.join("rgb.txt").is_file() {
             Layout::Eth3d
         } else if seven_scenes_colour(dir, 0).is_some() {
             Layout::SevenScenes
+        } else if dir.join("intrinsic").join("intrinsic_depth.txt").is_file() {
+            Layout::ScanNet
         } else if dir.join("results").is_dir() && dir.join("traj.txt").is_file() {
             Layout::Replica
         } else {
@@ -97,6 +106,9 @@ pub(crate) enum Truth {
     TumFile(PathBuf),
     /// One 4x4 `world_from_camera` text file per frame (7-Scenes), in frame order.
     PerFrame(Vec<PathBuf>),
+    /// As `PerFrame`, but frames whose matrix is not finite (ScanNet marks lost tracking with
+    /// `-inf`) have no ground truth.
+    PerFrameSkipInvalid(Vec<PathBuf>),
     /// One row-major 4x4 `world_from_camera` per line, line `i` for frame `i` (Replica).
     MatrixLines(PathBuf),
 }
@@ -110,20 +122,24 @@ impl Truth {
         match self {
             Truth::None => Ok(None),
             Truth::TumFile(p) => super::trajectory::read_tum(p).map(Some),
-            Truth::PerFrame(files) => files
-                .iter()
-                .zip(entries)
-                .map(|(p, e)| {
+            Truth::PerFrame(files) | Truth::PerFrameSkipInvalid(files) => {
+                let skip = matches!(self, Truth::PerFrameSkipInvalid(_));
+                let mut out = Vec::new();
+                for (p, e) in files.iter().zip(entries) {
                     let text = std::fs::read_to_string(p).map_err(|err| IoError::file(p, err))?;
+                    let lower = text.to_ascii_lowercase();
+                    if skip && (lower.contains("inf") || lower.contains("nan")) {
+                        continue;
+                    }
                     let v = parse_numbers(&text).map_err(|m| IoError::parse(p, 1, m))?;
-                    Ok(TimedPose {
+                    out.push(TimedPose {
                         timestamp: e.timestamp,
                         world_from_camera: pose_from_rows(&v)
                             .map_err(|m| IoError::parse(p, 1, m))?,
-                    })
-                })
-                .collect::<Result<Vec<_>, _>>()
-                .map(Some),
+                    });
+                }
+                Ok(Some(out))
+            }
             Truth::MatrixLines(p) => {
                 let text = std::fs::read_to_string(p).map_err(|err| IoError::file(p, err))?;
                 let mut out = Vec::new();
@@ -190,9 +206,63 @@ pub(crate) fn layout_camera(layout: Layout, dir: &Path) -> Result<Option<CameraC
     Ok(match layout {
         Layout::Tum => None,
         Layout::Eth3d => Some(eth3d_calibration(dir)?),
+        Layout::ScanNet => {
+            let first = dir.join("depth").join("0.png");
+            let (w, h) = image::image_dimensions(&first).map_err(|e| IoError::Image {
+                path: first.clone(),
+                message: e.to_string(),
+            })?;
+            let path = dir.join("intrinsic").join("intrinsic_depth.txt");
+            let cfg = CameraConfig {
+                camera: intrinsic_matrix(&path, w, h)?,
+                depth_factor: 1000.0,
+                source: path.display().to_string(),
+            };
+            cfg.validate(&path)?;
+            Some(cfg)
+        }
         Layout::SevenScenes => CameraConfig::preset("7scenes"),
         Layout::Replica => CameraConfig::preset("replica"),
     })
+}
+
+/// The pinhole camera of a 4x4 (or 3x3) intrinsic matrix file as ScanNet writes them, for
+/// images of `width` x `height`.
+fn intrinsic_matrix(path: &Path, width: u32, height: u32) -> Result<PinholeCamera, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let v = parse_numbers(&text).map_err(|m| IoError::parse(path, 1, m))?;
+    let n = match v.len() {
+        16 => 4,
+        9 => 3,
+        k => {
+            return Err(IoError::Malformed {
+                path: path.into(),
+                message: format!("expected a 4x4 or 3x3 intrinsic matrix, found {k} numbers"),
+            })
+        }
+    };
+    Ok(PinholeCamera::new(
+        v[0],
+        v[n + 1],
+        v[2],
+        v[n + 2],
+        width,
+        height,
+    ))
+}
+
+/// ScanNet's colour camera (`intrinsic/intrinsic_color.txt`) for colour images of
+/// `width` x `height`.
+pub(crate) fn scannet_colour_camera(
+    dir: &Path,
+    width: u32,
+    height: u32,
+) -> Result<PinholeCamera, IoError> {
+    intrinsic_matrix(
+        &dir.join("intrinsic").join("intrinsic_color.txt"),
+        width,
+        height,
+    )
 }
 
 /// ETH3D's `calibration.txt` (`fx fy cx cy`), with the image size of the first colour image
@@ -297,6 +367,34 @@ pub(crate) fn list_frames(
                 Truth::None
             }
         }
+        Layout::ScanNet => {
+            let mut poses = Vec::new();
+            while entries.len() < limit {
+                let i = entries.len();
+                let rgb = dir.join("color").join(format!("{i}.jpg"));
+                if !rgb.is_file() {
+                    break;
+                }
+                let depth = dir.join("depth").join(format!("{i}.png"));
+                if !depth.is_file() {
+                    return Err(IoError::MissingFile {
+                        path: depth,
+                        what: format!("depth of frame {i} ({})", rgb.display()),
+                    });
+                }
+                poses.push(dir.join("pose").join(format!("{i}.txt")));
+                entries.push(SequenceEntry {
+                    timestamp: i as f64 / frame_rate,
+                    rgb,
+                    depth,
+                });
+            }
+            if poses.iter().all(|p| p.is_file()) {
+                Truth::PerFrameSkipInvalid(poses)
+            } else {
+                Truth::None
+            }
+        }
         Layout::Replica => {
             let results = dir.join("results");
             while entries.len() < limit {
@@ -330,6 +428,7 @@ pub(crate) fn list_frames(
     if entries.is_empty() {
         let first = match layout {
             Layout::SevenScenes => "frame-000000.color.png",
+            Layout::ScanNet => "color/0.jpg",
             _ => "results/frame000000.jpg",
         };
         return Err(IoError::MissingFile {

@@ -20,7 +20,7 @@ use std::sync::Arc;
 use glam::{DQuat, DVec3};
 
 use super::config::{parse_numbers, CameraConfig};
-use super::layouts::{layout_camera, list_frames, Layout, Truth};
+use super::layouts::{layout_camera, list_frames, scannet_colour_camera, Layout, Truth};
 use super::undistort::UndistortMap;
 use super::IoError;
 use crate::camera::PinholeCamera;
@@ -96,6 +96,7 @@ pub struct TumSequence {
     pub camera_source: String,
     undistort: Option<Arc<UndistortMap>>,
     truth: Truth,
+    colour_camera: Option<Box<PinholeCamera>>,
 }
 
 impl TumSequence {
@@ -130,7 +131,7 @@ impl TumSequence {
 
         let gt = dir.join("groundtruth.txt");
         let listing = match layout {
-            Layout::SevenScenes | Layout::Replica => {
+            Layout::SevenScenes | Layout::ScanNet | Layout::Replica => {
                 Some(list_frames(layout, dir, opts.frame_rate, opts.max_frames)?)
             }
             Layout::Tum | Layout::Eth3d => None,
@@ -186,6 +187,17 @@ impl TumSequence {
                 message: "the sequence has no frames".into(),
             });
         }
+        let colour_camera = match layout {
+            Layout::ScanNet => {
+                let first = &entries[0].rgb;
+                let (w, h) = image::image_dimensions(first).map_err(|e| IoError::Image {
+                    path: first.clone(),
+                    message: e.to_string(),
+                })?;
+                Some(Box::new(scannet_colour_camera(dir, w, h)?))
+            }
+            _ => None,
+        };
         let undistort =
             (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
         let seq = TumSequence {
@@ -198,6 +210,7 @@ impl TumSequence {
             camera_source: cfg.source,
             undistort,
             truth,
+            colour_camera,
         };
         seq.load(0)?;
         Ok(seq)
@@ -236,6 +249,7 @@ impl TumSequence {
         let cam = CameraRef {
             camera: &self.camera,
             source: &self.camera_source,
+            colour: self.colour_camera.as_deref(),
         };
         let remap = match &self.undistort {
             Some(m) => Remap::Cpu(m),
@@ -267,6 +281,7 @@ pub fn load_pair_frame(
         CameraRef {
             camera,
             source: &cfg.source,
+            colour: None,
         },
         depth_factor,
         map.as_ref().map_or(Remap::None, Remap::Cpu),
@@ -484,6 +499,9 @@ enum Remap<'a> {
 struct CameraRef<'a> {
     camera: &'a PinholeCamera,
     source: &'a str,
+    /// The colour images' own camera when they are not taken with `camera` (ScanNet): the
+    /// colour is resampled onto `camera`'s pixels.
+    colour: Option<&'a PinholeCamera>,
 }
 
 /// Decodes, checks, converts and undistorts one frame. Colour and depth decode in parallel.
@@ -497,6 +515,12 @@ fn decode_frame(
 ) -> Result<RgbdFrame, IoError> {
     let (rgb, depth) = rayon::join(|| decode_colour(rgb_path), || decode_depth(depth_path));
     let (rgb, depth) = (rgb?, depth?);
+    let rgb = match cam.colour {
+        Some(cc) if (rgb.width, rgb.height) != (depth.width, depth.height) => {
+            resample_colour(&rgb, cc, cam.camera, depth.width, depth.height)
+        }
+        _ => rgb,
+    };
     if (rgb.width, rgb.height) != (depth.width, depth.height) {
         return Err(IoError::ImageSizeMismatch {
             rgb: rgb_path.into(),
@@ -590,6 +614,56 @@ struct RawImage {
 enum RawPixels {
     Gray(Vec<u8>),
     Rgb(Vec<u8>),
+}
+
+/// `rgb`, seen by `colour`, resampled (bilinear) onto the pixels of `target` (`width` x
+/// `height`) by the two intrinsics: the cameras share their centre and orientation, as ScanNet's
+/// colour and depth cameras do after its export. Pixels that fall outside the colour image are
+/// black.
+fn resample_colour(
+    rgb: &RawImage,
+    colour: &PinholeCamera,
+    target: &PinholeCamera,
+    width: usize,
+    height: usize,
+) -> RawImage {
+    let (src, channels) = match &rgb.pixels {
+        RawPixels::Gray(g) => (g, 1),
+        RawPixels::Rgb(c) => (c, 3),
+    };
+    let mut out = vec![0u8; width * height * channels];
+    for v in 0..height {
+        for u in 0..width {
+            let x = (u as f64 - target.cx) / target.fx;
+            let y = (v as f64 - target.cy) / target.fy;
+            let uc = colour.fx * x + colour.cx;
+            let vc = colour.fy * y + colour.cy;
+            if !(uc >= 0.0 && vc >= 0.0) {
+                continue;
+            }
+            let (u0, v0) = (uc.floor() as usize, vc.floor() as usize);
+            if u0 + 1 >= rgb.width || v0 + 1 >= rgb.height {
+                continue;
+            }
+            let (a, b) = (uc - u0 as f64, vc - v0 as f64);
+            for k in 0..channels {
+                let at =
+                    |uu: usize, vv: usize| f64::from(src[(vv * rgb.width + uu) * channels + k]);
+                let val = (1.0 - b) * ((1.0 - a) * at(u0, v0) + a * at(u0 + 1, v0))
+                    + b * ((1.0 - a) * at(u0, v0 + 1) + a * at(u0 + 1, v0 + 1));
+                out[(v * width + u) * channels + k] = val.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    RawImage {
+        width,
+        height,
+        pixels: if channels == 1 {
+            RawPixels::Gray(out)
+        } else {
+            RawPixels::Rgb(out)
+        },
+    }
 }
 
 fn decode_colour(path: &Path) -> Result<RawImage, IoError> {
