@@ -2,23 +2,10 @@
 //! files of the same run, and `rgbid eval` reads each (detected) to the same figures.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn rgbid(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rgbid"))
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .output()
-        .expect("running rgbid")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
+#[path = "common/cli.rs"]
+mod cli;
+use cli::{rgbid, text};
 
 fn path(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")

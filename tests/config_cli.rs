@@ -4,7 +4,6 @@
 //! `rgbid odometry --out`.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
 use rgbid::mono::MonoConfig;
 use rgbid::odometry::{Estimator, GeometricParam, OdometryConfig};
@@ -14,21 +13,9 @@ use rgbid::segment::SegmentConfig;
 use rgbid::slam::SlamConfig;
 use serde::de::DeserializeOwned;
 
-fn rgbid(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rgbid"))
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .output()
-        .expect("running rgbid")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
+#[path = "common/cli.rs"]
+mod cli;
+use cli::{rgbid, text};
 
 fn dump<T: DeserializeOwned>(command: &str) -> T {
     let o = rgbid(&["config", "dump", "--command", command]);

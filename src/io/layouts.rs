@@ -323,6 +323,32 @@ fn seven_scenes_colour(dir: &Path, i: usize) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
+/// The files of frame `i` of a layout without image lists: colour (`None` when frame `i`
+/// does not exist, which ends the sequence), depth, and pose file (if the layout has one).
+fn frame_files(
+    layout: Layout,
+    dir: &Path,
+    i: usize,
+) -> (Option<PathBuf>, PathBuf, Option<PathBuf>) {
+    match layout {
+        Layout::SevenScenes => (
+            seven_scenes_colour(dir, i),
+            dir.join(format!("frame-{i:06}.depth.png")),
+            Some(dir.join(format!("frame-{i:06}.pose.txt"))),
+        ),
+        Layout::ScanNet => (
+            Some(dir.join("color").join(format!("{i}.jpg"))).filter(|p| p.is_file()),
+            dir.join("depth").join(format!("{i}.png")),
+            Some(dir.join("pose").join(format!("{i}.txt"))),
+        ),
+        _ => (
+            Some(dir.join("results").join(format!("frame{i:06}.jpg"))).filter(|p| p.is_file()),
+            dir.join("results").join(format!("depth{i:06}.png")),
+            None,
+        ),
+    }
+}
+
 /// The frames of a layout without image lists, numbered from 0 until the first missing one,
 /// time-stamped at `frame_rate` Hz.
 pub(crate) fn list_frames(
@@ -331,6 +357,12 @@ pub(crate) fn list_frames(
     frame_rate: f64,
     max_frames: Option<usize>,
 ) -> Result<Listing, IoError> {
+    if matches!(layout, Layout::Tum | Layout::Eth3d) {
+        return Err(IoError::Malformed {
+            path: dir.into(),
+            message: format!("the {layout} layout has image lists"),
+        });
+    }
     if !(frame_rate.is_finite() && frame_rate > 0.0) {
         return Err(IoError::Malformed {
             path: dir.into(),
@@ -339,103 +371,43 @@ pub(crate) fn list_frames(
     }
     let limit = max_frames.unwrap_or(usize::MAX);
     let mut entries = Vec::new();
-    let truth = match layout {
-        Layout::SevenScenes => {
-            let mut poses = Vec::new();
-            while entries.len() < limit {
-                let i = entries.len();
-                let Some(rgb) = seven_scenes_colour(dir, i) else {
-                    break;
-                };
-                let depth = dir.join(format!("frame-{i:06}.depth.png"));
-                if !depth.is_file() {
-                    return Err(IoError::MissingFile {
-                        path: depth,
-                        what: format!("depth of frame {i} ({})", rgb.display()),
-                    });
-                }
-                poses.push(dir.join(format!("frame-{i:06}.pose.txt")));
-                entries.push(SequenceEntry {
-                    timestamp: i as f64 / frame_rate,
-                    rgb,
-                    depth,
-                });
-            }
-            if poses.iter().all(|p| p.is_file()) {
-                Truth::PerFrame(poses)
-            } else {
-                Truth::None
-            }
+    let mut poses = Vec::new();
+    while entries.len() < limit {
+        let i = entries.len();
+        let (Some(rgb), depth, pose) = frame_files(layout, dir, i) else {
+            break;
+        };
+        if !depth.is_file() {
+            return Err(IoError::MissingFile {
+                path: depth,
+                what: format!("depth of frame {i} ({})", rgb.display()),
+            });
         }
-        Layout::ScanNet => {
-            let mut poses = Vec::new();
-            while entries.len() < limit {
-                let i = entries.len();
-                let rgb = dir.join("color").join(format!("{i}.jpg"));
-                if !rgb.is_file() {
-                    break;
-                }
-                let depth = dir.join("depth").join(format!("{i}.png"));
-                if !depth.is_file() {
-                    return Err(IoError::MissingFile {
-                        path: depth,
-                        what: format!("depth of frame {i} ({})", rgb.display()),
-                    });
-                }
-                poses.push(dir.join("pose").join(format!("{i}.txt")));
-                entries.push(SequenceEntry {
-                    timestamp: i as f64 / frame_rate,
-                    rgb,
-                    depth,
-                });
-            }
-            if poses.iter().all(|p| p.is_file()) {
-                Truth::PerFrameSkipInvalid(poses)
-            } else {
-                Truth::None
-            }
-        }
-        Layout::Replica => {
-            let results = dir.join("results");
-            while entries.len() < limit {
-                let i = entries.len();
-                let rgb = results.join(format!("frame{i:06}.jpg"));
-                if !rgb.is_file() {
-                    break;
-                }
-                let depth = results.join(format!("depth{i:06}.png"));
-                if !depth.is_file() {
-                    return Err(IoError::MissingFile {
-                        path: depth,
-                        what: format!("depth of frame {i} ({})", rgb.display()),
-                    });
-                }
-                entries.push(SequenceEntry {
-                    timestamp: i as f64 / frame_rate,
-                    rgb,
-                    depth,
-                });
-            }
-            Truth::MatrixLines(dir.join("traj.txt"))
-        }
-        Layout::Tum | Layout::Eth3d => {
-            return Err(IoError::Malformed {
-                path: dir.into(),
-                message: format!("the {layout} layout has image lists"),
-            })
-        }
-    };
+        poses.extend(pose);
+        entries.push(SequenceEntry {
+            timestamp: i as f64 / frame_rate,
+            rgb,
+            depth,
+        });
+    }
     if entries.is_empty() {
         let first = match layout {
-            Layout::SevenScenes => "frame-000000.color.png",
-            Layout::ScanNet => "color/0.jpg",
-            _ => "results/frame000000.jpg",
+            Layout::SevenScenes => dir.join("frame-000000.color.png"),
+            Layout::ScanNet => dir.join("color").join("0.jpg"),
+            _ => dir.join("results").join("frame000000.jpg"),
         };
         return Err(IoError::MissingFile {
-            path: dir.join(first),
+            path: first,
             what: format!("first frame of a {layout} folder"),
         });
     }
+    let all_poses = !poses.is_empty() && poses.iter().all(|p| p.is_file());
+    let truth = match layout {
+        Layout::SevenScenes if all_poses => Truth::PerFrame(poses),
+        Layout::ScanNet if all_poses => Truth::PerFrameSkipInvalid(poses),
+        Layout::Replica => Truth::MatrixLines(dir.join("traj.txt")),
+        _ => Truth::None,
+    };
     Ok(Listing { entries, truth })
 }
 

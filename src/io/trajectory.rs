@@ -90,7 +90,7 @@ fn read_trajectory_text(
     format: TrajectoryFormat,
 ) -> Result<Vec<TimedPose>, IoError> {
     let mut out = match format {
-        TrajectoryFormat::Tum => return read_tum_text(path, text),
+        TrajectoryFormat::Tum => tum_lines(path, text)?,
         TrajectoryFormat::Kitti => read_kitti(path, text)?,
         TrajectoryFormat::Euroc => read_euroc(path, text)?,
     };
@@ -309,10 +309,10 @@ fn write_lines(path: &Path, lines: &[String]) -> Result<(), IoError> {
 /// Reads a TUM trajectory, sorted by time stamp. Errors name the file and line.
 pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
     let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
-    read_tum_text(path, &text)
+    read_trajectory_text(path, &text, TrajectoryFormat::Tum)
 }
 
-fn read_tum_text(path: &Path, text: &str) -> Result<Vec<TimedPose>, IoError> {
+fn tum_lines(path: &Path, text: &str) -> Result<Vec<TimedPose>, IoError> {
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let s = line.trim();
@@ -321,24 +321,13 @@ fn read_tum_text(path: &Path, text: &str) -> Result<Vec<TimedPose>, IoError> {
         }
         out.push(parse_tum_line(s).map_err(|m| IoError::parse(path, i + 1, m))?);
     }
-    if out.is_empty() {
-        return Err(IoError::Empty {
-            path: path.into(),
-            message: "no poses in trajectory file".into(),
-        });
-    }
-    out.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
     Ok(out)
 }
 
 /// Writes a TUM trajectory (overwrites `path`).
 pub fn write_tum(path: &Path, poses: &[TimedPose]) -> Result<(), IoError> {
-    let mut f =
-        std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| IoError::file(path, e))?);
-    for p in poses {
-        writeln!(f, "{}", format_tum_line(p)).map_err(|e| IoError::file(path, e))?;
-    }
-    f.flush().map_err(|e| IoError::file(path, e))
+    let lines: Vec<String> = poses.iter().map(format_tum_line).collect();
+    write_lines(path, &lines)
 }
 
 #[cfg(test)]
