@@ -15,7 +15,7 @@ pub mod undistort;
 pub use config::CameraConfig;
 pub use tum::{
     load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions,
-    SequenceEntry, TumSequence,
+    RawFrame, RawPixels, SequenceEntry, TumSequence,
 };
 pub use undistort::UndistortMap;
 
