@@ -1,6 +1,6 @@
 """A sequence in, a trajectory and a point cloud out, and a plot against the ground truth.
 
-    python quickstart.py                      # a generated office sequence
+    python quickstart.py                      # a generated office sequence (handheld)
     python quickstart.py /data/rgbd_dataset_freiburg1_xyz --camera tum_fr1
 
 Writes trajectory.txt (TUM format), points.ply (the SLAM model) and quickstart.png (top view
@@ -41,7 +41,7 @@ def write_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("sequence", nargs="?", help="TUM folder (default: a generated office loop)")
+    p.add_argument("sequence", nargs="?", help="TUM folder (default: a generated handheld office sequence)")
     p.add_argument("--camera", default=None, help="camera preset or file for a TUM folder")
     p.add_argument("--frames", type=int, default=150, help="frames of the generated sequence")
     p.add_argument("--backend", default="auto", choices=["auto", "gpu", "cpu"])
@@ -53,7 +53,7 @@ def main(argv=None) -> dict:
     if a.sequence:
         seq = rgbid.read_sequence(a.sequence, camera=a.camera)
     else:
-        seq = rgbid.synth.render("office", "loop", a.frames, 7, width=320)
+        seq = rgbid.synth.render("office", "handheld", a.frames, 7, width=320)
     slam = rgbid.Slam(seq.camera, backend=a.backend)
     for t, image, depth, factor in seq:
         slam.process(image, depth, factor, t)

@@ -74,8 +74,7 @@ pub(crate) fn pose_from_matrix(m: PyReadonlyArray2<'_, f64>) -> PyResult<Se3> {
         .iter()
         .fold(0.0f64, |acc, v| acc.max(v.abs()));
     let bottom = [a[[3, 0]], a[[3, 1]], a[[3, 2]], a[[3, 3]]];
-    if !(err < 1e-6) || !((r.determinant() - 1.0).abs() < 1e-6) || bottom != [0.0, 0.0, 0.0, 1.0]
-    {
+    if !(err < 1e-6) || !((r.determinant() - 1.0).abs() < 1e-6) || bottom != [0.0, 0.0, 0.0, 1.0] {
         return Err(PyValueError::new_err(
             "a pose must be a rigid transform: orthonormal rotation (det +1) and last row 0 0 0 1",
         ));
@@ -93,7 +92,10 @@ pub(crate) fn trajectory_array<'py>(
 ) -> Bound<'py, PyArray2<f64>> {
     let mut m = Array2::<f64>::zeros((poses.len(), 8));
     for (i, p) in poses.iter().enumerate() {
-        let (t, q) = (p.world_from_camera.translation, p.world_from_camera.rotation);
+        let (t, q) = (
+            p.world_from_camera.translation,
+            p.world_from_camera.rotation,
+        );
         let row = [p.timestamp, t.x, t.y, t.z, q.x, q.y, q.z, q.w];
         for (k, v) in row.into_iter().enumerate() {
             m[[i, k]] = v;
@@ -105,9 +107,9 @@ pub(crate) fn trajectory_array<'py>(
 /// A `float64[N, 8]` TUM array (`t tx ty tz qx qy qz qw`) as poses; quaternions are
 /// normalised, non-finite values and zero quaternions are rejected.
 pub(crate) fn trajectory_from_array(a: &Bound<'_, PyAny>, what: &str) -> PyResult<Vec<TimedPose>> {
-    let arr = a
-        .cast::<PyArray2<f64>>()
-        .map_err(|_| PyValueError::new_err(format!("{what} must be a float64[N, 8] numpy array")))?;
+    let arr = a.cast::<PyArray2<f64>>().map_err(|_| {
+        PyValueError::new_err(format!("{what} must be a float64[N, 8] numpy array"))
+    })?;
     let ro = arr.readonly();
     if ro.shape()[1] != 8 {
         return Err(PyValueError::new_err(format!(

@@ -18,7 +18,7 @@ use crate::convert::value;
 /// centre), image size ``width`` x ``height`` in pixels, and optional Brown-Conrady
 /// ``distortion`` ``(k1, k2, p1, p2, k3)`` (OpenCV order). Frames of a camera with distortion
 /// are undistorted before tracking (intensity bilinear, depth nearest).
-#[pyclass(frozen, module = "rgbid")]
+#[pyclass(frozen, from_py_object, module = "rgbid")]
 #[derive(Clone)]
 pub struct Camera {
     pub(crate) camera: PinholeCamera,

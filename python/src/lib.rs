@@ -8,6 +8,8 @@
 
 // The pyclass/pymethods macros expand to code that trips this lint on `PyResult` returns.
 #![allow(clippy::useless_conversion)]
+// `!(x < t)` is used on purpose: it also rejects NaN, which input can contain.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use pyo3::prelude::*;
 

@@ -23,7 +23,7 @@ use crate::frames::Camera;
 
 enum Source {
     Tum(TumSequence),
-    Synth(Mutex<rgbid::synth::Sequence>),
+    Synth(Box<Mutex<rgbid::synth::Sequence>>),
 }
 
 /// A sequence of frames as stored: ``len(seq)``, ``seq[i]`` and iteration give
@@ -101,9 +101,7 @@ impl Sequence {
     /// Ground truth as ``float64[M, 8]`` TUM columns, or ``None``.
     #[getter]
     fn groundtruth<'py>(&self, py: Python<'py>) -> Option<Bound<'py, numpy::PyArray2<f64>>> {
-        self.groundtruth
-            .as_ref()
-            .map(|g| trajectory_array(py, g))
+        self.groundtruth.as_ref().map(|g| trajectory_array(py, g))
     }
 
     /// The folder the frames are read from (``None`` for frames generated in memory).
@@ -269,17 +267,13 @@ pub fn synth_render(
         .map_err(runtime)?;
         let Some(dir) = out else {
             let groundtruth = Some(seq.ground_truth());
-            let timestamps = groundtruth
-                .iter()
-                .flatten()
-                .map(|p| p.timestamp)
-                .collect();
+            let timestamps = groundtruth.iter().flatten().map(|p| p.timestamp).collect();
             return Ok(Sequence {
                 camera: Camera::new_checked(cam, Some(DEPTH_FACTOR))?,
                 depth_factor: DEPTH_FACTOR,
                 groundtruth,
                 timestamps,
-                source: Source::Synth(Mutex::new(seq)),
+                source: Source::Synth(Box::new(Mutex::new(seq))),
                 path: None,
             });
         };

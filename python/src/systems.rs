@@ -19,8 +19,8 @@ use rgbid::slam::{
 use rgbid::trajectory::TimedPose;
 
 use crate::convert::{
-    backend_from, config_from, pose_from_matrix, pose_matrix, runtime, to_python,
-    trajectory_array, value,
+    backend_from, config_from, pose_from_matrix, pose_matrix, runtime, to_python, trajectory_array,
+    value,
 };
 use crate::frames::{Camera, FrameIn};
 

@@ -51,7 +51,7 @@ pub fn evaluate<'py>(
     max_diff: f64,
     scale: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
-    if !(delta > 0.0 && delta.is_finite()) || !(max_diff >= 0.0 && max_diff.is_finite()) {
+    if !(delta > 0.0 && delta.is_finite() && max_diff >= 0.0 && max_diff.is_finite()) {
         return Err(PyValueError::new_err(
             "delta must be > 0 seconds and max_diff >= 0 seconds",
         ));
@@ -63,7 +63,9 @@ pub fn evaluate<'py>(
         delta: RpeDelta::Seconds(delta),
         with_scale: scale,
     };
-    let m = py.detach(|| eval_metrics(&gt, &est, &opts)).map_err(value)?;
+    let m = py
+        .detach(|| eval_metrics(&gt, &est, &opts))
+        .map_err(value)?;
     to_python(py, &m)
 }
 
@@ -182,7 +184,7 @@ pub fn read_run(py: Python<'_>, folder: PathBuf) -> PyResult<Bound<'_, PyDict>> 
 /// Every key of the configuration of ``command`` (``"odometry"`` or ``"slam"``) with its
 /// default, as a dict (what ``rgbid config dump --command NAME`` prints as TOML).
 #[pyfunction]
-pub fn default_config(py: Python<'_>, command: &str) -> PyResult<Bound<'_, PyAny>> {
+pub fn default_config<'py>(py: Python<'py>, command: &str) -> PyResult<Bound<'py, PyAny>> {
     match command {
         "odometry" => to_python(py, &OdometryConfig::default()),
         "slam" => to_python(py, &SlamConfig::default()),

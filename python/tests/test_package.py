@@ -58,15 +58,16 @@ def pose_row(t: float, m: np.ndarray) -> list:
 
 
 def test_tracks_a_generated_sequence():
-    seq = rgbid.synth.render(SCENE, TRAJECTORY, FRAMES, SEED, width=WIDTH)
+    # At 320x240: at 160x120 the sensor noise dominates the error of this short sequence.
+    seq = rgbid.synth.render(SCENE, TRAJECTORY, FRAMES, SEED, width=320)
     assert len(seq) == FRAMES and seq.path is None
     est = track_all(seq)
     gt = seq.groundtruth
     assert gt.shape == (FRAMES, 8)
     ate = rgbid.eval.ate(gt, est)
     assert ate["matched"] == FRAMES
-    # Kinect-like noise at 160x120: a working odometry stays within a few millimetres here;
-    # a broken one (wrong sign, wrong units) drifts by centimetres within the first frames.
+    # Within a centimetre over half a metre of handheld motion; a tracker that loses the
+    # motion (wrong sign, wrong units, frames mixed up) is off by decimetres.
     assert ate["rmse"] < 0.01, ate
     path_length = np.linalg.norm(np.diff(gt[:, 1:4], axis=0), axis=1).sum()
     assert path_length > 0.05, "the sequence must move for the check to mean anything"
