@@ -6,8 +6,6 @@
 //! and dicts. Bad input raises `ValueError`; failures of the library raise `rgbid.RgbidError`
 //! with the library's message (and its causes).
 
-// The pyclass/pymethods macros expand to code that trips this lint on `PyResult` returns.
-#![allow(clippy::useless_conversion)]
 // `!(x < t)` is used on purpose: it also rejects NaN, which input can contain.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
