@@ -2,7 +2,7 @@
 """Renders docs/results.md from the benchmarks' JSON reports in docs/results/*.json.
 
 Every report is what a benchmark writes with `--json FILE` (`rgbid bench odometry`,
-`rgbid bench kernels`, `rgbid graph bench`): a `meta` object (date, commit, command, machine)
+`rgbid bench kernels`, `rgbid graph bench`, `python/benchmarks/overhead.py`): a `meta` object (date, commit, command, machine)
 and the rows the benchmark printed. One section per report, in file-name order, so the output
 depends only on the reports.
 
@@ -217,6 +217,19 @@ def render_gpu_check(doc):
     return out + render_kernels(doc)
 
 
+def render_python_overhead(doc):
+    out = [f"`python/benchmarks/overhead.py`: {doc.get('sequence', '?')}, frames rendered before timing, "
+           f"the first {doc.get('warmup', '?')} left out. Per frame, the wall time of the Python call "
+           "(`Odometry.track`, `Slam.process`) against `rust_ms`, the time the binding measured inside "
+           "the library for the same call (`RgbdFrame::from_buffers` + track / process). Medians over "
+           "the frames; goal: overhead under 5 %.", ""]
+    body = [[r["system"], r["backend"], f"{r['width']}x{r['height']}", r["frames"], num(r["python_ms"], ".3f"),
+             num(r["rust_ms"], ".3f"), num(r["overhead_ms"], ".4f"), num(r["overhead_pct"], ".2f") + " %"]
+            for r in doc.get("rows", [])]
+    out += table(["system", "backend", "size", "frames", "Python ms", "Rust ms", "overhead ms", "overhead"], body)
+    return out
+
+
 def render_generic(doc):
     rows = [r for r in doc.get("rows", []) if isinstance(r, dict)]
     keys = []
@@ -228,9 +241,9 @@ def render_generic(doc):
 
 
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
-             "gpu-check": render_gpu_check}
+             "gpu-check": render_gpu_check, "python-overhead": render_python_overhead}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
-          "gpu-check": "GPU check on a real GPU"}
+          "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead"}
 
 
 def title(doc):

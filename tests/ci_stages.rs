@@ -7,6 +7,8 @@
 //! | real-data tests | ignored with a reason naming `../shared/data` | `cargo test --workspace --tests -- --ignored --skip gpu_ --skip known_gap_ --skip manual_` |
 //! | none | `known_gap_*` (unmet targets), `manual_*` (benchmarks, file writers) | by hand |
 //!
+//! The Python package's tests (`python/tests`, pytest) run in the stage `python` only.
+//!
 //! libtest filters match substrings of the full test path, so this test reads every `#[test]`
 //! in `src/`, `tests/` and `viewer/`, and checks that each ignored test carries the marker of
 //! its stage and no other, that a test calling the GPU test helper (`rgbid::gpu::test_gpu`, the

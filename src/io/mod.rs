@@ -17,8 +17,8 @@ pub mod undistort;
 pub use config::CameraConfig;
 pub use layouts::Layout;
 pub use tum::{
-    load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions,
-    SequenceEntry, TumSequence,
+    load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions, RawFrame,
+    RawPixels, SequenceEntry, TumSequence,
 };
 pub use undistort::UndistortMap;
 

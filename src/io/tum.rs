@@ -259,6 +259,60 @@ impl TumSequence {
     }
 }
 
+/// One frame of a TUM folder as stored on disk: the colour image's bytes (grey or RGB, not
+/// undistorted) and the raw 16-bit depth (units of `1 / depth_factor` metres, 0 = no
+/// measurement), both row-major. What bindings hand to their users unchanged.
+#[derive(Clone, Debug)]
+pub struct RawFrame {
+    /// Time stamp of the colour image, seconds.
+    pub timestamp: f64,
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// The colour image's pixels.
+    pub pixels: RawPixels,
+    /// Raw depth, `width * height` values.
+    pub depth: Vec<u16>,
+}
+
+impl TumSequence {
+    /// Decodes frame `index` as stored ([`RawFrame`]): no conversion to intensity or inverse
+    /// depth and no undistortion. Sizes are checked against each other and the camera.
+    pub fn load_raw(&self, index: usize) -> Result<RawFrame, IoError> {
+        let e = self.entries.get(index).ok_or(IoError::IndexOutOfRange {
+            index,
+            len: self.entries.len(),
+        })?;
+        let (rgb, depth) = rayon::join(|| decode_colour(&e.rgb), || decode_depth(&e.depth));
+        let (rgb, depth) = (rgb?, depth?);
+        if (rgb.width, rgb.height) != (depth.width, depth.height) {
+            return Err(IoError::ImageSizeMismatch {
+                rgb: e.rgb.clone(),
+                rgb_size: (rgb.width as u32, rgb.height as u32),
+                depth: e.depth.clone(),
+                depth_size: (depth.width as u32, depth.height as u32),
+            });
+        }
+        let camera_size = (self.camera.width, self.camera.height);
+        if (rgb.width as u32, rgb.height as u32) != camera_size {
+            return Err(IoError::CameraSizeMismatch {
+                path: e.rgb.clone(),
+                image_size: (rgb.width as u32, rgb.height as u32),
+                camera_size,
+                camera_source: self.camera_source.clone(),
+            });
+        }
+        Ok(RawFrame {
+            timestamp: e.timestamp,
+            width: rgb.width,
+            height: rgb.height,
+            pixels: rgb.pixels,
+            depth: depth.raw,
+        })
+    }
+}
+
 /// Loads one colour + 16-bit depth pair that is not part of a TUM folder (time stamp 0),
 /// undistorting it when `camera` has distortion. Checks sizes against `camera` and the depth
 /// scale, as [`TumSequence::load`] does.
@@ -611,8 +665,12 @@ struct RawImage {
     pixels: RawPixels,
 }
 
-enum RawPixels {
+/// A colour image's bytes as stored, row-major.
+#[derive(Clone, Debug)]
+pub enum RawPixels {
+    /// One grey value per pixel.
     Gray(Vec<u8>),
+    /// Interleaved R, G, B per pixel (images stored with alpha or 16 bits are converted).
     Rgb(Vec<u8>),
 }
 
