@@ -22,7 +22,7 @@ use crate::convert::{runtime, trajectory_array, value};
 use crate::frames::Camera;
 
 enum Source {
-    Tum(TumSequence),
+    Tum(Box<TumSequence>),
     Synth(Box<Mutex<rgbid::synth::Sequence>>),
 }
 
@@ -156,26 +156,25 @@ impl Sequence {
             ..Default::default()
         };
         let seq = TumSequence::open(&path, &opts).map_err(runtime)?;
-        let groundtruth = match &seq.groundtruth {
-            Some(p) => Some(rgbid::io::trajectory::read_tum(p).map_err(runtime)?),
-            None => None,
-        };
+        let groundtruth = seq.ground_truth().map_err(runtime)?;
         Ok(Self {
             camera: Camera::new_checked(seq.camera, Some(seq.depth_factor))?,
             depth_factor: seq.depth_factor,
             timestamps: seq.entries.iter().map(|e| e.timestamp).collect(),
             groundtruth,
-            source: Source::Tum(seq),
+            source: Source::Tum(Box::new(seq)),
             path: Some(path),
         })
     }
 }
 
-/// Opens a TUM RGB-D folder (``rgb.txt`` + ``depth.txt`` or ``associations.txt``, ``rgb/``,
-/// ``depth/``, optional ``groundtruth.txt`` and ``calib.txt``), the layout ``rgbid odometry``
-/// and ``rgbid slam`` read. ``camera``: a ``Camera``, a preset name or a calibration file
-/// (default: ``calib.txt`` beside the frames, else the ``default`` preset); ``max_frames``
-/// keeps the first frames only.
+/// Opens a sequence folder in any layout ``rgbid odometry`` and ``rgbid slam`` read: TUM RGB-D
+/// (``rgb.txt`` + ``depth.txt`` or ``associations.txt``, optional ``groundtruth.txt`` and
+/// ``calib.txt``), ETH3D, a 7-Scenes ``seq-NN`` folder, a ScanNet export or Replica as
+/// rendered for NICE-SLAM, detected from the content. ``camera``: a ``Camera``, a preset name
+/// or a calibration file (default: the layout's own, else ``calib.txt`` beside the frames, else
+/// the ``default`` preset); ``max_frames`` keeps the first frames only. Images are returned as
+/// stored (a ScanNet colour image at its own size).
 #[pyfunction]
 #[pyo3(signature = (path, camera = None, max_frames = None))]
 pub fn read_sequence(
