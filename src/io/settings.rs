@@ -208,6 +208,8 @@ pub fn read_tree(path: &Path) -> Result<Value, SettingsError> {
         path: path.to_path_buf(),
         source,
     })?;
+    // A leading byte-order mark (Windows editors) is not part of the document.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     let syntax = |message: String| SettingsError::Syntax {
         path: path.to_path_buf(),
         message,

@@ -9,7 +9,7 @@ use crate::trajectory::{format_tum_line, parse_tum_line, TimedPose};
 
 /// Reads a TUM trajectory, sorted by time stamp. Errors name the file and line.
 pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let s = line.trim();
@@ -28,14 +28,15 @@ pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
     Ok(out)
 }
 
-/// Writes a TUM trajectory (overwrites `path`).
+/// Writes a TUM trajectory, replacing `path` atomically (a temporary file beside it is
+/// renamed over it, so `path` always holds a complete trajectory).
 pub fn write_tum(path: &Path, poses: &[TimedPose]) -> Result<(), IoError> {
-    let mut f =
-        std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| IoError::file(path, e))?);
-    for p in poses {
-        writeln!(f, "{}", format_tum_line(p)).map_err(|e| IoError::file(path, e))?;
-    }
-    f.flush().map_err(|e| IoError::file(path, e))
+    super::write_atomic(path, |f| {
+        for p in poses {
+            writeln!(f, "{}", format_tum_line(p))?;
+        }
+        Ok(())
+    })
 }
 
 #[cfg(test)]
