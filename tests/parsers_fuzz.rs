@@ -111,13 +111,16 @@ fn names_file(e: &str, file: &str) -> Result<(), TestCaseError> {
     Ok(())
 }
 
-const TRAJECTORY: &[u8] = b"# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.0 1 2 3 0 0 0.7071 0.7071\n";
+const TRAJECTORY: &[u8] =
+    b"# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.0 1 2 3 0 0 0.7071 0.7071\n";
 const CAMERA: &[u8] =
     b"# camera\nfx = 525\nfy = 525\ncx = 319.5\ncy = 239.5\nwidth = 640\nheight = 480\ndepth_factor = 5000\nk1 = 0.01\n";
-const G2O: &[u8] = b"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0.1\nEDGE_SE2 0 1 1 0 0.1 10 0 0 10 0 100\nFIX 0\n";
+const G2O: &[u8] =
+    b"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0.1\nEDGE_SE2 0 1 1 0 0.1 10 0 0 10 0 100\nFIX 0\n";
 const G2O3: &[u8] = b"VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1\n";
 const ISAM: &[u8] = b"POSE2D 0 0 0 0\nPOSE2D 1 1 0 0\nEDGE2 0 1 1 0 0 10 0 0 10 0 100\n";
-const SLAM_TOML: &[u8] = b"masks = false\nkeyframe_covisibility = 0.6\n[odometry]\nlevels = 3\nestimator = \"huber\"\n";
+const SLAM_TOML: &[u8] =
+    b"masks = false\nkeyframe_covisibility = 0.6\n[odometry]\nlevels = 3\nestimator = \"huber\"\n";
 const RGB_LIST: &[u8] = b"# rgb\n0.0 rgb/0.png\n0.1 rgb/1.png\n";
 
 proptest! {
@@ -239,7 +242,9 @@ fn maps() {
                 let e = e.to_string();
                 prop_assert!(e.contains("m.rgbmap"), "{e}");
                 prop_assert!(
-                    e.contains("at byte") || e.contains("not an rgbid map") || e.contains("version"),
+                    e.contains("at byte")
+                        || e.contains("not an rgbid map")
+                        || e.contains("version"),
                     "{e}"
                 );
             }
@@ -276,4 +281,16 @@ fn small_map_file(path: &Path) {
         slam.process(&source.load(i).unwrap()).unwrap();
     }
     slam.finish().unwrap().map.save(path).unwrap();
+}
+
+/// The counter sees what a closure holds at its peak, freed or not.
+#[test]
+fn the_counter_sees_allocations() {
+    let ((), peak) = measured(|| {
+        let v = vec![1u8; 1 << 20];
+        std::hint::black_box(&v);
+    });
+    assert!(peak >= 1 << 20, "{peak}");
+    let (v, peak) = measured(|| vec![0u64; 1000]);
+    assert!(peak >= 8000 && v.len() == 1000, "{peak}");
 }

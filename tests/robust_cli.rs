@@ -8,8 +8,14 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+/// The program under test: cargo's build of it, or `RGBID_BIN` (a target folder shared by
+/// several checkouts holds one `rgbid` for all of them).
+fn program() -> std::ffi::OsString {
+    std::env::var_os("RGBID_BIN").unwrap_or_else(|| env!("CARGO_BIN_EXE_rgbid").into())
+}
+
 fn rgbid(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rgbid"))
+    Command::new(program())
         .args(args)
         .env("RUST_LOG", "warn")
         .output()
@@ -52,15 +58,35 @@ fn bad_numbers_are_usage_errors_that_name_the_option_and_range() {
         (vec!["slam", "--realtime", "1e-300"], "--realtime", "0.001"),
         (vec!["slam", "--realtime", "nan"], "--realtime", "0.001"),
         (vec!["slam", "--realtime", "inf"], "--realtime", "0.001"),
-        (vec!["slam", "--realtime", "-5"], "--realtime", "0.001"),
+        (vec!["slam", "--realtime=-5"], "--realtime", "0.001"),
         (vec!["slam", "--max-speed", "nan"], "--max-speed", "> 0"),
-        (vec!["slam", "--keyframe-covisibility", "1.5"], "--keyframe-covisibility", "[0, 1]"),
-        (vec!["slam", "--voxel", "-1"], "--voxel", ">= 0"),
+        (
+            vec!["slam", "--keyframe-covisibility", "1.5"],
+            "--keyframe-covisibility",
+            "[0, 1]",
+        ),
+        (vec!["slam", "--voxel=-1"], "--voxel", ">= 0"),
         (vec!["slam", "--levels", "9"], "--levels", "1 to 8"),
-        (vec!["odometry", "x", "--covisibility", "nan"], "--covisibility", "[0, 1]"),
-        (vec!["odometry", "x", "--max-frames", "0"], "--max-frames", "at least 1"),
-        (vec!["eval", "a", "b", "--max-diff", "inf"], "--max-diff", "> 0"),
-        (vec!["graph", "optimize", "a.g2o", "--robust-delta", "0"], "--robust-delta", "> 0"),
+        (
+            vec!["odometry", "x", "--covisibility", "nan"],
+            "--covisibility",
+            "[0, 1]",
+        ),
+        (
+            vec!["odometry", "x", "--max-frames", "0"],
+            "--max-frames",
+            "at least 1",
+        ),
+        (
+            vec!["eval", "a", "b", "--max-diff", "inf"],
+            "--max-diff",
+            "> 0",
+        ),
+        (
+            vec!["graph", "optimize", "a.g2o", "--robust-delta", "0"],
+            "--robust-delta",
+            "> 0",
+        ),
     ] {
         let o = rgbid(&args);
         let t = text(&o);
@@ -75,7 +101,13 @@ fn help_states_the_exit_codes() {
     let o = rgbid(&["--help"]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
-    for code in ["0 success", "1 error", "2 usage", "3 finished with warnings", "130"] {
+    for code in [
+        "0 success",
+        "1 error",
+        "2 usage",
+        "3 finished with warnings",
+        "130",
+    ] {
         assert!(t.contains(code), "{code}: {t}");
     }
 }
@@ -132,8 +164,17 @@ fn a_locked_output_folder_is_refused_before_the_work() {
     // This test's own process holds the lock: a live run.
     std::fs::write(out.join(".rgbid-lock"), format!("{}\n", std::process::id())).expect("lock");
     let o = rgbid(&[
-        "slam", "--synth", "office:loop", "--frames", "3", "--width", "160", "--backend", "cpu",
-        "--out", s(&out),
+        "slam",
+        "--synth",
+        "office:loop",
+        "--frames",
+        "3",
+        "--width",
+        "160",
+        "--backend",
+        "cpu",
+        "--out",
+        s(&out),
     ]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
@@ -176,8 +217,15 @@ fn g2o_by_content_and_not_converged_is_exit_code_3() {
         let o = rgbid(&["graph", "optimize", s(&input), "--out", s(&out)]);
         assert!(o.status.success(), "{name}: {}", text(&o));
         let o = rgbid(&[
-            "graph", "optimize", s(&input), "--out", s(&out), "--init", "odometry",
-            "--max-iterations", "1",
+            "graph",
+            "optimize",
+            s(&input),
+            "--out",
+            s(&out),
+            "--init",
+            "odometry",
+            "--max-iterations",
+            "1",
         ]);
         let t = text(&o);
         assert_eq!(o.status.code(), Some(3), "{name}: {t}");
@@ -197,10 +245,20 @@ fn g2o_by_content_and_not_converged_is_exit_code_3() {
 fn interrupted_slam_keeps_parseable_partial_outputs() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("out");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rgbid"))
+    let mut child = Command::new(program())
         .args([
-            "slam", "--synth", "office:loop", "--frames", "400", "--width", "160", "--backend",
-            "cpu", "--no-model", "--out", s(&out),
+            "slam",
+            "--synth",
+            "office:loop",
+            "--frames",
+            "400",
+            "--width",
+            "160",
+            "--backend",
+            "cpu",
+            "--no-model",
+            "--out",
+            s(&out),
         ])
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())

@@ -271,8 +271,11 @@ pub mod range {
         fn ranges_reject_nan_inf_zero_and_negative() {
             for bad in ["0", "1e-300", "nan", "NaN", "-1", "inf", "-inf", "x", ""] {
                 assert!(frame_rate(bad).is_err(), "{bad}");
+            }
+            for bad in ["0", "nan", "NaN", "-1", "inf", "-inf", "x", ""] {
                 assert!(positive(bad).is_err(), "{bad}");
             }
+            assert_eq!(positive("1e-300"), Ok(1e-300));
             assert_eq!(frame_rate("30"), Ok(30.0));
             assert_eq!(positive_or_inf("inf"), Ok(f64::INFINITY));
             assert!(positive_or_inf("nan").is_err());

@@ -122,7 +122,6 @@ pub fn message(e: &anyhow::Error) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use anyhow::Context;
 
     #[test]
     fn message_drops_repeats_and_cuts_long_tokens() {
@@ -137,7 +136,10 @@ mod tests {
         let e = anyhow::anyhow!("bad token `{long}` at line 3");
         let m = message(&e);
         assert!(m.len() < 300, "{}", m.len());
-        assert!(m.contains("(10000002 bytes)") && m.ends_with("at line 3"), "{m}");
+        assert!(
+            m.contains("(10000002 bytes)") && m.ends_with("at line 3"),
+            "{m}"
+        );
 
         let e = anyhow::anyhow!("unknown key `\u{feff}odometry`");
         assert!(message(&e).contains("<U+FEFF byte-order mark>odometry"));

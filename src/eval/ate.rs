@@ -68,7 +68,11 @@ pub fn align_umeyama(
     if with_scale {
         // Positions that do not spread out (all within a nanometre of their mean) give a
         // scale of 0, or a meaningless one.
-        let var_dst = dst[..n].iter().map(|d| (*d - md).length_squared()).sum::<f64>() / nf;
+        let var_dst = dst[..n]
+            .iter()
+            .map(|d| (*d - md).length_squared())
+            .sum::<f64>()
+            / nf;
         if !(var_dst > 1e-18) {
             return Err(EvalError::StationaryGroundTruth);
         }

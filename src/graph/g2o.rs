@@ -184,7 +184,8 @@ fn build_part<P: crate::graph::Pose>(
                         path,
                         *line,
                         format!(
-                            "edge {i} -> {j} names vertex {id}, which the file does not declare                              (a file with vertex lines must declare every vertex)"
+                            "edge {i} -> {j} names vertex {id}, which the file does not declare \
+                             (a file with vertex lines must declare every vertex)"
                         ),
                     ));
                 }
@@ -541,7 +542,10 @@ mod tests {
         );
         let fix = format!("{SMALL2}FIX 0\nFIX 5\n");
         let err = parse_g2o(&fix, Path::new("f.g2o")).unwrap_err().to_string();
-        assert!(err.starts_with("f.g2o:5:") && err.contains("vertex 5"), "{err}");
+        assert!(
+            err.starts_with("f.g2o:5:") && err.contains("vertex 5"),
+            "{err}"
+        );
         let ok = parse_g2o(&format!("{SMALL2}FIX 1\n"), Path::new("f.g2o")).unwrap();
         let LoadedGraph::Se2(g) = ok.graph else {
             panic!("2D expected")

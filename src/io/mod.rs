@@ -228,10 +228,20 @@ pub(crate) fn write_atomic(
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => std::path::Path::new("."),
     };
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".rgbid-tmp-")
-        .tempfile_in(dir)
-        .map_err(io)?;
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".rgbid-tmp-");
+    // A temporary file is private (0600); the output gets the permissions of the file it
+    // replaces, or those of a newly created file (0644 before the umask) on Unix.
+    let keep = std::fs::metadata(path).ok().map(|m| m.permissions());
+    #[cfg(unix)]
+    let keep = keep.or_else(|| {
+        use std::os::unix::fs::PermissionsExt;
+        Some(std::fs::Permissions::from_mode(0o644))
+    });
+    if let Some(p) = keep {
+        builder.permissions(p);
+    }
+    let mut tmp = builder.tempfile_in(dir).map_err(io)?;
     {
         let mut w = std::io::BufWriter::new(tmp.as_file_mut());
         write(&mut w).map_err(io)?;

@@ -822,6 +822,7 @@ mod tests {
             RunSummary {
                 format_version: FORMAT_VERSION,
                 complete: true,
+                status: STATUS_COMPLETE.into(),
                 ..summary
             }
         );

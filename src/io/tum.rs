@@ -640,7 +640,10 @@ fn depth_range_warning(raw: &[u16], factor: f64) -> Option<String> {
     }
     let (lo, hi) = SENSOR_RANGE_M;
     let outside = |f: f64| {
-        sample.iter().filter(|&&d| !(lo..=hi).contains(&(d / f))).count() as f64
+        sample
+            .iter()
+            .filter(|&&d| !(lo..=hi).contains(&(d / f)))
+            .count() as f64
             / sample.len() as f64
     };
     let share = outside(factor);

@@ -377,7 +377,9 @@ fn parse_map(bytes: &[u8], path: &Path) -> Result<Map, MapError> {
         return Err(MapError::Foreign(p.clone()));
     }
     let mut r = Reader { b: bytes, pos: 8 };
-    let version = r.u32().ok_or_else(|| corrupt(8, "file ends in the version".into()))?;
+    let version = r
+        .u32()
+        .ok_or_else(|| corrupt(8, "file ends in the version".into()))?;
     if !(MAP_VERSION_OLDEST..=MAP_VERSION).contains(&version) {
         return Err(MapError::Version {
             path: p.clone(),
@@ -536,7 +538,9 @@ fn parse_map(bytes: &[u8], path: &Path) -> Result<Map, MapError> {
                 && (-0.5..cam_w as f64).contains(&u)
                 && (-0.5..cam_h as f64).contains(&v);
             if !inside {
-                return Err(bad_feature(&format!("key point ({u}, {v}) outside the image")));
+                return Err(bad_feature(&format!(
+                    "key point ({u}, {v}) outside the image"
+                )));
             }
             if !(angle.is_finite() && score.is_finite() && size.is_finite() && size >= 0.0) {
                 return Err(bad_feature("angle, score or size not finite"));
@@ -577,7 +581,10 @@ fn parse_map(bytes: &[u8], path: &Path) -> Result<Map, MapError> {
             if block.pos != block.b.len() {
                 return Err(corrupt(
                     block.pos,
-                    format!("keyframe {n}: {} bytes after its features", block.b.len() - block.pos),
+                    format!(
+                        "keyframe {n}: {} bytes after its features",
+                        block.b.len() - block.pos
+                    ),
                 ));
             }
         } else {
@@ -684,7 +691,9 @@ mod tests {
                 width: W,
                 height: H,
                 intensity: (0..W * H).map(|i| i as u8).collect(),
-                inverse_depth: (0..W * H).map(|i| f16::from_f32(0.5 + i as f32 * 0.01)).collect(),
+                inverse_depth: (0..W * H)
+                    .map(|i| f16::from_f32(0.5 + i as f32 * 0.01))
+                    .collect(),
                 weight: vec![3; W * H],
                 world_from_keyframe: Se3::new(DQuat::IDENTITY, DVec3::new(id as f64, 0.0, 0.0)),
                 link: KeyframeLink::First,
@@ -745,8 +754,14 @@ mod tests {
         let map = small_map();
         let (_dir, path, bytes) = saved(&map);
         let back = Map::load(&path).unwrap();
-        assert_eq!(back.keyframes[1].inverse_depth, map.keyframes[1].inverse_depth);
-        assert_eq!(back.features[1].keypoints[0].uv, map.features[1].keypoints[0].uv);
+        assert_eq!(
+            back.keyframes[1].inverse_depth,
+            map.keyframes[1].inverse_depth
+        );
+        assert_eq!(
+            back.features[1].keypoints[0].uv,
+            map.features[1].keypoints[0].uv
+        );
         assert_eq!(back.mask_flags, map.mask_flags);
         assert_eq!(back.edges, map.edges);
         // A flipped bit anywhere after the magic and version is an error, never a map.
@@ -769,7 +784,10 @@ mod tests {
         m.keyframes[1].inverse_depth[5] = f16::NAN;
         let (_d, p, _) = saved(&m);
         let e = Map::load(&p).unwrap_err();
-        assert!(e.to_string().contains("inverse depth NaN at pixel 5"), "{e}");
+        assert!(
+            e.to_string().contains("inverse depth NaN at pixel 5"),
+            "{e}"
+        );
         assert!(offset_of(&e) > 0);
 
         let mut m = small_map();
@@ -788,7 +806,11 @@ mod tests {
         m.camera.cx = 7.5;
         let (_d, p, _) = saved(&m);
         let e = Map::load(&p).unwrap_err();
-        assert!(e.to_string().contains("8x6 pixels but the map's camera is 16x6"), "{e}");
+        assert!(
+            e.to_string()
+                .contains("8x6 pixels but the map's camera is 16x6"),
+            "{e}"
+        );
     }
 
     #[test]
