@@ -300,3 +300,40 @@ fn interrupted_slam_keeps_parseable_partial_outputs() {
     assert_eq!(run.frames.len(), summary.frames);
     assert!(!out.join(".rgbid-lock").exists());
 }
+
+#[test]
+fn odometry_config_with_an_unknown_key_is_an_error() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let json = tmp.path().join("c.json");
+    std::fs::write(&json, r#"{"estimatr": "huber"}"#).expect("write");
+    let o = rgbid(&["odometry", "x", "--config", s(&json)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("estimatr") && t.contains("c.json"), "{t}");
+}
+
+/// One unreadable depth image in the middle is skipped and counted, not the end of the run:
+/// the outputs are complete and the exit code says "finished with warnings".
+#[test]
+fn slam_skips_and_counts_a_single_bad_frame() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 6);
+    let list = std::fs::read_to_string(seq.join("associations.txt")).expect("associations");
+    let depth = list
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .nth(3)
+        .and_then(|l| l.split_whitespace().nth(3))
+        .expect("a depth image on line 4");
+    std::fs::write(seq.join(depth), b"\x89PNG not really").expect("corrupt");
+    let out = tmp.path().join("out");
+    let o = rgbid(&["slam", s(&seq), "--backend", "cpu", "--no-model", "--out", s(&out)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("1 frames skipped"), "{t}");
+    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
+    let summary = run.summary.expect("summary");
+    assert_eq!((summary.skipped_frames, summary.frames), (1, 5), "{t}");
+    assert_eq!(summary.status, "complete");
+}

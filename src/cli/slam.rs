@@ -165,19 +165,17 @@ fn median(v: &mut [f64]) -> f64 {
     crate::cli::bench::median(v)
 }
 
-/// Runs the subcommand.
-pub fn run(a: Args) -> Result<()> {
-    let config = a.slam_config()?;
-    // Every output location is checked (and the folder locked) before any work.
-    super::outputs::output_folder(&a.out, a.sequence.as_deref())?;
-    if let Some(p) = &a.map_out {
-        let inputs: Vec<&std::path::Path> = a.map_in.iter().map(|p| p.as_path()).collect();
-        super::outputs::output_file(p, "--map-out", &inputs)?;
-    }
-    let writer = RunFolderWriter::create(&a.out)?;
-    let out = a.out.clone();
-    let stop = super::outputs::Stop::install(move || super::outputs::mark_interrupted(&out))?;
-    let setup = (|| -> Result<_> {
+/// What a run reads before its first frame.
+struct Inputs {
+    backend: ComputeBackend,
+    source: FrameSource,
+    vocabulary: Vocabulary,
+    map: Option<Map>,
+    provenance: Provenance,
+}
+
+impl Inputs {
+    fn open(a: &Args, config: &SlamConfig) -> Result<Self> {
         let backend = select_backend(a.backend.backend, a.backend.adapter.as_deref())?;
         let spec = a.source_spec()?;
         let source = FrameSource::open(&spec, &backend)?;
@@ -192,10 +190,36 @@ pub fn run(a: Args) -> Result<()> {
             Some(p) => Some(Map::load(p)?),
             None => None,
         };
-        let provenance = Provenance::new(&config, &backend)?;
-        Ok((backend, source, vocabulary, map, provenance))
-    })();
-    let (backend, mut source, vocabulary, map, provenance) = match setup {
+        let provenance = Provenance::new(config, &backend)?;
+        Ok(Inputs {
+            backend,
+            source,
+            vocabulary,
+            map,
+            provenance,
+        })
+    }
+}
+
+/// Runs the subcommand.
+pub fn run(a: Args) -> Result<()> {
+    let config = a.slam_config()?;
+    // Every output location is checked (and the folder locked) before any work.
+    super::outputs::output_folder(&a.out, a.sequence.as_deref())?;
+    if let Some(p) = &a.map_out {
+        let inputs: Vec<&std::path::Path> = a.map_in.iter().map(|p| p.as_path()).collect();
+        super::outputs::output_file(p, "--map-out", &inputs)?;
+    }
+    let writer = RunFolderWriter::create(&a.out)?;
+    let out = a.out.clone();
+    let stop = super::outputs::Stop::install(move || super::outputs::mark_interrupted(&out))?;
+    let Inputs {
+        backend,
+        mut source,
+        vocabulary,
+        map,
+        provenance,
+    } = match Inputs::open(&a, &config) {
         Ok(s) => s,
         Err(e) => {
             // Nothing ran: the folder says why, and the error is reported once, as it is.

@@ -215,10 +215,10 @@ pub fn read_tree(path: &Path) -> Result<Value, SettingsError> {
         message,
     };
     match format {
-        Format::Json => serde_json::from_str(&text).map_err(|e| syntax(e.to_string())),
+        Format::Json => serde_json::from_str(text).map_err(|e| syntax(e.to_string())),
         Format::Toml => {
             let table: toml::Table =
-                toml::from_str(&text).map_err(|e| syntax(e.to_string().trim().to_string()))?;
+                toml::from_str(text).map_err(|e| syntax(e.to_string().trim().to_string()))?;
             toml_to_json(toml::Value::Table(table)).map_err(syntax)
         }
     }
