@@ -328,7 +328,15 @@ fn slam_skips_and_counts_a_single_bad_frame() {
         .expect("a depth image on line 4");
     std::fs::write(seq.join(depth), b"\x89PNG not really").expect("corrupt");
     let out = tmp.path().join("out");
-    let o = rgbid(&["slam", s(&seq), "--backend", "cpu", "--no-model", "--out", s(&out)]);
+    let o = rgbid(&[
+        "slam",
+        s(&seq),
+        "--backend",
+        "cpu",
+        "--no-model",
+        "--out",
+        s(&out),
+    ]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
     assert!(t.contains("1 frames skipped"), "{t}");
