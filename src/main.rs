@@ -10,7 +10,7 @@ mod cli;
 /// rgbid: dense RGB-D odometry with inverse depth, and the rest of the thesis' SLAM systems,
 /// on any GPU (or the CPU).
 #[derive(Parser)]
-#[command(name = "rgbid", version, about, long_about = None)]
+#[command(name = "rgbid", version, about, long_about = None, after_help = cli::outcome::EXIT_CODES_HELP)]
 struct Cli {
     /// Log level (error, warn, info, debug, trace); RUST_LOG overrides it.
     #[arg(long, global = true, default_value = "info")]
@@ -70,8 +70,14 @@ fn main() {
         .format_timestamp(None)
         .init();
     if let Err(e) = run(cli.command) {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
+        let code = cli::outcome::exit_code(&e);
+        let label = if code == cli::outcome::ERROR {
+            "error: "
+        } else {
+            ""
+        };
+        eprintln!("{label}{}", cli::outcome::message(&e));
+        std::process::exit(code);
     }
 }
 

@@ -139,8 +139,8 @@ fn colour_depth_size_mismatch() {
     assert!(
         s.contains("rgb/0.png")
             && s.contains("depth/0.png")
-            && s.contains("(16, 12)")
-            && s.contains("(8, 6)"),
+            && s.contains("16x12")
+            && s.contains("8x6"),
         "{s}"
     );
 }
@@ -158,9 +158,28 @@ fn image_size_differs_from_camera() {
     let s = e.to_string();
     assert!(matches!(e, IoError::CameraSizeMismatch { .. }), "{s}");
     assert!(
-        s.contains("rgb/0.png") && s.contains("(640, 480)") && s.contains("test camera"),
+        s.contains("rgb/0.png") && s.contains("640x480") && s.contains("test camera"),
         "{s}"
     );
+}
+
+/// A distorted camera far larger than the images is refused from the image header, before
+/// its undistortion table (tens of bytes per camera pixel: 65535 x 65535 would be ~50 GB)
+/// is built.
+#[test]
+fn huge_distorted_camera_is_refused_before_its_undistortion_table() {
+    let tmp = tempfile::tempdir().unwrap();
+    good_sequence(tmp.path());
+    let mut o = opts();
+    if let Some(c) = o.camera.as_mut() {
+        c.camera.width = 65535;
+        c.camera.height = 65535;
+        c.camera.distortion.k1 = 0.01;
+    }
+    let e = TumSequence::open(tmp.path(), &o).unwrap_err();
+    let s = e.to_string();
+    assert!(matches!(e, IoError::CameraSizeMismatch { .. }), "{s}");
+    assert!(s.contains("65535x65535") && s.contains("16x12"), "{s}");
 }
 
 #[test]

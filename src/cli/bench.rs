@@ -40,8 +40,8 @@ pub struct KernelBench {
     /// Image sizes, comma-separated WxH.
     #[arg(long, default_value = "640x480,320x240")]
     pub sizes: String,
-    /// Repetitions (the median is reported).
-    #[arg(long, default_value_t = 15)]
+    /// Repetitions (the median is reported), >= 1.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 15)]
     pub repeat: usize,
     /// GPU adapter name filter.
     #[arg(long)]
@@ -343,8 +343,8 @@ pub struct OdometryBench {
     /// Backends to measure, comma-separated: cpu, gpu.
     #[arg(long, default_value = "cpu,gpu")]
     pub backends: String,
-    /// Process at most this many frames.
-    #[arg(long)]
+    /// Process at most this many frames (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one)]
     pub max_frames: Option<usize>,
     /// Peer methods of `../shared/eval/peer_odometry.py` to run in the same benchmark
     /// (comma-separated; empty for none).

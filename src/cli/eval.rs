@@ -22,11 +22,11 @@ pub struct Args {
     /// Print one JSON line instead of a table.
     #[arg(long)]
     pub json: bool,
-    /// Largest time difference of a matched pose pair, seconds.
-    #[arg(long, default_value_t = 0.02)]
+    /// Largest time difference of a matched pose pair, seconds, > 0.
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.02)]
     pub max_diff: f64,
-    /// RPE interval, seconds.
-    #[arg(long, default_value_t = 1.0)]
+    /// RPE interval, seconds, > 0.
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 1.0)]
     pub delta: f64,
     /// Align with a similarity (estimate scale too), for monocular trajectories.
     #[arg(long)]

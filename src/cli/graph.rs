@@ -9,6 +9,7 @@ use rgbid::graph::g2o::{read_g2o, write_g2o, G2oFile, LoadedGraph};
 use rgbid::graph::isam::read_isam;
 use rgbid::graph::{
     self, planar, Algorithm, EdgeCost, InitMethod, RobustKernel, SolveReport, SolverOptions,
+    Termination,
 };
 
 /// Subcommands of `rgbid graph`.
@@ -101,8 +102,8 @@ pub struct SolveArgs {
     /// Robust kernel on every edge.
     #[arg(long, value_enum, default_value = "none")]
     pub robust: RobustArg,
-    /// Kernel width (on the whitened residual norm).
-    #[arg(long, default_value_t = 1.0)]
+    /// Kernel width (on the whitened residual norm), > 0.
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 1.0)]
     pub robust_delta: f64,
     /// Maximum iterations (0: report the initialisation alone, e.g. the linear 2D
     /// approximation). Hard graphs need more than 100 (M3500c from the linear
@@ -112,21 +113,22 @@ pub struct SolveArgs {
     /// Initial Levenberg-Marquardt damping, relative to the Hessian's diagonal. Default:
     /// 1e-9 after a linear / chordal initialisation (close to the optimum: nearly Gauss-Newton
     /// steps, 2-4x fewer iterations on the benchmark files), 1e-5 from odometry (safer far from
-    /// it: 1e-9 ends in worse local minima on M3500b/c).
-    #[arg(long)]
+    /// it: 1e-9 ends in worse local minima on M3500b/c). Finite, > 0.
+    #[arg(long, value_parser = crate::cli::options::range::positive)]
     pub initial_lambda: Option<f64>,
     /// Edge cost for `--param se`.
     #[arg(long, value_enum, default_value = "geodesic")]
     pub cost: CostArg,
-    /// Curve-graph reduction: minimal distance (metres) between kept nodes (0 keeps all).
-    #[arg(long, default_value_t = 0.0)]
+    /// Curve-graph reduction: minimal distance (metres, >= 0) between kept nodes (0 keeps
+    /// all).
+    #[arg(long, value_parser = crate::cli::options::range::non_negative, default_value_t = 0.0)]
     pub th_d: f64,
-    /// Curve-graph reduction: minimal rotation (radians) between kept nodes.
-    #[arg(long, default_value_t = 0.0)]
+    /// Curve-graph reduction: minimal rotation (radians, >= 0) between kept nodes.
+    #[arg(long, value_parser = crate::cli::options::range::non_negative, default_value_t = 0.0)]
     pub th_theta: f64,
     /// `--param curve2d`: largest off-plane RMS accepted, as a fraction of the in-plane
-    /// extent.
-    #[arg(long, default_value_t = 0.05)]
+    /// extent, in (0, 1).
+    #[arg(long, value_parser = crate::cli::options::range::open_unit, default_value_t = 0.05)]
     pub max_plane_ratio: f64,
 }
 
@@ -174,8 +176,8 @@ pub struct BenchArgs {
     /// one JSON object per run instead of the table.
     #[arg(long, value_name = "FILE", num_args = 0..=1)]
     pub json: Option<Option<PathBuf>>,
-    /// Time every rgbid solve this many times and report the median.
-    #[arg(long, default_value_t = 3)]
+    /// Time every rgbid solve this many times (>= 1) and report the median.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 3)]
     pub repeat: usize,
     /// `--suite files`: Python with the `gtsam` wheel; runs `--peer-script` on every file in
     /// the same run (LM, GN and, in 3D, chordal + LM) and prints the time ratio against its
@@ -191,13 +193,45 @@ pub struct BenchArgs {
     pub solve: SolveArgs,
 }
 
+/// Reads a g2o or iSAM file. The extension `.g2o` (any case) means g2o; otherwise the first
+/// tag of the file decides (`VERTEX*`, `EDGE*` or `FIX` is g2o, anything else iSAM).
 fn load(path: &Path) -> Result<G2oFile> {
-    let is_g2o = path.extension().is_some_and(|e| e == "g2o");
-    if is_g2o {
+    if is_g2o(path)? {
         Ok(read_g2o(path)?)
     } else {
         Ok(read_isam(path)?)
     }
+}
+
+fn is_g2o(path: &Path) -> Result<bool> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("g2o"))
+    {
+        return Ok(true);
+    }
+    Ok(first_tag(path)?.is_some_and(|t| {
+        let t = t.to_ascii_uppercase();
+        t.starts_with("VERTEX") || t.starts_with("EDGE") || t == "FIX"
+    }))
+}
+
+/// The first word of the first line that is neither empty nor a comment, from the first
+/// 64 KiB of the file.
+fn first_tag(path: &Path) -> Result<Option<String>> {
+    use std::io::Read;
+    let mut head = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(64 * 1024).read_to_end(&mut head))
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    let text = String::from_utf8_lossy(&head);
+    let text = text.trim_start_matches('\u{feff}');
+    Ok(text
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))
+        .and_then(|l| l.split_whitespace().next())
+        .map(str::to_string))
 }
 
 impl SolveArgs {
@@ -342,6 +376,7 @@ pub fn solve(graph: &mut LoadedGraph, args: &SolveArgs) -> Result<Outcome> {
 pub fn run(c: Command) -> Result<()> {
     match c {
         Command::Optimize(a) => {
+            super::outputs::output_file(&a.out, "--out", &[&a.input])?;
             let mut f = load(&a.input)?;
             let (nv, ne) = sizes(&f.graph);
             println!(
@@ -388,6 +423,14 @@ pub fn run(c: Command) -> Result<()> {
             );
             write_g2o(&a.out, &f.graph)?;
             println!("wrote {}", a.out.display());
+            // A solve stopped by the iteration limit wrote its last estimate, which is not an
+            // optimum: exit code 3 (`--max-iterations 0` asks for the initialisation alone).
+            if o.report.termination == Termination::MaxIterations && a.solve.max_iterations > 0 {
+                return super::outcome::warnings(vec![format!(
+                    "the solver stopped at --max-iterations {} without converging",
+                    a.solve.max_iterations
+                )]);
+            }
             Ok(())
         }
         Command::Eval { est, gt } => {

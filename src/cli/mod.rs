@@ -8,6 +8,8 @@ pub mod graph;
 pub mod mono;
 pub mod odometry;
 pub mod options;
+pub mod outcome;
+pub mod outputs;
 pub mod place;
 pub mod report;
 pub mod scale;

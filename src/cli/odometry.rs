@@ -12,7 +12,7 @@ use rgbid::io::Layout;
 use rgbid::odometry::{Odometry, OdometryError};
 use rgbid::trajectory::TimedPose;
 
-use super::options::{write_sidecar, BackendArgs, ConfigArgs, OdometryOptions};
+use super::options::{range, write_sidecar, BackendArgs, ConfigArgs, OdometryOptions};
 
 /// Arguments of `rgbid odometry`.
 #[derive(clap::Args)]
@@ -46,8 +46,8 @@ pub struct Args {
     /// condition number).
     #[arg(long)]
     pub csv: Option<PathBuf>,
-    /// Process at most this many frames.
-    #[arg(long)]
+    /// Process at most this many frames (>= 1).
+    #[arg(long, value_parser = range::at_least_one)]
     pub max_frames: Option<usize>,
     /// Configuration: an `OdometryConfig` file (`rgbid config dump --command odometry`).
     #[command(flatten)]
@@ -71,6 +71,18 @@ pub fn run(args: Args) -> Result<()> {
         opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
     }
     let seq = TumSequence::open(&args.sequence, &opts)?;
+    // Output locations are checked before any frame runs; the sequence's own files are
+    // never outputs.
+    let inputs: Vec<&std::path::Path> = [&seq.groundtruth]
+        .into_iter()
+        .flatten()
+        .map(|p| p.as_path())
+        .collect();
+    super::outputs::output_file(&args.out, "--out", &inputs)?;
+    if let Some(p) = &args.csv {
+        super::outputs::output_file(p, "--csv", &inputs)?;
+    }
+    let stop = super::outputs::Stop::install(|| {})?;
     let backend = select_backend(args.backend.backend, args.backend.adapter.as_deref())?;
     log::info!("{} frames, backend {}", seq.len(), backend.name());
     let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
@@ -109,7 +121,12 @@ pub fn run(args: Args) -> Result<()> {
     let mut failures = 0usize;
     let mut outcome: Result<()> = Ok(());
     let mut last_pose = None;
+    let mut interrupted = false;
     for i in 0..seq.len() {
+        if stop.requested() {
+            interrupted = true;
+            break;
+        }
         let frame = match seq.load(i) {
             Ok(f) => f,
             Err(e) => {
@@ -175,8 +192,22 @@ pub fn run(args: Args) -> Result<()> {
         println!("{failures} frames failed to track (see the log)");
     }
     outcome?;
-    if let Some(gt) = &groundtruth {
-        crate::cli::eval::print_against(gt, &args.out)?;
+    if interrupted {
+        return Err(super::outcome::Interrupted { out: args.out }.into());
     }
-    Ok(())
+    let mut warnings = Vec::new();
+    if failures > 0 {
+        warnings.push(format!("{failures} frames failed to track"));
+    }
+    if let Some(gt) = &groundtruth {
+        // The trajectory is written and complete: an evaluation that cannot be done is a
+        // warning (exit code 3), not an error.
+        if let Err(e) = crate::cli::eval::print_against(gt, &args.out) {
+            warnings.push(format!(
+                "trajectory not evaluated: {}",
+                super::outcome::message(&e)
+            ));
+        }
+    }
+    super::outcome::warnings(warnings)
 }

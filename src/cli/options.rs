@@ -66,10 +66,11 @@ pub struct OdometryOptions {
     #[arg(long, value_enum)]
     pub geometric: Option<GeometricParam>,
     /// Pyramid levels, 1 to 8 [default: 4].
-    #[arg(long)]
+    #[arg(long, value_parser = range::pyramid_levels)]
     pub levels: Option<usize>,
-    /// Finest pyramid level used, below --levels (0 = full resolution) [default: 0].
-    #[arg(long)]
+    /// Finest pyramid level used, 0 to 7 and below --levels (0 = full resolution)
+    /// [default: 0].
+    #[arg(long, value_parser = range::pyramid_level)]
     pub stop_level: Option<usize>,
     /// Levels wider than this many pixels are not optimised (at 640x480 the finest optimised
     /// level is then 320x240); 0 optimises every level down to --stop-level [default: 320].
@@ -80,7 +81,7 @@ pub struct OdometryOptions {
     pub frame_to_frame: bool,
     /// Covisibility ratio in [0, 1] below which the reference frame is switched
     /// [default: 0.9].
-    #[arg(long)]
+    #[arg(long, value_parser = range::unit)]
     pub covisibility: Option<f64>,
 }
 
@@ -155,4 +156,140 @@ pub fn write_sidecar<T: Serialize>(
     let path = Provenance::new(config, backend)?.write_sidecar(output)?;
     log::info!("provenance in {}", path.display());
     Ok(())
+}
+
+/// Value parsers that check a number's range at parse time, so a bad value is a usage error
+/// (exit code 2) naming the option and its valid range, before any work starts. clap adds
+/// "invalid value 'X' for '--option <VALUE>'" in front of the message returned here.
+pub mod range {
+    fn number(s: &str) -> Result<f64, String> {
+        s.trim()
+            .parse::<f64>()
+            .map_err(|_| "not a number".to_string())
+    }
+
+    /// A finite number > 0.
+    pub fn positive(s: &str) -> Result<f64, String> {
+        let v = number(s)?;
+        if v.is_finite() && v > 0.0 {
+            Ok(v)
+        } else {
+            Err("must be a finite number > 0".into())
+        }
+    }
+
+    /// A finite number >= 0.
+    pub fn non_negative(s: &str) -> Result<f64, String> {
+        let v = number(s)?;
+        if v.is_finite() && v >= 0.0 {
+            Ok(v)
+        } else {
+            Err("must be a finite number >= 0".into())
+        }
+    }
+
+    /// A number > 0, `inf` included (a limit that `inf` switches off).
+    pub fn positive_or_inf(s: &str) -> Result<f64, String> {
+        let v = number(s)?;
+        if v > 0.0 {
+            Ok(v)
+        } else {
+            Err("must be a number > 0 (inf switches the limit off)".into())
+        }
+    }
+
+    /// A number in [0, 1].
+    pub fn unit(s: &str) -> Result<f64, String> {
+        let v = number(s)?;
+        if (0.0..=1.0).contains(&v) {
+            Ok(v)
+        } else {
+            Err("must be a number in [0, 1]".into())
+        }
+    }
+
+    /// A number in (0, 1).
+    pub fn open_unit(s: &str) -> Result<f64, String> {
+        let v = number(s)?;
+        if v > 0.0 && v < 1.0 {
+            Ok(v)
+        } else {
+            Err("must be a number in (0, 1)".into())
+        }
+    }
+
+    /// A frame rate for `--realtime`: finite, in [0.001, 10000] frames per second (the
+    /// upper end is far beyond any camera; the lower end keeps the waits representable).
+    pub fn frame_rate(s: &str) -> Result<f64, String> {
+        let v = number(s)?;
+        if (1e-3..=1e4).contains(&v) {
+            Ok(v)
+        } else {
+            Err("must be a frame rate in [0.001, 10000] frames per second".into())
+        }
+    }
+
+    fn integer(s: &str, lo: usize, hi: usize) -> Result<usize, String> {
+        let v: usize = s
+            .trim()
+            .parse()
+            .map_err(|_| format!("not a whole number (valid: {lo} to {hi})"))?;
+        if (lo..=hi).contains(&v) {
+            Ok(v)
+        } else if hi == usize::MAX {
+            Err(format!("must be at least {lo}"))
+        } else {
+            Err(format!("must be in {lo} to {hi}"))
+        }
+    }
+
+    /// A whole number >= 1.
+    pub fn at_least_one(s: &str) -> Result<usize, String> {
+        integer(s, 1, usize::MAX)
+    }
+
+    /// A whole number >= 2.
+    pub fn at_least_two(s: &str) -> Result<usize, String> {
+        integer(s, 2, usize::MAX)
+    }
+
+    /// Pyramid levels: 1 to 8.
+    pub fn pyramid_levels(s: &str) -> Result<usize, String> {
+        integer(s, 1, 8)
+    }
+
+    /// A pyramid level index: 0 to 7.
+    pub fn pyramid_level(s: &str) -> Result<usize, String> {
+        integer(s, 0, 7)
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        #[test]
+        fn ranges_reject_nan_inf_zero_and_negative() {
+            for bad in ["0", "1e-300", "nan", "NaN", "-1", "inf", "-inf", "x", ""] {
+                assert!(frame_rate(bad).is_err(), "{bad}");
+            }
+            for bad in ["0", "nan", "NaN", "-1", "inf", "-inf", "x", ""] {
+                assert!(positive(bad).is_err(), "{bad}");
+            }
+            assert_eq!(positive("1e-300"), Ok(1e-300));
+            assert_eq!(frame_rate("30"), Ok(30.0));
+            assert_eq!(positive_or_inf("inf"), Ok(f64::INFINITY));
+            assert!(positive_or_inf("nan").is_err());
+            assert!(positive_or_inf("0").is_err());
+            assert!(unit("1.5").is_err() && unit("nan").is_err());
+            assert_eq!(unit("0.7"), Ok(0.7));
+            assert!(open_unit("1").is_err() && open_unit("0").is_err());
+            assert_eq!(non_negative("0"), Ok(0.0));
+            assert!(non_negative("-0.1").is_err() && non_negative("inf").is_err());
+            assert_eq!(pyramid_levels("8"), Ok(8));
+            assert!(pyramid_levels("9").unwrap_err().contains("1 to 8"));
+            assert!(pyramid_levels("0").is_err());
+            assert!(at_least_one("0").unwrap_err().contains("at least 1"));
+            assert!(at_least_one("-3").unwrap_err().contains("whole number"));
+        }
+    }
 }

@@ -35,8 +35,8 @@ pub struct LoopsArgs {
     /// Ground truth (TUM trajectory, world_from_camera) for precision / recall.
     #[arg(long)]
     pub gt: Option<PathBuf>,
-    /// Use every N-th frame as a keyframe.
-    #[arg(long, default_value_t = 1)]
+    /// Use every N-th frame as a keyframe (N >= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 1)]
     pub every: usize,
     /// Minimum separation between loop keyframes, in keyframes (`query.min_separation`)
     /// [default: 30].
@@ -44,7 +44,7 @@ pub struct LoopsArgs {
     pub min_separation: Option<usize>,
     /// Minimum normalised score of a candidate, in [0, 1] (`query.min_normalised_score`)
     /// [default: 0.3].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::unit)]
     pub min_score: Option<f64>,
     /// Configuration: a `LoopDetectorParams` file (`rgbid config dump --command place`; this
     /// command starts from `query.min_separation = 30` and a `direct_index_depth` of the
@@ -55,11 +55,11 @@ pub struct LoopsArgs {
     /// the depth factor). Default: calib.txt beside the sequence, else the `default` preset.
     #[arg(long)]
     pub camera: Option<String>,
-    /// Ground-truth revisit: camera centres closer than this (metres)...
-    #[arg(long, default_value_t = 0.5)]
+    /// Ground-truth revisit: camera centres closer than this (metres, > 0)...
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.5)]
     pub gt_distance: f64,
-    /// ...and optical axes closer than this (degrees).
-    #[arg(long, default_value_t = 30.0)]
+    /// ...and optical axes closer than this (degrees, > 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 30.0)]
     pub gt_angle: f64,
 }
 
@@ -68,11 +68,11 @@ pub struct LoopsArgs {
 pub struct BenchArgs {
     /// Image file (PNG/JPEG).
     pub image: PathBuf,
-    /// Number of timed runs (after one warm-up).
-    #[arg(long, default_value_t = 20)]
+    /// Number of timed runs (after one warm-up), >= 1.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 20)]
     pub repeat: usize,
-    /// Target number of keypoints.
-    #[arg(long, default_value_t = 1000)]
+    /// Target number of keypoints, >= 1.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 1000)]
     pub features: usize,
     /// Write the keypoints to this file: `x y level angle_rad score descriptor_hex` per line.
     #[arg(long)]

@@ -3,12 +3,14 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::gpu::{select_backend, ComputeBackend};
-use rgbid::io::run_folder::{FrameRow, KeyframeTimingRow, LoopRow, RunFolderWriter, RunSummary};
+use rgbid::io::run_folder::{
+    FrameRow, KeyframeTimingRow, LoopRow, RunFolderWriter, RunStatus, RunSummary,
+};
 use rgbid::io::settings::Provenance;
 use rgbid::io::Layout;
 use rgbid::place::Vocabulary;
@@ -16,7 +18,7 @@ use rgbid::slam::{build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, 
 use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
 
-use super::options::{BackendArgs, ConfigArgs, OdometryOptions};
+use super::options::{range, BackendArgs, ConfigArgs, OdometryOptions};
 
 /// Arguments of `rgbid slam`.
 #[derive(clap::Args)]
@@ -39,8 +41,8 @@ pub struct Args {
     /// Layout of the sequence folder [default: detected from its content].
     #[arg(long, value_enum)]
     pub format: Option<Layout>,
-    /// Only the first N frames.
-    #[arg(long)]
+    /// Only the first N frames (N >= 1).
+    #[arg(long, value_parser = range::at_least_one)]
     pub max_frames: Option<usize>,
     /// Load this map first: the session relocalises in it and extends it.
     #[arg(long)]
@@ -49,30 +51,32 @@ pub struct Args {
     #[arg(long)]
     pub map_out: Option<PathBuf>,
     /// Feed frames at this rate (frames per second) as a live camera would: frames that
-    /// arrive while the system is busy are dropped and counted (sets `queue = 2`).
-    #[arg(long)]
+    /// arrive while the system is busy are dropped and counted (sets `queue = 2`); 0.001 to
+    /// 10000 frames per second.
+    #[arg(long, value_parser = range::frame_rate)]
     pub realtime: Option<f64>,
     /// Disable the superjut / neg-entropy masks in place recognition (`masks = false`).
     #[arg(long)]
     pub no_masks: bool,
     /// Keyframe covisibility threshold in [0, 1] (`keyframe_covisibility`)
     /// [default: 0.7].
-    #[arg(long)]
+    #[arg(long, value_parser = range::unit)]
     pub keyframe_covisibility: Option<f64>,
     /// A frame whose motion since the last posed frame is faster than this (m/s) is treated as
     /// a tracking failure (lost, then relocalised) instead of keeping a wrong pose
     /// (`lost_max_speed`). The default suits handheld and worn cameras; raise it for
-    /// vehicles, `inf` disables it [default: 3].
-    #[arg(long)]
+    /// vehicles, `inf` disables it; > 0 [default: 3].
+    #[arg(long, value_parser = range::positive_or_inf)]
     pub max_speed: Option<f64>,
-    /// The same for the rotation rate, rad/s (`lost_max_angular_speed`) [default: 4].
-    #[arg(long)]
+    /// The same for the rotation rate, rad/s (`lost_max_angular_speed`); > 0, `inf` disables
+    /// it [default: 4].
+    #[arg(long, value_parser = range::positive_or_inf)]
     pub max_angular_speed: Option<f64>,
     /// Do not write model.ply.
     #[arg(long)]
     pub no_model: bool,
-    /// Voxel size of the model filter, metres (0 = no filter).
-    #[arg(long, default_value_t = ModelParams::default().voxel)]
+    /// Voxel size of the model filter, metres, >= 0 (0 = no filter).
+    #[arg(long, value_parser = range::non_negative, default_value_t = ModelParams::default().voxel)]
     pub voxel: f64,
     /// Vocabulary file (default: the embedded one).
     #[arg(long)]
@@ -167,27 +171,71 @@ fn median(v: &mut [f64]) -> f64 {
     crate::cli::bench::median(v)
 }
 
+/// What a run reads before its first frame.
+struct Inputs {
+    backend: ComputeBackend,
+    source: FrameSource,
+    vocabulary: Vocabulary,
+    map: Option<Map>,
+    provenance: Provenance,
+}
+
+impl Inputs {
+    fn open(a: &Args, config: &SlamConfig) -> Result<Self> {
+        let backend = select_backend(a.backend.backend, a.backend.adapter.as_deref())?;
+        let spec = a.source_spec()?;
+        let source = FrameSource::open(&spec, &backend)?;
+        if source.is_empty() {
+            bail!("the sequence has no frames");
+        }
+        let vocabulary = match &a.vocabulary {
+            Some(p) => Vocabulary::load(p)?,
+            None => Vocabulary::embedded_default()?,
+        };
+        let map = match &a.map_in {
+            Some(p) => Some(Map::load(p)?),
+            None => None,
+        };
+        let provenance = Provenance::new(config, &backend)?;
+        Ok(Inputs {
+            backend,
+            source,
+            vocabulary,
+            map,
+            provenance,
+        })
+    }
+}
+
 /// Runs the subcommand.
 pub fn run(a: Args) -> Result<()> {
     let config = a.slam_config()?;
-    let backend = select_backend(a.backend.backend, a.backend.adapter.as_deref())?;
-    let spec = a.source_spec()?;
-    let mut source = FrameSource::open(&spec, &backend)?;
-    if source.is_empty() {
-        bail!("the sequence has no frames");
+    // Every output location is checked (and the folder locked) before any work.
+    super::outputs::output_folder(&a.out, a.sequence.as_deref())?;
+    if let Some(p) = &a.map_out {
+        let inputs: Vec<&std::path::Path> = a.map_in.iter().map(|p| p.as_path()).collect();
+        super::outputs::output_file(p, "--map-out", &inputs)?;
     }
-    let vocabulary = match &a.vocabulary {
-        Some(p) => Vocabulary::load(p)?,
-        None => Vocabulary::embedded_default()?,
+    let writer = RunFolderWriter::create(&a.out)?;
+    let out = a.out.clone();
+    let stop = super::outputs::Stop::install(move || super::outputs::mark_interrupted(&out))?;
+    let Inputs {
+        backend,
+        mut source,
+        vocabulary,
+        map,
+        provenance,
+    } = match Inputs::open(&a, &config) {
+        Ok(s) => s,
+        Err(e) => {
+            // Nothing ran: the folder says why, and the error is reported once, as it is.
+            let status = RunStatus::Failed(super::outcome::message(&e));
+            writer.end(RunSummary::default(), status)?;
+            return Err(e);
+        }
     };
-    let map = match &a.map_in {
-        Some(p) => Some(Map::load(p)?),
-        None => None,
-    };
-    let provenance = Provenance::new(&config, &backend)?;
-    // Per-frame rows are appended and flushed as they come (see `rgbid::io::run_folder`).
-    let writer = RunFolderWriter::create(&a.out).with_context(|| format!("{}", a.out.display()))?;
-    let outcome = run_slam(
+    // Frame rows are appended and flushed as they come (see `rgbid::io::run_folder`).
+    run_slam(
         &a,
         &mut source,
         config,
@@ -196,14 +244,8 @@ pub fn run(a: Args) -> Result<()> {
         map,
         &provenance,
         writer,
-    );
-    match outcome {
-        Ok(()) => Ok(()),
-        Err(e) => Err(e.context(format!(
-            "(whatever was computed before the error is in {})",
-            a.out.display()
-        ))),
-    }
+        &stop,
+    )
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -216,6 +258,7 @@ fn run_slam(
     map: Option<Map>,
     provenance: &Provenance,
     mut writer: RunFolderWriter,
+    stop: &super::outputs::Stop,
 ) -> Result<()> {
     let camera = source.camera();
     let n = source.len();
@@ -231,19 +274,36 @@ fn run_slam(
         }
     );
     let t0 = Instant::now();
-    let mut slam = Slam::new(config, camera, backend, vocabulary, map)?;
+    let mut slam = match Slam::new(config, camera, backend, vocabulary, map) {
+        Ok(s) => s,
+        Err(e) => {
+            let e = anyhow::Error::new(e);
+            writer.end(
+                RunSummary::default(),
+                RunStatus::Failed(super::outcome::message(&e)),
+            )?;
+            return Err(e);
+        }
+    };
     let bar = ProgressBar::new(n as u64);
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let mut error: Option<anyhow::Error> = None;
+    let mut interrupted = false;
     let mut dropped = 0usize;
     let mut lost = 0usize;
+    let mut skipped = 0usize;
+    let mut first_skip: Option<String> = None;
     let mut load_ms = Vec::new();
     let mut i = 0usize;
     let start = Instant::now();
     while i < n {
+        if stop.requested() {
+            interrupted = true;
+            break;
+        }
         if let Some(fps) = a.realtime {
             // The newest frame a live camera would have delivered by now.
             let available = (start.elapsed().as_secs_f64() * fps).floor() as usize;
@@ -257,6 +317,24 @@ fn run_slam(
         let tl = Instant::now();
         let frame = match source.load(i) {
             Ok(f) => f,
+            Err(e) if frame_content_error(&e) => {
+                // One bad frame is skipped and counted; when most frames fail the input's
+                // settings are wrong, and the first error (with its advice) stops the run.
+                let e = anyhow::Error::new(e).context(format!("frame {i}"));
+                skipped += 1;
+                log::warn!("skipping {}", super::outcome::message(&e));
+                first_skip.get_or_insert_with(|| super::outcome::message(&e));
+                if skipped >= MAX_SKIPPED && 2 * skipped > i + 1 {
+                    error = Some(e.context(format!(
+                        "{skipped} of the first {} frames could not be used",
+                        i + 1
+                    )));
+                    break;
+                }
+                bar.inc(1);
+                i += 1;
+                continue;
+            }
             Err(e) => {
                 error = Some(anyhow::Error::new(e).context(format!("frame {i}")));
                 break;
@@ -291,34 +369,98 @@ fn run_slam(
         bar.inc(1);
         i += 1;
         if let Some(fps) = a.realtime {
-            // Wait for the next frame to arrive.
+            // Wait for the next frame to arrive (`--realtime` is range-checked, so the wait
+            // is finite and representable).
             let due = i as f64 / fps;
             let now = start.elapsed().as_secs_f64();
-            if due > now {
-                std::thread::sleep(std::time::Duration::from_secs_f64(due - now));
+            if let Ok(wait) = std::time::Duration::try_from_secs_f64(due - now) {
+                std::thread::sleep(wait);
             }
         }
     }
     bar.finish_and_clear();
     let processed = slam.frames();
-    let result = slam.finish()?;
+    let result = match slam.finish() {
+        Ok(r) => r,
+        Err(e) => {
+            // The back-end's own error, reported once; the per-frame files hold every frame
+            // processed before it and the summary says the run failed.
+            let e = match error {
+                Some(first) => first.context(format!("and then: {e}")),
+                None => anyhow::Error::new(e),
+            };
+            let summary = RunSummary {
+                frames: processed,
+                dropped,
+                skipped_frames: skipped,
+                wall_s: t0.elapsed().as_secs_f64(),
+                ..Default::default()
+            };
+            writer.end(summary, RunStatus::Failed(super::outcome::message(&e)))?;
+            return Err(e.context(format!(
+                "the {processed} frames processed before the error are in {}",
+                a.out.display()
+            )));
+        }
+    };
     let wall = t0.elapsed().as_secs_f64();
-    write_outputs(
+    let status = match (&error, interrupted) {
+        (Some(e), _) => RunStatus::Failed(super::outcome::message(e)),
+        (None, true) => RunStatus::Interrupted,
+        (None, false) => RunStatus::Complete,
+    };
+    let mut warnings = write_outputs(
         a,
         writer,
         source,
         &camera,
         &result,
         &mut load_ms,
-        dropped,
+        (dropped, skipped),
         processed,
         wall,
         provenance,
+        status,
     )?;
     if let Some(e) = error {
-        return Err(e);
+        return Err(if processed > 0 {
+            e.context(format!(
+                "the {processed} frames processed before the error are in {}",
+                a.out.display()
+            ))
+        } else {
+            e
+        });
     }
-    Ok(())
+    if interrupted {
+        return Err(super::outcome::Interrupted { out: a.out.clone() }.into());
+    }
+    if let Some(first) = first_skip {
+        warnings.push(format!(
+            "{skipped} frames skipped (counted in summary.json), the first: {first}"
+        ));
+    }
+    super::outcome::warnings(warnings)
+}
+
+/// More skipped frames than this, when they are also most of the frames tried, stop the run.
+const MAX_SKIPPED: usize = 10;
+
+/// Whether a frame's load error concerns that frame's content alone (a corrupt or
+/// implausible image) rather than the sequence or its settings.
+fn frame_content_error(e: &rgbid::source::SourceError) -> bool {
+    use rgbid::io::IoError;
+    matches!(
+        e,
+        rgbid::source::SourceError::Io(
+            IoError::Image { .. }
+                | IoError::DepthScaleMismatch { .. }
+                | IoError::DepthNot16Bit { .. }
+                | IoError::ImageSizeMismatch { .. }
+                | IoError::CameraSizeMismatch { .. }
+                | IoError::Frame { .. }
+        )
+    )
 }
 
 /// Appends a frame's row, its front-end pose and the loops checked since the last call.
@@ -348,12 +490,14 @@ fn write_outputs(
     camera: &PinholeCamera,
     r: &SlamResult,
     load_ms: &mut [f64],
-    dropped: usize,
+    (dropped, skipped): (usize, usize),
     processed: usize,
     wall: f64,
     provenance: &Provenance,
-) -> Result<()> {
+    status: RunStatus,
+) -> Result<Vec<String>> {
     let out = &a.out;
+    let mut warnings = Vec::new();
     writer.trajectory(&r.trajectory)?;
     let kf_traj: Vec<TimedPose> = r
         .keyframes()
@@ -492,6 +636,7 @@ fn write_outputs(
     let mut summary = RunSummary {
         frames: processed,
         dropped,
+        skipped_frames: skipped,
         tracked,
         lost,
         relocalised: reloc,
@@ -542,11 +687,11 @@ fn write_outputs(
                     *ate = Some(m.ate.translation.rmse);
                     *rpe_slot = Some(rpe);
                 }
-                Err(e) => println!("{name}: evaluation failed: {e}"),
+                Err(e) => warnings.push(format!("{name} trajectory not evaluated: {e}")),
             }
         }
     }
-    writer.finish(summary)?;
+    writer.end(summary, status)?;
     println!("wrote {}", out.display());
-    Ok(())
+    Ok(warnings)
 }

@@ -35,20 +35,20 @@ pub enum Command {
 pub struct TrainArgs {
     /// Image files, folders of images, or TUM sequence folders.
     pub inputs: Vec<PathBuf>,
-    /// Branching factor.
-    #[arg(long, default_value_t = 10)]
+    /// Branching factor, >= 2.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_two, default_value_t = 10)]
     pub k: usize,
-    /// Tree depth.
-    #[arg(long, default_value_t = 5)]
+    /// Tree depth, >= 1.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 5)]
     pub levels: usize,
     /// Output file (binary; `.txt` writes the DBoW2 text format).
     #[arg(long)]
     pub out: PathBuf,
-    /// Use every N-th image of each folder.
-    #[arg(long, default_value_t = 1)]
+    /// Use every N-th image of each folder (N >= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 1)]
     pub every: usize,
-    /// ORB keypoints per image.
-    #[arg(long, default_value_t = 1000)]
+    /// ORB keypoints per image, >= 1.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 1000)]
     pub features: usize,
     /// Also train on N procedurally rendered images (random textured shapes, rendered here).
     #[arg(long, default_value_t = 0)]

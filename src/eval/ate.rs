@@ -65,6 +65,18 @@ pub fn align_umeyama(
     }
     cov /= nf;
     var_src /= nf;
+    if with_scale {
+        // Positions that do not spread out (all within a nanometre of their mean) give a
+        // scale of 0, or a meaningless one.
+        let var_dst = dst[..n]
+            .iter()
+            .map(|d| (*d - md).length_squared())
+            .sum::<f64>()
+            / nf;
+        if !(var_dst > 1e-18) {
+            return Err(EvalError::StationaryGroundTruth);
+        }
+    }
     let svd = cov.svd(true, true);
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
         return Err(EvalError::DegenerateAlignment);

@@ -38,6 +38,19 @@ pub enum EvalError {
     /// The matched positions are degenerate for the alignment (all equal, so no scale).
     #[error("the estimated positions do not spread out: cannot estimate a scale")]
     DegenerateAlignment,
+    /// The ground-truth positions of the matched poses do not spread out (a stationary
+    /// camera): a scale aligned to them would be 0.
+    #[error("the ground-truth positions do not spread out (a stationary camera): cannot estimate a scale; evaluate without it")]
+    StationaryGroundTruth,
+    /// Two or more poses of one trajectory share a time stamp; matching them would pair
+    /// several poses with one and weight that time more.
+    #[error("the estimated trajectory has {count} poses at time {timestamp} s; time stamps must be distinct")]
+    DuplicateTimestamps {
+        /// The time stamp, seconds.
+        timestamp: f64,
+        /// How many poses share it.
+        count: usize,
+    },
     /// An option is out of range.
     #[error("invalid option {name} = {value}: {why}")]
     InvalidOption {
@@ -192,6 +205,20 @@ pub fn evaluate(
     gt_sorted.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
     let mut est_sorted = est.to_vec();
     est_sorted.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
+    // Duplicated estimate times would be matched many-to-one with one ground-truth pose.
+    if let Some(w) = est_sorted
+        .windows(2)
+        .find(|w| w[0].timestamp == w[1].timestamp)
+    {
+        let timestamp = w[0].timestamp;
+        return Err(EvalError::DuplicateTimestamps {
+            timestamp,
+            count: est_sorted
+                .iter()
+                .filter(|p| p.timestamp == timestamp)
+                .count(),
+        });
+    }
     let pairs = associate(&est_sorted, &gt_sorted, opts.max_time_difference);
     if pairs.len() < 3 {
         return Err(EvalError::TooFewMatches {
@@ -247,6 +274,44 @@ mod tests {
         );
         assert!(associate(&est, &[tp(0.0)], 0.02).len() == 1);
         assert!(associate(&est, &[], 0.02).is_empty());
+    }
+
+    fn moving(t: f64) -> TimedPose {
+        TimedPose {
+            timestamp: t,
+            world_from_camera: Se3::new(
+                glam::DQuat::IDENTITY,
+                glam::DVec3::new(t, (3.0 * t).sin(), 0.5 * t * t),
+            ),
+        }
+    }
+
+    #[test]
+    fn duplicated_estimate_times_are_an_error() {
+        let gt: Vec<_> = (0..20).map(|i| moving(0.1 * i as f64)).collect();
+        let mut est = gt.clone();
+        est.push(moving(0.5));
+        let e = evaluate(&gt, &est, &EvalOptions::default()).unwrap_err();
+        assert!(
+            matches!(e, EvalError::DuplicateTimestamps { count: 2, .. }),
+            "{e}"
+        );
+        assert!(evaluate(&gt, &gt, &EvalOptions::default()).is_ok());
+    }
+
+    #[test]
+    fn scale_against_a_stationary_ground_truth_is_an_error() {
+        let gt: Vec<_> = (0..20).map(|i| tp(0.1 * i as f64)).collect();
+        let est: Vec<_> = (0..20).map(|i| moving(0.1 * i as f64)).collect();
+        let opts = EvalOptions {
+            with_scale: true,
+            ..Default::default()
+        };
+        let e = evaluate(&gt, &est, &opts).unwrap_err();
+        assert!(matches!(e, EvalError::StationaryGroundTruth), "{e}");
+        // Without a scale the same pair evaluates (the error is the motion itself).
+        let m = evaluate(&gt, &est, &EvalOptions::default()).unwrap();
+        assert!(m.ate.translation.rmse > 0.1);
     }
 
     #[test]

@@ -2,9 +2,11 @@
 //! I23 I33`, `VERTEX_SE3:QUAT id x y z qx qy qz qw`, `EDGE_SE3:QUAT i j x y z qx qy qz qw` +
 //! the 21 upper-triangular information entries (translation first), and `FIX id`.
 //!
-//! Vertices are `world_from_body`, edges `i_from_j`. Files without VERTEX lines (or with some
-//! missing) get the spanning-tree (odometry) estimate composed along the edges from the
-//! lowest id. Vertices are stored sorted by id. Malformed lines are errors with file:line.
+//! Vertices are `world_from_body`, edges `i_from_j`. Files without VERTEX lines get the
+//! spanning-tree (odometry) estimate composed along the edges from the lowest id; a file with
+//! VERTEX lines must declare every vertex its edges name (an undeclared one is an error at the
+//! edge's line), and `FIX` must name an existing vertex. Vertices are stored sorted by id.
+//! Malformed lines are errors with file:line.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
@@ -113,7 +115,8 @@ pub(crate) struct RawGraph {
     pub vertices3: BTreeMap<i64, Se3>,
     pub edges2: Vec<(i64, i64, Se2, Vec<f64>, usize)>,
     pub edges3: Vec<(i64, i64, Se3, Vec<f64>, usize)>,
-    pub fixed: BTreeSet<i64>,
+    /// FIX ids with the line of their FIX.
+    pub fixed: BTreeMap<i64, usize>,
     pub first_vertex_line: BTreeMap<i64, usize>,
 }
 
@@ -158,7 +161,7 @@ struct RawPart<P> {
 
 fn build_part<P: crate::graph::Pose>(
     part: RawPart<P>,
-    fixed: &BTreeSet<i64>,
+    fixed: &BTreeMap<i64, usize>,
     first_vertex_line: &BTreeMap<i64, usize>,
     path: &Path,
 ) -> Result<(crate::graph::PoseGraph<P>, bool, Vec<usize>), IoError> {
@@ -170,6 +173,25 @@ fn build_part<P: crate::graph::Pose>(
         ids.insert(*j);
     }
     let missing = ids.len() > before;
+    if missing && before > 0 {
+        // A file that declares vertices declares all of them: an edge to an undeclared one is
+        // a typo, which the spanning-tree initialisation would otherwise hide by replacing
+        // every declared pose.
+        for (i, j, .., line) in &part.edges {
+            for id in [i, j] {
+                if !part.vertices.contains_key(id) {
+                    return Err(IoError::parse(
+                        path,
+                        *line,
+                        format!(
+                            "edge {i} -> {j} names vertex {id}, which the file does not declare \
+                             (a file with vertex lines must declare every vertex)"
+                        ),
+                    ));
+                }
+            }
+        }
+    }
     if ids.is_empty() {
         return Err(IoError::Empty {
             path: path.into(),
@@ -182,9 +204,16 @@ fn build_part<P: crate::graph::Pose>(
         g.add_vertex(*id, p)
             .map_err(|e| gerr(first_vertex_line.get(id).copied().unwrap_or(0), e))?;
     }
-    for f in fixed {
-        if let Some(k) = g.index_of(*f) {
-            g.fixed[k] = true;
+    for (f, line) in fixed {
+        match g.index_of(*f) {
+            Some(k) => g.fixed[k] = true,
+            None => {
+                return Err(IoError::parse(
+                    path,
+                    *line,
+                    format!("FIX names vertex {f}, which no vertex or edge of the file has"),
+                ))
+            }
         }
     }
     let dim = <P as crate::graph::Manifold>::DIM;
@@ -332,7 +361,7 @@ pub fn parse_g2o(text: &str, path: &Path) -> Result<G2oFile, IoError> {
             }
             "FIX" => {
                 for t in &toks[1..] {
-                    raw.fixed.insert(parse_id(path, line, Some(t))?);
+                    raw.fixed.insert(parse_id(path, line, Some(t))?, line);
                 }
             }
             other => {
@@ -350,7 +379,7 @@ pub fn parse_g2o(text: &str, path: &Path) -> Result<G2oFile, IoError> {
 /// Reads a g2o file.
 pub fn read_g2o(path: impl AsRef<Path>) -> Result<G2oFile, IoError> {
     let path = path.as_ref();
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = crate::io::read_text(path)?;
     parse_g2o(&text, path)
 }
 
@@ -418,7 +447,10 @@ pub fn format_g2o(graph: &LoadedGraph) -> String {
 /// Writes a graph as g2o.
 pub fn write_g2o(path: impl AsRef<Path>, graph: &LoadedGraph) -> Result<(), IoError> {
     let path = path.as_ref();
-    std::fs::write(path, format_g2o(graph)).map_err(|e| IoError::file(path, e))
+    crate::io::write_atomic(path, |w| {
+        use std::io::Write;
+        w.write_all(format_g2o(graph).as_bytes())
+    })
 }
 
 #[cfg(test)]
@@ -497,6 +529,28 @@ mod tests {
         };
         let p = g.poses[2];
         assert!((p.x - 1.0).abs() < 1e-12 && (p.y - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn undeclared_vertices_and_fixes_are_errors_with_their_line() {
+        // An edge to a vertex the file does not declare (a typo: 7 for 1).
+        let typo = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 7 1 0 0 1 0 0 1 0 1\n";
+        let err = parse_g2o(typo, Path::new("t.g2o")).unwrap_err().to_string();
+        assert!(
+            err.starts_with("t.g2o:3:") && err.contains("vertex 7"),
+            "{err}"
+        );
+        let fix = format!("{SMALL2}FIX 0\nFIX 5\n");
+        let err = parse_g2o(&fix, Path::new("f.g2o")).unwrap_err().to_string();
+        assert!(
+            err.starts_with("f.g2o:5:") && err.contains("vertex 5"),
+            "{err}"
+        );
+        let ok = parse_g2o(&format!("{SMALL2}FIX 1\n"), Path::new("f.g2o")).unwrap();
+        let LoadedGraph::Se2(g) = ok.graph else {
+            panic!("2D expected")
+        };
+        assert_eq!(g.fixed, vec![false, true]);
     }
 
     #[test]

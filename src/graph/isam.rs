@@ -88,7 +88,7 @@ pub fn parse_isam(text: &str, path: &Path) -> Result<G2oFile, IoError> {
 /// Reads an iSAM text file.
 pub fn read_isam(path: impl AsRef<Path>) -> Result<G2oFile, IoError> {
     let path = path.as_ref();
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = crate::io::read_text(path)?;
     parse_isam(&text, path)
 }
 

@@ -97,7 +97,7 @@ impl CameraConfig {
 
     /// Reads a `key = value` camera config file.
     pub fn from_file(path: &Path) -> Result<CameraConfig, IoError> {
-        let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+        let text = super::read_text(path)?;
         Self::parse_config(&text, path)
     }
 
@@ -225,7 +225,7 @@ impl CameraConfig {
     /// Reads a TUM-style `calib.txt`: one line `fx fy cx cy [depth_factor [width height]]`
     /// (defaults 5000, 640 x 480); `#` comments and blank lines are skipped.
     pub fn from_calib_txt(path: &Path) -> Result<CameraConfig, IoError> {
-        let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+        let text = super::read_text(path)?;
         let mut found = None;
         for (i, raw) in text.lines().enumerate() {
             let s = raw.split('#').next().unwrap_or("").trim();

@@ -85,7 +85,7 @@ pub enum IoError {
         message: String,
     },
     /// Colour and depth images of one frame differ in size.
-    #[error("colour {rgb} is {rgb_size:?} but depth {depth} is {depth_size:?} (width, height): they must match")]
+    #[error("colour {rgb} is {}x{} but depth {depth} is {}x{} pixels: they must match", rgb_size.0, rgb_size.1, depth_size.0, depth_size.1)]
     ImageSizeMismatch {
         /// The colour image.
         rgb: PathBuf,
@@ -97,7 +97,7 @@ pub enum IoError {
         depth_size: (u32, u32),
     },
     /// An image's size is not the camera's.
-    #[error("{path}: image is {image_size:?} but the camera ({camera_source}) is {camera_size:?} (width, height)")]
+    #[error("{path}: image is {}x{} pixels but the camera ({camera_source}) is {}x{}", image_size.0, image_size.1, camera_size.0, camera_size.1)]
     CameraSizeMismatch {
         /// The image.
         path: PathBuf,
@@ -172,6 +172,14 @@ pub enum IoError {
         /// What did not fit.
         source: crate::image::ImageError,
     },
+    /// Another run is writing this output folder.
+    #[error("{path}: another rgbid run (process {pid}) is writing this folder; wait for it, or remove its lock file {} if no such run exists", path.join(run_folder::files::LOCK).display())]
+    FolderLocked {
+        /// The folder.
+        path: PathBuf,
+        /// The process holding the lock.
+        pid: u32,
+    },
     /// A frame index past the end of the sequence.
     #[error("frame {index} requested but the sequence has {len} frames")]
     IndexOutOfRange {
@@ -198,4 +206,51 @@ impl IoError {
             message: message.into(),
         }
     }
+}
+
+/// Reads a text file whole, without a leading UTF-8 byte-order mark (editors on Windows write
+/// one; left in, it would be an invisible part of the first token).
+pub(crate) fn read_text(path: &std::path::Path) -> Result<String, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    Ok(match text.strip_prefix('\u{feff}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
+}
+
+/// Writes a file atomically: `write` fills a temporary file in the same folder, which then
+/// replaces `path` by a rename, so a reader (or a crash) sees the old file or the new one,
+/// never half of one. Errors name `path`.
+pub(crate) fn write_atomic(
+    path: &std::path::Path,
+    write: impl FnOnce(&mut std::io::BufWriter<&mut std::fs::File>) -> std::io::Result<()>,
+) -> Result<(), IoError> {
+    use std::io::Write;
+    let io = |e| IoError::file(path, e);
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => std::path::Path::new("."),
+    };
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".rgbid-tmp-");
+    // A temporary file is private (0600); the output gets the permissions of the file it
+    // replaces, or those of a newly created file (0644 before the umask) on Unix.
+    let keep = std::fs::metadata(path).ok().map(|m| m.permissions());
+    #[cfg(unix)]
+    let keep = keep.or_else(|| {
+        use std::os::unix::fs::PermissionsExt;
+        Some(std::fs::Permissions::from_mode(0o644))
+    });
+    if let Some(p) = keep {
+        builder.permissions(p);
+    }
+    let mut tmp = builder.tempfile_in(dir).map_err(io)?;
+    {
+        let mut w = std::io::BufWriter::new(tmp.as_file_mut());
+        write(&mut w).map_err(io)?;
+        w.flush().map_err(io)?;
+    }
+    tmp.as_file().sync_all().map_err(io)?;
+    tmp.persist(path).map_err(|e| io(e.error))?;
+    Ok(())
 }

@@ -37,25 +37,24 @@ fn write_iter(
     count: usize,
     points: impl Iterator<Item = (DVec3, [u8; 3])>,
 ) -> Result<(), IoError> {
-    let io = |e| IoError::file(path, e);
-    let f = std::fs::File::create(path).map_err(io)?;
-    let mut w = std::io::BufWriter::new(f);
-    write!(
-        w,
-        "ply\nformat binary_little_endian 1.0\ncomment rgbid model\nelement vertex {count}\n\
-         property float x\nproperty float y\nproperty float z\n\
-         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    .map_err(io)?;
-    let mut record = [0u8; 15];
-    for (p, c) in points {
-        for (k, v) in [p.x as f32, p.y as f32, p.z as f32].iter().enumerate() {
-            record[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
+    // Replaced atomically: a crash mid-write leaves the previous file, never half of one.
+    super::write_atomic(path, |w| {
+        write!(
+            w,
+            "ply\nformat binary_little_endian 1.0\ncomment rgbid model\nelement vertex {count}\n\
+             property float x\nproperty float y\nproperty float z\n\
+             property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+        )?;
+        let mut record = [0u8; 15];
+        for (p, c) in points {
+            for (k, v) in [p.x as f32, p.y as f32, p.z as f32].iter().enumerate() {
+                record[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
+            }
+            record[12..].copy_from_slice(&c);
+            w.write_all(&record)?;
         }
-        record[12..].copy_from_slice(&c);
-        w.write_all(&record).map_err(io)?;
-    }
-    w.flush().map_err(io)
+        Ok(())
+    })
 }
 
 /// Reads a PLY point cloud: positions and RGB colours ([`DEFAULT_COLOUR`] when the file has

@@ -3,7 +3,7 @@
 //!
 //! | file | content | written |
 //! |---|---|---|
-//! | `summary.json` | [`RunSummary`]: format version, counts, accuracy, plus free keys | at creation (`complete: false`), again by [`RunFolderWriter::finish`] |
+//! | `summary.json` | [`RunSummary`]: format version, status, counts, accuracy, plus free keys | at creation (`status: running`), again by [`RunFolderWriter::finish`] / [`RunFolderWriter::end`] |
 //! | `timing.csv` | one [`FrameRow`] per frame | a row per frame, flushed |
 //! | `odometry.txt` | front-end pose of every tracked frame (TUM) | a line per frame, flushed |
 //! | `loops.csv` | one [`LoopRow`] per checked loop or relocalisation | a row per loop, flushed |
@@ -14,7 +14,10 @@
 //! | `model.ply` | voxel-filtered model (see [`super::ply`]) | at the end |
 //!
 //! Rows are written as they come and flushed, so an interrupted run leaves a readable folder
-//! with the frames processed so far. CSV files have a header line and are read by column
+//! with the frames processed so far; whole files are replaced atomically (a temporary file
+//! renamed over them), so a file is the previous version or the new one, never half of one.
+//! While a writer is open the folder holds a lock file (`.rgbid-lock`, with the process id):
+//! a second writer on the same folder is refused. CSV files have a header line and are read by column
 //! name: columns may come in any order, unknown columns are ignored, and the optional ones
 //! (the odometry diagnostics, added after the first version) may be missing. This module only
 //! knows plain rows; the SLAM system and the CLI convert their records into them.
@@ -65,6 +68,38 @@ pub mod files {
     pub const GROUNDTRUTH: &str = "groundtruth.txt";
     /// Model point cloud (PLY).
     pub const MODEL: &str = "model.ply";
+    /// Lock file of an open writer (holds its process id).
+    pub const LOCK: &str = ".rgbid-lock";
+}
+
+/// `summary.json`'s `status` while the run is going.
+pub const STATUS_RUNNING: &str = "running";
+/// `summary.json`'s `status` of a run that finished and wrote everything.
+pub const STATUS_COMPLETE: &str = "complete";
+/// `summary.json`'s `status` of a run stopped by a signal (its outputs cover the frames
+/// processed before).
+pub const STATUS_INTERRUPTED: &str = "interrupted";
+
+/// How a run ended, for [`RunFolderWriter::end`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum RunStatus {
+    /// Finished; every output written (`status: complete`).
+    Complete,
+    /// Stopped by a signal (`status: interrupted`).
+    Interrupted,
+    /// Stopped by an error (`status: failed: <error>`).
+    Failed(String),
+}
+
+impl RunStatus {
+    /// The text stored in `summary.json`.
+    pub fn text(&self) -> String {
+        match self {
+            RunStatus::Complete => STATUS_COMPLETE.into(),
+            RunStatus::Interrupted => STATUS_INTERRUPTED.into(),
+            RunStatus::Failed(e) => format!("failed: {e}"),
+        }
+    }
 }
 
 /// One frame's front-end statistics (a line of `timing.csv`). Times in milliseconds.
@@ -165,12 +200,19 @@ pub struct RunSummary {
     /// interrupted; folders from before the versioned format have no such key and read true).
     #[serde(default = "yes")]
     pub complete: bool,
+    /// `running`, `complete`, `interrupted` or `failed: <error>` (see [`RunStatus`]); empty in
+    /// folders written before the field existed.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub status: String,
     /// Frames processed.
     #[serde(default)]
     pub frames: usize,
     /// Frames dropped (real-time feeding).
     #[serde(default)]
     pub dropped: usize,
+    /// Frames skipped because their images could not be used (corrupt, implausible depth).
+    #[serde(default)]
+    pub skipped_frames: usize,
     /// Frames with a front-end pose.
     #[serde(default)]
     pub tracked: usize,
@@ -249,7 +291,8 @@ impl CsvAppender {
 
 /// Writes a run folder incrementally: [`create`](Self::create) opens the per-frame files, the
 /// row methods append and flush, [`finish`](Self::finish) writes `summary.json` last. Files
-/// of a previous run in the same folder are replaced.
+/// of a previous run in the same folder are replaced. The folder is locked while the writer
+/// exists.
 pub struct RunFolderWriter {
     dir: PathBuf,
     timing: CsvAppender,
@@ -257,6 +300,8 @@ pub struct RunFolderWriter {
     keyframe_timing: CsvAppender,
     odometry: (PathBuf, BufWriter<File>),
     loops_written: usize,
+    // Last, so that it is dropped after the files are closed.
+    _lock: FolderLock,
 }
 
 impl RunFolderWriter {
@@ -264,8 +309,13 @@ impl RunFolderWriter {
     /// incomplete `summary.json`. Files that are only written at the end
     /// (`trajectory.txt`, `keyframes.txt`, `groundtruth.txt`, `model.ply`) are removed, so
     /// that an interrupted run does not leave a previous run's results beside its own.
+    ///
+    /// A folder another live writer holds (its lock file names a running process) is
+    /// refused with [`IoError::FolderLocked`]; a lock left by a process that no longer runs is
+    /// taken over.
     pub fn create(dir: &Path) -> Result<Self, IoError> {
         std::fs::create_dir_all(dir).map_err(|e| IoError::file(dir, e))?;
+        let lock = FolderLock::acquire(dir)?;
         for stale in [
             files::TRAJECTORY,
             files::KEYFRAMES,
@@ -292,9 +342,11 @@ impl RunFolderWriter {
             keyframe_timing,
             odometry: (odo, odometry),
             loops_written: 0,
+            _lock: lock,
         };
         w.write_summary(&RunSummary {
             complete: false,
+            status: STATUS_RUNNING.into(),
             ..Default::default()
         })?;
         Ok(w)
@@ -357,14 +409,21 @@ impl RunFolderWriter {
 
     /// Writes `summary.json` with [`FORMAT_VERSION`] and `complete: true` and closes the
     /// folder. Returns the folder.
-    pub fn finish(mut self, summary: RunSummary) -> Result<PathBuf, IoError> {
+    pub fn finish(self, summary: RunSummary) -> Result<PathBuf, IoError> {
+        self.end(summary, RunStatus::Complete)
+    }
+
+    /// Writes `summary.json` with [`FORMAT_VERSION`] and `status` (`complete` is true only
+    /// for [`RunStatus::Complete`]) and closes the folder. Returns the folder.
+    pub fn end(mut self, summary: RunSummary, status: RunStatus) -> Result<PathBuf, IoError> {
         let (path, w) = &mut self.odometry;
         w.flush().map_err(|e| IoError::file(&*path, e))?;
         self.write_summary(&RunSummary {
-            complete: true,
+            complete: status == RunStatus::Complete,
+            status: status.text(),
             ..summary
         })?;
-        Ok(self.dir)
+        Ok(self.dir.clone())
     }
 
     fn write_summary(&self, summary: &RunSummary) -> Result<(), IoError> {
@@ -377,11 +436,73 @@ impl RunFolderWriter {
             path: path.clone(),
             message: e.to_string(),
         })?;
-        // Written to a temporary name and renamed, so the file is never half written.
-        let tmp = self.dir.join(".summary.json.tmp");
-        std::fs::write(&tmp, text).map_err(|e| IoError::file(&tmp, e))?;
-        std::fs::rename(&tmp, &path).map_err(|e| IoError::file(&path, e))
+        super::write_atomic(&path, |w| w.write_all(text.as_bytes()))
     }
+}
+
+/// The lock file of a run folder; removed when dropped.
+struct FolderLock {
+    path: PathBuf,
+}
+
+impl FolderLock {
+    fn acquire(dir: &Path) -> Result<Self, IoError> {
+        let path = dir.join(files::LOCK);
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&path)
+            {
+                Ok(mut f) => {
+                    writeln!(f, "{}", std::process::id()).map_err(|e| IoError::file(&path, e))?;
+                    return Ok(FolderLock { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let holder = std::fs::read_to_string(&path)
+                        .ok()
+                        .and_then(|t| t.trim().parse::<u32>().ok());
+                    match holder {
+                        Some(pid) if process_alive(pid) => {
+                            return Err(IoError::FolderLocked {
+                                path: dir.to_path_buf(),
+                                pid,
+                            })
+                        }
+                        // Left by a run that no longer exists (killed): take it over.
+                        _ => match std::fs::remove_file(&path) {
+                            Ok(()) => {}
+                            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                            Err(e) => return Err(IoError::file(&path, e)),
+                        },
+                    }
+                }
+                Err(e) => return Err(IoError::file(&path, e)),
+            }
+        }
+        Err(IoError::FolderLocked {
+            path: dir.to_path_buf(),
+            pid: 0,
+        })
+    }
+}
+
+impl Drop for FolderLock {
+    fn drop(&mut self) {
+        // Nothing to report to: a lock that cannot be removed is taken over by the next run
+        // once this process has exited.
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether a process with this id runs (where `/proc` exists; elsewhere every holder is
+/// assumed alive, so a stale lock must be removed by hand).
+fn process_alive(pid: u32) -> bool {
+    let proc = Path::new("/proc");
+    if !proc.is_dir() {
+        return true;
+    }
+    pid == std::process::id() || proc.join(pid.to_string()).exists()
 }
 
 const FRAME_COLUMNS: &[&str] = &[
@@ -701,6 +822,7 @@ mod tests {
             RunSummary {
                 format_version: FORMAT_VERSION,
                 complete: true,
+                status: STATUS_COMPLETE.into(),
                 ..summary
             }
         );

@@ -208,15 +208,17 @@ pub fn read_tree(path: &Path) -> Result<Value, SettingsError> {
         path: path.to_path_buf(),
         source,
     })?;
+    // A leading byte-order mark (Windows editors) is not part of the document.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     let syntax = |message: String| SettingsError::Syntax {
         path: path.to_path_buf(),
         message,
     };
     match format {
-        Format::Json => serde_json::from_str(&text).map_err(|e| syntax(e.to_string())),
+        Format::Json => serde_json::from_str(text).map_err(|e| syntax(e.to_string())),
         Format::Toml => {
             let table: toml::Table =
-                toml::from_str(&text).map_err(|e| syntax(e.to_string().trim().to_string()))?;
+                toml::from_str(text).map_err(|e| syntax(e.to_string().trim().to_string()))?;
             toml_to_json(toml::Value::Table(table)).map_err(syntax)
         }
     }

@@ -71,7 +71,7 @@ impl TrajectoryFormat {
 
 /// Reads a trajectory in any [`TrajectoryFormat`] (detected), sorted by time stamp.
 pub fn read_trajectory(path: &Path) -> Result<Vec<TimedPose>, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     read_trajectory_text(path, &text, TrajectoryFormat::detect(path, &text))
 }
 
@@ -80,7 +80,7 @@ pub fn read_trajectory_as(
     path: &Path,
     format: TrajectoryFormat,
 ) -> Result<Vec<TimedPose>, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     read_trajectory_text(path, &text, format)
 }
 
@@ -120,7 +120,7 @@ pub fn kitti_times_path(path: &Path) -> PathBuf {
 
 fn read_kitti(path: &Path, text: &str) -> Result<Vec<TimedPose>, IoError> {
     let times_path = kitti_times_path(path);
-    let times_text = std::fs::read_to_string(&times_path).map_err(|e| IoError::MissingFile {
+    let times_text = super::read_text(&times_path).map_err(|e| IoError::MissingFile {
         path: times_path.clone(),
         what: format!(
             "time stamps of the KITTI trajectory {} ({e})",
@@ -297,18 +297,20 @@ pub fn write_trajectory(
     write_lines(path, &lines)
 }
 
+/// Writes `lines`, replacing `path` atomically (a temporary file beside it is renamed over it,
+/// so `path` always holds a complete trajectory).
 fn write_lines(path: &Path, lines: &[String]) -> Result<(), IoError> {
-    let mut f =
-        std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| IoError::file(path, e))?);
-    for l in lines {
-        writeln!(f, "{l}").map_err(|e| IoError::file(path, e))?;
-    }
-    f.flush().map_err(|e| IoError::file(path, e))
+    super::write_atomic(path, |f| {
+        for l in lines {
+            writeln!(f, "{l}")?;
+        }
+        Ok(())
+    })
 }
 
 /// Reads a TUM trajectory, sorted by time stamp. Errors name the file and line.
 pub fn read_tum(path: &Path) -> Result<Vec<TimedPose>, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     read_trajectory_text(path, &text, TrajectoryFormat::Tum)
 }
 
@@ -324,7 +326,7 @@ fn tum_lines(path: &Path, text: &str) -> Result<Vec<TimedPose>, IoError> {
     Ok(out)
 }
 
-/// Writes a TUM trajectory (overwrites `path`).
+/// Writes a TUM trajectory, replacing `path` atomically.
 pub fn write_tum(path: &Path, poses: &[TimedPose]) -> Result<(), IoError> {
     let lines: Vec<String> = poses.iter().map(format_tum_line).collect();
     write_lines(path, &lines)

@@ -198,6 +198,16 @@ impl TumSequence {
             }
             _ => None,
         };
+        if !cfg.camera.distortion.is_zero() {
+            // The undistortion table has the camera's size (tens of bytes per pixel): the
+            // first image's header must agree with the camera before the table is built.
+            check_image_size(&entries[0].rgb, &cfg.camera, &cfg.source)?;
+        }
+        if let Ok(d) = decode_depth(&entries[0].depth) {
+            if let Some(w) = depth_range_warning(&d.raw, cfg.depth_factor) {
+                log::warn!("{}: {w}", entries[0].depth.display());
+            }
+        }
         let undistort =
             (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
         let seq = TumSequence {
@@ -259,20 +269,21 @@ impl TumSequence {
     }
 }
 
-/// One frame of a TUM folder as stored on disk: the colour image's bytes (grey or RGB, not
-/// undistorted) and the raw 16-bit depth (units of `1 / depth_factor` metres, 0 = no
+/// One frame of a sequence folder as stored on disk: the colour image's bytes (grey or RGB,
+/// not undistorted, at the colour camera's size) and the raw 16-bit depth (units of `1 / depth_factor` metres, 0 = no
 /// measurement), both row-major. What bindings hand to their users unchanged.
 #[derive(Clone, Debug)]
 pub struct RawFrame {
     /// Time stamp of the colour image, seconds.
     pub timestamp: f64,
-    /// Width in pixels.
+    /// Width of the colour image in pixels.
     pub width: usize,
-    /// Height in pixels.
+    /// Height of the colour image in pixels.
     pub height: usize,
     /// The colour image's pixels.
     pub pixels: RawPixels,
-    /// Raw depth, `width * height` values.
+    /// Raw depth at the depth camera's size (that of the sequence's camera; the colour
+    /// image's size except for ScanNet).
     pub depth: Vec<u16>,
 }
 
@@ -286,7 +297,9 @@ impl TumSequence {
         })?;
         let (rgb, depth) = rayon::join(|| decode_colour(&e.rgb), || decode_depth(&e.depth));
         let (rgb, depth) = (rgb?, depth?);
-        if (rgb.width, rgb.height) != (depth.width, depth.height) {
+        // A layout whose colour camera is not the depth camera (ScanNet) keeps its colour
+        // image at its own size.
+        if self.colour_camera.is_none() && (rgb.width, rgb.height) != (depth.width, depth.height) {
             return Err(IoError::ImageSizeMismatch {
                 rgb: e.rgb.clone(),
                 rgb_size: (rgb.width as u32, rgb.height as u32),
@@ -295,10 +308,10 @@ impl TumSequence {
             });
         }
         let camera_size = (self.camera.width, self.camera.height);
-        if (rgb.width as u32, rgb.height as u32) != camera_size {
+        if (depth.width as u32, depth.height as u32) != camera_size {
             return Err(IoError::CameraSizeMismatch {
-                path: e.rgb.clone(),
-                image_size: (rgb.width as u32, rgb.height as u32),
+                path: e.depth.clone(),
+                image_size: (depth.width as u32, depth.height as u32),
                 camera_size,
                 camera_source: self.camera_source.clone(),
             });
@@ -311,6 +324,24 @@ impl TumSequence {
             depth: depth.raw,
         })
     }
+}
+
+/// Checks an image's size, read from its header alone, against the camera's.
+fn check_image_size(path: &Path, camera: &PinholeCamera, source: &str) -> Result<(), IoError> {
+    let image_size = image::image_dimensions(path).map_err(|e| IoError::Image {
+        path: path.into(),
+        message: e.to_string(),
+    })?;
+    let camera_size = (camera.width, camera.height);
+    if image_size != camera_size {
+        return Err(IoError::CameraSizeMismatch {
+            path: path.into(),
+            image_size,
+            camera_size,
+            camera_source: source.into(),
+        });
+    }
+    Ok(())
 }
 
 /// Loads one colour + 16-bit depth pair that is not part of a TUM folder (time stamp 0),
@@ -362,7 +393,7 @@ pub fn parse_pose_line(line: &str) -> Result<Se3, String> {
 
 /// Reads a pose file holding one `tx ty tz qx qy qz qw` line (e.g. `pose_prev.txt`).
 pub fn read_pose_file(path: &Path) -> Result<Se3, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     for (i, line) in text.lines().enumerate() {
         let s = line.trim();
         if s.is_empty() || s.starts_with('#') {
@@ -383,7 +414,7 @@ pub fn read_intrinsic_matrix(
     width: u32,
     height: u32,
 ) -> Result<PinholeCamera, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     let mut v = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let s = line.split('#').next().unwrap_or("").trim();
@@ -456,7 +487,7 @@ fn closest_difference(a: &[f64], b: &[f64]) -> Option<f64> {
 
 /// Reads `timestamp path` lines; paths are joined to `root` and must exist.
 fn read_list(root: &Path, list: &Path) -> Result<Vec<(f64, PathBuf)>, IoError> {
-    let text = std::fs::read_to_string(list).map_err(|e| IoError::file(list, e))?;
+    let text = super::read_text(list)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let s = line.trim();
@@ -485,7 +516,7 @@ fn read_list(root: &Path, list: &Path) -> Result<Vec<(f64, PathBuf)>, IoError> {
 
 /// Reads `t_rgb rgb_path t_depth depth_path` lines.
 fn read_associations(root: &Path, list: &Path) -> Result<Vec<SequenceEntry>, IoError> {
-    let text = std::fs::read_to_string(list).map_err(|e| IoError::file(list, e))?;
+    let text = super::read_text(list)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let s = line.trim();
@@ -762,6 +793,59 @@ fn decode_depth(path: &Path) -> Result<RawDepth, IoError> {
     }
 }
 
+/// Range of an RGB-D sensor of the Kinect / Xtion / RealSense class, metres: depths outside it
+/// are rare in real data, so many of them point at a wrong depth factor (a 5x error, such as
+/// millimetre depth read with TUM's 5000, keeps the median plausible but not the range).
+pub const SENSOR_RANGE_M: (f64, f64) = (0.3, 10.0);
+/// Share of valid depths outside [`SENSOR_RANGE_M`] above which the factor is reported (a
+/// sensor measures nothing below its minimum range, so even a fifth there is suspect).
+const OUT_OF_RANGE_SHARE: f64 = 0.2;
+
+/// A warning when many valid depths (of a sample) fall outside [`SENSOR_RANGE_M`] at
+/// `factor`, naming the common factor that would put the most of them inside.
+fn depth_range_warning(raw: &[u16], factor: f64) -> Option<String> {
+    let stride = (raw.len() / 16384).max(1);
+    let sample: Vec<f64> = raw
+        .iter()
+        .step_by(stride)
+        .filter(|&&d| d > 0)
+        .map(|&d| f64::from(d))
+        .collect();
+    if sample.len() < 20 {
+        return None;
+    }
+    let (lo, hi) = SENSOR_RANGE_M;
+    let outside = |f: f64| {
+        sample
+            .iter()
+            .filter(|&&d| !(lo..=hi).contains(&(d / f)))
+            .count() as f64
+            / sample.len() as f64
+    };
+    let share = outside(factor);
+    if share <= OUT_OF_RANGE_SHARE {
+        return None;
+    }
+    let better = [1000.0, 5000.0, 10000.0, 100.0, 10.0, 1.0]
+        .into_iter()
+        .filter(|&f: &f64| f != factor)
+        .map(|f| (f, outside(f)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .filter(|&(_, s)| s < share);
+    Some(format!(
+        "{:.0} % of the valid depths are outside the sensor range {lo}-{hi} m at depth factor \
+         {factor}{}",
+        100.0 * share,
+        match better {
+            Some((f, s)) => format!(
+                "; factor {f} would put {:.0} % inside (set depth_factor in the camera file)",
+                100.0 * (1.0 - s)
+            ),
+            None => String::new(),
+        }
+    ))
+}
+
 /// Checks that the median valid depth (on a sample of pixels) is plausible for `factor`.
 fn check_depth_scale(raw: &[u16], factor: f64, path: &Path) -> Result<(), IoError> {
     let stride = (raw.len() / 16384).max(1);
@@ -824,6 +908,21 @@ mod tests {
         assert!(parse_pose_line("1 2 nan 0 0 0 1")
             .unwrap_err()
             .contains("not finite"));
+    }
+
+    #[test]
+    fn depth_range_warning_names_the_factor_that_fits() {
+        // Millimetre depth of a room (0.5-4 m) read with TUM's 5000: the median (0.45 m) is
+        // plausible, but many depths fall below the sensor's range.
+        let raw: Vec<u16> = (0..1000).map(|i| 500 + (i * 35 / 10) as u16).collect();
+        assert!(check_depth_scale(&raw, 5000.0, Path::new("d.png")).is_ok());
+        let w = depth_range_warning(&raw, 5000.0).expect("a warning");
+        assert!(w.contains("factor 1000 would put 100 % inside"), "{w}");
+        assert_eq!(depth_range_warning(&raw, 1000.0), None);
+        // The reverse: TUM depth (5000 per metre) read as millimetres.
+        let tum: Vec<u16> = raw.iter().map(|&d| d * 5).collect();
+        let w = depth_range_warning(&tum, 1000.0).expect("a warning");
+        assert!(w.contains("factor 5000"), "{w}");
     }
 
     #[test]

@@ -91,6 +91,14 @@ pub enum PlaceError {
         /// The OS error.
         source: std::io::Error,
     },
+    /// A vocabulary file is malformed (the message of the format's own error).
+    #[error("{path}: {message}")]
+    InFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, with the byte offset (binary) or line (text).
+        message: String,
+    },
     /// A binary vocabulary file is malformed.
     #[error("malformed binary vocabulary: {0}")]
     BadBinaryVocabulary(String),

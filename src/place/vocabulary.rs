@@ -3,14 +3,16 @@
 //! compact binary file format, and a loader for the DBoW2 / ORB-SLAM text format
 //! (`ORBvoc.txt`).
 //!
-//! Binary format (little endian): magic `RGBIDVOC`, `u32` version (1), `u32` k, `u32` levels,
+//! Binary format (little endian): magic `RGBIDVOC`, `u32` version (2), `u32` k, `u32` levels,
 //! `u8` weighting, `u8` scoring (DBoW2 enum codes), `u16` reserved (0), `u32` node count `n`
 //! (root included), then for nodes `1..n`: `u32` parent, `u8` flags (bit 0: leaf/word),
-//! 32 descriptor bytes, `f64` weight. A parent precedes its children; words are the leaves in
-//! node order.
+//! 32 descriptor bytes, `f64` weight; then (version 2) the `u32` CRC-32 of every byte before
+//! it. A parent precedes its children; words are the leaves in node order. Version 1 (no
+//! checksum) still loads. The node count is checked against the data's length before
+//! anything is allocated; errors give the byte offset.
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, Write};
+use std::io::{BufRead, Read, Write};
 use std::path::Path;
 
 use rand::{Rng, SeedableRng};
@@ -151,7 +153,7 @@ pub struct Vocabulary {
 }
 
 const MAGIC: &[u8; 8] = b"RGBIDVOC";
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 /// Bitwise majority of a set of descriptors (the binary "median").
 fn majority(set: &[&Descriptor]) -> Descriptor {
@@ -505,19 +507,22 @@ impl Vocabulary {
 
     /// Writes the compact binary format (see the module docs).
     pub fn write_binary<W: Write>(&self, mut w: W) -> std::io::Result<()> {
-        w.write_all(MAGIC)?;
-        w.write_all(&VERSION.to_le_bytes())?;
-        w.write_all(&(self.k as u32).to_le_bytes())?;
-        w.write_all(&(self.levels as u32).to_le_bytes())?;
-        w.write_all(&[self.weighting.code() as u8, self.scoring.code() as u8, 0, 0])?;
-        w.write_all(&(self.nodes.len() as u32).to_le_bytes())?;
+        let mut b = Vec::with_capacity(32 + self.nodes.len() * 45);
+        b.extend_from_slice(MAGIC);
+        b.extend_from_slice(&VERSION.to_le_bytes());
+        b.extend_from_slice(&(self.k as u32).to_le_bytes());
+        b.extend_from_slice(&(self.levels as u32).to_le_bytes());
+        b.extend_from_slice(&[self.weighting.code() as u8, self.scoring.code() as u8, 0, 0]);
+        b.extend_from_slice(&(self.nodes.len() as u32).to_le_bytes());
         for n in &self.nodes[1..] {
-            w.write_all(&n.parent.to_le_bytes())?;
-            w.write_all(&[u8::from(n.children.is_empty())])?;
-            w.write_all(&n.descriptor.to_bytes())?;
-            w.write_all(&n.weight.to_le_bytes())?;
+            b.extend_from_slice(&n.parent.to_le_bytes());
+            b.push(u8::from(n.children.is_empty()));
+            b.extend_from_slice(&n.descriptor.to_bytes());
+            b.extend_from_slice(&n.weight.to_le_bytes());
         }
-        Ok(())
+        let crc = crc32fast::hash(&b);
+        b.extend_from_slice(&crc.to_le_bytes());
+        w.write_all(&b)
     }
 
     /// Reads the compact binary format from bytes.
@@ -525,9 +530,10 @@ impl Vocabulary {
         let bad = |m: &str| PlaceError::BadBinaryVocabulary(m.to_string());
         let mut pos = 0usize;
         let mut take = |n: usize| -> Result<&[u8], PlaceError> {
-            let s = bytes
-                .get(pos..pos + n)
-                .ok_or_else(|| bad("truncated file"))?;
+            let s = pos
+                .checked_add(n)
+                .and_then(|end| bytes.get(pos..end))
+                .ok_or_else(|| bad(&format!("truncated file: ends before byte {}", pos + n)))?;
             pos += n;
             Ok(s)
         };
@@ -536,8 +542,10 @@ impl Vocabulary {
             return Err(bad("not an rgbid vocabulary (bad magic)"));
         }
         let version = u32_at(take(4)?);
-        if version != VERSION {
-            return Err(bad(&format!("unsupported version {version}")));
+        if !(1..=VERSION).contains(&version) {
+            return Err(bad(&format!(
+                "version {version} at byte 8; this build reads versions 1 to {VERSION}"
+            )));
         }
         let k = u32_at(take(4)?) as usize;
         let levels = u32_at(take(4)?) as usize;
@@ -549,11 +557,21 @@ impl Vocabulary {
             return Err(bad("node count is 0 (the root is always present)"));
         }
         const REC: usize = 4 + 1 + 32 + 8;
-        if bytes.len() != 28 + (n - 1) * REC {
+        let crc_bytes = if version >= 2 { 4 } else { 0 };
+        if Some(bytes.len()) != (n - 1).checked_mul(REC).map(|r| 28 + r + crc_bytes) {
             return Err(bad(&format!(
-                "size {} does not match {n} nodes",
+                "size {} does not match the {n} nodes declared at byte 24",
                 bytes.len()
             )));
+        }
+        if version >= 2 {
+            let (data, crc) = bytes.split_at(bytes.len() - 4);
+            if crc32fast::hash(data) != u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]) {
+                return Err(bad(&format!(
+                    "checksum mismatch (the CRC-32 at byte {} does not match the bytes before it)",
+                    data.len()
+                )));
+            }
         }
         let mut nodes = Vec::with_capacity(n);
         nodes.push(Node {
@@ -574,16 +592,19 @@ impl Vocabulary {
             let mut wb = [0u8; 8];
             wb.copy_from_slice(&rec[37..45]);
             let weight = f64::from_le_bytes(wb);
+            let at = 28 + (i - 1) * REC;
             if parent as usize >= i {
                 return Err(bad(&format!(
-                    "node {i} has parent {parent}, which does not precede it"
+                    "node {i} (byte {at}) has parent {parent}, which does not precede it"
                 )));
             }
             if leaf_flags[parent as usize] {
-                return Err(bad(&format!("node {i} has a leaf as parent")));
+                return Err(bad(&format!("node {i} (byte {at}) has a leaf as parent")));
             }
             if !weight.is_finite() {
-                return Err(bad(&format!("node {i} has a non-finite weight")));
+                return Err(bad(&format!(
+                    "node {i} (byte {at}) has a non-finite weight"
+                )));
             }
             leaf_flags[i] = flags & 1 == 1;
             nodes[parent as usize].children.push(i as u32);
@@ -608,14 +629,16 @@ impl Vocabulary {
 
     /// Saves to a binary file.
     pub fn save(&self, path: &Path) -> Result<(), PlaceError> {
-        let ioerr = |source| PlaceError::File {
-            path: path.to_path_buf(),
-            source,
-        };
-        let f = std::fs::File::create(path).map_err(ioerr)?;
-        let mut bw = std::io::BufWriter::new(f);
-        self.write_binary(&mut bw).map_err(ioerr)?;
-        bw.flush().map_err(ioerr)
+        crate::io::write_atomic(path, |w| self.write_binary(w)).map_err(|e| match e {
+            crate::io::IoError::File { source, .. } => PlaceError::File {
+                path: path.to_path_buf(),
+                source,
+            },
+            other => PlaceError::File {
+                path: path.to_path_buf(),
+                source: std::io::Error::other(other.to_string()),
+            },
+        })
     }
 
     /// The default vocabulary embedded in the library (`assets/vocab_default.rgbvoc`, trained
@@ -626,16 +649,30 @@ impl Vocabulary {
 
     /// Loads a vocabulary file: the binary format, or (if it does not start with the magic)
     /// the DBoW2 text format.
+    ///
+    /// Reads at most the file's own length (a device such as `/dev/zero` is refused), and
+    /// errors name the file.
     pub fn load(path: &Path) -> Result<Self, PlaceError> {
-        let bytes = std::fs::read(path).map_err(|source| PlaceError::File {
+        let io = |source| PlaceError::File {
             path: path.to_path_buf(),
             source,
-        })?;
-        if bytes.starts_with(MAGIC) {
+        };
+        let file = std::fs::File::open(path).map_err(io)?;
+        let meta = file.metadata().map_err(io)?;
+        if !meta.is_file() {
+            return Err(io(std::io::Error::other("not a regular file")));
+        }
+        let mut bytes = Vec::new();
+        file.take(meta.len()).read_to_end(&mut bytes).map_err(io)?;
+        let parsed = if bytes.starts_with(MAGIC) {
             Self::read_binary(&bytes)
         } else {
             Self::read_dbow2_text(&bytes[..])
-        }
+        };
+        parsed.map_err(|e| PlaceError::InFile {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })
     }
 
     /// Parses the DBoW2 text format: a header `k L scoring weighting`, then one line per node
@@ -810,6 +847,41 @@ mod tests {
 
     fn random_desc(rng: &mut rand_pcg::Pcg64) -> Descriptor {
         Descriptor([rng.random(), rng.random(), rng.random(), rng.random()])
+    }
+
+    #[test]
+    fn binary_files_are_checksummed_and_bounded() {
+        let v1 = include_bytes!("../../assets/vocab_default.rgbvoc");
+        // The embedded vocabulary is version 1 (no checksum): it still loads, and a write
+        // gives version 2 with the same content.
+        assert_eq!(u32::from_le_bytes([v1[8], v1[9], v1[10], v1[11]]), 1);
+        let voc = Vocabulary::read_binary(v1).unwrap();
+        let mut v2 = Vec::new();
+        voc.write_binary(&mut v2).unwrap();
+        assert_eq!(u32::from_le_bytes([v2[8], v2[9], v2[10], v2[11]]), 2);
+        assert_eq!(Vocabulary::read_binary(&v2).unwrap(), voc);
+        // Flipped bits in the node records are caught by the checksum (sampled: every
+        // 97th byte of the file).
+        for pos in (28..v2.len()).step_by(97) {
+            let mut b = v2.clone();
+            b[pos] ^= 0x10;
+            let e = Vocabulary::read_binary(&b).unwrap_err().to_string();
+            assert!(e.contains("checksum"), "byte {pos}: {e}");
+        }
+        // A huge node count is refused from the length, before allocating.
+        let mut b = v2.clone();
+        b[24..28].copy_from_slice(&u32::MAX.to_le_bytes());
+        let e = Vocabulary::read_binary(&b).unwrap_err().to_string();
+        assert!(e.contains("declared at byte 24"), "{e}");
+        if std::path::Path::new("/dev/zero").exists() {
+            let e = Vocabulary::load(std::path::Path::new("/dev/zero")).unwrap_err();
+            assert!(e.to_string().contains("not a regular file"), "{e}");
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("v.rgbvoc");
+        std::fs::write(&p, &v2[..v2.len() - 9]).unwrap();
+        let e = Vocabulary::load(&p).unwrap_err().to_string();
+        assert!(e.starts_with(&format!("{}: ", p.display())), "{e}");
     }
 
     #[test]

@@ -759,12 +759,12 @@ fn backend_messages(mut back: Backend, rx: Receiver<ToBackend>) -> Result<Backen
             ToBackend::Relocalise(frame, reply) => {
                 let answer = back.relocalise(&frame);
                 back.note_memory();
-                let failed = answer.is_err();
+                let failure = answer.as_ref().err().map(|e| e.to_string());
                 let _ = reply.send(answer);
-                if failed {
-                    return Err(SlamError::BackendStopped(
-                        "relocalisation failed (see the error returned for it)".into(),
-                    ));
+                if let Some(why) = failure {
+                    return Err(SlamError::BackendStopped(format!(
+                        "relocalisation failed: {why}"
+                    )));
                 }
             }
         }

@@ -1,0 +1,347 @@
+//! The `rgbid` program under hostile use: option ranges (exit code 2 naming the option),
+//! output locations checked before the work (never the input folder, parents created, a
+//! locked folder refused), documented exit codes (3 for finished-with-warnings), messages
+//! without repeats, g2o files by content, and an interrupted SLAM run that leaves parseable
+//! partial outputs and says so in summary.json.
+
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+/// The program under test: cargo's build of it, or `RGBID_BIN` (a target folder shared by
+/// several checkouts holds one `rgbid` for all of them).
+fn program() -> std::ffi::OsString {
+    std::env::var_os("RGBID_BIN").unwrap_or_else(|| env!("CARGO_BIN_EXE_rgbid").into())
+}
+
+fn rgbid(args: &[&str]) -> Output {
+    Command::new(program())
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("running rgbid")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// A small TUM folder (with groundtruth.txt) rendered by `rgbid synth`.
+fn tum_folder(dir: &Path, frames: usize) {
+    let n = frames.to_string();
+    let o = rgbid(&[
+        "synth",
+        "--frames",
+        &n,
+        "--width",
+        "160",
+        "--backend",
+        "cpu",
+        "--out",
+        s(dir),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+}
+
+#[test]
+fn bad_numbers_are_usage_errors_that_name_the_option_and_range() {
+    for (args, option, range) in [
+        (vec!["slam", "--realtime", "0"], "--realtime", "0.001"),
+        (vec!["slam", "--realtime", "1e-300"], "--realtime", "0.001"),
+        (vec!["slam", "--realtime", "nan"], "--realtime", "0.001"),
+        (vec!["slam", "--realtime", "inf"], "--realtime", "0.001"),
+        (vec!["slam", "--realtime=-5"], "--realtime", "0.001"),
+        (vec!["slam", "--max-speed", "nan"], "--max-speed", "> 0"),
+        (
+            vec!["slam", "--keyframe-covisibility", "1.5"],
+            "--keyframe-covisibility",
+            "[0, 1]",
+        ),
+        (vec!["slam", "--voxel=-1"], "--voxel", ">= 0"),
+        (vec!["slam", "--levels", "9"], "--levels", "1 to 8"),
+        (
+            vec!["odometry", "x", "--covisibility", "nan"],
+            "--covisibility",
+            "[0, 1]",
+        ),
+        (
+            vec!["odometry", "x", "--max-frames", "0"],
+            "--max-frames",
+            "at least 1",
+        ),
+        (
+            vec!["eval", "a", "b", "--max-diff", "inf"],
+            "--max-diff",
+            "> 0",
+        ),
+        (
+            vec!["graph", "optimize", "a.g2o", "--robust-delta", "0"],
+            "--robust-delta",
+            "> 0",
+        ),
+    ] {
+        let o = rgbid(&args);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {t}");
+        assert!(t.contains(option) && t.contains(range), "{args:?}: {t}");
+        assert!(!t.contains("panicked"), "{args:?}: {t}");
+    }
+}
+
+#[test]
+fn help_states_the_exit_codes() {
+    let o = rgbid(&["--help"]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    for code in [
+        "0 success",
+        "1 error",
+        "2 usage",
+        "3 finished with warnings",
+        "130",
+    ] {
+        assert!(t.contains(code), "{code}: {t}");
+    }
+}
+
+#[test]
+fn messages_do_not_repeat_the_os_error() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let missing = tmp.path().join("missing.txt");
+    let o = rgbid(&["eval", s(&missing), s(&missing)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert_eq!(t.matches("os error 2").count(), 1, "{t}");
+    assert!(t.contains("missing.txt"), "{t}");
+}
+
+#[test]
+fn eval_refuses_duplicated_estimate_times() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let gt = tmp.path().join("gt.txt");
+    let est = tmp.path().join("est.txt");
+    let mut g = String::new();
+    for i in 0..20 {
+        let t = 0.1 * i as f64;
+        g += &format!("{t} {t} {} 0 0 0 0 1\n", (3.0 * t).sin());
+    }
+    std::fs::write(&gt, &g).expect("write");
+    std::fs::write(&est, format!("{g}0.5 0.5 0 0 0 0 0 1\n")).expect("write");
+    let o = rgbid(&["eval", s(&gt), s(&est)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("2 poses at time 0.5"), "{t}");
+}
+
+#[test]
+fn slam_never_writes_into_its_input_folder() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 4);
+    let gt = std::fs::read(seq.join("groundtruth.txt")).expect("groundtruth");
+    let o = rgbid(&["slam", s(&seq), "--out", s(&seq), "--backend", "cpu"]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("is the input sequence folder"), "{t}");
+    assert!(!t.contains("whatever was computed"), "{t}");
+    assert_eq!(std::fs::read(seq.join("groundtruth.txt")).expect("gt"), gt);
+    assert!(!seq.join("summary.json").exists());
+}
+
+#[test]
+fn a_locked_output_folder_is_refused_before_the_work() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("out");
+    std::fs::create_dir(&out).expect("mkdir");
+    // This test's own process holds the lock: a live run.
+    std::fs::write(out.join(".rgbid-lock"), format!("{}\n", std::process::id())).expect("lock");
+    let o = rgbid(&[
+        "slam",
+        "--synth",
+        "office:loop",
+        "--frames",
+        "3",
+        "--width",
+        "160",
+        "--backend",
+        "cpu",
+        "--out",
+        s(&out),
+    ]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("another rgbid run"), "{t}");
+    assert!(!out.join("timing.csv").exists(), "{t}");
+}
+
+#[test]
+fn odometry_creates_the_output_folder_first_and_warns_when_it_cannot_evaluate() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 4);
+    // Ground truth that shares no time with the frames: the trajectory is written, the
+    // evaluation is impossible, and the exit code says "finished with warnings".
+    std::fs::write(
+        seq.join("groundtruth.txt"),
+        "100 0 0 0 0 0 0 1\n101 1 0 0 0 0 0 1\n102 2 0 0 0 0 0 1\n",
+    )
+    .expect("gt");
+    let out = tmp.path().join("missing/dir/t.txt");
+    let o = rgbid(&["odometry", s(&seq), "--backend", "cpu", "--out", s(&out)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("not evaluated"), "{t}");
+    let poses = rgbid::io::trajectory::read_tum(&out).expect("trajectory");
+    assert_eq!(poses.len(), 4);
+}
+
+const G2O: &str = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1.3 0.2 0.4\nVERTEX_SE2 2 1.7 1.4 1.9\n\
+EDGE_SE2 0 1 1 0 0 100 0 0 100 0 1000\nEDGE_SE2 1 2 1 0 1.5707963 100 0 0 100 0 1000\n\
+EDGE_SE2 2 0 1.414 -1.414 2.356 1 0 0 1 0 10\nFIX 0\n";
+
+#[test]
+fn g2o_by_content_and_not_converged_is_exit_code_3() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("o/out.g2o");
+    for name in ["upper.G2O", "graph.txt"] {
+        let input = tmp.path().join(name);
+        std::fs::write(&input, G2O).expect("write");
+        let o = rgbid(&["graph", "optimize", s(&input), "--out", s(&out)]);
+        assert!(o.status.success(), "{name}: {}", text(&o));
+        let o = rgbid(&[
+            "graph",
+            "optimize",
+            s(&input),
+            "--out",
+            s(&out),
+            "--init",
+            "odometry",
+            "--max-iterations",
+            "1",
+        ]);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(3), "{name}: {t}");
+        assert!(t.contains("without converging"), "{t}");
+    }
+    let typo = tmp.path().join("typo.g2o");
+    std::fs::write(&typo, G2O.replace("EDGE_SE2 1 2", "EDGE_SE2 1 12")).expect("write");
+    let o = rgbid(&["graph", "optimize", s(&typo), "--out", s(&out)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("typo.g2o:5:") && t.contains("vertex 12"), "{t}");
+}
+
+/// Sends SIGINT to a running `rgbid slam` once it has written a few frames: it stops reading
+/// frames, writes everything, exits 130, and its folder parses with status `interrupted`.
+#[test]
+fn interrupted_slam_keeps_parseable_partial_outputs() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("out");
+    let mut child = Command::new(program())
+        .args([
+            "slam",
+            "--synth",
+            "office:loop",
+            "--frames",
+            "400",
+            "--width",
+            "160",
+            "--backend",
+            "cpu",
+            "--no-model",
+            "--out",
+            s(&out),
+        ])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let timing = out.join("timing.csv");
+    let start = Instant::now();
+    loop {
+        let rows = std::fs::read_to_string(&timing)
+            .map(|t| t.lines().count())
+            .unwrap_or(0);
+        if rows >= 6 {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "no frames written"
+        );
+        assert!(child.try_wait().expect("wait").is_none(), "exited early");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let kill = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .expect("kill");
+    assert!(kill.success());
+    let o = child.wait_with_output().expect("wait");
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(130), "{t}");
+    assert!(t.contains("interrupted"), "{t}");
+    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
+    let summary = run.summary.expect("summary.json");
+    assert_eq!(summary.status, "interrupted", "{t}");
+    assert!(!summary.complete);
+    assert!(summary.frames >= 5 && summary.frames < 400, "{t}");
+    let trajectory = rgbid::io::trajectory::read_tum(&out.join("trajectory.txt")).expect("tum");
+    assert_eq!(trajectory.len(), summary.tracked);
+    assert_eq!(run.frames.len(), summary.frames);
+    assert!(!out.join(".rgbid-lock").exists());
+}
+
+#[test]
+fn odometry_config_with_an_unknown_key_is_an_error() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let json = tmp.path().join("c.json");
+    std::fs::write(&json, r#"{"estimatr": "huber"}"#).expect("write");
+    let o = rgbid(&["odometry", "x", "--config", s(&json)]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("estimatr") && t.contains("c.json"), "{t}");
+}
+
+/// One unreadable depth image in the middle is skipped and counted, not the end of the run:
+/// the outputs are complete and the exit code says "finished with warnings".
+#[test]
+fn slam_skips_and_counts_a_single_bad_frame() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 6);
+    let list = std::fs::read_to_string(seq.join("associations.txt")).expect("associations");
+    let depth = list
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .nth(3)
+        .and_then(|l| l.split_whitespace().nth(3))
+        .expect("a depth image on line 4");
+    std::fs::write(seq.join(depth), b"\x89PNG not really").expect("corrupt");
+    let out = tmp.path().join("out");
+    let o = rgbid(&[
+        "slam",
+        s(&seq),
+        "--backend",
+        "cpu",
+        "--no-model",
+        "--out",
+        s(&out),
+    ]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("1 frames skipped"), "{t}");
+    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
+    let summary = run.summary.expect("summary");
+    assert_eq!((summary.skipped_frames, summary.frames), (1, 5), "{t}");
+    assert_eq!(summary.status, "complete");
+}
