@@ -230,6 +230,7 @@ def render_generic(doc):
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
              "gpu-check": render_gpu_check}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
+          "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU"}
 
 
