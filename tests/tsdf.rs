@@ -18,8 +18,11 @@ fn camera() -> PinholeCamera {
     PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120)
 }
 
-/// Frames of the office scene along a handheld path: `(frame, world_from_camera, true depth)`.
-fn frames(n: usize) -> (Arc<Scene>, Vec<(RgbdFrame, Se3, Vec<f32>)>) {
+/// A frame, its `world_from_camera` and its true depth (m, 0 = nothing hit).
+type Posed = (RgbdFrame, Se3, Vec<f32>);
+
+/// Frames of the office scene along a handheld path.
+fn frames(n: usize) -> (Arc<Scene>, Vec<Posed>) {
     let scene = Arc::new(Scene::preset("office", 1).unwrap());
     let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, 2.0, 1).unwrap();
     // A Kinect's noise (disparity noise at its 525 px focal length) on a small image, so
@@ -55,7 +58,7 @@ fn frames(n: usize) -> (Arc<Scene>, Vec<(RgbdFrame, Se3, Vec<f32>)>) {
 }
 
 /// True surface points of the pixels with a measurement.
-fn seen_surface(cam: &PinholeCamera, data: &[(RgbdFrame, Se3, Vec<f32>)]) -> Vec<DVec3> {
+fn seen_surface(cam: &PinholeCamera, data: &[Posed]) -> Vec<DVec3> {
     let mut pts = Vec::new();
     for (frame, pose, truth) in data {
         let w = cam.width as usize;
@@ -71,7 +74,7 @@ fn seen_surface(cam: &PinholeCamera, data: &[(RgbdFrame, Se3, Vec<f32>)]) -> Vec
     thin_points(&pts, 0.01)
 }
 
-fn volume(data: &[(RgbdFrame, Se3, Vec<f32>)], voxel: f64) -> TsdfVolume {
+fn volume(data: &[Posed], voxel: f64) -> TsdfVolume {
     let params = TsdfParams {
         voxel_size: voxel,
         ..Default::default()

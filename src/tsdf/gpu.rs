@@ -80,8 +80,10 @@ impl GpuTsdf {
             .map_or(0, |r| r.block_capacity)
             .max(blocks + blocks / 2)
             .max(64);
-        let limit =
-            u64::from(ctx.limits.max_storage_buffer_binding_size).min(ctx.limits.max_buffer_size);
+        let limit = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size);
         if voxel_bytes(block_capacity) > limit {
             return Err(TsdfError::InvalidParameter {
                 name: "voxel_size",
