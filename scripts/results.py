@@ -243,6 +243,7 @@ def render_generic(doc):
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
+          "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead"}
 
 

@@ -40,6 +40,7 @@ pub mod place;
 pub mod segment;
 pub mod source;
 pub mod synth;
+pub mod tsdf;
 // Systems.
 pub mod mono;
 pub mod scale;

@@ -41,6 +41,9 @@ enum Command {
     Vocab(cli::vocab::Command),
     /// Superjut segmentation: segment images, neg-entropy images, masks and a feature CSV.
     Segment(cli::segment::Args),
+    /// Dense TSDF reconstruction: integrates every frame of a TUM sequence at the poses of a
+    /// trajectory and writes a coloured mesh (PLY).
+    Mesh(cli::mesh::Args),
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
@@ -84,6 +87,7 @@ fn main() {
 fn run(command: Command) -> Result<()> {
     match command {
         Command::Demo(a) => cli::demo::run(a),
+        Command::Mesh(a) => cli::mesh::run(a),
         Command::Odometry(a) => cli::odometry::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Bench(c) => cli::bench::run(c),

@@ -29,6 +29,9 @@ pub enum Command {
     /// Odometry speed and accuracy per backend on a TUM sequence, against OpenCV / Open3D run
     /// on the same data by `../shared/eval/peer_odometry.py`.
     Odometry(Box<OdometryBench>),
+    /// TSDF integration speed per backend and mesh accuracy on a generated room with exact
+    /// geometry, against Open3D's VoxelBlockGrid on the same frames (`scripts/tsdf_open3d.py`).
+    Tsdf(Box<super::mesh::TsdfBench>),
 }
 
 /// Arguments of `rgbid bench kernels`.
@@ -106,6 +109,7 @@ pub fn run(c: Command) -> Result<()> {
     match c {
         Command::Kernels(a) => kernels(*a),
         Command::Odometry(a) => odometry(*a),
+        Command::Tsdf(a) => super::mesh::bench(*a),
     }
 }
 

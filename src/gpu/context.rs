@@ -62,6 +62,8 @@ pub struct GpuContext {
     pub(crate) is_software: bool,
     /// True when `Features::SUBGROUP` was enabled on the device.
     pub(crate) has_subgroups: bool,
+    /// Device limits.
+    pub(crate) limits: wgpu::Limits,
     lost: Arc<AtomicBool>,
     lost_message: Arc<Mutex<String>>,
     error: Arc<Mutex<Option<String>>>,
@@ -98,7 +100,7 @@ impl GpuContext {
         let desc = wgpu::DeviceDescriptor {
             label: Some("rgbid"),
             required_features,
-            required_limits,
+            required_limits: required_limits.clone(),
             experimental_features: wgpu::ExperimentalFeatures::disabled(),
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
@@ -151,6 +153,7 @@ impl GpuContext {
             info,
             is_software,
             has_subgroups: required_features.contains(wgpu::Features::SUBGROUP),
+            limits: required_limits,
             lost,
             lost_message,
             error,

@@ -15,6 +15,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("raycast.wgsl", include_str!("../../shaders/raycast.wgsl")),
     ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
     ("fuse.wgsl", include_str!("../../shaders/fuse.wgsl")),
+    ("tsdf.wgsl", include_str!("../../shaders/tsdf.wgsl")),
 ];
 
 /// Returns the raw source of `name`.

@@ -32,6 +32,69 @@ pub fn write_ply_grey(path: &Path, points: &[(DVec3, u8)]) -> Result<(), IoError
     )
 }
 
+/// Writes a triangle mesh as binary little-endian PLY (overwrites `path`): a `vertex`
+/// element with `float x y z` (metres), `float nx ny nz` (unit normals) and `uchar red green
+/// blue`, and a `face` element of `uchar`-counted `int` index lists. `normals` and `colours`
+/// must have one entry per vertex and triangle indices must be below the vertex count.
+pub fn write_mesh_ply(
+    path: &Path,
+    vertices: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    colours: &[[u8; 3]],
+    triangles: &[[u32; 3]],
+) -> Result<(), IoError> {
+    let n = vertices.len();
+    if normals.len() != n || colours.len() != n {
+        return Err(IoError::Malformed {
+            path: path.to_path_buf(),
+            message: format!(
+                "mesh has {n} vertices, {} normals and {} colours",
+                normals.len(),
+                colours.len()
+            ),
+        });
+    }
+    if let Some(t) = triangles
+        .iter()
+        .find(|t| t.iter().any(|&i| i as usize >= n))
+    {
+        return Err(IoError::Malformed {
+            path: path.to_path_buf(),
+            message: format!("triangle {t:?} indexes past {n} vertices"),
+        });
+    }
+    let io = |e| IoError::file(path, e);
+    let f = std::fs::File::create(path).map_err(io)?;
+    let mut w = std::io::BufWriter::new(f);
+    write!(
+        w,
+        "ply\nformat binary_little_endian 1.0\ncomment rgbid mesh\nelement vertex {n}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property float nx\nproperty float ny\nproperty float nz\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\n\
+         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        triangles.len()
+    )
+    .map_err(io)?;
+    let mut record = [0u8; 27];
+    for ((p, q), c) in vertices.iter().zip(normals).zip(colours) {
+        for (k, v) in p.iter().chain(q).enumerate() {
+            record[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
+        }
+        record[24..].copy_from_slice(c);
+        w.write_all(&record).map_err(io)?;
+    }
+    let mut face = [0u8; 13];
+    face[0] = 3;
+    for t in triangles {
+        for (k, &i) in t.iter().enumerate() {
+            face[1 + 4 * k..5 + 4 * k].copy_from_slice(&(i as i32).to_le_bytes());
+        }
+        w.write_all(&face).map_err(io)?;
+    }
+    w.flush().map_err(io)
+}
+
 fn write_iter(
     path: &Path,
     count: usize,

@@ -15,6 +15,7 @@
 //! with 0 = no measurement; intensity in `[0, 255]`.
 
 mod bvh;
+mod distance;
 mod gpu;
 pub(crate) mod raycast;
 mod render;

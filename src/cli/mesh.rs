@@ -1,0 +1,388 @@
+//! `rgbid mesh SEQ --poses TRAJ`: TSDF integration of every frame of a TUM sequence at given
+//! poses, and `rgbid bench tsdf`: speed and accuracy on a generated scene against Open3D.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use glam::DVec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use rgbid::camera::PinholeCamera;
+use rgbid::eval::associate;
+use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::io::trajectory::read_tum;
+use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::synth::tum_export::TumWriter;
+use rgbid::synth::{
+    CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
+};
+use rgbid::trajectory::TimedPose;
+use rgbid::tsdf::{mesh_accuracy, thin_points, MeshAccuracy, TsdfParams, TsdfVolume};
+
+use super::bench::median;
+
+/// Arguments of `rgbid mesh`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// TUM-layout sequence folder (rgb/, depth/, associations or rgb.txt + depth.txt).
+    pub sequence: PathBuf,
+    /// Trajectory (TUM format, `world_from_camera`); frames are matched to poses by time
+    /// stamp within `--max-diff` seconds, unmatched frames are skipped.
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// Voxel edge, metres (blocks are 8 voxels along each side).
+    #[arg(long, default_value_t = 0.01)]
+    pub voxel: f64,
+    /// Output mesh, binary PLY with normals, colours and faces.
+    #[arg(long, default_value = "mesh.ply")]
+    pub out: PathBuf,
+    /// Largest pose/frame time-stamp difference, seconds.
+    #[arg(long, default_value_t = 0.02)]
+    pub max_diff: f64,
+    /// Farthest depth integrated, metres.
+    #[arg(long, default_value_t = 4.0)]
+    pub max_depth: f64,
+    /// Integrate only the first this many frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Where the integration runs: auto (hardware GPU, else CPU), gpu (any adapter, lavapipe
+    /// included), cpu (rayon).
+    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
+    pub backend: BackendChoice,
+}
+
+fn progress(n: usize) -> ProgressBar {
+    let bar = ProgressBar::new(n as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed} ({eta} left)")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar
+}
+
+/// Runs `rgbid mesh`.
+pub fn run(args: Args) -> Result<()> {
+    let opts = OpenOptions {
+        max_frames: args.max_frames,
+        ..Default::default()
+    };
+    let seq = TumSequence::open(&args.sequence, &opts)?;
+    let poses = read_tum(&args.poses).context("reading --poses")?;
+    let stamps: Vec<TimedPose> = seq
+        .entries
+        .iter()
+        .map(|e| TimedPose {
+            timestamp: e.timestamp,
+            world_from_camera: rgbid::geometry::Se3::IDENTITY,
+        })
+        .collect();
+    let pairs = associate(&stamps, &poses, args.max_diff);
+    if pairs.is_empty() {
+        bail!(
+            "no frame of {} has a pose within {} s in {}",
+            args.sequence.display(),
+            args.max_diff,
+            args.poses.display()
+        );
+    }
+    let backend = select_backend(args.backend, None)?;
+    let params = TsdfParams {
+        voxel_size: args.voxel,
+        max_depth: args.max_depth,
+        ..Default::default()
+    };
+    let mut vol = TsdfVolume::new(params, seq.undistorted_camera(), &backend)?;
+    log::info!(
+        "integrating {} of {} frames on {}",
+        pairs.len(),
+        seq.len(),
+        backend.name()
+    );
+    let bar = progress(pairs.len());
+    for (i, j) in &pairs {
+        let frame = seq.load(*i)?;
+        vol.integrate(&frame, &poses[*j].world_from_camera)?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let mesh = vol.extract_mesh()?;
+    mesh.write_ply(&args.out)?;
+    println!(
+        "{} frames, {} blocks, {} vertices, {} triangles -> {}",
+        vol.frames(),
+        vol.block_count(),
+        mesh.vertices.len(),
+        mesh.triangles.len(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Arguments of `rgbid bench tsdf`.
+#[derive(clap::Args)]
+pub struct TsdfBench {
+    /// Scene preset of the generated room.
+    #[arg(long, default_value = "office")]
+    pub scene: String,
+    /// Seed of the scene, trajectory and noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Frames (30 per second along a handheld path; every frame is integrated).
+    #[arg(long, default_value_t = 150)]
+    pub frames: usize,
+    /// Image width, pixels (a Kinect's 525 px focal length at 640 wide, scaled).
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Voxel edge, metres.
+    #[arg(long, default_value_t = 0.02)]
+    pub voxel: f64,
+    /// Backends to measure, comma-separated: cpu, gpu.
+    #[arg(long, default_value = "cpu,gpu")]
+    pub backends: String,
+    /// Python interpreter with open3d for the peer (empty: no peer).
+    #[arg(long, default_value = "/work/.venv-peers/bin/python")]
+    pub python: String,
+    /// The peer script.
+    #[arg(long, default_value = "scripts/tsdf_open3d.py")]
+    pub peer_script: PathBuf,
+    /// Also write the results as JSON (machine, commit, command and every row) to this file.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+}
+
+/// One row of `rgbid bench tsdf`.
+#[derive(serde::Serialize)]
+struct TsdfRow {
+    method: String,
+    /// Median ms to integrate one frame (allocation + kernel; Open3D: block coordinates +
+    /// integration).
+    integrate_ms: f64,
+    /// Median ms of the host block allocation (rgbid only).
+    allocate_ms: Option<f64>,
+    /// Median ms of the integration kernel (rgbid only).
+    kernel_ms: Option<f64>,
+    /// Seconds to extract the mesh.
+    extract_s: f64,
+    /// Open3D's median integration time over this method's.
+    open3d_ratio: Option<f64>,
+    #[serde(flatten)]
+    accuracy: MeshAccuracy,
+}
+
+/// Runs `rgbid bench tsdf`.
+pub fn bench(a: TsdfBench) -> Result<()> {
+    let work = std::env::temp_dir().join(format!("rgbid-bench-tsdf-{}", std::process::id()));
+    let result = bench_in(&a, &work);
+    // The rendered frames are only needed by this run.
+    let _ = std::fs::remove_dir_all(&work);
+    result
+}
+
+fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
+    let scene = Arc::new(Scene::preset(&a.scene, a.seed)?);
+    let f = 525.0 * f64::from(a.width) / 640.0;
+    let cam = PinholeCamera::new(
+        f,
+        f,
+        (f64::from(a.width) - 1.0) / 2.0,
+        (f64::from(a.height) - 1.0) / 2.0,
+        a.width,
+        a.height,
+    );
+    let duration = a.frames as f64 / 30.0;
+    let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, duration, a.seed)?;
+    let mut sensor = rgbid::synth::SensorModel::kinect();
+    sensor.focal_px = Some(525.0);
+    let config = SequenceConfig {
+        frames: a.frames,
+        seed: a.seed,
+        sensor,
+        ..Default::default()
+    };
+    let seq = Sequence::new(
+        scene.clone(),
+        CameraModel::Pinhole(cam),
+        traj,
+        config,
+        &RenderBackend::Cpu,
+    )?;
+    let folder = work.join("seq");
+    println!(
+        "rendering {} frames of '{}' at {}x{} to {}",
+        a.frames,
+        a.scene,
+        a.width,
+        a.height,
+        folder.display()
+    );
+    let mut writer = TumWriter::create(&folder, &CameraModel::Pinhole(cam))?;
+    let mut seen = Vec::new();
+    let bar = progress(a.frames);
+    for f in seq {
+        let f = f?;
+        let w = cam.width as usize;
+        let rho = f.frame.inverse_depth.data();
+        for (i, &z) in f.frame.true_depth.data().iter().enumerate() {
+            if z > 0.0 && rho[i] > 0.0 {
+                let (u, v, z) = ((i % w) as f64, (i / w) as f64, f64::from(z));
+                let p = DVec3::new((u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z);
+                seen.push(f.world_from_camera.transform_point(p));
+            }
+        }
+        seen = thin_points(&seen, 0.01);
+        writer.write_frame(f.timestamp, &f.world_from_camera, &f.frame)?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    writer.finish("rgbid bench tsdf", &[])?;
+    let reference = seen;
+    let tum = TumSequence::open(&folder, &OpenOptions::default())?;
+    let gt = read_tum(&folder.join("groundtruth.txt"))?;
+    let distance = |p: DVec3| scene.surface_distance(p);
+    let params = TsdfParams {
+        voxel_size: a.voxel,
+        ..Default::default()
+    };
+    let mut rows = Vec::new();
+    let mut adapters = Vec::new();
+    for name in a.backends.split(',').map(str::trim) {
+        let backend = match name {
+            "cpu" => ComputeBackend::Cpu,
+            "gpu" => match select_backend(BackendChoice::Gpu, None) {
+                Ok(b) => b,
+                Err(e) => {
+                    println!("backend gpu: unavailable ({e})");
+                    continue;
+                }
+            },
+            other => bail!("unknown backend '{other}' (cpu, gpu)"),
+        };
+        if let ComputeBackend::Gpu(ctx) = &backend {
+            adapters.push(ctx.adapter_info().name.clone());
+        }
+        let mut vol = TsdfVolume::new(params, cam, &backend)?;
+        let (mut total, mut alloc, mut kernel) = (Vec::new(), Vec::new(), Vec::new());
+        for i in 0..tum.len() {
+            let frame = tum.load(i)?;
+            let pose = gt
+                .get(i)
+                .context("ground truth shorter than the sequence")?
+                .world_from_camera;
+            let t = Instant::now();
+            let s = vol.integrate(&frame, &pose)?;
+            total.push(t.elapsed().as_secs_f64() * 1e3);
+            alloc.push(s.allocate_s * 1e3);
+            kernel.push(s.kernel_s * 1e3);
+        }
+        let t = Instant::now();
+        let mesh = vol.extract_mesh()?;
+        let extract_s = t.elapsed().as_secs_f64();
+        rows.push(TsdfRow {
+            method: format!("rgbid {}", backend.name()),
+            integrate_ms: median(&mut total),
+            allocate_ms: Some(median(&mut alloc)),
+            kernel_ms: Some(median(&mut kernel)),
+            extract_s,
+            open3d_ratio: None,
+            accuracy: mesh_accuracy(&mesh.vertices, distance, &reference, 0.02),
+        });
+    }
+    if !a.python.is_empty() {
+        let mesh_path = work.join("open3d.ply");
+        let json_path = work.join("open3d.json");
+        let status = std::process::Command::new(&a.python)
+            .arg(&a.peer_script)
+            .arg(&folder)
+            .arg("--voxel")
+            .arg(a.voxel.to_string())
+            .arg("--depth-max")
+            .arg(params.max_depth.to_string())
+            .arg("--mesh")
+            .arg(&mesh_path)
+            .arg("--json")
+            .arg(&json_path)
+            .status();
+        match status {
+            Ok(s) if s.success() => {
+                let doc: serde_json::Value =
+                    serde_json::from_str(&std::fs::read_to_string(&json_path)?)?;
+                let mut ms: Vec<f64> = doc["integrate_ms"]
+                    .as_array()
+                    .map(|v| v.iter().filter_map(|x| x.as_f64()).collect())
+                    .unwrap_or_default();
+                let verts: Vec<[f32; 3]> = rgbid::io::ply::read_ply(&mesh_path)?
+                    .iter()
+                    .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
+                    .collect();
+                let o3d_ms = median(&mut ms);
+                for r in &mut rows {
+                    r.open3d_ratio = Some(o3d_ms / r.integrate_ms);
+                }
+                rows.push(TsdfRow {
+                    method: format!(
+                        "Open3D {} VoxelBlockGrid (CPU)",
+                        doc["open3d"].as_str().unwrap_or("?")
+                    ),
+                    integrate_ms: o3d_ms,
+                    allocate_ms: None,
+                    kernel_ms: None,
+                    extract_s: doc["extract_s"].as_f64().unwrap_or(f64::NAN),
+                    open3d_ratio: Some(1.0),
+                    accuracy: mesh_accuracy(&verts, distance, &reference, 0.02),
+                });
+            }
+            Ok(s) => println!("peer Open3D: failed ({s})"),
+            Err(e) => println!("peer Open3D: could not run {} ({e})", a.python),
+        }
+    }
+    println!(
+        "{} frames {}x{}, voxel {} m, scene '{}' seed {}, ground-truth poses, every frame integrated",
+        a.frames, a.width, a.height, a.voxel, a.scene, a.seed
+    );
+    println!(
+        "{:<44} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>7} {:>8}",
+        "method",
+        "int. ms",
+        "alloc ms",
+        "kern. ms",
+        "extract s",
+        "vertices",
+        "mean mm",
+        "p90 mm",
+        "compl.",
+        "O3D/x"
+    );
+    let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
+    for r in &rows {
+        println!(
+            "{:<44} {:>9.2} {:>9} {:>9} {:>9.2} {:>9} {:>8.2} {:>8.2} {:>7.3} {:>8}",
+            r.method,
+            r.integrate_ms,
+            opt(r.allocate_ms, 2),
+            opt(r.kernel_ms, 2),
+            r.extract_s,
+            r.accuracy.vertices,
+            r.accuracy.mean_m * 1e3,
+            r.accuracy.p90_m * 1e3,
+            r.accuracy.completeness,
+            opt(r.open3d_ratio, 2)
+        );
+    }
+    if let Some(path) = &a.json {
+        let body = serde_json::json!({
+            "scene": a.scene,
+            "seed": a.seed,
+            "frames": a.frames,
+            "width": a.width,
+            "height": a.height,
+            "voxel_m": a.voxel,
+            "rows": rows,
+        });
+        super::report::write(path, "tsdf", &super::report::meta(adapters), &body)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,197 @@
+//! The TSDF integration kernel on a wgpu device (`shaders/tsdf.wgsl`), with the voxels
+//! resident there.
+
+use std::borrow::Cow;
+use std::sync::Arc;
+
+use super::integrate::{IntegrateUniform, TsdfKernels, Voxel};
+use super::{TsdfError, BLOCK_VOXELS};
+use crate::gpu::{shaders, GpuContext, GpuError};
+
+/// Workgroups per dispatch row (the per-dimension dispatch limit of every wgpu backend).
+const ROW: u32 = 65535;
+
+/// Buffers sized for the frame and the block capacity, with their bind group.
+struct Resident {
+    rho: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+    active: wgpu::Buffer,
+    voxels: wgpu::Buffer,
+    bind: wgpu::BindGroup,
+    pixels: usize,
+    active_capacity: usize,
+    block_capacity: usize,
+}
+
+pub(crate) struct GpuTsdf {
+    ctx: Arc<GpuContext>,
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    uniform: wgpu::Buffer,
+    resident: Option<Resident>,
+    blocks: usize,
+}
+
+fn voxel_bytes(blocks: usize) -> u64 {
+    (blocks * BLOCK_VOXELS * std::mem::size_of::<Voxel>()) as u64
+}
+
+impl GpuTsdf {
+    /// Compiles `tsdf.wgsl` on `ctx`.
+    pub(crate) fn new(ctx: Arc<GpuContext>) -> Result<Self, TsdfError> {
+        let src = shaders::assembled("tsdf.wgsl").ok_or_else(|| GpuError::Shader {
+            name: "tsdf.wgsl".into(),
+            message: "not embedded".into(),
+        })?;
+        let layout = ctx.buffer_layout("tsdf", &[true, true, true, false]);
+        let mut pipes =
+            ctx.compute_pipelines_with_layout("tsdf.wgsl", &src, &["integrate"], Some(&layout))?;
+        let pipeline = pipes.pop().ok_or_else(|| GpuError::Shader {
+            name: "tsdf.wgsl".into(),
+            message: "no pipeline".into(),
+        })?;
+        let uniform = ctx.uniform(
+            "tsdf params",
+            std::mem::size_of::<IntegrateUniform>() as u64,
+        );
+        Ok(GpuTsdf {
+            ctx,
+            pipeline,
+            layout,
+            uniform,
+            resident: None,
+            blocks: 0,
+        })
+    }
+
+    /// Makes the buffers large enough; voxels already integrated are copied into a grown
+    /// voxel buffer (new slots start zeroed, i.e. unobserved).
+    fn ensure(&mut self, pixels: usize, active: usize, blocks: usize) -> Result<(), TsdfError> {
+        let ctx = &self.ctx;
+        let fits = self.resident.as_ref().is_some_and(|r| {
+            r.pixels == pixels && r.active_capacity >= active && r.block_capacity >= blocks
+        });
+        if fits {
+            return Ok(());
+        }
+        let old = self.resident.take();
+        let block_capacity = old
+            .as_ref()
+            .map_or(0, |r| r.block_capacity)
+            .max(blocks + blocks / 2)
+            .max(64);
+        let limit = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size);
+        if voxel_bytes(block_capacity) > limit {
+            return Err(TsdfError::InvalidParameter {
+                name: "voxel_size",
+                why: format!(
+                    "{block_capacity} blocks need {} bytes, more than the device's storage \
+                     buffer limit of {limit} bytes; use larger voxels or the CPU backend",
+                    voxel_bytes(block_capacity)
+                ),
+            });
+        }
+        let active_capacity = old
+            .as_ref()
+            .map_or(0, |r| r.active_capacity)
+            .max(active + active / 2)
+            .max(64);
+        let rho = ctx.storage("tsdf rho", (pixels * 4) as u64);
+        let rgb = ctx.storage("tsdf rgb", (pixels * 4) as u64);
+        let act = ctx.storage("tsdf active blocks", (active_capacity * 16) as u64);
+        let voxels = ctx.storage("tsdf voxels", voxel_bytes(block_capacity));
+        if let Some(o) = &old {
+            let mut enc = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("tsdf grow"),
+                });
+            enc.copy_buffer_to_buffer(&o.voxels, 0, &voxels, 0, voxel_bytes(o.block_capacity));
+            ctx.queue.submit([enc.finish()]);
+        }
+        let bind = ctx.bind_buffers(
+            "tsdf",
+            &self.layout,
+            &[&self.uniform, &rho, &rgb, &act, &voxels],
+        );
+        self.resident = Some(Resident {
+            rho,
+            rgb,
+            active: act,
+            voxels,
+            bind,
+            pixels,
+            active_capacity,
+            block_capacity,
+        });
+        Ok(())
+    }
+}
+
+impl TsdfKernels for GpuTsdf {
+    fn integrate(
+        &mut self,
+        blocks: usize,
+        active: &[[i32; 4]],
+        rho: &[f32],
+        rgb: Option<&[u32]>,
+        u: &IntegrateUniform,
+    ) -> Result<(), TsdfError> {
+        self.ensure(rho.len(), active.len(), blocks)?;
+        self.blocks = blocks;
+        let ctx = &self.ctx;
+        let Some(r) = &self.resident else {
+            return Err(GpuError::Validation("tsdf buffers missing".into()).into());
+        };
+        if active.is_empty() {
+            return Ok(());
+        }
+        ctx.queue.write_buffer(&r.rho, 0, bytemuck::cast_slice(rho));
+        if let Some(c) = rgb {
+            ctx.queue.write_buffer(&r.rgb, 0, bytemuck::cast_slice(c));
+        }
+        ctx.queue
+            .write_buffer(&r.active, 0, bytemuck::cast_slice(active));
+        ctx.queue
+            .write_buffer(&self.uniform, 0, bytemuck::bytes_of(u));
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf integrate"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("tsdf integrate"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &r.bind, &[]);
+            let n = active.len() as u32;
+            pass.dispatch_workgroups(n.min(ROW), n.div_ceil(ROW), 1);
+        }
+        ctx.queue.submit([enc.finish()]);
+        ctx.wait()?;
+        ctx.check()?;
+        Ok(())
+    }
+
+    fn voxels(&self) -> Result<Cow<'_, [Voxel]>, TsdfError> {
+        let Some(r) = &self.resident else {
+            return Ok(Cow::Owned(Vec::new()));
+        };
+        let v: Vec<Voxel> = self
+            .ctx
+            .read_buffer(&r.voxels, self.blocks * BLOCK_VOXELS)?;
+        Ok(Cow::Owned(v))
+    }
+
+    fn memory_bytes(&self) -> (usize, usize) {
+        let resident = self.resident.as_ref().map_or(0, |r| {
+            r.rho.size() + r.rgb.size() + r.active.size() + r.voxels.size()
+        });
+        (0, (self.uniform.size() + resident) as usize)
+    }
+}

@@ -1,0 +1,163 @@
+//! Ray casting of the volume on the CPU: depth and normals of the zero crossing seen from
+//! a camera.
+
+use rayon::prelude::*;
+
+use super::volume::VolumeView;
+use super::BLOCK_SIDE;
+use crate::camera::PinholeCamera;
+use crate::geometry::Se3;
+use crate::image::ImageF32;
+
+/// What [`super::TsdfVolume::ray_cast`] sees.
+#[derive(Clone, Debug)]
+pub struct RayCastImages {
+    /// Depth along the optical axis, metres; 0 where no surface was found.
+    pub depth: ImageF32,
+    /// Unit surface normals in the camera frame, facing the camera (`[0; 3]` where no
+    /// surface was found), row-major.
+    pub normals: Vec<[f32; 3]>,
+}
+
+/// The trilinear TSDF at world point `p` (metres), `None` when one of the 8 voxels around it
+/// is unallocated or unobserved.
+fn sample(view: &VolumeView<'_>, p: [f32; 3]) -> Option<f32> {
+    let s = view.voxel_size as f32;
+    let q = p.map(|c| c / s);
+    let b = q.map(|c| c.floor());
+    let f = [q[0] - b[0], q[1] - b[1], q[2] - b[2]];
+    let g = b.map(|c| c as i32);
+    let mut acc = 0.0f32;
+    for c in 0..8 {
+        let o = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
+        let v = view.voxel([g[0] + o[0], g[1] + o[1], g[2] + o[2]])?;
+        if !(v.weight > 0.0) {
+            return None;
+        }
+        let w = (0..3)
+            .map(|k| if o[k] == 1 { f[k] } else { 1.0 - f[k] })
+            .product::<f32>();
+        acc += w * v.tsdf;
+    }
+    Some(acc)
+}
+
+/// Ray casts `view` from `camera` at `world_from_camera`; `step` (m) is the largest march
+/// step in free space, depths are searched in `[min_depth, max_depth]` (m).
+pub(crate) fn cast(
+    view: &VolumeView<'_>,
+    camera: &PinholeCamera,
+    world_from_camera: &Se3,
+    step: f32,
+    min_depth: f32,
+    max_depth: f32,
+) -> RayCastImages {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let r = world_from_camera.rotation_matrix();
+    let t = world_from_camera.translation;
+    let rot = |v: [f32; 3]| -> [f32; 3] {
+        [0, 1, 2]
+            .map(|i| r.row(i).x as f32 * v[0] + r.row(i).y as f32 * v[1] + r.row(i).z as f32 * v[2])
+    };
+    let origin = [t.x as f32, t.y as f32, t.z as f32];
+    let voxel = view.voxel_size as f32;
+    let block = voxel * BLOCK_SIDE as f32;
+    let rows: Vec<(Vec<f32>, Vec<[f32; 3]>)> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let mut depth = vec![0.0f32; w];
+            let mut normals = vec![[0.0f32; 3]; w];
+            for x in 0..w {
+                let ray_c = [
+                    (x as f32 - camera.cx as f32) / camera.fx as f32,
+                    (y as f32 - camera.cy as f32) / camera.fy as f32,
+                    1.0,
+                ];
+                let ray = rot(ray_c);
+                let at = |z: f32| [0, 1, 2].map(|k| origin[k] + ray[k] * z);
+                let len = (ray_c[0] * ray_c[0] + ray_c[1] * ray_c[1] + 1.0).sqrt();
+                let mut z = min_depth;
+                let mut prev: Option<(f32, f32)> = None;
+                while z < max_depth {
+                    match sample(view, at(z)) {
+                        None => {
+                            prev = None;
+                            // Unknown space: skip faster where the whole block is missing.
+                            let p = at(z);
+                            let g = p.map(|c| (c / voxel).floor() as i32);
+                            let n = BLOCK_SIDE as i32;
+                            let blk = [g[0].div_euclid(n), g[1].div_euclid(n), g[2].div_euclid(n)];
+                            let dz = if view.map.contains_key(&blk) {
+                                voxel
+                            } else {
+                                0.5 * block
+                            };
+                            z += dz / len;
+                        }
+                        Some(s) => {
+                            if let Some((zp, sp)) = prev {
+                                if sp > 0.0 && s <= 0.0 {
+                                    let zh = zp + (z - zp) * sp / (sp - s);
+                                    depth[x] = zh;
+                                    normals[x] = normal(view, at(zh), voxel, ray_c, &r);
+                                    break;
+                                }
+                                if sp < 0.0 && s > 0.0 {
+                                    // Seen from behind: not a surface facing this camera.
+                                    break;
+                                }
+                            }
+                            prev = Some((z, s));
+                            z += (s.abs().min(step)).max(voxel) * 0.8 / len;
+                        }
+                    }
+                }
+            }
+            (depth, normals)
+        })
+        .collect();
+    let mut depth = Vec::with_capacity(w * h);
+    let mut normals = Vec::with_capacity(w * h);
+    for (d, n) in rows {
+        depth.extend(d);
+        normals.extend(n);
+    }
+    RayCastImages {
+        depth: ImageF32::from_vec(w, h, depth).unwrap_or_else(|| ImageF32::filled(w, h, 0.0)),
+        normals,
+    }
+}
+
+/// Unit normal (camera frame, facing the camera) from central differences of the TSDF.
+fn normal(
+    view: &VolumeView<'_>,
+    p: [f32; 3],
+    voxel: f32,
+    ray_c: [f32; 3],
+    world_from_camera_rot: &glam::DMat3,
+) -> [f32; 3] {
+    let mut g = [0.0f32; 3];
+    for k in 0..3 {
+        let mut a = p;
+        let mut b = p;
+        a[k] += voxel;
+        b[k] -= voxel;
+        match (sample(view, a), sample(view, b)) {
+            (Some(sa), Some(sb)) => g[k] = sa - sb,
+            _ => return [0.0; 3],
+        }
+    }
+    // World to camera: the transpose of world_from_camera's rotation.
+    let r = world_from_camera_rot;
+    let c = [0, 1, 2]
+        .map(|i| r.col(i).x as f32 * g[0] + r.col(i).y as f32 * g[1] + r.col(i).z as f32 * g[2]);
+    let l = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+    if !(l > 0.0) {
+        return [0.0; 3];
+    }
+    let mut n = c.map(|v| v / l);
+    if n[0] * ray_c[0] + n[1] * ray_c[1] + n[2] * ray_c[2] > 0.0 {
+        n = n.map(|v| -v);
+    }
+    n
+}
