@@ -550,8 +550,9 @@ impl Vocabulary {
         let k = u32_at(take(4)?) as usize;
         let levels = u32_at(take(4)?) as usize;
         let codes = take(4)?;
-        let weighting = Weighting::from_code(u32::from(codes[0]))?;
-        let scoring = Scoring::from_code(u32::from(codes[1]))?;
+        let at_codes = |e: PlaceError| bad(&format!("byte 20: {e}"));
+        let weighting = Weighting::from_code(u32::from(codes[0])).map_err(at_codes)?;
+        let scoring = Scoring::from_code(u32::from(codes[1])).map_err(at_codes)?;
         let n = u32_at(take(4)?) as usize;
         if n == 0 {
             return Err(bad("node count is 0 (the root is always present)"));
@@ -619,8 +620,9 @@ impl Vocabulary {
         }
         for (i, node) in nodes.iter().enumerate().skip(1) {
             if leaf_flags[i] != node.children.is_empty() {
+                let at = 28 + (i - 1) * REC;
                 return Err(bad(&format!(
-                    "node {i}: leaf flag disagrees with its children"
+                    "node {i} (byte {at}): leaf flag disagrees with its children"
                 )));
             }
         }
