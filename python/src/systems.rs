@@ -339,15 +339,7 @@ impl Slam {
                 ..Default::default()
             };
             let points = build_model(r.keyframes(), &r.keyframe_poses, &camera, &params);
-            let keyframes = r
-                .keyframes()
-                .iter()
-                .zip(r.keyframe_poses.iter())
-                .map(|(k, p)| TimedPose {
-                    timestamp: k.timestamp,
-                    world_from_camera: *p,
-                })
-                .collect();
+            let keyframes = r.keyframe_trajectory();
             let statuses = r.frames.iter().map(|f| status_name(f.status)).collect();
             Ok(SlamResult {
                 trajectory: r.trajectory,

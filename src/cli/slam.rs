@@ -499,15 +499,7 @@ fn write_outputs(
     let out = &a.out;
     let mut warnings = Vec::new();
     writer.trajectory(&r.trajectory)?;
-    let kf_traj: Vec<TimedPose> = r
-        .keyframes()
-        .iter()
-        .zip(r.keyframe_poses.iter())
-        .map(|(k, p)| TimedPose {
-            timestamp: k.timestamp,
-            world_from_camera: *p,
-        })
-        .collect();
+    let kf_traj: Vec<TimedPose> = r.keyframe_trajectory();
     writer.keyframes(&kf_traj)?;
     // Loops the back-end found after the last frame's call.
     for l in r.loops.iter().skip(writer.loops_written()) {

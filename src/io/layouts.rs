@@ -126,7 +126,7 @@ impl Truth {
                 let skip = matches!(self, Truth::PerFrameSkipInvalid(_));
                 let mut out = Vec::new();
                 for (p, e) in files.iter().zip(entries) {
-                    let text = std::fs::read_to_string(p).map_err(|err| IoError::file(p, err))?;
+                    let text = super::read_text(p)?;
                     let lower = text.to_ascii_lowercase();
                     if skip && (lower.contains("inf") || lower.contains("nan")) {
                         continue;
@@ -141,7 +141,7 @@ impl Truth {
                 Ok(Some(out))
             }
             Truth::MatrixLines(p) => {
-                let text = std::fs::read_to_string(p).map_err(|err| IoError::file(p, err))?;
+                let text = super::read_text(p)?;
                 let mut out = Vec::new();
                 for (i, line) in text.lines().enumerate() {
                     if line.trim().is_empty() || line.trim_start().starts_with('#') {
@@ -229,7 +229,7 @@ pub(crate) fn layout_camera(layout: Layout, dir: &Path) -> Result<Option<CameraC
 /// The pinhole camera of a 4x4 (or 3x3) intrinsic matrix file as ScanNet writes them, for
 /// images of `width` x `height`.
 fn intrinsic_matrix(path: &Path, width: u32, height: u32) -> Result<PinholeCamera, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+    let text = super::read_text(path)?;
     let v = parse_numbers(&text).map_err(|m| IoError::parse(path, 1, m))?;
     let n = match v.len() {
         16 => 4,
@@ -269,7 +269,7 @@ pub(crate) fn scannet_colour_camera(
 /// of `rgb.txt` and TUM's depth factor.
 fn eth3d_calibration(dir: &Path) -> Result<CameraConfig, IoError> {
     let path = dir.join("calibration.txt");
-    let text = std::fs::read_to_string(&path).map_err(|e| IoError::file(&path, e))?;
+    let text = super::read_text(&path)?;
     let (line, s) = text
         .lines()
         .enumerate()
@@ -304,7 +304,7 @@ fn eth3d_calibration(dir: &Path) -> Result<CameraConfig, IoError> {
 /// The first image named in `dir/rgb.txt`.
 fn first_listed_image(dir: &Path) -> Result<PathBuf, IoError> {
     let list = dir.join("rgb.txt");
-    let text = std::fs::read_to_string(&list).map_err(|e| IoError::file(&list, e))?;
+    let text = super::read_text(&list)?;
     text.lines()
         .map(str::trim)
         .filter(|l| !l.is_empty() && !l.starts_with('#'))

@@ -44,7 +44,7 @@ impl CameraConfig {
     /// Reads an OpenCV / ORB-SLAM YAML camera file (chosen for `.yaml` and `.yml` files by
     /// [`CameraConfig::from_name_or_path`]).
     pub fn from_opencv_yaml(path: &Path) -> Result<CameraConfig, IoError> {
-        let text = std::fs::read_to_string(path).map_err(|e| IoError::file(path, e))?;
+        let text = super::read_text(path)?;
         Self::parse_opencv_yaml(&text, path)
     }
 

@@ -728,6 +728,19 @@ impl SlamResult {
     pub fn keyframes(&self) -> &[Keyframe] {
         &self.map.keyframes
     }
+
+    /// The keyframes' optimised `world_from_keyframe` with their time stamps, in keyframe
+    /// order (what `keyframes.txt` of a run folder holds).
+    pub fn keyframe_trajectory(&self) -> Vec<TimedPose> {
+        self.keyframes()
+            .iter()
+            .zip(&self.keyframe_poses)
+            .map(|(k, p)| TimedPose {
+                timestamp: k.timestamp,
+                world_from_camera: *p,
+            })
+            .collect()
+    }
 }
 
 impl Drop for Slam {

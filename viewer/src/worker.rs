@@ -582,15 +582,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     for u in backend_updates(&events, &keyframe_images, None) {
         send(u)?;
     }
-    let keyframes: Vec<TimedPose> = result
-        .keyframes()
-        .iter()
-        .zip(&result.keyframe_poses)
-        .map(|(k, p)| TimedPose {
-            timestamp: k.timestamp,
-            world_from_camera: *p,
-        })
-        .collect();
+    let keyframes: Vec<TimedPose> = result.keyframe_trajectory();
     let index_of = |id: usize| result.keyframes().iter().position(|k| k.id == id);
     let loops = result
         .loops
