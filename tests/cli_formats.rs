@@ -82,3 +82,53 @@ fn odometry_writes_each_format_and_eval_reads_them_alike() {
     ]);
     assert!(!o.status.success());
 }
+
+/// Writes a TUM trajectory of `n` poses on a circle of radius 1 m in the x-z plane at 10 Hz,
+/// with `offset` added to x.
+fn circle(path: &Path, n: usize, offset: f64) {
+    let lines: Vec<String> = (0..n)
+        .map(|i| {
+            let a = i as f64 / n as f64 * std::f64::consts::TAU;
+            let x = a.cos() + offset * (i as f64 / n as f64);
+            format!("{:.3} {x:.6} 0.1 {:.6} 0 0 0 1", 0.1 * i as f64, a.sin())
+        })
+        .collect();
+    std::fs::write(path, lines.join("\n") + "\n").expect("write trajectory");
+}
+
+#[test]
+fn eval_plots_top_view_and_error_over_time() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (gt, est, png) = (
+        tmp.path().join("gt.txt"),
+        tmp.path().join("est.txt"),
+        tmp.path().join("plot.png"),
+    );
+    circle(&gt, 60, 0.0);
+    circle(&est, 60, 0.2);
+    let o = rgbid(&["eval", path(&gt), path(&est), "--plot", path(&png)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let img = image::open(&png).expect("plot is a PNG").to_rgb8();
+    assert_eq!(img.dimensions(), (1600, 700));
+    let count = |c: [u8; 3]| img.pixels().filter(|p| p.0 == c).count();
+    // Both trajectories and the error curve are drawn in their colours, and text is there.
+    let (blue, dark) = (count([30, 80, 200]), count([40, 40, 40]));
+    assert!(blue > 500 && dark > 300, "blue {blue} dark {dark}");
+    let white = count([255, 255, 255]);
+    assert!(white < 1600 * 700 * 98 / 100, "the plot is almost empty");
+
+    // Without a font the error says how to get one, and no plot is written.
+    let png2 = tmp.path().join("plot2.png");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_rgbid"))
+        .args(["eval", path(&gt), path(&est), "--plot", path(&png2)])
+        .env("RGBID_FONT", tmp.path().join("no-such-font.ttf"))
+        .output()
+        .expect("running rgbid");
+    assert!(!o.status.success());
+    let t = text(&o);
+    assert!(
+        t.contains("no-such-font.ttf") && t.contains("RGBID_FONT"),
+        "{t}"
+    );
+    assert!(!png2.exists());
+}

@@ -1,12 +1,14 @@
 //! `rgbid eval GT EST`: ATE and RPE of an estimated trajectory against ground truth (TUM, KITTI
-//! or EuRoC files, detected).
+//! or EuRoC files, detected), and a plot of both.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
-use rgbid::eval::{evaluate, EvalOptions, RpeDelta, RpeResult};
+use rgbid::eval::{associate, evaluate, EvalOptions, RpeDelta, RpeResult, TrajectoryMetrics};
 use rgbid::io::trajectory::read_trajectory;
 use rgbid::trajectory::TimedPose;
+
+use super::plot::{write_png, Panel, Series, BLUE, DARK};
 
 /// Arguments of `rgbid eval`.
 #[derive(clap::Args)]
@@ -31,6 +33,50 @@ pub struct Args {
     /// Align with a similarity (estimate scale too), for monocular trajectories.
     #[arg(long)]
     pub scale: bool,
+    /// Output: a PNG with a top view of both trajectories (the estimate aligned as for the ATE)
+    /// and the position error of each matched pose against time.
+    #[arg(long, value_name = "PNG")]
+    pub plot: Option<PathBuf>,
+    /// The plane of the top view: the two world axes of the ground truth's largest extent
+    /// (`auto`), or `xy`, `xz`, `yz`.
+    #[arg(long, value_enum, default_value_t = Plane::Auto)]
+    pub plot_plane: Plane,
+}
+
+/// The plane of `rgbid eval --plot`'s top view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Plane {
+    /// The two axes along which the ground truth extends most.
+    Auto,
+    /// x horizontal, y vertical.
+    Xy,
+    /// x horizontal, z vertical.
+    Xz,
+    /// y horizontal, z vertical.
+    Yz,
+}
+
+impl Plane {
+    /// Axis indices `(horizontal, vertical)`.
+    fn axes(self, gt: &[TimedPose]) -> (usize, usize) {
+        match self {
+            Plane::Xy => (0, 1),
+            Plane::Xz => (0, 2),
+            Plane::Yz => (1, 2),
+            Plane::Auto => {
+                let extent = |k: usize| {
+                    let v = gt.iter().map(|p| p.world_from_camera.translation[k]);
+                    let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                        (a.min(x), b.max(x))
+                    });
+                    hi - lo
+                };
+                let mut k = [0usize, 1, 2];
+                k.sort_by(|&a, &b| extent(b).total_cmp(&extent(a)));
+                (k[0].min(k[1]), k[0].max(k[1]))
+            }
+        }
+    }
 }
 
 /// Runs the subcommand.
@@ -49,12 +95,86 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         with_scale: args.scale,
     };
     let m = evaluate(&gt, &est, &opts)?;
+    if let Some(path) = &args.plot {
+        plot(path, &gt, &est, &m, args.max_diff, args.plot_plane)?;
+    }
     if args.json {
         println!("{}", serde_json::to_string(&m)?);
         return Ok(());
     }
     print_metrics(&m, args.scale, args.delta);
     Ok(())
+}
+
+/// Writes the `--plot` figure: the top view of ground truth and aligned estimate, and the ATE
+/// position error of each matched pose against time since the first match.
+fn plot(
+    path: &std::path::Path,
+    gt: &[TimedPose],
+    est: &[TimedPose],
+    m: &TrajectoryMetrics,
+    max_diff: f64,
+    plane: Plane,
+) -> anyhow::Result<()> {
+    let sorted = |t: &[TimedPose]| {
+        let mut v = t.to_vec();
+        v.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
+        v
+    };
+    let (gt, est) = (sorted(gt), sorted(est));
+    let align = &m.ate.alignment;
+    let (h, v) = plane.axes(&gt);
+    let top = |p: glam::DVec3| (p[h], p[v]);
+    let gt_xy: Vec<(f64, f64)> = gt
+        .iter()
+        .map(|p| top(p.world_from_camera.translation))
+        .collect();
+    let est_xy: Vec<(f64, f64)> = est
+        .iter()
+        .map(|p| top(align.apply(p.world_from_camera.translation)))
+        .collect();
+    let pairs = associate(&est, &gt, max_diff);
+    let t0 = pairs.first().map_or(0.0, |&(_, j)| gt[j].timestamp);
+    let errors: Vec<(f64, f64)> = pairs
+        .iter()
+        .map(|&(i, j)| {
+            let e = align.apply(est[i].world_from_camera.translation)
+                - gt[j].world_from_camera.translation;
+            (gt[j].timestamp - t0, e.length())
+        })
+        .collect();
+    let axis = |k: usize| format!("{} (m)", ["x", "y", "z"][k]);
+    let series = |label: &str, points, color| Series {
+        label: label.into(),
+        points,
+        color,
+        dots: false,
+    };
+    let aligned = if m.ate.alignment.scale != 1.0 {
+        "estimate (Sim(3)-aligned)"
+    } else {
+        "estimate (aligned)"
+    };
+    let panels = [
+        Panel {
+            title: format!("top view, {} matched poses", m.matched),
+            x_label: axis(h),
+            y_label: axis(v),
+            series: vec![
+                series("ground truth", gt_xy, DARK),
+                series(aligned, est_xy, BLUE),
+            ],
+            equal_axes: true,
+        },
+        Panel {
+            title: format!("position error, ATE rmse {:.4} m", m.ate.translation.rmse),
+            x_label: "time since the first match (s)".into(),
+            y_label: "error (m)".into(),
+            series: vec![series("", errors, BLUE)],
+            equal_axes: false,
+        },
+    ];
+    write_png(path, &panels, (1, 2), (1600, 700))
 }
 
 /// Reads two TUM trajectories and prints ATE / RPE with the default options.

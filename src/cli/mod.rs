@@ -12,6 +12,7 @@ pub mod options;
 pub mod outcome;
 pub mod outputs;
 pub mod place;
+pub mod plot;
 pub mod report;
 pub mod scale;
 pub mod segment;

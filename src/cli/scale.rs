@@ -12,11 +12,12 @@ use rgbid::experiments::scale::{
 use rgbid::gpu::ComputeBackend;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::scale::{
-    arc_length_error, calibrate, plot_panels, CalibrationSample, DynScale, DynScaleConfig,
-    DynScaleResult, Series, UpAxis, GRIEVE_ALPHA, GRIEVE_BETA,
+    arc_length_error, calibrate, CalibrationSample, DynScale, DynScaleConfig, DynScaleResult,
+    UpAxis, GRIEVE_ALPHA, GRIEVE_BETA,
 };
 
 use super::options::{write_sidecar, ConfigArgs};
+use super::plot::{write_png, Panel, Series, BLUE, RED};
 
 /// `rgbid scale TRAJ ...` scales a trajectory; `calibrate` and `experiment` are subcommands.
 #[derive(clap::Args)]
@@ -90,7 +91,7 @@ pub struct RunArgs {
     /// Output: the scaled TUM trajectory (metres).
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Output: a PNG with frequency, scale and speed per section.
+    /// Output: a PNG with step frequency, scale and walking speed per section against time.
     #[arg(long)]
     plot: Option<PathBuf>,
     /// Output: the sections as JSON.
@@ -212,56 +213,58 @@ fn run_calibrate(file: &Path, height: f64) -> Result<()> {
 /// An `(x, y)` plot point.
 type Point = (f64, f64);
 
+/// Frequency, scale and speed per section against time, stacked; with `truth` (true step
+/// frequency and true scale over time) drawn beside the estimates.
 fn section_plot(
     path: &Path,
     r: &DynScaleResult,
     truth: Option<(&[Point], &[Point])>,
 ) -> Result<()> {
     let mid = |s: &rgbid::scale::Section| 0.5 * (s.t_start + s.t_end);
-    let blue = [30, 80, 200];
-    let red = [200, 40, 40];
-    let freq: Vec<(f64, f64)> = r
+    let series = |label: &str, points: Vec<Point>, color, dots| Series {
+        label: label.into(),
+        points,
+        color,
+        dots,
+    };
+    // Sections that are not walking carry no frequency: a gap, not a zero.
+    let freq: Vec<Point> = r
         .sections
         .iter()
-        .map(|s| (mid(s), if s.walking { s.analysis.frequency } else { 0.0 }))
+        .map(|s| {
+            let f = if s.walking {
+                s.analysis.frequency
+            } else {
+                f64::NAN
+            };
+            (mid(s), f)
+        })
         .collect();
-    let scale: Vec<(f64, f64)> = r.sections.iter().map(|s| (mid(s), s.scale)).collect();
-    let speed: Vec<(f64, f64)> = r.sections.iter().map(|s| (mid(s), s.speed())).collect();
-    let mut p1 = vec![Series {
-        points: freq,
-        color: blue,
-        dots: true,
-    }];
-    let mut p2 = vec![Series {
-        points: scale,
-        color: blue,
-        dots: false,
-    }];
+    let scale: Vec<Point> = r.sections.iter().map(|s| (mid(s), s.scale)).collect();
+    let speed: Vec<Point> = r.sections.iter().map(|s| (mid(s), s.speed())).collect();
+    let mut f_series = vec![series("estimate (walking sections)", freq, BLUE, true)];
+    let mut s_series = vec![series("estimate", scale, BLUE, false)];
     if let Some((f, s)) = truth {
-        p1.insert(
-            0,
-            Series {
-                points: f.to_vec(),
-                color: red,
-                dots: false,
-            },
-        );
-        p2.insert(
-            0,
-            Series {
-                points: s.to_vec(),
-                color: red,
-                dots: false,
-            },
-        );
+        f_series.insert(0, series("ground truth", f.to_vec(), RED, false));
+        s_series.insert(0, series("ground truth", s.to_vec(), RED, false));
     }
-    let p3 = vec![Series {
-        points: speed,
-        color: blue,
-        dots: false,
-    }];
-    plot_panels(path, &[p1, p2, p3], 1200, 900)?;
-    Ok(())
+    let panel = |title: &str, y_label: &str, series| Panel {
+        title: title.into(),
+        x_label: "time (s)".into(),
+        y_label: y_label.into(),
+        series,
+        equal_axes: false,
+    };
+    let panels = [
+        panel("step frequency per section", "frequency (Hz)", f_series),
+        panel("scale per section", "scale (m per SLAM unit)", s_series),
+        panel(
+            "walking speed per section",
+            "speed (m/s)",
+            vec![series("estimate", speed, BLUE, false)],
+        ),
+    ];
+    write_png(path, &panels, (3, 1), (1200, 1200))
 }
 
 fn run_scale(a: &RunArgs) -> Result<()> {

@@ -20,8 +20,6 @@
 //!   from a ground-truth trajectory, for experiments.
 //! - [`optim_sim3`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
 //! - [`arc_length_error`]: position error against ground truth by normalised arc length (3.36).
-//! - [`plot_panels`]: PNG line plots of frequency, scale and speed per section
-//!   (figs. 3.7-3.8).
 //!
 //! Frames: trajectories are `world_from_camera` in the trajectory's own world frame (for a
 //! monocular SLAM output, usually the first camera: x right, y down, z forward). Units: seconds,
@@ -33,7 +31,6 @@ pub(crate) mod dynscale;
 pub(crate) mod loops;
 pub(crate) mod metric;
 pub(crate) mod particle;
-pub(crate) mod plot;
 pub(crate) mod spectrum;
 pub(crate) mod walking;
 
@@ -45,7 +42,6 @@ pub use dynscale::{
 pub use loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
 pub use metric::{arc_length_error, ArcLengthError};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
-pub use plot::{plot_panels, Series};
 pub use spectrum::{HighPass, SpectrumConfig, StepAnalysis};
 pub use walking::{calibrate, CalibrationSample, WalkingModel, GRIEVE_ALPHA, GRIEVE_BETA};
 
@@ -100,14 +96,6 @@ pub enum ScaleError {
         /// The cache file.
         path: std::path::PathBuf,
         /// What went wrong (with the line number for parse errors).
-        message: String,
-    },
-    /// Writing the plot failed.
-    #[error("plot {path}: {message}")]
-    Plot {
-        /// The output file.
-        path: std::path::PathBuf,
-        /// What went wrong.
         message: String,
     },
 }
