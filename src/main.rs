@@ -47,6 +47,9 @@ enum Command {
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]
     Graph(cli::graph::Command),
+    /// A run folder's or map's trajectory (TUM, KITTI, EuRoC), model (PLY, OBJ) or keyframe
+    /// pose graph (g2o) in the format another tool reads.
+    Export(cli::export::Args),
     /// RGB-ID SLAM: tracking, keyframe fusion, loop closure, pose graph, maps across
     /// sessions; writes trajectories, loops, a PLY model and timings.
     Slam(cli::slam::Args),
@@ -96,6 +99,7 @@ fn run(command: Command) -> Result<()> {
         Command::Vocab(c) => cli::vocab::run(c),
         Command::Segment(a) => cli::segment::run(a),
         Command::Graph(c) => cli::graph::run(c),
+        Command::Export(a) => cli::export::run(a),
         Command::Slam(a) => cli::slam::run(a),
         Command::Scale(a) => cli::scale::run(a),
         Command::Mono(a) => cli::mono::run(*a),

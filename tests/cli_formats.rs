@@ -1,5 +1,6 @@
-//! Trajectory formats on the command line: `rgbid odometry --out` writes TUM, KITTI and EuRoC
-//! files of the same run, and `rgbid eval` reads each (detected) to the same figures.
+//! Formats on the command line: `rgbid odometry --out` writes TUM, KITTI and EuRoC files of the
+//! same run, and `rgbid eval` reads each (detected) to the same figures and plots them;
+//! `rgbid export` converts a run folder's or map's trajectory, model and pose graph.
 
 use std::path::Path;
 
@@ -131,4 +132,111 @@ fn eval_plots_top_view_and_error_over_time() {
         "{t}"
     );
     assert!(!png2.exists());
+}
+
+#[test]
+fn export_writes_trajectories_models_and_graphs_of_runs_and_maps() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (run, map) = (tmp.path().join("run"), tmp.path().join("map.bin"));
+    let o = rgbid(&[
+        "slam",
+        "--synth",
+        "office:handheld",
+        "--frames",
+        "40",
+        "--width",
+        "160",
+        "--backend",
+        "cpu",
+        "--out",
+        path(&run),
+        "--map-out",
+        path(&map),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let export = |input: &Path, format: &str, out: &str, extra: &[&str]| {
+        let out = tmp.path().join(out);
+        let mut args = vec![
+            "export",
+            path(input),
+            "--format",
+            format,
+            "--out",
+            path(&out),
+        ];
+        args.extend_from_slice(extra);
+        (rgbid(&args), out)
+    };
+    let traj = rgbid::io::trajectory::read_trajectory(&run.join("trajectory.txt")).expect("traj");
+    let keyframes = rgbid::io::trajectory::read_tum(&run.join("keyframes.txt")).expect("kfs");
+    assert!(keyframes.len() >= 2, "{} keyframes", keyframes.len());
+
+    // Trajectories: the run's, converted, read back to the same poses.
+    for (format, name) in [("tum", "t.txt"), ("kitti", "t.kitti"), ("euroc", "t.csv")] {
+        let (o, out) = export(&run, format, name, &[]);
+        assert!(o.status.success(), "{format}: {}", text(&o));
+        let back = rgbid::io::trajectory::read_trajectory(&out).expect("read back");
+        assert_eq!(back.len(), traj.len(), "{format}");
+        for (a, b) in back.iter().zip(&traj) {
+            assert!((a.timestamp - b.timestamp).abs() < 1e-6, "{format}");
+            let d = a.world_from_camera.translation - b.world_from_camera.translation;
+            assert!(d.length() < 1e-5, "{format}: {d}");
+        }
+    }
+    // The map's keyframe poses are the run's keyframes.
+    let (o, out) = export(&map, "tum", "kf.txt", &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let kf = rgbid::io::trajectory::read_tum(&out).expect("kf");
+    assert_eq!(kf.len(), keyframes.len());
+    let (o, out) = export(&run, "tum", "kf2.txt", &["--keyframes"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(
+        rgbid::io::trajectory::read_tum(&out).expect("kf2").len(),
+        keyframes.len()
+    );
+
+    // Models: PLY from the run folder and rebuilt from the map agree; OBJ has one vertex line
+    // per point.
+    let (o, ply) = export(&run, "ply", "run.ply", &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let run_points = rgbid::io::ply::read_ply(&ply).expect("ply");
+    assert!(run_points.len() > 1000, "{} points", run_points.len());
+    let (o, ply) = export(&map, "ply", "map.ply", &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(
+        rgbid::io::ply::read_ply(&ply).expect("ply").len(),
+        run_points.len()
+    );
+    let (o, obj) = export(&map, "obj", "map.obj", &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let obj = std::fs::read_to_string(obj).expect("obj");
+    assert_eq!(
+        obj.lines().filter(|l| l.starts_with("v ")).count(),
+        run_points.len()
+    );
+
+    // The pose graph: one vertex per keyframe, the keyframe chain as edges, readable as g2o.
+    let (o, g2o) = export(&map, "g2o", "map.g2o", &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let g = rgbid::graph::g2o::read_g2o(&g2o).expect("g2o");
+    let rgbid::graph::g2o::LoadedGraph::Se3(g) = g.graph else {
+        panic!("an SE(3) graph");
+    };
+    assert_eq!(g.poses.len(), keyframes.len());
+    assert!(g.edges.len() >= keyframes.len() - 1);
+    assert_eq!(g.fixed.iter().filter(|f| **f).count(), 1);
+
+    // A run folder has no graph; a folder that is no run folder is named.
+    let (o, _) = export(&run, "g2o", "run.g2o", &[]);
+    assert!(
+        !o.status.success() && text(&o).contains("--map-out"),
+        "{}",
+        text(&o)
+    );
+    let (o, _) = export(tmp.path(), "tum", "x.txt", &[]);
+    assert!(
+        !o.status.success() && text(&o).contains("not a run folder"),
+        "{}",
+        text(&o)
+    );
 }

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod config;
 pub mod demo;
 pub mod eval;
+pub mod export;
 pub mod graph;
 pub mod mesh;
 pub mod mono;
