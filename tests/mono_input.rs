@@ -180,3 +180,76 @@ fn cli_runs_on_an_image_only_folder() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing"));
 }
+
+/// An EuRoC-layout folder (`mav0/cam0/data.csv`, `data/`, `sensor.yaml`) of a synthetic pinhole
+/// sequence runs without `--camera` and gives the trajectory of the same images in a plain
+/// folder with the camera given (no distortion: the resampling is the identity).
+#[test]
+fn cli_runs_on_an_euroc_folder_with_its_sensor_yaml() {
+    let spec = SyntheticSpec::new(SyntheticCamera::Pinhole, 320, 240, 30);
+    let frames = render(&spec).expect("render");
+    let c = frames.camera;
+    let tmp = tempfile::tempdir().unwrap();
+    let (plain, euroc) = (tmp.path().join("plain"), tmp.path().join("euroc"));
+    let cam0 = euroc.join("mav0").join("cam0");
+    std::fs::create_dir_all(cam0.join("data")).unwrap();
+    std::fs::create_dir_all(&plain).unwrap();
+    let mut csv = String::from("#timestamp [ns],filename\n");
+    for (t, img) in &frames.images {
+        let ns = (t * 1e9).round() as u64;
+        save_grey(&cam0.join("data").join(format!("{ns}.png")), img);
+        save_grey(&plain.join(format!("{:.9}.png", ns as f64 * 1e-9)), img);
+        csv.push_str(&format!("{ns},{ns}.png\n"));
+    }
+    std::fs::write(cam0.join("data.csv"), csv).unwrap();
+    std::fs::write(
+        cam0.join("sensor.yaml"),
+        format!(
+            "sensor_type: camera\ncomment: synthetic\nrate_hz: 30\nresolution: [{}, {}]\n\
+             camera_model: pinhole\nintrinsics: [{g}, {g}, {}, {}]\n\
+             distortion_model: radial-tangential\ndistortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n",
+            c.width,
+            c.height,
+            c.cx,
+            c.cy,
+            g = c.gamma
+        ),
+    )
+    .unwrap();
+    let s = ImageSequence::open(&euroc).unwrap();
+    assert_eq!(s.len(), frames.images.len());
+    let cam = s.camera.expect("the sensor.yaml camera");
+    assert_eq!((cam.xi, cam.gamma, cam.width), (0.0, c.gamma, c.width));
+    assert!((s.frames[1].0 - frames.images[1].0).abs() < 1e-6);
+
+    let cam_file = tmp.path().join("camera.txt");
+    let line = format!(
+        "{} {} {} {} {} {}\n",
+        c.xi, c.gamma, c.cx, c.cy, c.width, c.height
+    );
+    std::fs::write(&cam_file, line).unwrap();
+    let exe = env!("CARGO_BIN_EXE_rgbid");
+    let run = |seq: &Path, camera: Option<&Path>, out: &Path| {
+        let mut cmd = Command::new(exe);
+        cmd.arg("mono").arg(seq).arg("--out").arg(out);
+        if let Some(c) = camera {
+            cmd.arg("--camera").arg(c);
+        }
+        cmd.output().unwrap()
+    };
+    let (a, b) = (tmp.path().join("a.txt"), tmp.path().join("b.txt"));
+    let o = run(&euroc, None, &a);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&plain, Some(&cam_file), &b);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (ta, tb) = (read_tum(&a).unwrap(), read_tum(&b).unwrap());
+    assert_eq!(ta.len(), tb.len());
+    for (p, q) in ta.iter().zip(&tb) {
+        let d = p.world_from_camera.translation - q.world_from_camera.translation;
+        assert!(d.length() < 1e-6, "{}: {} m apart", p.timestamp, d.length());
+    }
+    // The folder's camera and a camera file together are refused.
+    let o = run(&euroc, Some(&cam_file), &a);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("sensor.yaml"));
+}

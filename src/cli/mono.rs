@@ -39,10 +39,13 @@ pub enum SynthArg {
 /// Arguments of `rgbid mono`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Sequence folder: rgb.txt (TUM style) or images named by their time stamp.
+    /// Sequence folder: an EuRoC / TUM-VI camera folder (`data.csv`, `data/`, `sensor.yaml`;
+    /// also as SEQ/cam0 or SEQ/mav0/cam0), rgb.txt (TUM style) or images named by their time
+    /// stamp.
     seq: Option<PathBuf>,
     /// Camera file (JSON camera model as written by `rgbid synth`, or a line
-    /// `xi gamma cx cy width height [fov_radius [inner_radius]]`); default SEQ/camera.json.
+    /// `xi gamma cx cy width height [fov_radius [inner_radius]]`); default: the folder's
+    /// sensor.yaml (images resampled onto its undistorted camera), else SEQ/camera.json.
     #[arg(long)]
     camera: Option<PathBuf>,
     /// Output trajectory (TUM format, world_from_camera, filter world = first camera, scale
@@ -175,12 +178,22 @@ pub fn run(args: Args) -> Result<()> {
         bail!("give a sequence folder SEQ (or --synthetic pinhole|omni, or --table21)");
     };
     let seq = ImageSequence::open(&seq_dir)?;
-    let camera_path = args
-        .camera
-        .clone()
-        .unwrap_or_else(|| seq_dir.join("camera.json"));
-    let camera = load_camera(&camera_path)
-        .with_context(|| format!("camera file {}", camera_path.display()))?;
+    let camera = match (&args.camera, seq.camera) {
+        (Some(path), Some(_)) => bail!(
+            "{} has a sensor.yaml whose camera its images are resampled onto; --camera {} \
+             would disagree with them (remove one of the two)",
+            seq_dir.display(),
+            path.display()
+        ),
+        (Some(path), None) => {
+            load_camera(path).with_context(|| format!("camera file {}", path.display()))?
+        }
+        (None, Some(camera)) => camera,
+        (None, None) => {
+            let path = seq_dir.join("camera.json");
+            load_camera(&path).with_context(|| format!("camera file {}", path.display()))?
+        }
+    };
     let cfg = config(&args, &camera)?;
     let mut slam = MonoSlam::new(camera, cfg.clone())?;
     let bar = progress(seq.len(), "mono");

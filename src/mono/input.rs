@@ -1,9 +1,16 @@
 //! Image-only sequences and camera files for monocular SLAM.
 //!
-//! A sequence folder holds either an `rgb.txt` list (TUM style: `timestamp path` per line,
-//! `#` comments, paths relative to the folder) or images (`.png`, `.jpg`, `.jpeg`) whose file
-//! stem is their time stamp in seconds (`1305031102.175304.png`). Images are converted to
-//! grey intensity in `[0, 255]`.
+//! A sequence folder holds, in this order of precedence:
+//! - an EuRoC / TUM-VI camera folder (the ASL format: `data.csv` with nanosecond time stamps,
+//!   images under `data/`, the camera in `sensor.yaml`), as the folder itself, its `cam0/` or
+//!   its `mav0/cam0/`; images are resampled onto an undistorted camera as they load, and
+//!   [`ImageSequence::camera`] is that camera;
+//! - an `rgb.txt` list (TUM style: `timestamp path` per line, `#` comments, paths relative to
+//!   the folder);
+//! - images (`.png`, `.jpg`, `.jpeg`) whose file stem is their time stamp in seconds
+//!   (`1305031102.175304.png`).
+//!
+//! Images are converted to grey intensity in `[0, 255]`.
 //!
 //! Camera files ([`load_camera`]): JSON, either the `camera.json` written by `rgbid synth`
 //! (`{"Unified": {...}}` or `{"Pinhole": {...}}`) or a bare [`UnifiedCamera`] object; or a
@@ -12,7 +19,9 @@
 //! unified model with `xi = 0`; it must have `fx == fy` and no distortion.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
+use super::asl::{self, Rectifier};
 use super::MonoError;
 use crate::camera::UnifiedCamera;
 use crate::image::{rgb_to_intensity, ImageF32};
@@ -25,6 +34,11 @@ pub struct ImageSequence {
     pub dir: PathBuf,
     /// `(timestamp seconds, image path)`, increasing in time.
     pub frames: Vec<(f64, PathBuf)>,
+    /// The camera the folder states (an ASL folder's `sensor.yaml`, undistorted), `None` when
+    /// the folder has no camera description.
+    pub camera: Option<UnifiedCamera>,
+    /// Resampling of an ASL folder's images onto [`Self::camera`].
+    rectifier: Option<Arc<Rectifier>>,
 }
 
 fn is_image(p: &Path) -> bool {
@@ -48,7 +62,14 @@ impl ImageSequence {
         }
         let list = dir.join("rgb.txt");
         let mut frames = Vec::new();
-        if list.is_file() {
+        let mut rectifier = None;
+        if let Some(cam) = asl::camera_folder(dir) {
+            frames = asl::read_data_csv(&cam)?;
+            let yaml = cam.join("sensor.yaml");
+            if yaml.is_file() {
+                rectifier = Some(Arc::new(Rectifier::new(&asl::read_sensor_yaml(&yaml)?)?));
+            }
+        } else if list.is_file() {
             let text = std::fs::read_to_string(&list).map_err(|e| MonoError::File {
                 path: list.clone(),
                 source: e,
@@ -117,6 +138,8 @@ impl ImageSequence {
         Ok(ImageSequence {
             dir: dir.to_path_buf(),
             frames,
+            camera: rectifier.as_ref().map(|r| r.camera()),
+            rectifier,
         })
     }
 
@@ -130,10 +153,15 @@ impl ImageSequence {
         self.frames.is_empty()
     }
 
-    /// Loads frame `index` as grey intensity; `None` past the end.
+    /// Loads frame `index` as grey intensity (resampled onto [`Self::camera`] for an ASL
+    /// folder); `None` past the end.
     pub fn load(&self, index: usize) -> Option<Result<(f64, ImageF32), MonoError>> {
         let (t, p) = self.frames.get(index)?;
-        Some(load_grey(p).map(|img| (*t, img)))
+        let img = load_grey(p);
+        Some(match (&self.rectifier, img) {
+            (Some(r), Ok(img)) => r.apply(&img, p).map(|img| (*t, img)),
+            (_, img) => img.map(|img| (*t, img)),
+        })
     }
 }
 

@@ -24,6 +24,7 @@
 //! (image-only sequences and camera files). Runs on generated sequences with ground truth are in
 //! `rgbid::experiments::mono` (feature `experiments`).
 
+pub(crate) mod asl;
 pub(crate) mod fast;
 pub(crate) mod filter;
 pub(crate) mod input;
@@ -50,8 +51,9 @@ pub enum MonoError {
         /// The OS error.
         source: std::io::Error,
     },
-    /// The sequence folder has neither an `rgb.txt` list nor images named by time stamp.
-    #[error("{path}: no rgb.txt and no images named by their time stamp")]
+    /// The sequence folder has no frames: no ASL `data.csv` rows, no `rgb.txt` list and no
+    /// images named by time stamp.
+    #[error("{path}: no frames (an EuRoC / TUM-VI data.csv, an rgb.txt, or images named by their time stamp)")]
     NoImages {
         /// The folder.
         path: PathBuf,
