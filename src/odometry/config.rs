@@ -48,6 +48,26 @@ pub enum GeometricSampling {
     Linear = 1,
 }
 
+/// Which warped pixels count as covisible in the covisibility ratio (thesis eq. 4.33, 6.10)
+/// that switches the reference frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum CovisibilityTest {
+    /// A reference pixel with depth is covisible where it warps inside the current image onto
+    /// a pixel with depth, whatever that depth is.
+    Depth,
+    /// The thesis' condition (eq. 4.33, 6.10): additionally the geometric residual at the
+    /// nearest pixel must be below [`OCCLUSION_SIGMAS`] times the geometric scale sigma_W
+    /// (the last estimated one when tracking; [`OdometryConfig::fixed_sigma_geo`] for the
+    /// two-view entry points), so occluded and occluding pixels do not count.
+    Consistent,
+}
+
+/// Multiple of the geometric scale sigma_W within which a warped point is consistent with the
+/// current frame's depth in [`CovisibilityTest::Consistent`] (the thesis' 3 sigma_W).
+pub const OCCLUSION_SIGMAS: f64 = 3.0;
+
 /// Gradients used for the covariance of an alignment (thesis 6.20, 6.21).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
@@ -104,6 +124,8 @@ pub struct OdometryConfig {
     pub reference_switch: Option<f64>,
     /// Pyramid level on which covisibility is computed.
     pub covisibility_level: usize,
+    /// Which warped pixels count as covisible.
+    pub covisibility_test: CovisibilityTest,
     /// How inverse depth is sampled for the geometric residual.
     pub geometric_sampling: GeometricSampling,
     /// How the covariance (and the reported condition number) is computed.
@@ -133,6 +155,7 @@ impl Default for OdometryConfig {
             constant_velocity: true,
             reference_switch: Some(0.9),
             covisibility_level: 2,
+            covisibility_test: CovisibilityTest::Depth,
             geometric_sampling: GeometricSampling::Nearest,
             covariance: CovarianceGradients::Raw,
             bilateral_range: 3.0,
