@@ -255,7 +255,7 @@ fn fusion_and_raycast(
             let cur_from_kf = Se3::exp(&[0.01, 0.0, 0.0, 0.0, 0.005, 0.0]);
             let mut fuser = KeyframeFuser::new(cam, FusionParams::default(), backend)?;
             fuser.start(keyframe.inverse_depth())?;
-            // The default fusion parameters use a fixed tolerance: no sigma_W (0).
+            // No odometry here: sigma_W 0 makes the fuser use its fixed tolerance.
             fuser.fuse(frame.inverse_depth(), &cur_from_kf, 0.0)?; // warm-up
             let mut fuse = Vec::new();
             for _ in 0..repeat.max(1) {

@@ -86,6 +86,8 @@ pub struct FrameStats {
     pub timestamp: f64,
     /// Total Gauss-Newton iterations over all levels.
     pub iterations: usize,
+    /// Gauss-Newton iterations per level optimised, coarsest first.
+    pub level_iterations: Vec<usize>,
     /// Final photometric scale (finest level).
     pub sigma_photo: f64,
     /// Final geometric scale (finest level).
@@ -376,6 +378,7 @@ impl<K: Kernels> Tracker<K> {
                 index,
                 timestamp: frame.timestamp,
                 iterations: alignment.levels.iter().map(|l| l.iterations).sum(),
+                level_iterations: alignment.levels.iter().map(|l| l.iterations).collect(),
                 sigma_photo: fin.sigma_photo,
                 sigma_geo: fin.sigma_geo,
                 nu: fin.nu_photo,
@@ -771,7 +774,9 @@ pub(crate) fn warp_params(
         estimator: config.estimator as u32,
         terms: config.terms as u32,
         geometric: config.geometric as u32,
-        sampling: config.geometric_sampling as u32,
+        sampling: config
+            .geometric_sampling
+            .kernel_code(level, config.finest_level(camera.width as usize)),
         occlusion: 0.0,
         _pad: [0; 3],
     };

@@ -26,16 +26,16 @@ pub struct FusionParams {
     /// Cap of the accumulated weight (keeps the keyframe able to follow small changes).
     pub max_weight: f32,
     /// Consistency tolerance as a multiple of the fused frame's geometric scale sigma_W
-    /// (1/m, the odometry's estimate): the thesis' 3 sigma_W (eq. 6.24). `0` uses
-    /// `tol_abs + tol_rel * rho` instead (the default).
+    /// (1/m, the odometry's estimate): the thesis' 3 sigma_W (eq. 6.24, the default). `0`
+    /// uses `tol_abs + tol_rel * rho` instead.
     pub tol_sigmas: f32,
     /// Count a keyframe pixel as covisible only where the frame's measurement at it is
     /// consistent (within the fusion tolerance): the thesis' occlusion condition of eq. 6.10.
-    /// `false` counts every pixel that lands on depth (the default).
+    /// `false` counts every pixel that lands on depth. On by default (docs/notes.md).
     pub occlusion: bool,
     /// Keyframe covisibility as the minimum over both directions (eq. 6.10): also the
     /// fraction of the frame's pixels with depth that land on keyframe depth (consistent
-    /// depth with [`Self::occlusion`]). `false` takes the keyframe's side only (the default).
+    /// depth with [`Self::occlusion`]; the default). `false` takes the keyframe's side only.
     pub both_directions: bool,
 }
 
@@ -46,9 +46,9 @@ impl Default for FusionParams {
             tol_rel: 0.03,
             new_weight: 1.0,
             max_weight: 30.0,
-            tol_sigmas: 0.0,
-            occlusion: false,
-            both_directions: false,
+            tol_sigmas: 3.0,
+            occlusion: true,
+            both_directions: true,
         }
     }
 }

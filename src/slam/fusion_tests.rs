@@ -79,7 +79,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
         s / n as f64
     };
     let e0 = err(&rho);
-    let params = FusionParams::default();
+    let params = fixed_params();
     let mut last = None;
     for k in 0..8u64 {
         let p = pose(0.02 * k as f64, -0.01 * k as f64, 0.01 * k as f64);
@@ -128,8 +128,8 @@ fn gpu_fusion_matches_cpu_mirror() {
     let Some(gpu) = crate::gpu::test_gpu("gpu_fusion_matches_cpu_mirror") else {
         return;
     };
-    // The default parameters and the thesis' (3 sigma_W, occlusion test, both directions).
-    let variants = [FusionParams::default(), thesis_params()];
+    // The fixed tolerance without the occlusion test, and the thesis' parameters.
+    let variants = [fixed_params(), thesis_params()];
     for ((w, h), params) in [(160u32, 120u32), (203, 97), (640, 480)]
         .into_iter()
         .flat_map(|s| variants.iter().map(move |p| (s, *p)))
@@ -182,6 +182,16 @@ fn gpu_fusion_matches_cpu_mirror() {
     }
 }
 
+/// The fixed tolerance `0.004 + 0.03 rho`, every pixel on depth covisible, keyframe side only.
+fn fixed_params() -> FusionParams {
+    FusionParams {
+        tol_sigmas: 0.0,
+        occlusion: false,
+        both_directions: false,
+        ..FusionParams::default()
+    }
+}
+
 /// The thesis' fusion (eq. 6.10, 6.24): 3 sigma_W, occlusion test, both directions.
 fn thesis_params() -> FusionParams {
     FusionParams {
@@ -222,7 +232,7 @@ fn occlusion_test_excludes_occluding_pixels_from_covisibility() {
             params,
         )
     };
-    let plain = run(&FusionParams::default());
+    let plain = run(&fixed_params());
     assert_eq!(plain.covisibility(), 1.0, "{plain:?}");
     let thesis = run(&thesis_params());
     assert!(
@@ -257,12 +267,12 @@ fn both_directions_take_the_frame_side_minimum() {
             params,
         )
     };
-    let one_sided = run(&FusionParams::default());
+    let one_sided = run(&fixed_params());
     assert_eq!(one_sided.covisibility(), 1.0);
     assert_eq!(one_sided.frame_valid, 0);
     let both = run(&FusionParams {
         both_directions: true,
-        ..FusionParams::default()
+        ..fixed_params()
     });
     assert_eq!(both.frame_valid, 80 * 60);
     assert_eq!(both.frame_covisible, 40 * 60);
@@ -291,11 +301,13 @@ fn sigma_tolerance_follows_the_given_scale() {
     };
     let sigma = FusionParams {
         tol_sigmas: 3.0,
-        ..FusionParams::default()
+        ..fixed_params()
     };
     // 3 sigma_W = 0.012 1/m accepts the offset, 0.006 1/m rejects it.
     assert_eq!(fused(0.004, &sigma), 80 * 60);
     assert_eq!(fused(0.002, &sigma), 0);
     // The fixed tolerance 0.004 + 0.03 * 0.5 = 0.019 1/m ignores the scale.
-    assert_eq!(fused(0.002, &FusionParams::default()), 80 * 60);
+    assert_eq!(fused(0.002, &fixed_params()), 80 * 60);
+    // The defaults are the thesis' tolerance.
+    assert_eq!(FusionParams::default().tol_sigmas, 3.0);
 }
