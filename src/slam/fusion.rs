@@ -2,6 +2,13 @@
 //! kernel `shaders/fuse.wgsl` and its CPU mirror [`fuse_cpu`] (same f32 operations in the
 //! same order), two implementations of one kernel interface (`FusionKernels`) behind
 //! [`KeyframeFuser`], which keeps the keyframe resident where the kernel runs.
+//!
+//! Where it departs from the thesis: the accumulated weight is capped
+//! ([`FusionParams::max_weight`]) so that the keyframe can follow small changes, and the
+//! frames buffered since the last keyframe are all fused when the next keyframe starts (the
+//! thesis fuses one buffered frame per incoming frame). The fixed tolerance
+//! `tol_abs + tol_rel rho` and the one-sided covisibility without occlusion test remain as
+//! options (docs/notes.md has the measurements that chose the defaults).
 
 use std::sync::Arc;
 
