@@ -35,6 +35,7 @@ SLAM_VARIANTS = [
     ("fusion", "slam: covisibility_test=depth, fusion 3 sigma_W + occlusion + both directions"),
     ("covis", "slam: covisibility_test=consistent, fusion tolerance 0.004 + 0.03 rho, keyframe side only"),
     ("both", "slam: covisibility_test=consistent, fusion 3 sigma_W + occlusion + both directions"),
+    ("nocap", "slam: as `both`, fusion weight not capped (max_weight 1e9 instead of 30)"),
 ]
 
 

@@ -27,6 +27,7 @@ slam_variant() {
     fusion) echo "--set odometry.covisibility_test=depth $thesis" ;;
     covis) echo "--set odometry.covisibility_test=consistent $fixed" ;;
     both) echo "--set odometry.covisibility_test=consistent $thesis" ;;
+    nocap) echo "--set odometry.covisibility_test=consistent $thesis --set fusion.max_weight=1e9" ;;
   esac
 }
 for seq in tum_fr1_rpy_0_199 redkitchen_0_299; do
@@ -44,7 +45,7 @@ for seq in tum_fr1_rpy_0_199 redkitchen_0_299; do
     "$B" odometry "$D/$seq" $cam --backend cpu $(odo_variant $v) --csv "$O/$seq-$v.csv" \
       -o "$O/$seq-$v.txt" > "$O/$seq-$v-odo.log" 2>&1
   done
-  for v in default fusion covis both; do
+  for v in default fusion covis both nocap; do
     # shellcheck disable=SC2046,SC2086
     /usr/bin/time -f "%e s wall" "$B" slam "$D/$seq" $cam --backend cpu \
       --out "$O/slam-$seq-$v" $(slam_variant $v) > "$O/slam-$seq-$v.log" 2>&1
