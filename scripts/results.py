@@ -244,7 +244,8 @@ RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernel
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
-          "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead"}
+          "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead",
+          "thesis-options": "Thesis formulations as options (issue 33) on real data"}
 
 
 def title(doc):

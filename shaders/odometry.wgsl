@@ -25,6 +25,10 @@ struct WarpParams {
     terms: u32,        // Terms: bit 0 photometric, bit 1 geometric
     geometric: u32,    // GeometricParam: 0 inverse depth, 1 depth
     sampling: u32,     // GeometricSampling: 0 nearest, 1 first-order
+    occlusion: f32,    // covisibility's occlusion tolerance (geometric residual units; 0: none)
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // One reduction partial (host mirror: `Partial` in src/odometry/kernel.rs).
@@ -298,8 +302,15 @@ fn covisible(i: u32) -> u32 {
     let xn = floor(u + 0.5);
     let yn = floor(v + 0.5);
     if (!(xn >= 0.0 && yn >= 0.0 && xn < f32(w) && yn < f32(h))) { return 1u; }
-    if (cur_geo[o + u32(yn) * w + u32(xn)].x > 0.0) { return 2u; }
-    return 1u;
+    let rc = cur_geo[o + u32(yn) * w + u32(xn)].x;
+    if (!(rc > 0.0)) { return 1u; }
+    if (P.occlusion > 0.0) {
+        // The thesis' occlusion condition (eq. 4.33) in the residuals' parametrisation.
+        var r = rc - 1.0 / q.z;
+        if (P.geometric == 1u) { r = 1.0 / rc - q.z; }
+        if (!(abs(r) < P.occlusion)) { return 1u; }
+    }
+    return 2u;
 }
 
 // One invocation's (pixels with depth, covisible pixels) over first, first + stride, ...

@@ -255,11 +255,12 @@ fn fusion_and_raycast(
             let cur_from_kf = Se3::exp(&[0.01, 0.0, 0.0, 0.0, 0.005, 0.0]);
             let mut fuser = KeyframeFuser::new(cam, FusionParams::default(), backend)?;
             fuser.start(keyframe.inverse_depth())?;
-            fuser.fuse(frame.inverse_depth(), &cur_from_kf)?; // warm-up
+            // No odometry here: sigma_W 0 makes the fuser use its fixed tolerance.
+            fuser.fuse(frame.inverse_depth(), &cur_from_kf, 0.0)?; // warm-up
             let mut fuse = Vec::new();
             for _ in 0..repeat.max(1) {
                 let t = Instant::now();
-                fuser.fuse(frame.inverse_depth(), &cur_from_kf)?;
+                fuser.fuse(frame.inverse_depth(), &cur_from_kf, 0.0)?;
                 fuse.push(t.elapsed().as_secs_f64() * 1e3);
             }
             let render = match backend {

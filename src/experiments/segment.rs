@@ -316,7 +316,8 @@ fn prepare(
         for j in index + 1..(index + 1 + config.fuse).min(seq.len()) {
             let next = seq.render_frame(j)?;
             let cur_from_kf = next.world_from_camera.inverse() * frame.world_from_camera;
-            fuser.fuse(&next.frame.inverse_depth, &cur_from_kf)?;
+            // Generated frames have no odometry scale: the fixed tolerance (sigma_W = 0).
+            fuser.fuse(&next.frame.inverse_depth, &cur_from_kf, 0.0)?;
         }
         frame.frame.inverse_depth = fuser.finish()?.0;
     }

@@ -46,7 +46,47 @@ pub enum GeometricSampling {
     /// noiseless rendered views; not the default because it did not help on real Kinect data
     /// (docs/notes.md).
     Linear = 1,
+    /// [`Self::Linear`] on the levels coarser than the finest optimised one, nearest on the
+    /// finest: on coarse levels the nearest sample's jumps as the warp moves keep the update
+    /// from falling below [`OdometryConfig::convergence`], so every iteration runs; the
+    /// first-order sample is smooth in the pose and lets the convergence test end them early.
+    #[serde(alias = "coarse-linear", alias = "coarse_linear")]
+    CoarseLinear = 2,
 }
+
+impl GeometricSampling {
+    /// The kernels' `sampling` code on `level` when `finest` is the finest level optimised:
+    /// 0 nearest, 1 first-order.
+    pub(crate) fn kernel_code(self, level: usize, finest: usize) -> u32 {
+        match self {
+            GeometricSampling::Nearest => 0,
+            GeometricSampling::Linear => 1,
+            GeometricSampling::CoarseLinear => u32::from(level > finest),
+        }
+    }
+}
+
+/// Which warped pixels count as covisible in the covisibility ratio (thesis eq. 4.33, 6.10)
+/// that switches the reference frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum CovisibilityTest {
+    /// A reference pixel with depth is covisible where it warps inside the current image onto
+    /// a pixel with depth, whatever that depth is.
+    Depth,
+    /// The thesis' condition (eq. 4.33, 6.10): additionally the geometric residual at the
+    /// nearest pixel must be below [`OCCLUSION_SIGMAS`] times the geometric scale sigma_W
+    /// (the last estimated one when tracking; [`OdometryConfig::fixed_sigma_geo`] for the
+    /// two-view entry points), so occluded and occluding pixels do not count. The default:
+    /// better ATE than [`Self::Depth`] on both real sequences (redkitchen 0-299 and fr1/rpy
+    /// 0-199, `docs/results/thesis_options.json`) at no measurable cost.
+    Consistent,
+}
+
+/// Multiple of the geometric scale sigma_W within which a warped point is consistent with the
+/// current frame's depth in [`CovisibilityTest::Consistent`] (the thesis' 3 sigma_W).
+pub const OCCLUSION_SIGMAS: f64 = 3.0;
 
 /// Gradients used for the covariance of an alignment (thesis 6.20, 6.21).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -104,6 +144,8 @@ pub struct OdometryConfig {
     pub reference_switch: Option<f64>,
     /// Pyramid level on which covisibility is computed.
     pub covisibility_level: usize,
+    /// Which warped pixels count as covisible.
+    pub covisibility_test: CovisibilityTest,
     /// How inverse depth is sampled for the geometric residual.
     pub geometric_sampling: GeometricSampling,
     /// How the covariance (and the reported condition number) is computed.
@@ -133,6 +175,7 @@ impl Default for OdometryConfig {
             constant_velocity: true,
             reference_switch: Some(0.9),
             covisibility_level: 2,
+            covisibility_test: CovisibilityTest::Consistent,
             geometric_sampling: GeometricSampling::Nearest,
             covariance: CovarianceGradients::Raw,
             bilateral_range: 3.0,
@@ -199,5 +242,37 @@ impl OdometryConfig {
             .map_err(|e| OdometryError::InvalidConfig(format!("{}: {e}", path.display())))?;
         c.validate()?;
         Ok(c)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn coarse_linear_sampling_is_first_order_above_the_finest_level_only() {
+        let c = OdometryConfig::default();
+        // 640 wide with max_width 320: level 1 is the finest optimised.
+        let finest = c.finest_level(640);
+        assert_eq!(finest, 1);
+        let codes: Vec<u32> = (0..4)
+            .map(|l| GeometricSampling::CoarseLinear.kernel_code(l, finest))
+            .collect();
+        assert_eq!(codes, [0, 0, 1, 1]);
+        for l in 0..4 {
+            assert_eq!(GeometricSampling::Nearest.kernel_code(l, finest), 0);
+            assert_eq!(GeometricSampling::Linear.kernel_code(l, finest), 1);
+        }
+        let p = super::super::tracker::warp_params(
+            &OdometryConfig {
+                geometric_sampling: GeometricSampling::CoarseLinear,
+                ..c
+            },
+            &crate::camera::PinholeCamera::new(525.0, 525.0, 319.5, 239.5, 640, 480),
+            2,
+            &crate::geometry::Se3::IDENTITY,
+            0,
+        );
+        assert_eq!(p.sampling, 1);
     }
 }

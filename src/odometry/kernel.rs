@@ -109,6 +109,13 @@ pub struct WarpParams {
     pub geometric: u32,
     /// [`super::GeometricSampling`] as `u32`.
     pub sampling: u32,
+    /// Occlusion tolerance of the covisibility test (thesis eq. 4.33, 6.10), in the units of
+    /// the geometric residual (1/m with inverse depth, m with depth): a reference point counts
+    /// as covisible only where the current frame's value at its nearest pixel differs from the
+    /// warped point's by less than this. `0` disables the test (any pixel with depth counts).
+    pub occlusion: f32,
+    /// Padding to the 16-byte size multiple of the WGSL uniform.
+    pub _pad: [u32; 3],
 }
 
 impl WarpParams {
@@ -345,7 +352,9 @@ pub fn sample_index(k: u32, count: u32, n: u32) -> u32 {
 }
 
 /// Covisibility test of reference pixel `i`: 0 if it has no depth, 1 if it has depth but
-/// warps outside the current image or onto a pixel without depth, 2 if it is covisible.
+/// warps outside the current image, onto a pixel without depth, or (with
+/// [`WarpParams::occlusion`] > 0) onto a pixel whose depth is inconsistent with it (occluded
+/// or occluding, eq. 4.33), 2 if it is covisible.
 #[inline]
 pub fn covisible(p: &WarpParams, ref_geo: &[[f32; 4]], cur_geo: &[[f32; 4]], i: usize) -> u32 {
     let w = p.width as usize;
@@ -364,11 +373,23 @@ pub fn covisible(p: &WarpParams, ref_geo: &[[f32; 4]], cur_geo: &[[f32; 4]], i: 
     if !(xn >= 0.0 && yn >= 0.0 && xn < w as f32 && yn < h as f32) {
         return 1;
     }
-    if cur_geo[yn as usize * w + xn as usize][0] > 0.0 {
-        2
-    } else {
-        1
+    let rc = cur_geo[yn as usize * w + xn as usize][0];
+    if !(rc > 0.0) {
+        return 1;
     }
+    if p.occlusion > 0.0 {
+        // The geometric residual of the thesis' occlusion condition, in the parametrisation
+        // the residuals use: |W_B(p_w) - 1/z| (inverse depth) or |1/W_B(p_w) - z| (depth).
+        let r = if p.geometric == 1 {
+            1.0 / rc - q[2]
+        } else {
+            rc - 1.0 / q[2]
+        };
+        if !(r.abs() < p.occlusion) {
+            return 1;
+        }
+    }
+    2
 }
 
 #[cfg(test)]
@@ -440,6 +461,10 @@ mod tests {
                     terms,
                     geometric,
                     sampling,
+                    occlusion,
+                    _pad0 = _pad[0] stride 4,
+                    _pad1 = _pad[1] stride 4,
+                    _pad2 = _pad[2] stride 4,
                 }),
                 size_of::<WarpParams>(),
             ),
@@ -513,5 +538,49 @@ mod tests {
             );
             eprintln!("{what}:\n{}", bad.join("\n"));
         }
+    }
+
+    /// A 4x4 level at identity: every reference pixel at 2 m lands on itself; the current
+    /// frame has depth 2 m except one occluding pixel at 1 m, one pixel without depth, and one
+    /// pixel 1 cm behind (well inside 3 sigma_W at the tolerance used).
+    fn occlusion_case(geometric: u32, occlusion: f32) -> Vec<u32> {
+        let mut p = WarpParams::zeroed();
+        p.width = 4;
+        p.height = 4;
+        p.fx = 4.0;
+        p.fy = 4.0;
+        p.cx = 1.5;
+        p.cy = 1.5;
+        p.geometric = geometric;
+        p.occlusion = occlusion;
+        p.set_pose(&crate::geometry::Se3::IDENTITY);
+        let ref_geo = vec![[0.5f32, 0.0, 0.0, 0.0]; 16];
+        let mut cur_geo = ref_geo.clone();
+        cur_geo[5][0] = 1.0;
+        cur_geo[6][0] = 0.0;
+        cur_geo[9][0] = 1.0 / 2.01;
+        (0..16)
+            .map(|i| covisible(&p, &ref_geo, &cur_geo, i))
+            .collect()
+    }
+
+    #[test]
+    fn covisibility_occlusion_test_rejects_inconsistent_depth_only() {
+        // Without the test, every pixel landing on depth is covisible.
+        let plain = occlusion_case(0, 0.0);
+        assert_eq!(plain.iter().filter(|&&c| c == 2).count(), 15);
+        assert_eq!(plain[6], 1);
+        // Inverse depth: |1 - 0.5| = 0.5 1/m is far outside 3 * 0.01; 1/2.01 - 0.5 is inside.
+        let id = occlusion_case(0, 0.03);
+        assert_eq!(id[5], 1, "the occluding pixel must not be covisible");
+        assert_eq!(id[6], 1);
+        assert_eq!(id[9], 2, "a pixel within the tolerance stays covisible");
+        assert_eq!(id.iter().filter(|&&c| c == 2).count(), 14);
+        // Depth: |1 m - 2 m| is outside 3 * 0.02 m, |2.01 - 2| inside.
+        let d = occlusion_case(1, 0.06);
+        assert_eq!((d[5], d[9]), (1, 2));
+        // A tolerance below the 1 cm offset rejects that pixel too (the test can fail).
+        let tight = occlusion_case(1, 0.005);
+        assert_eq!(tight[9], 1);
     }
 }

@@ -35,7 +35,10 @@ mod rows;
 mod solver;
 mod tracker;
 
-pub use config::{CovarianceGradients, GeometricParam, GeometricSampling, OdometryConfig, Terms};
+pub use config::{
+    CovarianceGradients, CovisibilityTest, GeometricParam, GeometricSampling, OdometryConfig,
+    Terms, OCCLUSION_SIGMAS,
+};
 pub use inspect::{residual_images, ResidualImages, RobustScales};
 pub use robust::{Estimator, ScaleMethod};
 pub use tracker::{

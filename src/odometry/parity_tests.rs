@@ -36,6 +36,8 @@ fn params(
         terms: 3,
         geometric: param & 1,
         sampling: (param >> 1) & 1,
+        occlusion: 0.0,
+        _pad: [0; 3],
     };
     p.set_pose(pose);
     p
@@ -62,6 +64,8 @@ struct WarpOutputs {
     fused_partials: Vec<Partial>,
     fused_sample: Vec<[f32; 2]>,
     counts: (u64, u64),
+    /// Covisibility counts with the occlusion test at a tolerance that rejects some pixels.
+    counts_occluded: (u64, u64),
 }
 
 /// One test body for every backend: the warp kernels on `(a, b)` at `p`.
@@ -80,12 +84,18 @@ fn run_warp<K: Kernels>(
         .normal_equations_and_sample(p, a, b, level)
         .expect("fused pass");
     let counts = k.covisibility_counts(p, a, b, level).expect("covisibility");
+    let mut po = *p;
+    po.occlusion = 3.0 * p.sigma_geo;
+    let counts_occluded = k
+        .covisibility_counts(&po, a, b, level)
+        .expect("covisibility with the occlusion test");
     WarpOutputs {
         sample,
         partials,
         fused_partials,
         fused_sample,
         counts,
+        counts_occluded,
     }
 }
 
@@ -247,6 +257,19 @@ fn gpu_matches_cpu_mirror() {
                     "covisible {:?} vs {:?}",
                     c.counts,
                     o.counts
+                );
+                assert_eq!(c.counts_occluded.0, o.counts_occluded.0);
+                assert!(
+                    c.counts_occluded.1 < c.counts.1,
+                    "the occlusion test rejected nothing: {:?} vs {:?}",
+                    c.counts_occluded,
+                    c.counts
+                );
+                assert!(
+                    (c.counts_occluded.1 as i64 - o.counts_occluded.1 as i64).abs() <= 2,
+                    "covisible with the occlusion test {:?} vs {:?}",
+                    c.counts_occluded,
+                    o.counts_occluded
                 );
             }
         }

@@ -1013,6 +1013,8 @@ mod tests {
             terms,
             geometric: param & 1,
             sampling: (param >> 1) & 1,
+            occlusion: 0.0,
+            _pad: [0; 3],
         };
         p.set_pose(pose);
         p

@@ -3,7 +3,9 @@
 use std::time::Instant;
 
 use super::backend::{CpuKernels, Kernels};
-use super::config::{CovarianceGradients, GeometricParam, OdometryConfig};
+use super::config::{
+    CovarianceGradients, CovisibilityTest, GeometricParam, OdometryConfig, OCCLUSION_SIGMAS,
+};
 use super::gpu::GpuKernels;
 use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
 use super::robust::{estimate_scale, update_scale, ScaleEstimate, ScaleMethod, NU_DEFAULT};
@@ -84,6 +86,8 @@ pub struct FrameStats {
     pub timestamp: f64,
     /// Total Gauss-Newton iterations over all levels.
     pub iterations: usize,
+    /// Gauss-Newton iterations per level optimised, coarsest first.
+    pub level_iterations: Vec<usize>,
     /// Final photometric scale (finest level).
     pub sigma_photo: f64,
     /// Final geometric scale (finest level).
@@ -336,8 +340,16 @@ impl<K: Kernels> Tracker<K> {
         };
         alignment.times.pyramid_ms = pyramid_ms;
         let tc = Instant::now();
-        let covisibility =
-            self.covisibility(&reference.pyramid, &pyramid, &alignment.cur_from_ref)?;
+        let sigma_geo = alignment
+            .levels
+            .last()
+            .map_or(self.config.fixed_sigma_geo, |l| l.sigma_geo);
+        let covisibility = self.covisibility(
+            &reference.pyramid,
+            &pyramid,
+            &alignment.cur_from_ref,
+            sigma_geo,
+        )?;
         alignment.times.covisibility_ms = tc.elapsed().as_secs_f64() * 1e3;
         let world_from_cur = reference.world_from_ref * alignment.cur_from_ref.inverse();
         let prev_from_cur = world_from_prev.inverse() * world_from_cur;
@@ -366,6 +378,7 @@ impl<K: Kernels> Tracker<K> {
                 index,
                 timestamp: frame.timestamp,
                 iterations: alignment.levels.iter().map(|l| l.iterations).sum(),
+                level_iterations: alignment.levels.iter().map(|l| l.iterations).collect(),
                 sigma_photo: fin.sigma_photo,
                 sigma_geo: fin.sigma_geo,
                 nu: fin.nu_photo,
@@ -409,7 +422,9 @@ impl<K: Kernels> Tracker<K> {
     }
 
     /// Dense covisibility ratio of two frames given `cur_from_ref` (eq. 6.10: the minimum over
-    /// both directions of the fraction of pixels with depth that land on a pixel with depth).
+    /// both directions of the fraction of pixels with depth that land on a pixel with depth,
+    /// and with [`CovisibilityTest::Consistent`] a consistent one, sigma_W being
+    /// [`OdometryConfig::fixed_sigma_geo`]).
     pub fn covisibility_of(
         &mut self,
         reference: &RgbdFrame,
@@ -418,17 +433,28 @@ impl<K: Kernels> Tracker<K> {
     ) -> Result<f64, OdometryError> {
         let r = self.prepare(reference)?;
         let c = self.prepare(current)?;
-        self.covisibility(&r.pyramid, &c.pyramid, cur_from_ref)
+        self.covisibility(
+            &r.pyramid,
+            &c.pyramid,
+            cur_from_ref,
+            self.config.fixed_sigma_geo,
+        )
     }
 
-    /// [`Self::covisibility_of`] on prepared frames.
+    /// [`Self::covisibility_of`] on prepared frames (with [`CovisibilityTest::Consistent`],
+    /// sigma_W is [`OdometryConfig::fixed_sigma_geo`]: two views have no estimated scale).
     pub fn covisibility_prepared(
         &mut self,
         reference: &Prepared<K>,
         current: &Prepared<K>,
         cur_from_ref: &Se3,
     ) -> Result<f64, OdometryError> {
-        self.covisibility(&reference.pyramid, &current.pyramid, cur_from_ref)
+        self.covisibility(
+            &reference.pyramid,
+            &current.pyramid,
+            cur_from_ref,
+            self.config.fixed_sigma_geo,
+        )
     }
 
     /// The kernels' parameters for `level` at `cur_from_ref` with a residual sample of
@@ -442,10 +468,17 @@ impl<K: Kernels> Tracker<K> {
         r: &K::Pyramid,
         c: &K::Pyramid,
         cur_from_ref: &Se3,
+        sigma_geo: f64,
     ) -> Result<f64, OdometryError> {
         let level = self.config.covisibility_level.min(self.config.levels - 1);
-        let fwd = self.params(level, cur_from_ref, 0);
-        let bwd = self.params(level, &cur_from_ref.inverse(), 0);
+        let occlusion = match self.config.covisibility_test {
+            CovisibilityTest::Depth => 0.0,
+            CovisibilityTest::Consistent => (OCCLUSION_SIGMAS * sigma_geo) as f32,
+        };
+        let mut fwd = self.params(level, cur_from_ref, 0);
+        let mut bwd = self.params(level, &cur_from_ref.inverse(), 0);
+        fwd.occlusion = occlusion;
+        bwd.occlusion = occlusion;
         let (a1, b1) = self.kernels.covisibility_counts(&fwd, r, c, level)?;
         let (a2, b2) = self.kernels.covisibility_counts(&bwd, c, r, level)?;
         let ratio = |a: u64, b: u64| if a == 0 { 0.0 } else { b as f64 / a as f64 };
@@ -741,7 +774,11 @@ pub(crate) fn warp_params(
         estimator: config.estimator as u32,
         terms: config.terms as u32,
         geometric: config.geometric as u32,
-        sampling: config.geometric_sampling as u32,
+        sampling: config
+            .geometric_sampling
+            .kernel_code(level, config.finest_level(camera.width as usize)),
+        occlusion: 0.0,
+        _pad: [0; 3],
     };
     p.set_pose(cur_from_ref);
     p
@@ -876,7 +913,9 @@ impl Odometry {
     }
 
     /// Dense covisibility ratio of two frames given `cur_from_ref` (eq. 6.10: the minimum over
-    /// both directions of the fraction of pixels with depth that land on a pixel with depth).
+    /// both directions of the fraction of pixels with depth that land on a pixel with depth,
+    /// and with [`CovisibilityTest::Consistent`] a consistent one, sigma_W being
+    /// [`OdometryConfig::fixed_sigma_geo`]).
     pub fn covisibility_of(
         &mut self,
         reference: &RgbdFrame,

@@ -2,6 +2,13 @@
 //! kernel `shaders/fuse.wgsl` and its CPU mirror [`fuse_cpu`] (same f32 operations in the
 //! same order), two implementations of one kernel interface (`FusionKernels`) behind
 //! [`KeyframeFuser`], which keeps the keyframe resident where the kernel runs.
+//!
+//! Where it departs from the thesis: the accumulated weight is capped
+//! ([`FusionParams::max_weight`]) so that the keyframe can follow small changes, and the
+//! frames buffered since the last keyframe are all fused when the next keyframe starts (the
+//! thesis fuses one buffered frame per incoming frame). The fixed tolerance
+//! `tol_abs + tol_rel rho` and the one-sided covisibility without occlusion test remain as
+//! options (docs/notes.md has the measurements that chose the defaults).
 
 use std::sync::Arc;
 
@@ -25,6 +32,18 @@ pub struct FusionParams {
     pub new_weight: f32,
     /// Cap of the accumulated weight (keeps the keyframe able to follow small changes).
     pub max_weight: f32,
+    /// Consistency tolerance as a multiple of the fused frame's geometric scale sigma_W
+    /// (1/m, the odometry's estimate): the thesis' 3 sigma_W (eq. 6.24, the default). `0`
+    /// uses `tol_abs + tol_rel * rho` instead.
+    pub tol_sigmas: f32,
+    /// Count a keyframe pixel as covisible only where the frame's measurement at it is
+    /// consistent (within the fusion tolerance): the thesis' occlusion condition of eq. 6.10.
+    /// `false` counts every pixel that lands on depth. On by default (docs/notes.md).
+    pub occlusion: bool,
+    /// Keyframe covisibility as the minimum over both directions (eq. 6.10): also the
+    /// fraction of the frame's pixels with depth that land on keyframe depth (consistent
+    /// depth with [`Self::occlusion`]; the default). `false` takes the keyframe's side only.
+    pub both_directions: bool,
 }
 
 impl Default for FusionParams {
@@ -34,6 +53,9 @@ impl Default for FusionParams {
             tol_rel: 0.03,
             new_weight: 1.0,
             max_weight: 30.0,
+            tol_sigmas: 3.0,
+            occlusion: true,
+            both_directions: true,
         }
     }
 }
@@ -47,16 +69,25 @@ pub struct FusionCounts {
     pub covisible: u64,
     /// Of those, the ones whose measurement was consistent and fused.
     pub fused: u64,
+    /// Frame pixels with depth (counted with [`FusionParams::both_directions`] only, else 0).
+    pub frame_valid: u64,
+    /// Of those, the ones that land on keyframe depth (consistent depth with
+    /// [`FusionParams::occlusion`]).
+    pub frame_covisible: u64,
 }
 
 impl FusionCounts {
     /// Fraction of the keyframe's pixels with depth seen with depth by the current frame
-    /// (the keyframe-side covisibility of eq. 6.10); 0 when the keyframe has no depth.
+    /// (the keyframe-side covisibility of eq. 6.10), and where the frame side was counted
+    /// ([`FusionParams::both_directions`]) the minimum with the frame side's fraction; 0 when
+    /// the keyframe has no depth.
     pub fn covisibility(&self) -> f64 {
-        if self.valid == 0 {
-            0.0
+        let ratio = |a: u64, b: u64| if a == 0 { 0.0 } else { b as f64 / a as f64 };
+        let keyframe_side = ratio(self.valid, self.covisible);
+        if self.frame_valid == 0 {
+            keyframe_side
         } else {
-            self.covisible as f64 / self.valid as f64
+            keyframe_side.min(ratio(self.frame_valid, self.frame_covisible))
         }
     }
 }
@@ -85,6 +116,12 @@ pub(crate) struct FuseUniform {
     pub(crate) tol_rel: f32,
     pub(crate) new_weight: f32,
     pub(crate) max_weight: f32,
+    /// Absolute consistency tolerance `tol_sigmas * sigma_W` (1/m); 0: `tol_abs + tol_rel rho`.
+    pub(crate) tol_sigma: f32,
+    /// 1: [`FusionParams::occlusion`].
+    pub(crate) occlusion: u32,
+    /// Padding to the 16-byte size multiple of the WGSL uniform.
+    pub(crate) _pad2: [u32; 2],
 }
 
 fn rows(t: &Se3) -> [[f32; 4]; 3] {
@@ -102,8 +139,14 @@ fn rows(t: &Se3) -> [[f32; 4]; 3] {
 }
 
 impl FuseUniform {
-    /// The uniform for fusing a frame at `cur_from_kf` into a keyframe of `camera`.
-    pub(crate) fn new(camera: &PinholeCamera, cur_from_kf: &Se3, params: &FusionParams) -> Self {
+    /// The uniform for fusing a frame at `cur_from_kf` whose geometric scale is `sigma_geo`
+    /// (1/m) into a keyframe of `camera`.
+    pub(crate) fn new(
+        camera: &PinholeCamera,
+        cur_from_kf: &Se3,
+        sigma_geo: f64,
+        params: &FusionParams,
+    ) -> Self {
         FuseUniform {
             width: camera.width,
             height: camera.height,
@@ -118,6 +161,23 @@ impl FuseUniform {
             tol_rel: params.tol_rel,
             new_weight: params.new_weight,
             max_weight: params.max_weight,
+            tol_sigma: if params.tol_sigmas > 0.0 {
+                (f64::from(params.tol_sigmas) * sigma_geo) as f32
+            } else {
+                0.0
+            },
+            occlusion: u32::from(params.occlusion),
+            _pad2: [0; 2],
+        }
+    }
+
+    /// The consistency tolerance at keyframe inverse depth `rho` (1/m).
+    #[inline]
+    fn tolerance(&self, rho: f32) -> f32 {
+        if self.tol_sigma > 0.0 {
+            self.tol_sigma
+        } else {
+            self.tol_abs + self.tol_rel * rho
         }
     }
 }
@@ -128,8 +188,9 @@ fn xform(r: &[[f32; 4]; 3], p: [f32; 3]) -> [f32; 3] {
     [f(0), f(1), f(2)]
 }
 
-/// What happened at one keyframe pixel: 0 no depth, 1 depth but not covisible, 2 covisible
-/// but inconsistent, 3 fused (then `(rho, weight)` are the new values).
+/// What happened at one keyframe pixel: 0 no depth, 1 depth but not covisible (with
+/// [`FusionParams::occlusion`] also where the measurement is inconsistent), 2 covisible but
+/// not fused, 3 fused (then `(rho, weight)` are the new values).
 #[inline]
 pub(crate) fn fuse_pixel(
     u: &FuseUniform,
@@ -166,11 +227,11 @@ pub(crate) fn fuse_pixel(
     let qc = [(qx - cx) / fx * zc, (qy - cy) / fy * zc, zc];
     let qk = xform(&u.inv, qc);
     if !(qk[2] > 0.0) {
-        return (2, rho, weight);
+        return (if u.occlusion == 1 { 1 } else { 2 }, rho, weight);
     }
     let rho_new = 1.0 / qk[2];
-    if (rho_new - rho).abs() > u.tol_abs + u.tol_rel * rho {
-        return (2, rho, weight);
+    if (rho_new - rho).abs() > u.tolerance(rho) {
+        return (if u.occlusion == 1 { 1 } else { 2 }, rho, weight);
     }
     let wn = u.new_weight;
     (
@@ -178,6 +239,58 @@ pub(crate) fn fuse_pixel(
         (weight * rho + wn * rho_new) / (weight + wn),
         (weight + wn).min(u.max_weight),
     )
+}
+
+/// The frame side of the covisibility at current pixel `(x, y)` with inverse depth `rc`:
+/// 0 no depth, 1 not covisible (outside the keyframe, onto a keyframe pixel without depth, or
+/// with [`FusionParams::occlusion`] onto inconsistent depth), 2 covisible. Mirror of
+/// `covisible_back` in `fuse.wgsl`.
+#[inline]
+pub(crate) fn covisible_back(u: &FuseUniform, x: u32, y: u32, rc: f32, kf_rho: &[f32]) -> u8 {
+    if !(rc > 0.0) {
+        return 0;
+    }
+    let (w, h) = (u.width, u.height);
+    let (fx, fy, cx, cy) = (u.fx, u.fy, u.cx, u.cy);
+    let zc = 1.0 / rc;
+    let pc = [(x as f32 - cx) / fx * zc, (y as f32 - cy) / fy * zc, zc];
+    let pk = xform(&u.inv, pc);
+    if !(pk[2] > 0.0) {
+        return 1;
+    }
+    let uu = fx * pk[0] / pk[2] + cx;
+    let vv = fy * pk[1] / pk[2] + cy;
+    let qx = (uu + 0.5).floor();
+    let qy = (vv + 0.5).floor();
+    if !(qx >= 0.0 && qy >= 0.0 && qx <= (w - 1) as f32 && qy <= (h - 1) as f32) {
+        return 1;
+    }
+    let rk = kf_rho[qy as usize * w as usize + qx as usize];
+    if !(rk > 0.0) {
+        return 1;
+    }
+    if u.occlusion == 1 && (1.0 / pk[2] - rk).abs() > u.tolerance(rk) {
+        return 1;
+    }
+    2
+}
+
+/// [`covisible_back`] over every frame pixel: `(frame pixels with depth, covisible)`.
+fn covisible_back_rows(kf_rho: &[f32], cur_rho: &[f32], u: &FuseUniform) -> (u64, u64) {
+    let w = (u.width as usize).max(1);
+    cur_rho
+        .par_chunks(w)
+        .enumerate()
+        .map(|(y, row)| {
+            let mut c = (0u64, 0u64);
+            for (x, &rc) in row.iter().enumerate() {
+                let code = covisible_back(u, x as u32, y as u32, rc, kf_rho);
+                c.0 += u64::from(code >= 1);
+                c.1 += u64::from(code == 2);
+            }
+            c
+        })
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
 }
 
 #[cfg(test)]
@@ -189,10 +302,30 @@ pub fn fuse_cpu(
     cur_rho: &[f32],
     camera: &PinholeCamera,
     cur_from_kf: &Se3,
+    sigma_geo: f64,
     params: &FusionParams,
 ) -> FusionCounts {
-    let u = FuseUniform::new(camera, cur_from_kf, params);
-    fuse_rows(kf_rho, kf_weight, cur_rho, &u)
+    let u = FuseUniform::new(camera, cur_from_kf, sigma_geo, params);
+    fuse_both(kf_rho, kf_weight, cur_rho, &u, params.both_directions)
+}
+
+/// The frame side of the covisibility (when `both_directions`, against the keyframe before
+/// this fusion, as the GPU dispatches it first), then [`fuse_rows`].
+fn fuse_both(
+    kf_rho: &mut [f32],
+    kf_weight: &mut [f32],
+    cur_rho: &[f32],
+    u: &FuseUniform,
+    both_directions: bool,
+) -> FusionCounts {
+    let back = if both_directions {
+        covisible_back_rows(kf_rho, cur_rho, u)
+    } else {
+        (0, 0)
+    };
+    let mut c = fuse_rows(kf_rho, kf_weight, cur_rho, u);
+    (c.frame_valid, c.frame_covisible) = back;
+    c
 }
 
 /// [`fuse_pixel`] over every keyframe pixel, rows in parallel.
@@ -229,6 +362,8 @@ fn fuse_rows(
             valid: a.valid + b.valid,
             covisible: a.covisible + b.covisible,
             fused: a.fused + b.fused,
+            frame_valid: 0,
+            frame_covisible: 0,
         })
 }
 
@@ -237,8 +372,14 @@ fn fuse_rows(
 pub(crate) trait FusionKernels: Send {
     /// Takes a new keyframe: inverse depth `rho` (1/m, 0 = invalid) and weights.
     fn start(&mut self, rho: Vec<f32>, weight: Vec<f32>) -> Result<(), SlamError>;
-    /// Fuses one frame's inverse depth into the resident keyframe.
-    fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError>;
+    /// Fuses one frame's inverse depth into the resident keyframe; with `both_directions`
+    /// the frame side of the covisibility is counted first.
+    fn fuse(
+        &mut self,
+        cur_rho: &[f32],
+        u: &FuseUniform,
+        both_directions: bool,
+    ) -> Result<FusionCounts, SlamError>;
     /// The keyframe: `(rho, weight)`.
     fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError>;
     /// Bytes held, `(host, device)`.
@@ -258,8 +399,19 @@ impl FusionKernels for CpuFusion {
         Ok(())
     }
 
-    fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError> {
-        Ok(fuse_rows(&mut self.rho, &mut self.weight, cur_rho, u))
+    fn fuse(
+        &mut self,
+        cur_rho: &[f32],
+        u: &FuseUniform,
+        both_directions: bool,
+    ) -> Result<FusionCounts, SlamError> {
+        Ok(fuse_both(
+            &mut self.rho,
+            &mut self.weight,
+            cur_rho,
+            u,
+            both_directions,
+        ))
     }
 
     fn read(&self) -> Result<(Vec<f32>, Vec<f32>), SlamError> {
@@ -272,10 +424,16 @@ impl FusionKernels for CpuFusion {
     }
 }
 
+/// Bytes of the kernel's counters: keyframe valid, covisible, fused, frame valid, frame
+/// covisible (`u32` each), rounded up to 16.
+const COUNTS_BYTES: u64 = 32;
+
 /// The fusion kernel compiled on a device, with the keyframe's buffers resident there.
 struct GpuFusion {
     ctx: Arc<GpuContext>,
     pipeline: wgpu::ComputePipeline,
+    /// `covisible_back`: the frame side of the covisibility.
+    back: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     uniform: wgpu::Buffer,
     counts: wgpu::Buffer,
@@ -291,17 +449,24 @@ impl GpuFusion {
             message: "not embedded".into(),
         })?;
         let layout = ctx.buffer_layout("fuse", &[true, false, false, false]);
-        let mut pipes =
-            ctx.compute_pipelines_with_layout("fuse.wgsl", &src, &["fuse"], Some(&layout))?;
-        let pipeline = pipes.pop().ok_or_else(|| GpuError::Shader {
+        let mut pipes = ctx.compute_pipelines_with_layout(
+            "fuse.wgsl",
+            &src,
+            &["fuse", "covisible_back"],
+            Some(&layout),
+        )?;
+        let no_pipeline = || GpuError::Shader {
             name: "fuse.wgsl".into(),
             message: "no pipeline".into(),
-        })?;
+        };
+        let back = pipes.pop().ok_or_else(no_pipeline)?;
+        let pipeline = pipes.pop().ok_or_else(no_pipeline)?;
         let uniform = ctx.uniform("fuse params", std::mem::size_of::<FuseUniform>() as u64);
-        let counts = ctx.storage("fuse counts", 16);
+        let counts = ctx.storage("fuse counts", COUNTS_BYTES);
         Ok(GpuFusion {
             ctx,
             pipeline,
+            back,
             layout,
             uniform,
             counts,
@@ -337,7 +502,12 @@ impl FusionKernels for GpuFusion {
     }
 
     /// Fuses one frame into the resident keyframe; returns the pixel counts.
-    fn fuse(&mut self, cur_rho: &[f32], u: &FuseUniform) -> Result<FusionCounts, SlamError> {
+    fn fuse(
+        &mut self,
+        cur_rho: &[f32],
+        u: &FuseUniform,
+        both_directions: bool,
+    ) -> Result<FusionCounts, SlamError> {
         let ctx = &self.ctx;
         let Some((cur, _, _, bind)) = &self.buffers else {
             return Err(SlamError::Internal("fusion before a keyframe".into()));
@@ -349,7 +519,8 @@ impl FusionKernels for GpuFusion {
             .write_buffer(cur, 0, bytemuck::cast_slice(cur_rho));
         ctx.queue
             .write_buffer(&self.uniform, 0, bytemuck::bytes_of(u));
-        ctx.queue.write_buffer(&self.counts, 0, &[0u8; 16]);
+        ctx.queue
+            .write_buffer(&self.counts, 0, &[0u8; COUNTS_BYTES as usize]);
         let mut enc = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -360,17 +531,25 @@ impl FusionKernels for GpuFusion {
                 label: Some("fuse"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, bind, &[]);
+            // The frame side first: it reads the keyframe before this fusion updates it.
+            if both_directions {
+                pass.set_pipeline(&self.back);
+                pass.dispatch_workgroups(u.width.div_ceil(16), u.height.div_ceil(16), 1);
+            }
+            pass.set_pipeline(&self.pipeline);
             pass.dispatch_workgroups(u.width.div_ceil(16), u.height.div_ceil(16), 1);
         }
         ctx.queue.submit([enc.finish()]);
-        let c: Vec<u32> = ctx.read_buffer(&self.counts, 4)?;
+        let c: Vec<u32> = ctx.read_buffer(&self.counts, 5)?;
         ctx.check()?;
+        let at = |k: usize| u64::from(c.get(k).copied().unwrap_or(0));
         Ok(FusionCounts {
-            valid: u64::from(c[0]),
-            covisible: u64::from(c[1]),
-            fused: u64::from(c[2]),
+            valid: at(0),
+            covisible: at(1),
+            fused: at(2),
+            frame_valid: at(3),
+            frame_covisible: at(4),
         })
     }
 
@@ -453,19 +632,23 @@ impl KeyframeFuser {
         self.kernels.start(rho, weight)
     }
 
-    /// Fuses a frame with inverse depth `cur_rho` whose pose is `cur_from_kf`.
+    /// Fuses a frame with inverse depth `cur_rho` whose pose is `cur_from_kf` and whose
+    /// geometric scale sigma_W (1/m, the odometry's estimate) is `sigma_geo` (used with
+    /// [`FusionParams::tol_sigmas`] > 0 only).
     pub fn fuse(
         &mut self,
         cur_rho: &ImageF32,
         cur_from_kf: &Se3,
+        sigma_geo: f64,
     ) -> Result<FusionCounts, SlamError> {
         if cur_rho.data.len() != (self.camera.width * self.camera.height) as usize
             || self.pixels != cur_rho.data.len()
         {
             return Err(SlamError::Internal("fusion frame size mismatch".into()));
         }
-        let u = FuseUniform::new(&self.camera, cur_from_kf, &self.params);
-        self.kernels.fuse(&cur_rho.data, &u)
+        let u = FuseUniform::new(&self.camera, cur_from_kf, sigma_geo, &self.params);
+        self.kernels
+            .fuse(&cur_rho.data, &u, self.params.both_directions)
     }
 
     /// The fused keyframe: `(inverse depth, weights)` images.
@@ -506,6 +689,10 @@ mod tests {
             tol_rel,
             new_weight,
             max_weight,
+            tol_sigma,
+            occlusion,
+            _pad2a = _pad2[0] stride 4,
+            _pad2b = _pad2[1] stride 4,
         });
         let src = shaders::assembled("fuse.wgsl").unwrap_or_default();
         let size = std::mem::size_of::<FuseUniform>();

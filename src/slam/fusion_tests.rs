@@ -79,7 +79,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
         s / n as f64
     };
     let e0 = err(&rho);
-    let params = FusionParams::default();
+    let params = fixed_params();
     let mut last = None;
     for k in 0..8u64 {
         let p = pose(0.02 * k as f64, -0.01 * k as f64, 0.01 * k as f64);
@@ -91,6 +91,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
             cur.data(),
             &cam,
             &cur_from_kf,
+            0.0,
             &params,
         ));
     }
@@ -114,6 +115,7 @@ fn fusion_averages_noise_and_counts_covisibility() {
         cur.data(),
         &cam,
         &away.inverse(),
+        0.0,
         &params,
     );
     assert_eq!(c.covisible, 0);
@@ -126,24 +128,23 @@ fn gpu_fusion_matches_cpu_mirror() {
     let Some(gpu) = crate::gpu::test_gpu("gpu_fusion_matches_cpu_mirror") else {
         return;
     };
-    for (w, h) in [(160u32, 120u32), (203, 97), (640, 480)] {
+    // The fixed tolerance without the occlusion test, and the thesis' parameters.
+    let variants = [fixed_params(), thesis_params()];
+    for ((w, h), params) in [(160u32, 120u32), (203, 97), (640, 480)]
+        .into_iter()
+        .flat_map(|s| variants.iter().map(move |p| (s, *p)))
+    {
         let cam = camera(w, h);
         let kf = render(&cam, &Se3::IDENTITY, 0.01, 5);
-        let mut cpu =
-            KeyframeFuser::new(cam, FusionParams::default(), &ComputeBackend::Cpu).unwrap();
-        let mut gpu_f = KeyframeFuser::new(
-            cam,
-            FusionParams::default(),
-            &ComputeBackend::Gpu(gpu.clone()),
-        )
-        .unwrap();
+        let mut cpu = KeyframeFuser::new(cam, params, &ComputeBackend::Cpu).unwrap();
+        let mut gpu_f = KeyframeFuser::new(cam, params, &ComputeBackend::Gpu(gpu.clone())).unwrap();
         cpu.start(&kf).unwrap();
         gpu_f.start(&kf).unwrap();
         for k in 0..4u64 {
             let p = pose(0.03 * k as f64, 0.01 * k as f64, -0.02 * k as f64);
             let cur = render(&cam, &p, 0.01, 20 + k);
-            let a = cpu.fuse(&cur, &p.inverse()).unwrap();
-            let b = gpu_f.fuse(&cur, &p.inverse()).unwrap();
+            let a = cpu.fuse(&cur, &p.inverse(), 0.004).unwrap();
+            let b = gpu_f.fuse(&cur, &p.inverse(), 0.004).unwrap();
             let tol = |x: u64| (x as f64 * 0.002).max(3.0);
             assert_eq!(a.valid, b.valid, "{w}x{h} frame {k}");
             assert!(
@@ -154,6 +155,15 @@ fn gpu_fusion_matches_cpu_mirror() {
                 (a.fused as f64 - b.fused as f64).abs() <= tol(a.fused),
                 "{w}x{h} frame {k}: {a:?} vs {b:?}"
             );
+            assert_eq!(a.frame_valid, b.frame_valid, "{w}x{h} frame {k}");
+            assert!(
+                (a.frame_covisible as f64 - b.frame_covisible as f64).abs()
+                    <= tol(a.frame_covisible),
+                "{w}x{h} frame {k}: {a:?} vs {b:?}"
+            );
+            if params.both_directions {
+                assert!(a.frame_valid > 0 && a.frame_covisible > 0, "{a:?}");
+            }
         }
         let (rc, wc) = cpu.finish().unwrap();
         let (rg, wg) = gpu_f.finish().unwrap();
@@ -170,4 +180,134 @@ fn gpu_fusion_matches_cpu_mirror() {
             "{w}x{h}: {differ} of {n} pixels differ between GPU and CPU"
         );
     }
+}
+
+/// The fixed tolerance `0.004 + 0.03 rho`, every pixel on depth covisible, keyframe side only.
+fn fixed_params() -> FusionParams {
+    FusionParams {
+        tol_sigmas: 0.0,
+        occlusion: false,
+        both_directions: false,
+        ..FusionParams::default()
+    }
+}
+
+/// The thesis' fusion (eq. 6.10, 6.24): 3 sigma_W, occlusion test, both directions.
+fn thesis_params() -> FusionParams {
+    FusionParams {
+        tol_sigmas: 3.0,
+        occlusion: true,
+        both_directions: true,
+        ..FusionParams::default()
+    }
+}
+
+/// A constant inverse-depth image.
+fn flat(cam: &PinholeCamera, rho: f32) -> ImageF32 {
+    ImageF32::filled(cam.width as usize, cam.height as usize, rho)
+}
+
+#[test]
+fn occlusion_test_excludes_occluding_pixels_from_covisibility() {
+    let cam = camera(80, 60);
+    // The keyframe sees a wall at 2 m; the frame at the same pose has an object at 1 m over
+    // its left half.
+    let kf = flat(&cam, 0.5);
+    let mut cur = flat(&cam, 0.5);
+    for v in 0..60 {
+        for u in 0..40 {
+            cur.data_mut()[v * 80 + u] = 1.0;
+        }
+    }
+    let run = |params: &FusionParams| {
+        let mut rho = kf.data().to_vec();
+        let mut weight = vec![1.0f32; rho.len()];
+        fuse_cpu(
+            &mut rho,
+            &mut weight,
+            cur.data(),
+            &cam,
+            &Se3::IDENTITY,
+            0.004,
+            params,
+        )
+    };
+    let plain = run(&fixed_params());
+    assert_eq!(plain.covisibility(), 1.0, "{plain:?}");
+    let thesis = run(&thesis_params());
+    assert!(
+        (thesis.covisibility() - 0.5).abs() < 1e-9,
+        "the occluded half must not count: {thesis:?}"
+    );
+    assert_eq!(thesis.fused, plain.fused);
+}
+
+#[test]
+fn both_directions_take_the_frame_side_minimum() {
+    let cam = camera(80, 60);
+    // The keyframe has depth on its right half only; the frame everywhere: every keyframe
+    // pixel is seen, but only half of the frame's pixels land on keyframe depth.
+    let mut kf = flat(&cam, 0.5);
+    for v in 0..60 {
+        for u in 0..40 {
+            kf.data_mut()[v * 80 + u] = 0.0;
+        }
+    }
+    let cur = flat(&cam, 0.5);
+    let run = |params: &FusionParams| {
+        let mut rho = kf.data().to_vec();
+        let mut weight: Vec<f32> = rho.iter().map(|&r| f32::from(r > 0.0)).collect();
+        fuse_cpu(
+            &mut rho,
+            &mut weight,
+            cur.data(),
+            &cam,
+            &Se3::IDENTITY,
+            0.004,
+            params,
+        )
+    };
+    let one_sided = run(&fixed_params());
+    assert_eq!(one_sided.covisibility(), 1.0);
+    assert_eq!(one_sided.frame_valid, 0);
+    let both = run(&FusionParams {
+        both_directions: true,
+        ..fixed_params()
+    });
+    assert_eq!(both.frame_valid, 80 * 60);
+    assert_eq!(both.frame_covisible, 40 * 60);
+    assert!((both.covisibility() - 0.5).abs() < 1e-9, "{both:?}");
+}
+
+#[test]
+fn sigma_tolerance_follows_the_given_scale() {
+    let cam = camera(80, 60);
+    // The frame measures the keyframe's wall 0.01 1/m further away.
+    let kf = flat(&cam, 0.5);
+    let cur = flat(&cam, 0.49);
+    let fused = |sigma_geo: f64, params: &FusionParams| {
+        let mut rho = kf.data().to_vec();
+        let mut weight = vec![1.0f32; rho.len()];
+        fuse_cpu(
+            &mut rho,
+            &mut weight,
+            cur.data(),
+            &cam,
+            &Se3::IDENTITY,
+            sigma_geo,
+            params,
+        )
+        .fused
+    };
+    let sigma = FusionParams {
+        tol_sigmas: 3.0,
+        ..fixed_params()
+    };
+    // 3 sigma_W = 0.012 1/m accepts the offset, 0.006 1/m rejects it.
+    assert_eq!(fused(0.004, &sigma), 80 * 60);
+    assert_eq!(fused(0.002, &sigma), 0);
+    // The fixed tolerance 0.004 + 0.03 * 0.5 = 0.019 1/m ignores the scale.
+    assert_eq!(fused(0.002, &fixed_params()), 80 * 60);
+    // The defaults are the thesis' tolerance.
+    assert_eq!(FusionParams::default().tol_sigmas, 3.0);
 }

@@ -152,6 +152,9 @@ struct FusionParamsDef {
     tol_rel: f32,
     new_weight: f32,
     max_weight: f32,
+    tol_sigmas: f32,
+    occlusion: bool,
+    both_directions: bool,
 }
 
 impl Default for FusionParamsDef {
@@ -162,6 +165,9 @@ impl Default for FusionParamsDef {
             tol_rel: d.tol_rel,
             new_weight: d.new_weight,
             max_weight: d.max_weight,
+            tol_sigmas: d.tol_sigmas,
+            occlusion: d.occlusion,
+            both_directions: d.both_directions,
         }
     }
 }

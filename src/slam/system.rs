@@ -20,7 +20,7 @@ use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
 use crate::graph::{PoseGraph3, SolverOptions};
 use crate::image::{ImageF32, RgbdFrame};
-use crate::odometry::{Odometry, StageTimes};
+use crate::odometry::{GeometricParam, Odometry, StageTimes};
 use crate::place::Vocabulary;
 use crate::trajectory::TimedPose;
 
@@ -151,7 +151,9 @@ pub struct Slam {
     current: Option<CurrentKeyframe>,
     next_keyframe_id: usize,
     /// Frames since the last keyframe: inverse depth and front-end pose.
-    buffer: std::collections::VecDeque<(ImageF32, Se3)>,
+    /// Frames since the keyframe: inverse depth, `frontworld_from_camera`, the odometry's
+    /// geometric scale sigma_W (1/m).
+    buffer: std::collections::VecDeque<(ImageF32, Se3, f64)>,
     /// Covariance of the current keyframe relative to the chain's anchor (the newest odometry
     /// reference since the keyframe started), as a right perturbation in the anchor's frame
     /// (`[v; w]`, m and rad).
@@ -283,11 +285,11 @@ impl Slam {
     fn frontend_memory(&self, loop_records: usize) -> MemoryBreakdown {
         let (odometry, odometry_gpu) = self.odometry.memory_bytes();
         let (fusion, fusion_gpu) = self.fuser.memory_bytes();
-        let buffered = self.buffer.capacity() * std::mem::size_of::<(ImageF32, Se3)>()
+        let buffered = self.buffer.capacity() * std::mem::size_of::<(ImageF32, Se3, f64)>()
             + self
                 .buffer
                 .iter()
-                .map(|(rho, _)| vec_bytes(&rho.data))
+                .map(|(rho, _, _)| vec_bytes(&rho.data))
                 .sum::<usize>();
         MemoryBreakdown {
             keyframes: self
@@ -363,9 +365,9 @@ impl Slam {
         self.next_keyframe_id += 1;
         self.fuser.start(&frame.inverse_depth)?;
         let buffered = std::mem::take(&mut self.buffer);
-        for (rho, frontworld_from_b) in &buffered {
+        for (rho, frontworld_from_b, sigma_geo) in &buffered {
             let b_from_kf = frontworld_from_b.inverse() * frontworld_from_camera;
-            self.fuser.fuse(rho, &b_from_kf)?;
+            self.fuser.fuse(rho, &b_from_kf, *sigma_geo)?;
         }
         self.current = Some(CurrentKeyframe {
             id,
@@ -620,10 +622,16 @@ impl Slam {
             .ok_or_else(|| SlamError::Internal("tracking without keyframe".into()))?;
         let (kf_id, frontworld_from_kf) = (cur.id, cur.frontworld_from_keyframe);
         let kf_from_camera = frontworld_from_kf.inverse() * frontworld_from_camera;
+        // The fusion tolerance in sigma_W needs the scale in 1/m: with the depth
+        // parametrisation it is in m, and 0 makes the fuser use its fixed tolerance.
+        let sigma_geo = match self.config.odometry.geometric {
+            GeometricParam::InverseDepth => r.stats.sigma_geo,
+            GeometricParam::Depth => 0.0,
+        };
         let tf = Instant::now();
         let counts = self
             .fuser
-            .fuse(&frame.inverse_depth, &kf_from_camera.inverse())?;
+            .fuse(&frame.inverse_depth, &kf_from_camera.inverse(), sigma_geo)?;
         record.fusion_ms = tf.elapsed().as_secs_f64() * 1e3;
         record.keyframe_covisibility = counts.covisibility();
         record.keyframe = Some((kf_id, kf_from_camera));
@@ -653,8 +661,11 @@ impl Slam {
             record.status = FrameStatus::NewKeyframe;
             record.keyframe = Some((id, Se3::IDENTITY));
         } else {
-            self.buffer
-                .push_back((frame.inverse_depth.clone(), frontworld_from_camera));
+            self.buffer.push_back((
+                frame.inverse_depth.clone(),
+                frontworld_from_camera,
+                sigma_geo,
+            ));
             if self.buffer.len() > self.config.buffer_frames {
                 self.buffer.pop_front();
             }
