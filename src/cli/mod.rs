@@ -5,6 +5,7 @@ pub mod config;
 pub mod demo;
 pub mod eval;
 pub mod graph;
+pub mod load;
 pub mod mesh;
 pub mod mono;
 pub mod odometry;
