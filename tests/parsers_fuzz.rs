@@ -232,8 +232,7 @@ const POSE_4X4: &[u8] = b"1 0 0 0.5\n0 1 0 -0.25\n0 0 1 1\n0 0 0 1\n";
 /// ScanNet's intrinsic matrix for 32 x 24 images.
 const INTRINSIC: &[u8] = b"30 0 15.5 0\n0 30 11.5 0\n0 0 1 0\n0 0 0 1\n";
 /// Replica's `traj.txt`: one row-major 4x4 per line.
-const REPLICA_TRAJ: &[u8] =
-    b"1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n1 0 0 0.1 0 1 0 0 0 0 1 0 0 0 0 1\n";
+const REPLICA_TRAJ: &[u8] = b"1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n1 0 0 0.1 0 1 0 0 0 0 1 0 0 0 0 1\n";
 /// ETH3D's `calibration.txt` for 32 x 24 images.
 const ETH3D_CALIBRATION: &[u8] = b"30 30 15.5 11.5\n";
 
@@ -252,14 +251,14 @@ fn binary_ply() -> &'static [u8] {
     })
 }
 
-/// Writes a 32 x 24 grey image and a 16-bit depth image (every pixel `depth`) as PNG, whatever
-/// the names' extensions say (the readers go by content).
+/// Writes a 32 x 24 grey image (JPEG or PNG, as its name says) and a 16-bit PNG depth image
+/// (every pixel `depth`).
 fn frame_images(colour: &Path, depth_path: &Path, depth: u16) {
     for p in [colour, depth_path] {
         std::fs::create_dir_all(p.parent().unwrap()).unwrap();
     }
     image::GrayImage::from_pixel(32, 24, image::Luma([128]))
-        .save_with_format(colour, image::ImageFormat::Png)
+        .save(colour)
         .unwrap();
     image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_pixel(32, 24, image::Luma([depth]))
         .save_with_format(depth_path, image::ImageFormat::Png)
@@ -286,7 +285,10 @@ fn open_layout(
     prop_assert!(peak <= bound(input), "{peak} bytes");
     if let Err(e) = r {
         let e = e.to_string();
-        prop_assert!(e.contains(&*dir.to_string_lossy()), "error without a path: {e}");
+        prop_assert!(
+            e.contains(&*dir.to_string_lossy()),
+            "error without a path: {e}"
+        );
     }
     Ok(())
 }

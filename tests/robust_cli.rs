@@ -425,8 +425,9 @@ fn slam_skips_wrong_size_truncated_and_blank_frames() {
     assert_eq!(run.trajectory.len(), summary.tracked);
 }
 
-/// Depth in the wrong unit (a 5x factor error keeps the median plausible) is reported with
-/// the factor that fits.
+/// TUM depth (5000 per metre) read with the millimetre factor: the median depth stays
+/// plausible, but most depths fall outside the sensor's range, which is reported with the
+/// factor that fits.
 #[test]
 fn a_depth_factor_5x_off_is_reported_with_the_factor_that_fits() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -434,7 +435,7 @@ fn a_depth_factor_5x_off_is_reported_with_the_factor_that_fits() {
     tum_folder(&seq, 3);
     let calib = std::fs::read_to_string(seq.join("calib.txt")).expect("calib.txt");
     assert!(calib.contains(" 5000 "), "{calib}");
-    std::fs::write(seq.join("calib.txt"), calib.replace(" 5000 ", " 25000 ")).expect("write");
+    std::fs::write(seq.join("calib.txt"), calib.replace(" 5000 ", " 1000 ")).expect("write");
     let out = tmp.path().join("t.txt");
     let o = rgbid(&["odometry", s(&seq), "--backend", "cpu", "--out", s(&out)]);
     let t = text(&o);
@@ -514,15 +515,43 @@ fn slam_killed_after_a_checkpoint_leaves_parseable_outputs() {
 fn a_second_interrupt_exits_at_once_with_the_last_checkpoint() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("out");
-    let child = slam_until_first_checkpoint(&out);
+    let mut child = slam_until_first_checkpoint(&out);
     let pid = child.id().to_string();
-    let kill = Command::new("sh")
-        .args(["-c", &format!("kill -INT {pid}; kill -INT {pid}")])
-        .status()
-        .expect("kill");
-    assert!(kill.success());
+    // Signals of one kind do not queue: the second is sent once the first has been seen.
+    let stderr = child.stderr.take().expect("stderr");
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let reader = std::thread::spawn(move || {
+        use std::io::BufRead;
+        let mut all = String::new();
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = tx.send(line.clone());
+            all += &line;
+            all.push('\n');
+        }
+        all
+    });
+    let interrupt = || {
+        let kill = Command::new("kill")
+            .args(["-INT", &pid])
+            .status()
+            .expect("kill");
+        assert!(kill.success());
+    };
+    interrupt();
+    loop {
+        let line = rx
+            .recv_timeout(Duration::from_secs(120))
+            .expect("the first interrupt acknowledged");
+        if line.contains("stopping") {
+            break;
+        }
+    }
+    interrupt();
     let o = child.wait_with_output().expect("wait");
-    let t = text(&o);
+    let t = format!("{}{}", text(&o), reader.join().expect("stderr"));
     assert_eq!(o.status.code(), Some(130), "{t}");
     assert!(t.contains("second interrupt"), "{t}");
     let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
@@ -530,7 +559,10 @@ fn a_second_interrupt_exits_at_once_with_the_last_checkpoint() {
     assert_eq!(summary.status, "interrupted", "{t}");
     assert!(!summary.complete);
     let trajectory = rgbid::io::trajectory::read_tum(&out.join("trajectory.txt")).expect("tum");
-    assert!(trajectory.len() >= summary.tracked && summary.tracked > 0, "{t}");
+    assert!(
+        trajectory.len() >= summary.tracked && summary.tracked > 0,
+        "{t}"
+    );
 }
 
 /// Odometry replaces its trajectory at checkpoints: one seen while the run goes on parses,
@@ -574,6 +606,10 @@ fn odometry_killed_after_a_checkpoint_keeps_its_trajectory() {
     let copy = tmp.path().join("seen.txt");
     std::fs::write(&copy, &seen).expect("write");
     let poses = rgbid::io::trajectory::read_tum(&copy).expect("checkpoint parses");
-    assert!(!poses.is_empty() && poses.len() < 40, "{} poses", poses.len());
+    assert!(
+        !poses.is_empty() && poses.len() < 40,
+        "{} poses",
+        poses.len()
+    );
     rgbid::io::trajectory::read_tum(&out).expect("the file after the kill parses");
 }

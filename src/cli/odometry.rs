@@ -203,7 +203,10 @@ pub fn run(args: Args) -> Result<()> {
         if checkpoints.due(frame.timestamp()) {
             let written = match csv.as_mut() {
                 Some(f) => f.flush().with_context(|| {
-                    format!("{}", args.csv.as_deref().unwrap_or(args.out.as_path()).display())
+                    format!(
+                        "{}",
+                        args.csv.as_deref().unwrap_or(args.out.as_path()).display()
+                    )
                 }),
                 None => Ok(()),
             }
@@ -223,8 +226,12 @@ pub fn run(args: Args) -> Result<()> {
     // Whatever happened, keep what was computed.
     write_trajectory(&args.out, &poses, format)?;
     if let Some(f) = csv.as_mut() {
-        f.flush()
-            .with_context(|| format!("{}", args.csv.as_deref().unwrap_or(args.out.as_path()).display()))?;
+        f.flush().with_context(|| {
+            format!(
+                "{}",
+                args.csv.as_deref().unwrap_or(args.out.as_path()).display()
+            )
+        })?;
     }
     println!("wrote {} poses to {}", poses.len(), args.out.display());
     if failures > 0 {

@@ -279,7 +279,10 @@ mod tests {
         let mut s = Skips::default();
         assert!(s.skip(5, anyhow::anyhow!("bad png")).is_none());
         let w = s.warning().expect("a warning");
-        assert!(w.starts_with("1 frames skipped") && w.contains("frame 5: bad png"), "{w}");
+        assert!(
+            w.starts_with("1 frames skipped") && w.contains("frame 5: bad png"),
+            "{w}"
+        );
         let mut s = Skips::default();
         let stop = (0..20).find_map(|i| s.skip(i, anyhow::anyhow!("depth factor")));
         let e = format!("{:#}", stop.expect("stops"));

@@ -434,8 +434,9 @@ mod tests {
         assert!(e.starts_with("line 9: vertex 1"), "{e}");
         let e = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").unwrap_err();
         assert!(e.starts_with("line 9: file ends early"), "{e}");
-        let e = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty blob x\nend_header\n")
-            .unwrap_err();
+        let e =
+            parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty blob x\nend_header\n")
+                .unwrap_err();
         assert!(e.starts_with("line 4: unsupported property type"), "{e}");
     }
 
