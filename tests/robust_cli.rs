@@ -613,3 +613,51 @@ fn odometry_killed_after_a_checkpoint_keeps_its_trajectory() {
     );
     rgbid::io::trajectory::read_tum(&out).expect("the file after the kill parses");
 }
+
+/// A disk that fills up mid-run: the run fails with the OS error, says that the last
+/// checkpoint is kept, and the folder parses with that checkpoint. Mounts a 160 KiB tmpfs,
+/// which needs root (run by hand: `cargo test --test robust_cli -- --ignored manual_`).
+#[test]
+#[ignore = "manual: mounts a tmpfs (root)"]
+fn manual_a_full_disk_keeps_the_last_checkpoint() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let disk = tmp.path().join("disk");
+    std::fs::create_dir(&disk).expect("mkdir");
+    let mount = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=160k", "tmpfs", s(&disk)])
+        .status()
+        .expect("mount");
+    assert!(mount.success(), "cannot mount a tmpfs here");
+    let out = disk.join("out");
+    let o = rgbid(&[
+        "slam",
+        "--synth",
+        "office:loop",
+        "--frames",
+        "600",
+        "--width",
+        "160",
+        "--backend",
+        "cpu",
+        "--no-model",
+        "--checkpoint-every",
+        "0.2",
+        "--out",
+        s(&out),
+    ]);
+    let t = text(&o);
+    let checked = (|| {
+        let run = rgbid::io::run_folder::RunFolder::read(&out).map_err(|e| e.to_string())?;
+        let summary = run.summary.ok_or("no summary")?;
+        let trajectory = rgbid::io::trajectory::read_tum(&out.join("trajectory.txt"))
+            .map_err(|e| e.to_string())?;
+        Ok::<_, String>((summary, trajectory.len()))
+    })();
+    let _ = Command::new("umount").arg(s(&disk)).status();
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("No space left on device"), "{t}");
+    assert!(t.contains("keeps the files of the last checkpoint"), "{t}");
+    let (summary, poses) = checked.expect("the last checkpoint parses");
+    assert_eq!(summary.status, "running", "{t}");
+    assert!(summary.tracked > 0 && poses >= summary.tracked, "{t}");
+}

@@ -224,7 +224,16 @@ pub fn run(args: Args) -> Result<()> {
     }
     bar.finish_and_clear();
     // Whatever happened, keep what was computed.
-    write_trajectory(&args.out, &poses, format)?;
+    if let Err(e) = write_trajectory(&args.out, &poses, format) {
+        let kept = format!("{} keeps its last checkpoint", args.out.display());
+        return Err(match outcome {
+            Err(first) => first.context(format!(
+                "the final trajectory could not be written either ({}); {kept}",
+                super::outcome::message(&anyhow::Error::new(e))
+            )),
+            Ok(()) => anyhow::Error::new(e).context(format!("writing the trajectory; {kept}")),
+        });
+    }
     if let Some(f) = csv.as_mut() {
         f.flush().with_context(|| {
             format!(

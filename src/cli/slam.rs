@@ -455,7 +455,8 @@ fn run_slam(
         wall,
         provenance,
         status,
-    )?;
+    )
+    .map_err(|e| final_write_failed(e, error.take(), &a.out))?;
     if let Some(e) = error {
         return Err(if processed > 0 {
             e.context(format!(
@@ -473,6 +474,23 @@ fn run_slam(
         warnings.push(format!("{w} (counted in summary.json)"));
     }
     super::outcome::warnings(warnings)
+}
+
+/// The error of a run whose final outputs could not be written (a full disk, a folder gone),
+/// after `first` stopped it or not: the files of the last checkpoint are what remains.
+fn final_write_failed(
+    e: anyhow::Error,
+    first: Option<anyhow::Error>,
+    out: &std::path::Path,
+) -> anyhow::Error {
+    let kept = format!("{} keeps the files of the last checkpoint", out.display());
+    match first {
+        Some(first) => first.context(format!(
+            "the final outputs could not be written either ({}); {kept}",
+            super::outcome::message(&e)
+        )),
+        None => e.context(format!("writing the final outputs; {kept}")),
+    }
 }
 
 /// Whether a frame's load error concerns that frame's content alone (see
