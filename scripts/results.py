@@ -230,6 +230,29 @@ def render_python_overhead(doc):
     return out
 
 
+def render_load(doc):
+    mb = lambda b: num(None if b is None else b / 1e6, ".1f")
+    out = [f"`rgbid bench load`: {doc.get('frames', '?')} generated frames ({doc.get('width', '?')}x"
+           f"{doc.get('height', '?')}, `office:loop`, a lap every 300 frames, CPU backend) in "
+           f"{num(doc.get('wall_s'), '.0f')} s, {doc.get('keyframes', '?')} keyframes. Memory sampled "
+           "during the run: the process (VmRSS) and the SLAM instance's own account.", ""]
+    out += table(["frame", "keyframes", "process MB", "instance MB"],
+                 [[s["frame"], s["keyframes"], mb(s.get("rss_bytes")), mb(s.get("instance_bytes"))]
+                  for s in doc.get("samples", [])])
+    out += ["", "Bytes per keyframe (slope over the keyframe count): process "
+            f"{num(doc.get('rss_bytes_per_keyframe'), '.0f')}, instance "
+            f"{num(doc.get('instance_bytes_per_keyframe'), '.0f')}, saved map "
+            f"{num(doc.get('map_bytes_per_keyframe'), '.0f')}. Process memory besides the instance "
+            f"grows {num(doc.get('other_bytes_per_frame'), '.1f')} bytes per frame (slope over frames).", ""]
+    t = doc.get("threads")
+    if t:
+        out += [f"Two sessions of {t['frames']} frames in one process: one after the other "
+                f"{num(t['sequential_s'], '.1f')} s, on two threads {num(t['parallel_s'], '.1f')} s; poses "
+                f"{t['poses'][0]} and {t['poses'][1]}; largest difference of a pose between the two "
+                f"ways {num(t['max_difference_m'], '.3g')} m."]
+    return out
+
+
 def render_generic(doc):
     rows = [r for r in doc.get("rows", []) if isinstance(r, dict)]
     keys = []
@@ -241,11 +264,13 @@ def render_generic(doc):
 
 
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
-             "gpu-check": render_gpu_check, "python-overhead": render_python_overhead}
+             "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
+             "load": render_load}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead",
-          "thesis-options": "Thesis formulations as options (issue 33) on real data"}
+          "thesis-options": "Thesis formulations as options on real data",
+          "load": "SLAM under load"}
 
 
 def title(doc):

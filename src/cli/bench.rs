@@ -32,6 +32,10 @@ pub enum Command {
     /// TSDF integration speed per backend and mesh accuracy on a generated room with exact
     /// geometry, against Open3D's VoxelBlockGrid on the same frames (`scripts/tsdf_open3d.py`).
     Tsdf(Box<super::mesh::TsdfBench>),
+    /// SLAM under load on generated frames (CPU backend): memory over a long run (bytes per
+    /// keyframe, growth per frame beyond the map) and two sessions on two threads against the
+    /// same two run one after the other.
+    Load(Box<super::load::LoadBench>),
 }
 
 /// Arguments of `rgbid bench kernels`.
@@ -110,6 +114,7 @@ pub fn run(c: Command) -> Result<()> {
         Command::Kernels(a) => kernels(*a),
         Command::Odometry(a) => odometry(*a),
         Command::Tsdf(a) => super::mesh::bench(*a),
+        Command::Load(a) => super::load::run(*a),
     }
 }
 

@@ -40,8 +40,13 @@ pub struct Args {
     #[arg(long, value_enum)]
     pub format: Option<Layout>,
     /// Frame rate of layouts without time stamps (7scenes, replica), Hz (> 0).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, value_parser = range::positive, default_value_t = 30.0)]
     pub fps: f64,
+    /// Seconds of input (frame time stamps) between checkpoints: the trajectory so far
+    /// replaces the output file atomically (and the CSV is flushed), so a run killed later
+    /// leaves it readable; > 0 [default: 5].
+    #[arg(long, value_parser = range::positive, default_value_t = super::outputs::CHECKPOINT_EVERY_S)]
+    pub checkpoint_every: f64,
     /// Per-frame CSV of statistics (time per stage, sigma, nu, iterations, covisibility,
     /// condition number).
     #[arg(long)]
@@ -85,6 +90,12 @@ pub fn run(args: Args) -> Result<()> {
     let stop = super::outputs::Stop::install(|| {})?;
     let backend = select_backend(args.backend.backend, args.backend.adapter.as_deref())?;
     log::info!("{} frames, backend {}", seq.len(), backend.name());
+    // The provenance does not change during the run: written first, it describes every
+    // checkpoint of the trajectory.
+    write_sidecar(&args.out, &config, &backend)?;
+    let format = args
+        .traj_format
+        .unwrap_or_else(|| TrajectoryFormat::from_extension(&args.out));
     let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
     let groundtruth = seq.ground_truth()?;
     if let Some(gt) = &groundtruth {
@@ -122,6 +133,8 @@ pub fn run(args: Args) -> Result<()> {
     let mut outcome: Result<()> = Ok(());
     let mut last_pose = None;
     let mut interrupted = false;
+    let mut skips = super::outputs::Skips::default();
+    let mut checkpoints = super::outputs::Checkpoints::new(args.checkpoint_every);
     for i in 0..seq.len() {
         if stop.requested() {
             interrupted = true;
@@ -129,6 +142,14 @@ pub fn run(args: Args) -> Result<()> {
         }
         let frame = match seq.load(i) {
             Ok(f) => f,
+            Err(e) if super::outputs::frame_content_error(&e) => {
+                if let Some(stop) = skips.skip(i, anyhow::Error::new(e)) {
+                    outcome = Err(stop);
+                    break;
+                }
+                bar.inc(1);
+                continue;
+            }
             Err(e) => {
                 outcome = Err(anyhow::Error::new(e).context(format!("frame {i}")));
                 break;
@@ -181,14 +202,48 @@ pub fn run(args: Args) -> Result<()> {
             }
         }
         bar.inc(1);
+        if checkpoints.due(frame.timestamp()) {
+            let written = match csv.as_mut() {
+                Some(f) => f.flush().with_context(|| {
+                    format!(
+                        "{}",
+                        args.csv.as_deref().unwrap_or(args.out.as_path()).display()
+                    )
+                }),
+                None => Ok(()),
+            }
+            .and_then(|()| {
+                write_trajectory(&args.out, &poses, format).map_err(anyhow::Error::from)
+            });
+            if let Err(e) = written {
+                // The trajectory file holds the previous checkpoint (it is replaced whole).
+                outcome = Err(e.context(format!(
+                    "checkpoint after frame {i} (the previous checkpoint is kept)"
+                )));
+                break;
+            }
+        }
     }
     bar.finish_and_clear();
     // Whatever happened, keep what was computed.
-    let format = args
-        .traj_format
-        .unwrap_or_else(|| TrajectoryFormat::from_extension(&args.out));
-    write_trajectory(&args.out, &poses, format)?;
-    write_sidecar(&args.out, &config, &backend)?;
+    if let Err(e) = write_trajectory(&args.out, &poses, format) {
+        let kept = format!("{} keeps its last checkpoint", args.out.display());
+        return Err(match outcome {
+            Err(first) => first.context(format!(
+                "the final trajectory could not be written either ({}); {kept}",
+                super::outcome::message(&anyhow::Error::new(e))
+            )),
+            Ok(()) => anyhow::Error::new(e).context(format!("writing the trajectory; {kept}")),
+        });
+    }
+    if let Some(f) = csv.as_mut() {
+        f.flush().with_context(|| {
+            format!(
+                "{}",
+                args.csv.as_deref().unwrap_or(args.out.as_path()).display()
+            )
+        })?;
+    }
     println!("wrote {} poses to {}", poses.len(), args.out.display());
     if failures > 0 {
         println!("{failures} frames failed to track (see the log)");
@@ -197,7 +252,7 @@ pub fn run(args: Args) -> Result<()> {
     if interrupted {
         return Err(super::outcome::Interrupted { out: args.out }.into());
     }
-    let mut warnings = Vec::new();
+    let mut warnings: Vec<String> = skips.warning().into_iter().collect();
     if failures > 0 {
         warnings.push(format!("{failures} frames failed to track"));
     }

@@ -72,6 +72,11 @@ pub struct Args {
     /// it [default: 4].
     #[arg(long, value_parser = range::positive_or_inf)]
     pub max_angular_speed: Option<f64>,
+    /// Seconds of input (frame time stamps) between checkpoints: trajectory.txt (the
+    /// estimate so far), keyframes.txt and summary.json (`status: running`) are replaced
+    /// atomically, so a run killed later leaves them readable; > 0 [default: 5].
+    #[arg(long, value_parser = range::positive, default_value_t = super::outputs::CHECKPOINT_EVERY_S)]
+    pub checkpoint_every: f64,
     /// Do not write model.ply.
     #[arg(long)]
     pub no_model: bool,
@@ -108,6 +113,7 @@ impl Args {
             keyframe_covisibility: None,
             max_speed: None,
             max_angular_speed: None,
+            checkpoint_every: super::outputs::CHECKPOINT_EVERY_S,
             no_model: false,
             voxel: ModelParams::default().voxel,
             vocabulary: None,
@@ -294,8 +300,13 @@ fn run_slam(
     let mut interrupted = false;
     let mut dropped = 0usize;
     let mut lost = 0usize;
-    let mut skipped = 0usize;
-    let mut first_skip: Option<String> = None;
+    let mut skips = super::outputs::Skips::default();
+    let mut checkpoints = super::outputs::Checkpoints::new(a.checkpoint_every);
+    // The estimate so far, for the checkpoints: every posed frame as corrected by the loops
+    // known when it was tracked, and each new keyframe's pose then.
+    let mut corrected: Vec<TimedPose> = Vec::new();
+    let mut keyframe_poses: Vec<TimedPose> = Vec::new();
+    let provenance_value = serde_json::to_value(provenance)?;
     let mut load_ms = Vec::new();
     let mut i = 0usize;
     let start = Instant::now();
@@ -318,17 +329,8 @@ fn run_slam(
         let frame = match source.load(i) {
             Ok(f) => f,
             Err(e) if frame_content_error(&e) => {
-                // One bad frame is skipped and counted; when most frames fail the input's
-                // settings are wrong, and the first error (with its advice) stops the run.
-                let e = anyhow::Error::new(e).context(format!("frame {i}"));
-                skipped += 1;
-                log::warn!("skipping {}", super::outcome::message(&e));
-                first_skip.get_or_insert_with(|| super::outcome::message(&e));
-                if skipped >= MAX_SKIPPED && 2 * skipped > i + 1 {
-                    error = Some(e.context(format!(
-                        "{skipped} of the first {} frames could not be used",
-                        i + 1
-                    )));
+                if let Some(stop) = skips.skip(i, anyhow::Error::new(e)) {
+                    error = Some(stop);
                     break;
                 }
                 bar.inc(1);
@@ -349,6 +351,38 @@ fn run_slam(
                 }
                 if r.status == FrameStatus::Lost {
                     lost += 1;
+                }
+                if let Some(p) = r.world_from_camera {
+                    let pose = TimedPose {
+                        timestamp: r.record.timestamp,
+                        world_from_camera: p,
+                    };
+                    corrected.push(pose);
+                    if r.status == FrameStatus::NewKeyframe {
+                        keyframe_poses.push(pose);
+                    }
+                }
+                if checkpoints.due(r.record.timestamp) {
+                    let mut summary = RunSummary {
+                        frames: slam.frames(),
+                        dropped,
+                        skipped_frames: skips.count,
+                        tracked: corrected.len(),
+                        lost,
+                        keyframes: slam.map_keyframes() + keyframe_poses.len(),
+                        wall_s: t0.elapsed().as_secs_f64(),
+                        ..Default::default()
+                    };
+                    summary
+                        .extra
+                        .insert("provenance".into(), provenance_value.clone());
+                    if let Err(e) = writer.checkpoint(&corrected, &keyframe_poses, summary) {
+                        // The files hold the previous checkpoint (each is replaced whole).
+                        error = Some(anyhow::Error::new(e).context(format!(
+                            "checkpoint after frame {i} (the previous checkpoint is kept)"
+                        )));
+                        break;
+                    }
                 }
                 bar.set_message(format!(
                     "kf {} loops {} lost {lost}{}",
@@ -392,7 +426,7 @@ fn run_slam(
             let summary = RunSummary {
                 frames: processed,
                 dropped,
-                skipped_frames: skipped,
+                skipped_frames: skips.count,
                 wall_s: t0.elapsed().as_secs_f64(),
                 ..Default::default()
             };
@@ -416,12 +450,13 @@ fn run_slam(
         &camera,
         &result,
         &mut load_ms,
-        (dropped, skipped),
+        (dropped, skips.count),
         processed,
         wall,
         provenance,
         status,
-    )?;
+    )
+    .map_err(|e| final_write_failed(e, error.take(), &a.out))?;
     if let Some(e) = error {
         return Err(if processed > 0 {
             e.context(format!(
@@ -435,32 +470,33 @@ fn run_slam(
     if interrupted {
         return Err(super::outcome::Interrupted { out: a.out.clone() }.into());
     }
-    if let Some(first) = first_skip {
-        warnings.push(format!(
-            "{skipped} frames skipped (counted in summary.json), the first: {first}"
-        ));
+    if let Some(w) = skips.warning() {
+        warnings.push(format!("{w} (counted in summary.json)"));
     }
     super::outcome::warnings(warnings)
 }
 
-/// More skipped frames than this, when they are also most of the frames tried, stop the run.
-const MAX_SKIPPED: usize = 10;
+/// The error of a run whose final outputs could not be written (a full disk, a folder gone),
+/// after `first` stopped it or not: the files of the last checkpoint are what remains.
+fn final_write_failed(
+    e: anyhow::Error,
+    first: Option<anyhow::Error>,
+    out: &std::path::Path,
+) -> anyhow::Error {
+    let kept = format!("{} keeps the files of the last checkpoint", out.display());
+    match first {
+        Some(first) => first.context(format!(
+            "the final outputs could not be written either ({}); {kept}",
+            super::outcome::message(&e)
+        )),
+        None => e.context(format!("writing the final outputs; {kept}")),
+    }
+}
 
-/// Whether a frame's load error concerns that frame's content alone (a corrupt or
-/// implausible image) rather than the sequence or its settings.
+/// Whether a frame's load error concerns that frame's content alone (see
+/// [`super::outputs::frame_content_error`]).
 fn frame_content_error(e: &rgbid::source::SourceError) -> bool {
-    use rgbid::io::IoError;
-    matches!(
-        e,
-        rgbid::source::SourceError::Io(
-            IoError::Image { .. }
-                | IoError::DepthScaleMismatch { .. }
-                | IoError::DepthNot16Bit { .. }
-                | IoError::ImageSizeMismatch { .. }
-                | IoError::CameraSizeMismatch { .. }
-                | IoError::Frame { .. }
-        )
-    )
+    matches!(e, rgbid::source::SourceError::Io(io) if super::outputs::frame_content_error(io))
 }
 
 /// Appends a frame's row, its front-end pose and the loops checked since the last call.

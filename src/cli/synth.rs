@@ -33,11 +33,11 @@ pub struct Args {
     /// Trajectory (handheld, slow, fast, loop, walk-head, walk-chest, stairs, robot).
     #[arg(long, default_value = "handheld")]
     trajectory: String,
-    /// Number of frames.
-    #[arg(long, default_value_t = 300)]
+    /// Number of frames (>= 1).
+    #[arg(long, value_parser = super::options::range::at_least_one, default_value_t = 300)]
     frames: usize,
-    /// Frame rate (frames per second).
-    #[arg(long, default_value_t = 30.0)]
+    /// Frame rate (frames per second, > 0).
+    #[arg(long, value_parser = super::options::range::positive, default_value_t = 30.0)]
     fps: f64,
     /// Camera model.
     #[arg(long, value_enum, default_value_t = CameraKind::Pinhole)]

@@ -164,6 +164,13 @@ pub enum IoError {
         /// The value.
         factor: f64,
     },
+    /// A depth image holds no measurement at all (every pixel 0): the frame cannot be
+    /// tracked or fused.
+    #[error("{path}: the depth image has no valid measurement (every pixel is 0)")]
+    NoValidDepth {
+        /// The depth image.
+        path: PathBuf,
+    },
     /// A decoded frame's buffers do not fit together.
     #[error("{path}: {source}")]
     Frame {
@@ -253,4 +260,45 @@ pub(crate) fn write_atomic(
     tmp.as_file().sync_all().map_err(io)?;
     tmp.persist(path).map_err(|e| io(e.error))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    /// A full disk while a file is replaced (the OS error of `/dev/full`, where it exists, else
+    /// the same kind made here) is an error naming the file, and the previous version stays
+    /// whole, with no temporary file left beside it.
+    #[test]
+    fn a_full_disk_keeps_the_previous_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("trajectory.txt");
+        write_atomic(&path, |w| w.write_all(b"1.0 0 0 0 0 0 0 1\n")).unwrap();
+        let full = |w: &mut std::io::BufWriter<&mut std::fs::File>| -> std::io::Result<()> {
+            w.write_all(&[b'x'; 100_000])?;
+            match std::fs::OpenOptions::new().write(true).open("/dev/full") {
+                Ok(mut f) => f.write_all(b"more").and(f.flush()),
+                Err(_) => Err(std::io::Error::from(std::io::ErrorKind::StorageFull)),
+            }
+        };
+        let e = write_atomic(&path, full).unwrap_err();
+        match &e {
+            IoError::File { path: p, source } => {
+                assert_eq!(p, &path);
+                assert_eq!(source.kind(), std::io::ErrorKind::StorageFull, "{e}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(e.to_string().contains("trajectory.txt"), "{e}");
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "1.0 0 0 0 0 0 0 1\n"
+        );
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("trajectory.txt")]);
+    }
 }

@@ -244,12 +244,25 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
     }
     let mut format = None;
     let mut elements: Vec<Element> = Vec::new();
-    for l in lines {
+    // The first line (`ply`) is line 1.
+    for (i, l) in lines.enumerate() {
+        header_line(l, &mut format, &mut elements).map_err(|e| format!("line {}: {e}", i + 2))?;
+    }
+    finish_parse(bytes, header, body, body_start + 1, format, &elements)
+}
+
+/// Reads one header line after the first into `format` and `elements`.
+fn header_line(
+    l: &str,
+    format: &mut Option<Format>,
+    elements: &mut Vec<Element>,
+) -> Result<(), String> {
+    {
         let w: Vec<&str> = l.split_whitespace().collect();
         match w.as_slice() {
-            ["format", "ascii", _] => format = Some(Format::Ascii),
-            ["format", "binary_little_endian", _] => format = Some(Format::Little),
-            ["format", "binary_big_endian", _] => format = Some(Format::Big),
+            ["format", "ascii", _] => *format = Some(Format::Ascii),
+            ["format", "binary_little_endian", _] => *format = Some(Format::Little),
+            ["format", "binary_big_endian", _] => *format = Some(Format::Big),
             ["format", f, ..] => return Err(format!("unsupported PLY format {f}")),
             ["element", name, n] => elements.push(Element {
                 name: name.to_string(),
@@ -272,6 +285,19 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
             _ => {}
         }
     }
+    Ok(())
+}
+
+/// The vertices of a PLY file whose header has been read: `body_offset` is the byte offset
+/// of `body` in `bytes`.
+fn finish_parse(
+    bytes: &[u8],
+    header: &str,
+    body: &[u8],
+    body_offset: usize,
+    format: Option<Format>,
+    elements: &[Element],
+) -> Result<Vec<(DVec3, [u8; 3])>, String> {
     let format = format.ok_or("no format line")?;
     let Some(vi) = elements.iter().position(|e| e.name == "vertex") else {
         return Err("no vertex element".into());
@@ -321,25 +347,34 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
         Some(k) => k.map(|k| v(k).clamp(0.0, 255.0) as u8),
         None => DEFAULT_COLOUR,
     };
-    let mut out = Vec::with_capacity(count.min(50_000_000));
+    // The declared count is only a claim: the reservation is bounded by what the body can
+    // hold (a vertex takes at least two bytes in any format).
+    let mut out = Vec::with_capacity(count.min(body.len() / 2 + 1));
     if format == Format::Ascii {
         let text = std::str::from_utf8(body).map_err(|_| "ASCII body is not UTF-8")?;
+        // Body line `i` is file line `first_line + i` (the header ends with `end_header`).
+        let first_line = header.lines().count() + 2;
         let mut rows = text
             .lines()
-            .filter(|l| !l.trim().is_empty())
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
             .skip(skip_lines);
         for n in 0..count {
-            let line = rows
-                .next()
-                .ok_or_else(|| format!("file ends early: {n} of {count} vertices"))?;
+            let (i, line) = rows.next().ok_or_else(|| {
+                format!(
+                    "line {}: file ends early: {n} of {count} vertices",
+                    first_line + text.lines().count()
+                )
+            })?;
+            let at = first_line + i;
             let v: Vec<f64> = line
                 .split_whitespace()
                 .map(str::parse::<f64>)
                 .collect::<Result<_, _>>()
-                .map_err(|e| format!("vertex {n}: {e}"))?;
+                .map_err(|e| format!("line {at}: vertex {n}: {e}"))?;
             if v.len() < names.len() {
                 return Err(format!(
-                    "vertex {n}: {} values, expected {}",
+                    "line {at}: vertex {n}: {} values, expected {}",
                     v.len(),
                     names.len()
                 ));
@@ -357,8 +392,9 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
         let need = count.saturating_mul(stride).saturating_add(skip_bytes);
         if body.len() < need {
             return Err(format!(
-                "file ends early: {count} vertices of {stride} bytes need {need} bytes, {} present",
-                body.len()
+                "file ends early at byte {}: {count} vertices of {stride} bytes need the body \
+                 (from byte {body_offset}) to hold {need} bytes",
+                bytes.len()
             ));
         }
         for rec in body[skip_bytes..].chunks_exact(stride.max(1)).take(count) {
@@ -388,6 +424,20 @@ mod tests {
         assert_eq!(read_ply_grey(&p).unwrap(), grey_pts);
         write_ply(&p, &[]).unwrap();
         assert!(read_ply(&p).unwrap().is_empty());
+    }
+
+    #[test]
+    fn errors_say_where() {
+        let e = parse_ply(b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n").unwrap_err();
+        assert!(e.contains("at byte 124"), "{e}");
+        let e = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n1 x 3\n").unwrap_err();
+        assert!(e.starts_with("line 9: vertex 1"), "{e}");
+        let e = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").unwrap_err();
+        assert!(e.starts_with("line 9: file ends early"), "{e}");
+        let e =
+            parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty blob x\nend_header\n")
+                .unwrap_err();
+        assert!(e.starts_with("line 4: unsupported property type"), "{e}");
     }
 
     #[test]

@@ -3,13 +3,13 @@
 //!
 //! | file | content | written |
 //! |---|---|---|
-//! | `summary.json` | [`RunSummary`]: format version, status, counts, accuracy, plus free keys | at creation (`status: running`), again by [`RunFolderWriter::finish`] / [`RunFolderWriter::end`] |
+//! | `summary.json` | [`RunSummary`]: format version, status, counts, accuracy, plus free keys | at creation (`status: running`), at each [`RunFolderWriter::checkpoint`], by [`RunFolderWriter::finish`] / [`RunFolderWriter::end`] |
 //! | `timing.csv` | one [`FrameRow`] per frame | a row per frame, flushed |
 //! | `odometry.txt` | front-end pose of every tracked frame (TUM) | a line per frame, flushed |
 //! | `loops.csv` | one [`LoopRow`] per checked loop or relocalisation | a row per loop, flushed |
 //! | `keyframe_timing.csv` | one [`KeyframeTimingRow`] per new keyframe | rows as given, flushed |
-//! | `trajectory.txt` | optimised pose of every frame (TUM) | at the end |
-//! | `keyframes.txt` | optimised keyframe poses (TUM) | at the end |
+//! | `trajectory.txt` | optimised pose of every frame (TUM) | at checkpoints (the estimate so far) and at the end |
+//! | `keyframes.txt` | optimised keyframe poses (TUM) | at checkpoints and at the end |
 //! | `groundtruth.txt` | ground truth (TUM), when the source has it | at the end |
 //! | `model.ply` | voxel-filtered model (see [`super::ply`]) | at the end |
 //!
@@ -385,6 +385,32 @@ impl RunFolderWriter {
     /// Appends a keyframe's back-end times to `keyframe_timing.csv`.
     pub fn keyframe_timing(&mut self, row: &KeyframeTimingRow) -> Result<(), IoError> {
         self.keyframe_timing.write(row)
+    }
+
+    /// Writes a checkpoint, so that a run killed later (SIGKILL, a crash, a full disk)
+    /// leaves a readable folder: flushes the per-frame files, then replaces
+    /// `trajectory.txt`, `keyframes.txt` and, last, `summary.json` (with `status: running`
+    /// and `complete: false`) atomically. The summary is written after the trajectories, so
+    /// its counts never exceed what they hold. `trajectory` is the best estimate so far of
+    /// every posed frame and `keyframes` that of the keyframes (`world_from_camera`, TUM).
+    ///
+    /// An error (a full disk among them) leaves each file as the previous checkpoint wrote
+    /// it, or the new version of it, never part of one.
+    pub fn checkpoint(
+        &mut self,
+        trajectory: &[TimedPose],
+        keyframes: &[TimedPose],
+        summary: RunSummary,
+    ) -> Result<(), IoError> {
+        let (path, w) = &mut self.odometry;
+        w.flush().map_err(|e| IoError::file(&*path, e))?;
+        self.trajectory(trajectory)?;
+        self.keyframes(keyframes)?;
+        self.write_summary(&RunSummary {
+            complete: false,
+            status: STATUS_RUNNING.into(),
+            ..summary
+        })
     }
 
     /// Writes the optimised trajectory of every frame (`trajectory.txt`).

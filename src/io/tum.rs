@@ -623,6 +623,11 @@ fn decode_frame(
             camera_source: cam.source.into(),
         });
     }
+    if !depth.raw.iter().any(|&d| d > 0) {
+        return Err(IoError::NoValidDepth {
+            path: depth_path.into(),
+        });
+    }
     check_depth_scale(&depth.raw, depth_factor, depth_path)?;
     let image = match &rgb.pixels {
         RawPixels::Gray(g) => ImageBuffer::Gray(g),
