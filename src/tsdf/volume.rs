@@ -416,7 +416,7 @@ const KEY_HALF: f32 = (1u32 << (KEY_BITS - 1)) as f32;
 fn pack_key(b: [f32; 3]) -> Option<u64> {
     let mut out = 0u64;
     for &v in b.iter().rev() {
-        if !(v >= -KEY_HALF && v < KEY_HALF) {
+        if !(-KEY_HALF..KEY_HALF).contains(&v) {
             return None;
         }
         // The floor without a libm call on baseline x86-64: truncate, then step down for
