@@ -7,14 +7,26 @@ a triangle mesh. Writes the mesh (PLY) and a JSON file with the integration time
 frame (milliseconds, integration only: frames are decoded before the clock starts).
 
 Usage: tsdf_open3d.py SEQ --voxel 0.02 --depth-max 4.0 --mesh OUT.ply --json OUT.json
+
+Exits with status 3 when Open3D cannot be imported.
 """
 import argparse
 import json
+import sys
 import time
 
 import numpy as np
-import open3d as o3d
-import open3d.core as o3c
+
+# Exit status when Open3D cannot be imported (e.g. a machine without the wheel or its shared
+# libraries): the caller reports the peer as skipped rather than failed.
+NO_OPEN3D = 3
+
+try:
+    import open3d as o3d
+    import open3d.core as o3c
+except ImportError as e:
+    print(f"open3d not importable: {e}", file=sys.stderr)
+    sys.exit(NO_OPEN3D)
 
 
 def read_pairs(seq):

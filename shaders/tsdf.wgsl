@@ -3,7 +3,8 @@
 //
 // One workgroup per active block (8x8 invocations, each walks the 8 voxels of a z column).
 // Voxel g (global integer coordinates) sits at g * voxel_size in the world; it is moved into
-// the camera, projected to the nearest pixel, and where that pixel's inverse depth rho is in
+// the camera, projected to the nearest pixel (three divisions per voxel, no floor), and where
+// that pixel's inverse depth rho is in
 // range the projective signed distance sdf = 1/rho - z_voxel updates the voxel when
 // sdf >= -mu(z), mu(z) = max(trunc_min, trunc_sigmas * rho_sigma * z^2): tsdf is the weighted
 // mean of min(sdf, mu) with weight rho^4 (inverse depth variance relative to 1 m), colour the
@@ -46,9 +47,9 @@ struct Voxel {
 @group(0) @binding(3) var<storage, read> blocks: array<vec4<i32>>;
 @group(0) @binding(4) var<storage, read_write> voxels: array<Voxel>;
 
-fn blend(old: u32, cur: u32, w: f32, wn: f32, wt: f32) -> u32 {
-    let v = (f32(old) * w + f32(cur) * wn) / wt;
-    return min(u32(floor(v + 0.5)), 255u);
+fn blend(old: u32, cur: u32, w: f32, wn: f32, inv_wt: f32) -> u32 {
+    let v = (f32(old) * w + f32(cur) * wn) * inv_wt;
+    return min(u32(v + 0.5), 255u);
 }
 
 fn update_voxel(g: vec3<i32>, v: Voxel) -> Voxel {
@@ -65,9 +66,11 @@ fn update_voxel(g: vec3<i32>, v: Voxel) -> Voxel {
     if (!(pc.z > 0.0)) {
         return v;
     }
-    let qx = floor(params.fx * pc.x / pc.z + params.cx + 0.5);
-    let qy = floor(params.fy * pc.y / pc.z + params.cy + 0.5);
-    if (!(qx >= 0.0 && qy >= 0.0 && qx <= f32(params.width - 1u) && qy <= f32(params.height - 1u))) {
+    // Range-checked before the truncation, which then floors (the values are >= 0).
+    let inv_z = 1.0 / pc.z;
+    let qx = params.fx * pc.x * inv_z + params.cx + 0.5;
+    let qy = params.fy * pc.y * inv_z + params.cy + 0.5;
+    if (!(qx >= 0.0 && qy >= 0.0 && qx < f32(params.width) && qy < f32(params.height))) {
         return v;
     }
     let j = u32(qy) * params.width + u32(qx);
@@ -85,15 +88,16 @@ fn update_voxel(g: vec3<i32>, v: Voxel) -> Voxel {
     let wn = (r * r) * (r * r);
     let w = v.weight;
     let wt = w + wn;
+    let inv_wt = 1.0 / wt;
     var res: Voxel;
-    res.tsdf = (v.tsdf * w + d * wn) / wt;
+    res.tsdf = (v.tsdf * w + d * wn) * inv_wt;
     res.weight = min(wt, params.max_weight);
     res.rgb = v.rgb;
     if (params.has_colour != 0u) {
         let c = rgb_img[j];
-        res.rgb = blend(v.rgb & 255u, c & 255u, w, wn, wt)
-            | (blend((v.rgb >> 8u) & 255u, (c >> 8u) & 255u, w, wn, wt) << 8u)
-            | (blend((v.rgb >> 16u) & 255u, (c >> 16u) & 255u, w, wn, wt) << 16u);
+        res.rgb = blend(v.rgb & 255u, c & 255u, w, wn, inv_wt)
+            | (blend((v.rgb >> 8u) & 255u, (c >> 8u) & 255u, w, wn, inv_wt) << 8u)
+            | (blend((v.rgb >> 16u) & 255u, (c >> 16u) & 255u, w, wn, inv_wt) << 16u);
     }
     return res;
 }

@@ -43,6 +43,11 @@ pub struct Args {
     /// Farthest depth integrated, metres.
     #[arg(long, default_value_t = 4.0)]
     pub max_depth: f64,
+    /// Camera: a preset (default, tum_fr1, tum_fr2, tum_fr3, icl_nuim, 7scenes, replica) or a
+    /// camera file (calib.txt, OpenCV / ORB-SLAM .yaml, or `key = value` lines). Default:
+    /// calib.txt beside the sequence, else `default`. Frames are undistorted with it.
+    #[arg(long)]
+    pub camera: Option<String>,
     /// Integrate only the first this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -63,10 +68,13 @@ fn progress(n: usize) -> ProgressBar {
 
 /// Runs `rgbid mesh`.
 pub fn run(args: Args) -> Result<()> {
-    let opts = OpenOptions {
+    let mut opts = OpenOptions {
         max_frames: args.max_frames,
         ..Default::default()
     };
+    if let Some(c) = &args.camera {
+        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
+    }
     let seq = TumSequence::open(&args.sequence, &opts)?;
     let poses = read_tum(&args.poses).context("reading --poses")?;
     let stamps: Vec<TimedPose> = seq
@@ -165,6 +173,8 @@ struct TsdfRow {
     allocate_ms: Option<f64>,
     /// Median ms of the integration kernel (rgbid only).
     kernel_ms: Option<f64>,
+    /// Median blocks a frame touched (rgbid only).
+    active_blocks: Option<f64>,
     /// Seconds to extract the mesh.
     extract_s: f64,
     /// Open3D's median integration time over this method's.
@@ -266,6 +276,7 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
         }
         let mut vol = TsdfVolume::new(params, cam, &backend)?;
         let (mut total, mut alloc, mut kernel) = (Vec::new(), Vec::new(), Vec::new());
+        let mut blocks = Vec::new();
         for i in 0..tum.len() {
             let frame = tum.load(i)?;
             let pose = gt
@@ -277,6 +288,7 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
             total.push(t.elapsed().as_secs_f64() * 1e3);
             alloc.push(s.allocate_s * 1e3);
             kernel.push(s.kernel_s * 1e3);
+            blocks.push(s.active_blocks as f64);
         }
         let t = Instant::now();
         let mesh = vol.extract_mesh()?;
@@ -286,6 +298,7 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
             integrate_ms: median(&mut total),
             allocate_ms: Some(median(&mut alloc)),
             kernel_ms: Some(median(&mut kernel)),
+            active_blocks: Some(median(&mut blocks)),
             extract_s,
             open3d_ratio: None,
             accuracy: mesh_accuracy(&mesh.vertices, distance, &reference, 0.02),
@@ -330,10 +343,18 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
                     integrate_ms: o3d_ms,
                     allocate_ms: None,
                     kernel_ms: None,
+                    active_blocks: None,
                     extract_s: doc["extract_s"].as_f64().unwrap_or(f64::NAN),
                     open3d_ratio: Some(1.0),
                     accuracy: mesh_accuracy(&verts, distance, &reference, 0.02),
                 });
+            }
+            // The script's status for "open3d cannot be imported".
+            Ok(s) if s.code() == Some(3) => {
+                println!(
+                    "peer Open3D: skipped (open3d is not importable by {})",
+                    a.python
+                )
             }
             Ok(s) => println!("peer Open3D: failed ({s})"),
             Err(e) => println!("peer Open3D: could not run {} ({e})", a.python),
@@ -344,11 +365,12 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
         a.frames, a.width, a.height, a.voxel, a.scene, a.seed
     );
     println!(
-        "{:<44} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>7} {:>8}",
+        "{:<44} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>8} {:>8} {:>7} {:>8}",
         "method",
         "int. ms",
         "alloc ms",
         "kern. ms",
+        "blocks",
         "extract s",
         "vertices",
         "mean mm",
@@ -359,11 +381,12 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
     let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
     for r in &rows {
         println!(
-            "{:<44} {:>9.2} {:>9} {:>9} {:>9.2} {:>9} {:>8.2} {:>8.2} {:>7.3} {:>8}",
+            "{:<44} {:>9.2} {:>9} {:>9} {:>7} {:>9.2} {:>9} {:>8.2} {:>8.2} {:>7.3} {:>8}",
             r.method,
             r.integrate_ms,
             opt(r.allocate_ms, 2),
             opt(r.kernel_ms, 2),
+            opt(r.active_blocks, 0),
             r.extract_s,
             r.accuracy.vertices,
             r.accuracy.mean_m * 1e3,

@@ -14,9 +14,12 @@ use rgbid::io::run_folder::{
 use rgbid::io::settings::Provenance;
 use rgbid::io::Layout;
 use rgbid::place::Vocabulary;
-use rgbid::slam::{build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult};
+use rgbid::slam::{
+    build_mesh, build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
+};
 use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
+use rgbid::tsdf::TsdfParams;
 
 use super::options::{range, BackendArgs, ConfigArgs, OdometryOptions};
 
@@ -31,8 +34,9 @@ pub struct Args {
     #[arg(long, default_value_t = 0)]
     pub session: u32,
     /// Output folder: trajectory.txt (every frame), keyframes.txt, odometry.txt, loops.csv,
-    /// model.ply, timing.csv, keyframe_timing.csv, summary.json (figures, and the
-    /// configuration, version, backend and command line under `provenance`).
+    /// model.ply, mesh.ply (with --mesh), timing.csv, keyframe_timing.csv, summary.json
+    /// (figures, and the configuration, version, backend and command line under
+    /// `provenance`).
     #[arg(long, default_value = "slam-out")]
     pub out: PathBuf,
     /// Camera preset or calibration file for a sequence folder (see `rgbid odometry --help`).
@@ -80,9 +84,15 @@ pub struct Args {
     /// Do not write model.ply.
     #[arg(long)]
     pub no_model: bool,
-    /// Voxel size of the model filter, metres, >= 0 (0 = no filter).
+    /// Voxel size of the model filter and of the mesh (--mesh), metres, >= 0 (0 = no
+    /// filter; the mesh needs > 0).
     #[arg(long, value_parser = range::non_negative, default_value_t = ModelParams::default().voxel)]
     pub voxel: f64,
+    /// Also write mesh.ply: a TSDF of every keyframe's fused inverse depth at its final
+    /// (optimised) pose, built after the run on the compute backend, so loop closures move
+    /// the surface; vertices coloured by keyframe intensity (grey).
+    #[arg(long)]
+    pub mesh: bool,
     /// Vocabulary file (default: the embedded one).
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
@@ -116,6 +126,7 @@ impl Args {
             checkpoint_every: super::outputs::CHECKPOINT_EVERY_S,
             no_model: false,
             voxel: ModelParams::default().voxel,
+            mesh: false,
             vocabulary: None,
             config: ConfigArgs::default(),
             odometry: OdometryOptions::default(),
@@ -216,6 +227,13 @@ impl Inputs {
 /// Runs the subcommand.
 pub fn run(a: Args) -> Result<()> {
     let config = a.slam_config()?;
+    if a.mesh {
+        TsdfParams {
+            voxel_size: a.voxel,
+            ..Default::default()
+        }
+        .validate()?;
+    }
     // Every output location is checked (and the folder locked) before any work.
     super::outputs::output_folder(&a.out, a.sequence.as_deref())?;
     if let Some(p) = &a.map_out {
@@ -448,6 +466,7 @@ fn run_slam(
         writer,
         source,
         &camera,
+        backend,
         &result,
         &mut load_ms,
         (dropped, skips.count),
@@ -524,6 +543,7 @@ fn write_outputs(
     mut writer: RunFolderWriter,
     source: &FrameSource,
     camera: &PinholeCamera,
+    backend: &ComputeBackend,
     r: &SlamResult,
     load_ms: &mut [f64],
     (dropped, skipped): (usize, usize),
@@ -553,6 +573,32 @@ fn write_outputs(
         let filtered = build_model(r.keyframes(), &r.keyframe_poses, camera, &params);
         model_points = filtered.len();
         writer.model(&filtered)?;
+    }
+    if a.mesh {
+        let t = Instant::now();
+        let params = TsdfParams {
+            voxel_size: a.voxel,
+            ..Default::default()
+        };
+        let mesh = build_mesh(
+            r.keyframes(),
+            &r.keyframe_poses,
+            camera,
+            &params,
+            ModelParams::default().min_weight,
+            backend,
+        )?;
+        let path = out.join("mesh.ply");
+        mesh.write_ply(&path)?;
+        println!(
+            "mesh: {} keyframes integrated at their optimised poses, {} vertices, {} \
+             triangles, {:.2} s -> {}",
+            r.keyframes().len(),
+            mesh.vertices.len(),
+            mesh.triangles.len(),
+            t.elapsed().as_secs_f64(),
+            path.display()
+        );
     }
     if let Some(p) = &a.map_out {
         r.map.save(p)?;

@@ -8,6 +8,9 @@ use glam::DVec3;
 use super::keyframe::Keyframe;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
+use crate::gpu::ComputeBackend;
+use crate::image::ColourImage;
+use crate::tsdf::{Mesh, TsdfError, TsdfParams, TsdfVolume};
 
 /// Model parameters.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -33,6 +36,44 @@ impl Default for ModelParams {
             seen_tolerance: 0.02,
         }
     }
+}
+
+/// A TSDF mesh of the keyframes (world frame, metres): every keyframe's fused inverse depth
+/// integrated at its pose in `world_from_keyframe` (one per keyframe, e.g. the optimised
+/// poses of [`crate::slam::SlamResult::keyframe_poses`]), coloured by its intensity (grey:
+/// keyframes keep no colour).
+///
+/// The volume is built from scratch for the poses given, which re-integrates every keyframe
+/// after a pose-graph optimisation: at one keyframe per few dozen frames the whole map costs
+/// about as much to integrate as a second of frames, and nothing of the surface keeps the old
+/// poses, so a closed loop gives one wall. Pixels with fusion weight below `min_weight` are
+/// left out.
+pub fn build_mesh(
+    keyframes: &[Keyframe],
+    world_from_keyframe: &[Se3],
+    camera: &PinholeCamera,
+    params: &TsdfParams,
+    min_weight: u8,
+    backend: &ComputeBackend,
+) -> Result<Mesh, TsdfError> {
+    let mut volume = TsdfVolume::new(*params, *camera, backend)?;
+    for (kf, pose) in keyframes.iter().zip(world_from_keyframe.iter()) {
+        let mut frame = kf.frame();
+        for (r, &w) in frame
+            .inverse_depth_mut()
+            .data_mut()
+            .iter_mut()
+            .zip(&kf.weight)
+        {
+            if w < min_weight {
+                *r = 0.0;
+            }
+        }
+        let grey: Vec<u8> = kf.intensity.iter().flat_map(|&v| [v, v, v]).collect();
+        let frame = frame.with_colour(ColourImage::from_rgb(kf.width, kf.height, grey)?)?;
+        volume.integrate(&frame, pose)?;
+    }
+    volume.extract_mesh()
 }
 
 /// Points of the model in the world frame (metres) with their intensity: every keyframe's

@@ -1,5 +1,5 @@
 //! Integration of one frame into the active blocks: the per-voxel update shared by the CPU
-//! mirror ([`update_voxel`]) and `shaders/tsdf.wgsl` (same f32 operations in the same order),
+//! mirror ([`integrate_block`], [`update_measured`]) and `shaders/tsdf.wgsl` (same f32 operations in the same order),
 //! and the kernel interface ([`TsdfKernels`]) with its CPU implementation.
 
 use std::borrow::Cow;
@@ -66,41 +66,31 @@ pub(crate) fn truncation(u: &IntegrateUniform, z: f32) -> f32 {
     u.trunc_min.max(u.trunc_sigmas * (u.rho_sigma * z * z))
 }
 
-/// Weighted average of one 8-bit channel, rounded half up.
+/// Weighted average of one 8-bit channel (`inv_wt` = 1 / (w + wn)), rounded half up.
 #[inline]
-fn blend(old: u32, new: u32, w: f32, wn: f32, wt: f32) -> u32 {
-    let v = (old as f32 * w + new as f32 * wn) / wt;
-    ((v + 0.5).floor() as u32).min(255)
+fn blend(old: u32, new: u32, w: f32, wn: f32, inv_wt: f32) -> u32 {
+    let v = (old as f32 * w + new as f32 * wn) * inv_wt;
+    // v >= 0: truncation is the floor.
+    ((v + 0.5) as u32).min(255)
 }
 
-/// The update of the voxel at global voxel coordinates `g` (position `g * voxel_size` in the
-/// world) by the frame `rho` (inverse depth, 1/m) / `rgb` (packed colour).
+/// The update of voxel `v` at depth `zc` (m, camera frame) whose nearest pixel is `j`, by the
+/// frame `rho` (inverse depth, 1/m) / `rgb` (packed colour). Two divisions (depth, weight).
 #[inline]
-pub(crate) fn update_voxel(
+pub(crate) fn update_measured(
     u: &IntegrateUniform,
-    g: [i32; 3],
     v: Voxel,
+    zc: f32,
+    j: usize,
     rho: &[f32],
     rgb: &[u32],
 ) -> Voxel {
-    let s = u.voxel_size;
-    let pw = [g[0] as f32 * s, g[1] as f32 * s, g[2] as f32 * s];
-    let pc = xform(&u.camera_from_world, pw);
-    if !(pc[2] > 0.0) {
-        return v;
-    }
-    let qx = (u.fx * pc[0] / pc[2] + u.cx + 0.5).floor();
-    let qy = (u.fy * pc[1] / pc[2] + u.cy + 0.5).floor();
-    if !(qx >= 0.0 && qy >= 0.0 && qx <= (u.width - 1) as f32 && qy <= (u.height - 1) as f32) {
-        return v;
-    }
-    let j = qy as usize * u.width as usize + qx as usize;
     let r = rho[j];
     if !(r >= u.min_rho && r <= u.max_rho) {
         return v;
     }
     let z = 1.0 / r;
-    let sdf = z - pc[2];
+    let sdf = z - zc;
     let mu = truncation(u, z);
     if sdf < -mu {
         return v;
@@ -109,14 +99,15 @@ pub(crate) fn update_voxel(
     let wn = (r * r) * (r * r);
     let w = v.weight;
     let wt = w + wn;
-    let tsdf = (v.tsdf * w + d * wn) / wt;
+    let inv_wt = 1.0 / wt;
+    let tsdf = (v.tsdf * w + d * wn) * inv_wt;
     let mut out_rgb = v.rgb;
     if u.has_colour != 0 {
         let c = rgb[j];
         let ch = |x: u32, k: u32| (x >> (8 * k)) & 255;
-        out_rgb = blend(ch(v.rgb, 0), ch(c, 0), w, wn, wt)
-            | (blend(ch(v.rgb, 1), ch(c, 1), w, wn, wt) << 8)
-            | (blend(ch(v.rgb, 2), ch(c, 2), w, wn, wt) << 16);
+        out_rgb = blend(ch(v.rgb, 0), ch(c, 0), w, wn, inv_wt)
+            | (blend(ch(v.rgb, 1), ch(c, 1), w, wn, inv_wt) << 8)
+            | (blend(ch(v.rgb, 2), ch(c, 2), w, wn, inv_wt) << 16);
     }
     Voxel {
         tsdf,
@@ -131,7 +122,14 @@ pub(crate) fn local_index(x: usize, y: usize, z: usize) -> usize {
     x + BLOCK_SIDE * (y + BLOCK_SIDE * z)
 }
 
-/// Updates one block (`voxels`, [`BLOCK_VOXELS`] long) at block coordinates `b`.
+/// Updates one block (`voxels`, [`BLOCK_VOXELS`] long) at block coordinates `b`: voxel `g`
+/// (global voxel coordinates) sits at `g * voxel_size` in the world.
+///
+/// Each row of 8 voxels is first moved into the camera and projected to its nearest pixel,
+/// without branches (so the compiler can use SIMD lanes): one division and no `floor`, since
+/// a pixel coordinate `q + 0.5` is range-checked as a float and then truncated, which floors
+/// it because it is non-negative. Only the voxels that land in the image are then updated
+/// ([`update_measured`]).
 pub(crate) fn integrate_block(
     u: &IntegrateUniform,
     b: [i32; 3],
@@ -140,16 +138,30 @@ pub(crate) fn integrate_block(
     rgb: &[u32],
 ) {
     let n = BLOCK_SIDE as i32;
+    let s = u.voxel_size;
+    let (wf, hf) = (u.width as f32, u.height as f32);
+    let mut idx = [0u32; BLOCK_SIDE];
+    let mut zc = [0.0f32; BLOCK_SIDE];
+    let mut hit = [false; BLOCK_SIDE];
     for z in 0..BLOCK_SIDE {
+        let pz = (b[2] * n + z as i32) as f32 * s;
         for y in 0..BLOCK_SIDE {
+            let py = (b[1] * n + y as i32) as f32 * s;
             for x in 0..BLOCK_SIDE {
-                let i = local_index(x, y, z);
-                let g = [
-                    b[0] * n + x as i32,
-                    b[1] * n + y as i32,
-                    b[2] * n + z as i32,
-                ];
-                voxels[i] = update_voxel(u, g, voxels[i], rho, rgb);
+                let px = (b[0] * n + x as i32) as f32 * s;
+                let pc = xform(&u.camera_from_world, [px, py, pz]);
+                let inv_z = 1.0 / pc[2];
+                let qx = u.fx * pc[0] * inv_z + u.cx + 0.5;
+                let qy = u.fy * pc[1] * inv_z + u.cy + 0.5;
+                hit[x] = (pc[2] > 0.0) & (qx >= 0.0) & (qy >= 0.0) & (qx < wf) & (qy < hf);
+                idx[x] = (qy as u32).wrapping_mul(u.width).wrapping_add(qx as u32);
+                zc[x] = pc[2];
+            }
+            for x in 0..BLOCK_SIDE {
+                if hit[x] {
+                    let i = local_index(x, y, z);
+                    voxels[i] = update_measured(u, voxels[i], zc[x], idx[x] as usize, rho, rgb);
+                }
             }
         }
     }
@@ -177,8 +189,9 @@ pub(crate) trait TsdfKernels: Send {
 #[derive(Default)]
 pub(crate) struct CpuTsdf {
     voxels: Vec<Voxel>,
-    /// Per slot: true while it is in the current frame's active list.
-    mark: Vec<bool>,
+    /// Per slot: 1 + the index in the current frame's active list, 0 when not active (reset
+    /// after every frame, so a frame costs its active blocks, not all blocks).
+    mark: Vec<u32>,
 }
 
 impl TsdfKernels for CpuTsdf {
@@ -191,25 +204,32 @@ impl TsdfKernels for CpuTsdf {
         u: &IntegrateUniform,
     ) -> Result<(), TsdfError> {
         self.voxels.resize(blocks * BLOCK_VOXELS, Voxel::default());
-        self.mark.clear();
-        self.mark.resize(blocks, false);
-        let mut coords = vec![[0i32; 3]; blocks];
-        for a in active {
-            let slot = a[3] as usize;
-            if slot < blocks {
-                self.mark[slot] = true;
-                coords[slot] = [a[0], a[1], a[2]];
+        self.mark.resize(blocks, 0);
+        for (i, a) in active.iter().enumerate() {
+            if let Some(m) = self.mark.get_mut(a[3] as usize) {
+                *m = i as u32 + 1;
             }
         }
         let rgb = rgb.unwrap_or(&[]);
+        let mark = &self.mark;
         let mut work: Vec<(usize, &mut [Voxel])> = self
             .voxels
             .chunks_mut(BLOCK_VOXELS)
             .enumerate()
-            .filter(|(s, _)| self.mark[*s])
+            .filter_map(|(s, vox)| match mark[s] {
+                0 => None,
+                i => Some((i as usize - 1, vox)),
+            })
             .collect();
-        work.par_iter_mut()
-            .for_each(|(s, vox)| integrate_block(u, coords[*s], vox, rho, rgb));
+        work.par_iter_mut().for_each(|(i, vox)| {
+            let a = active[*i];
+            integrate_block(u, [a[0], a[1], a[2]], vox, rho, rgb);
+        });
+        for a in active {
+            if let Some(m) = self.mark.get_mut(a[3] as usize) {
+                *m = 0;
+            }
+        }
         Ok(())
     }
 
@@ -219,7 +239,7 @@ impl TsdfKernels for CpuTsdf {
 
     fn memory_bytes(&self) -> (usize, usize) {
         (
-            self.voxels.capacity() * std::mem::size_of::<Voxel>() + self.mark.capacity(),
+            self.voxels.capacity() * std::mem::size_of::<Voxel>() + self.mark.capacity() * 4,
             0,
         )
     }

@@ -62,9 +62,16 @@ pub enum TsdfError {
         /// Camera height, pixels.
         want_h: u32,
     },
+    /// A block lies farther from the world origin than block keys reach (2^20 blocks along
+    /// an axis).
+    #[error("a measured point lies beyond the volume's coordinate range")]
+    OutOfRange,
     /// The pose is not finite.
     #[error("world_from_camera is not finite")]
     NonFinitePose,
+    /// An image given to the volume is malformed (e.g. a colour image of another size).
+    #[error(transparent)]
+    Image(#[from] crate::image::ImageError),
     /// Writing a file failed.
     #[error(transparent)]
     Io(#[from] crate::io::IoError),

@@ -203,16 +203,22 @@ impl TsdfVolume {
         }
     }
 
-    /// The blocks within the truncation band `z +- mu(z)` of every valid pixel of `rho`,
-    /// allocating the new ones; returns the frame's active list `[bx, by, bz, slot]`.
+    /// The blocks within the truncation band `z +- mu(z)` of the valid pixels of `rho`,
+    /// allocating the new ones; returns the frame's active list `[bx, by, bz, slot]`, sorted
+    /// by block coordinates.
+    ///
+    /// Rows are processed in parallel chunks; each chunk deduplicates its keys (packed into
+    /// integers, sorted), the chunks' keys are merged the same way, and only the unique keys
+    /// of the frame reach the (single-threaded) block map.
     fn allocate(
         &mut self,
         rho: &[f32],
         world_from_camera: &Se3,
         u: &IntegrateUniform,
-    ) -> Vec<[i32; 4]> {
+    ) -> Result<Vec<[i32; 4]>, TsdfError> {
         let c = self.camera;
         let w = c.width as usize;
+        let h = c.height as usize;
         let r = world_from_camera.rotation_matrix();
         let t = world_from_camera.translation;
         let m = |i: usize, j: usize| r.col(j)[i] as f32;
@@ -224,51 +230,86 @@ impl TsdfVolume {
         let block = (self.params.voxel_size * BLOCK_SIDE as f64) as f32;
         let inv_block = 1.0 / block;
         let (fx, fy, cx, cy) = (c.fx as f32, c.fy as f32, c.cx as f32, c.cy as f32);
-        let keys: Vec<[i32; 3]> = rho
-            .par_chunks(w.max(1))
-            .enumerate()
-            .flat_map_iter(|(y, row)| {
-                let mut out: Vec<[i32; 3]> = Vec::new();
-                // The last key per sample along the ray: neighbouring pixels mostly repeat it.
-                let mut last: [[i32; 3]; 8] = [[i32::MIN; 3]; 8];
-                for (x, &rv) in row.iter().enumerate() {
-                    if !(rv >= u.min_rho && rv <= u.max_rho) {
-                        continue;
-                    }
-                    let z = 1.0 / rv;
-                    let mu = truncation(u, z);
-                    let ray = [(x as f32 - cx) / fx, (y as f32 - cy) / fy, 1.0];
-                    // Samples from z - mu to z + mu, at most half a block apart.
-                    let steps = ((2.0 * mu / (0.5 * block)).ceil() as usize).clamp(1, 7);
-                    for k in 0..=steps {
-                        let d = z - mu + 2.0 * mu * k as f32 / steps as f32;
-                        if d <= 0.0 {
+        let stride = allocation_stride(&self.params, &c);
+        // Ray directions in the camera (z = 1) per column and row.
+        let ray_x: Vec<f32> = (0..w).map(|x| (x as f32 - cx) / fx).collect();
+        let rows: Vec<usize> = (0..h).step_by(stride).collect();
+        // Camera centre in block units: a sample at depth d on a ray is `origin + d * dir`.
+        let origin = [
+            rot[0][3] * inv_block,
+            rot[1][3] * inv_block,
+            rot[2][3] * inv_block,
+        ];
+        let half_block = 0.5 * block;
+        let chunk_rows = 8usize;
+        let chunks: Vec<Result<Vec<u64>, TsdfError>> = rows
+            .par_chunks(chunk_rows)
+            .map(|ys| {
+                let mut out: Vec<u64> = Vec::new();
+                let mut outside = false;
+                for &y in ys {
+                    let row = &rho[y * w..(y + 1) * w];
+                    let ry = (y as f32 - cy) / fy;
+                    // The last key per sample along the ray: neighbouring pixels mostly
+                    // repeat it.
+                    let mut last = [u64::MAX; 8];
+                    for x in (0..w).step_by(stride) {
+                        let rv = row[x];
+                        if !(rv >= u.min_rho && rv <= u.max_rho) {
                             continue;
                         }
-                        let pc = [ray[0] * d, ray[1] * d, d];
-                        let f = |i: usize| {
-                            rot[i][0] * pc[0] + rot[i][1] * pc[1] + rot[i][2] * pc[2] + rot[i][3]
-                        };
-                        let key = [
-                            (f(0) * inv_block).floor() as i32,
-                            (f(1) * inv_block).floor() as i32,
-                            (f(2) * inv_block).floor() as i32,
+                        let z = 1.0 / rv;
+                        let mu = truncation(u, z);
+                        let rx = ray_x[x];
+                        // The ray's direction in the world, in block units per metre of depth.
+                        let dir = [
+                            (rot[0][0] * rx + rot[0][1] * ry + rot[0][2]) * inv_block,
+                            (rot[1][0] * rx + rot[1][1] * ry + rot[1][2]) * inv_block,
+                            (rot[2][0] * rx + rot[2][1] * ry + rot[2][2]) * inv_block,
                         ];
-                        if last[k] != key {
-                            last[k] = key;
-                            out.push(key);
+                        // Samples from z - mu to z + mu, at most half a block apart (the
+                        // truncation rounds up without a libm call).
+                        let steps = ((2.0 * mu / half_block) as usize + 1).min(7);
+                        let step = 2.0 * mu / steps as f32;
+                        for (k, last_k) in last.iter_mut().enumerate().take(steps + 1) {
+                            let d = z - mu + step * k as f32;
+                            if d <= 0.0 {
+                                continue;
+                            }
+                            let key = pack_key([
+                                origin[0] + d * dir[0],
+                                origin[1] + d * dir[1],
+                                origin[2] + d * dir[2],
+                            ]);
+                            match key {
+                                Some(key) if *last_k != key => {
+                                    *last_k = key;
+                                    out.push(key);
+                                }
+                                Some(_) => {}
+                                None => outside = true,
+                            }
                         }
                     }
                 }
-                out
+                if outside {
+                    return Err(TsdfError::OutOfRange);
+                }
+                out.sort_unstable();
+                out.dedup();
+                Ok(out)
             })
             .collect();
-        let mut active = Vec::new();
-        let mut seen = BlockMap::default();
-        for key in keys {
-            if seen.insert(key, 0).is_some() {
-                continue;
-            }
+        let mut keys = Vec::new();
+        for c in chunks {
+            keys.extend(c?);
+        }
+        keys.par_sort_unstable();
+        keys.dedup();
+        let mut active = Vec::with_capacity(keys.len());
+        self.map.reserve(keys.len());
+        for packed in keys {
+            let key = unpack_key(packed);
             let next = self.coords.len() as u32;
             let slot = *self.map.entry(key).or_insert(next);
             if slot == next {
@@ -276,7 +317,7 @@ impl TsdfVolume {
             }
             active.push([key[0], key[1], key[2], slot as i32]);
         }
-        active
+        Ok(active)
     }
 
     /// Integrates one frame (inverse depth in 1/m, colour when the frame has it) seen from
@@ -311,7 +352,7 @@ impl TsdfVolume {
         let camera_from_world = world_from_camera.inverse();
         let t0 = std::time::Instant::now();
         let u0 = self.uniform(&camera_from_world, 0, colour.is_some());
-        let active = self.allocate(rho, world_from_camera, &u0);
+        let active = self.allocate(rho, world_from_camera, &u0)?;
         let t1 = std::time::Instant::now();
         let u = IntegrateUniform {
             active_count: active.len() as u32,
@@ -363,6 +404,59 @@ impl TsdfVolume {
     }
 }
 
+/// Bits per axis of a packed block key: blocks within `2^20` block edges of the origin (84 km
+/// at 1 cm voxels).
+const KEY_BITS: u32 = 21;
+const KEY_HALF: f32 = (1u32 << (KEY_BITS - 1)) as f32;
+
+/// The block containing the point `b` (in block edges) packed into one integer, so that
+/// sorting and deduplicating keys is an integer sort (order z, then y, then x); `None` beyond
+/// the key range (or NaN).
+#[inline]
+fn pack_key(b: [f32; 3]) -> Option<u64> {
+    let mut out = 0u64;
+    for &v in b.iter().rev() {
+        if !(-KEY_HALF..KEY_HALF).contains(&v) {
+            return None;
+        }
+        // The floor without a libm call on baseline x86-64: truncate, then step down for
+        // negative non-integers.
+        let t = v as i32;
+        let f = if (t as f32) > v { t - 1 } else { t };
+        out = (out << KEY_BITS) | (f + (1 << (KEY_BITS - 1))) as u64;
+    }
+    Some(out)
+}
+
+#[inline]
+fn unpack_key(k: u64) -> [i32; 3] {
+    let mask = (1u64 << KEY_BITS) - 1;
+    let half = 1i64 << (KEY_BITS - 1);
+    let axis = |i: u32| ((k >> (KEY_BITS * i)) & mask) as i64 - half;
+    [axis(0) as i32, axis(1) as i32, axis(2) as i32]
+}
+
+/// Pixel stride of the allocation pass.
+///
+/// Rays of pixels `s` apart are `s z / f` apart at depth `z`. With `s` chosen so that this is
+/// at most a quarter of a block at the farthest integrated depth, and samples along each ray
+/// at most half a block apart, the sampled points cover the band (`2 mu` thick, a block at the
+/// default smallest truncation) with a lattice finer than half a block in every direction. A block the band crosses is then missed only when the crossing
+/// is a sliver at its edge, narrower than a quarter block across: such a sliver lies at the
+/// rim of the band, where voxels hold the truncated free-space value rather than the zero
+/// crossing the mesh is made from, and the next frame's rays, a few pixels elsewhere, cover
+/// it.
+pub(crate) fn allocation_stride(p: &TsdfParams, c: &PinholeCamera) -> usize {
+    let f = c.fx.min(c.fy);
+    let block = p.voxel_size * BLOCK_SIDE as f64;
+    let s = (0.25 * block * f / p.max_depth).floor();
+    if s.is_finite() && s >= 1.0 {
+        (s as usize).min(BLOCK_SIDE)
+    } else {
+        1
+    }
+}
+
 /// Read access to the voxels by global voxel coordinates.
 pub(crate) struct VolumeView<'a> {
     pub(crate) voxels: std::borrow::Cow<'a, [Voxel]>,
@@ -387,12 +481,38 @@ impl VolumeView<'_> {
 mod tests {
     use std::sync::Arc;
 
-    use super::{TsdfParams, TsdfVolume};
+    use super::{pack_key, unpack_key, TsdfParams, TsdfVolume, KEY_HALF};
     use crate::camera::PinholeCamera;
     use crate::gpu::{test_gpu, ComputeBackend};
     use crate::synth::{
         CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
     };
+
+    #[test]
+    fn block_keys_floor_and_round_trip() {
+        let cases = [
+            ([0.0, 0.5, 0.999], [0, 0, 0]),
+            ([-0.5, -1.0, -1.0001], [-1, -1, -2]),
+            ([1e5 + 0.25, -1e5 - 0.25, 3.0], [100_000, -100_001, 3]),
+            (
+                [KEY_HALF - 1.0, -KEY_HALF, 7.5],
+                [(1 << 20) - 1, -(1 << 20), 7],
+            ),
+        ];
+        for (b, want) in cases {
+            let k = pack_key(b).unwrap_or_else(|| panic!("{b:?} out of range"));
+            assert_eq!(unpack_key(k), want, "{b:?}");
+        }
+        // Ordered by z first, so sorted keys keep neighbouring rows of blocks together.
+        assert!(pack_key([5.0, 0.0, 0.0]) < pack_key([0.0, 0.0, 1.0]));
+        for b in [
+            [KEY_HALF, 0.0, 0.0],
+            [0.0, -KEY_HALF - 1.0, 0.0],
+            [0.0, 0.0, f32::NAN],
+        ] {
+            assert!(pack_key(b).is_none(), "{b:?}");
+        }
+    }
 
     #[test]
     #[ignore = "needs a GPU adapter"]
