@@ -328,23 +328,39 @@ fn slam_skips_and_counts_a_single_bad_frame() {
         .and_then(|l| l.split_whitespace().nth(3))
         .expect("a depth image on line 4");
     std::fs::write(seq.join(depth), b"\x89PNG not really").expect("corrupt");
-    let out = tmp.path().join("out");
+    slam_skipping(&seq, &tmp.path().join("out"), 1, 5);
+}
+
+/// Runs `rgbid slam` on `seq` into `out` and checks that it finished with warnings (exit 3),
+/// said it skipped `skipped` frames, and wrote a complete run folder counting `skipped` of
+/// `frames` frames; returns the folder.
+fn slam_skipping(
+    seq: &Path,
+    out: &Path,
+    skipped: usize,
+    frames: usize,
+) -> rgbid::io::run_folder::RunFolder {
     let o = rgbid(&[
         "slam",
-        s(&seq),
+        s(seq),
         "--backend",
         "cpu",
         "--no-model",
         "--out",
-        s(&out),
+        s(out),
     ]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(3), "{t}");
-    assert!(t.contains("1 frames skipped"), "{t}");
-    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
-    let summary = run.summary.expect("summary");
-    assert_eq!((summary.skipped_frames, summary.frames), (1, 5), "{t}");
+    assert!(t.contains(&format!("{skipped} frames skipped")), "{t}");
+    let run = rgbid::io::run_folder::RunFolder::read(out).expect("run folder");
+    let summary = run.summary.as_ref().expect("summary");
+    assert_eq!(
+        (summary.skipped_frames, summary.frames),
+        (skipped, frames),
+        "{t}"
+    );
     assert_eq!(summary.status, "complete");
+    run
 }
 
 /// The frames of a TUM folder's association list: (colour image, depth image), relative.
@@ -405,24 +421,9 @@ fn slam_skips_wrong_size_truncated_and_blank_frames() {
     let seq = tmp.path().join("seq");
     tum_folder(&seq, 10);
     damage_three_frames(&seq);
-    let out = tmp.path().join("out");
-    let o = rgbid(&[
-        "slam",
-        s(&seq),
-        "--backend",
-        "cpu",
-        "--no-model",
-        "--out",
-        s(&out),
-    ]);
-    let t = text(&o);
-    assert_eq!(o.status.code(), Some(3), "{t}");
-    assert!(t.contains("3 frames skipped"), "{t}");
-    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
-    let summary = run.summary.expect("summary");
-    assert_eq!((summary.skipped_frames, summary.frames), (3, 7), "{t}");
-    assert_eq!(summary.status, "complete");
-    assert_eq!(run.trajectory.len(), summary.tracked);
+    let run = slam_skipping(&seq, &tmp.path().join("out"), 3, 7);
+    let tracked = run.summary.as_ref().expect("summary").tracked;
+    assert_eq!(run.trajectory.len(), tracked);
 }
 
 /// TUM depth (5000 per metre) read with the millimetre factor: the median depth stays
