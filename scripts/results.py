@@ -263,13 +263,44 @@ def render_generic(doc):
     return table(keys, body) if keys else ["(no rows)"]
 
 
+def render_thesis_tables(doc):
+    """Tables 4.1-4.3 and 6.1 of the thesis, one table each, both sequences side by side."""
+    heads = {
+        "peer": "OpenCV RGB_DEPTH (the peer of every ratio below, same script run)",
+        "4.1": "Table 4.1: robust estimator x geometric parametrisation x scale estimate",
+        "4.2": "Table 4.2: residual terms",
+        "4.3": "Table 4.3: performance options (compute per frame; ratio: OpenCV's ms / rgbid's)",
+        "6.1": "Table 6.1: odometry, SLAM without and with loop closure",
+    }
+    rows = doc.get("rows", [])
+    out = [f"Load average at start / end: {doc.get('meta', {}).get('load', '?')}"]
+    if doc.get("missing"):
+        out.append("Runs missing (failed or not run): " + ", ".join(doc["missing"]))
+    for key, head in heads.items():
+        sel = [r for r in rows if r.get("table") == key]
+        if not sel:
+            continue
+        out += ["", f"**{head}**", ""]
+        body = [[r["sequence"], r["variant"], num(r.get("ate_m"), ".4f"), num(r.get("ate_over_opencv"), ".3f"),
+                 num(r.get("rpe_m_per_s"), ".4f"), num(r.get("rpe_deg_per_s"), ".3f"),
+                 num(r.get("ms_median"), ".2f"), num(r.get("opencv_ms_over_ms"), ".2f")]
+                for r in sel]
+        out += table(["sequence", "variant", "ATE m", "ATE / OpenCV", "RPE m/s", "RPE deg/s",
+                      "ms/frame", "OpenCV ms / ms"], body)
+        walls = [f"{r['sequence']} {num(r['slam_wall_s'], '.1f')} s" for r in sel if r.get("slam_wall_s") is not None]
+        if key == "6.1" and walls:
+            out += ["", "`rgbid slam` wall time (loading and output included): " + "; ".join(dict.fromkeys(walls)) + "."]
+    return out
+
+
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
-             "load": render_load}
+             "load": render_load, "thesis-tables": render_thesis_tables}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead",
           "thesis-options": "Thesis formulations as options on real data",
+          "thesis-tables": "Thesis tables 4.1-4.3 and 6.1 on real data",
           "load": "SLAM under load"}
 
 

@@ -141,6 +141,28 @@ pub struct SlamConfig {
     pub loop_min_covisibility: f64,
     /// While lost, relocalisation is tried on every n-th frame.
     pub relocalise_every: usize,
+    /// Information of the frame-level pose graph that places every frame between the
+    /// optimised keyframes at the end of a run (thesis eq. 6.28).
+    pub frame_edges: FrameEdges,
+}
+
+/// Information of the edges of the frame-level pose graph (thesis eq. 6.28): frame to
+/// keyframe, and frame to previous frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameEdges {
+    /// Fixed diagonal sigmas: 2 mm and 2 mrad between consecutive frames, and
+    /// `0.002 sqrt(1 + n)` to the keyframe for the n-th frame since it.
+    Fixed,
+    /// The thesis' formulation: the odometry covariances (eq. 6.22-6.23). A frame's edge to
+    /// its keyframe carries the covariance composed along the odometry references since the
+    /// keyframe; the edge to the previous frame the alignment covariance of the frame (its
+    /// reference is the previous frame) or, when both frames were aligned to the same
+    /// reference, the sum of both alignments' covariances (first order, correlation ignored).
+    /// Frames without a covariance fall back to [`FrameEdges::Fixed`]'s sigmas. The default:
+    /// the thesis' formulation, not worse than the fixed sigmas on either real sequence
+    /// (docs/notes.md).
+    Odometry,
 }
 
 /// The serde form of [`FusionParams`] in a configuration: every key optional, unknown keys
@@ -203,6 +225,7 @@ impl Default for SlamConfig {
             loop_max_refine_rotation: 0.15,
             loop_min_covisibility: 0.3,
             relocalise_every: 1,
+            frame_edges: FrameEdges::Odometry,
         }
     }
 }

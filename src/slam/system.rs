@@ -14,7 +14,7 @@ use super::fusion::KeyframeFuser;
 use super::keyframe::{Keyframe, KeyframeLink};
 use super::map::Map;
 use super::memory::{vec_bytes, MemoryBreakdown, MemoryReport};
-use super::{information_from, SlamConfig, SlamError};
+use super::{information_from, FrameEdges, SlamConfig, SlamError};
 use crate::camera::PinholeCamera;
 use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
@@ -62,6 +62,13 @@ pub struct FrameRecord {
     pub keyframe_covisibility: f64,
     /// Odometry diagnostics of the frame's alignment (0 where it was not tracked).
     pub diagnostics: OdometryDiagnostics,
+    /// Covariance of the frame's alignment to its odometry reference (`ref_from_camera`,
+    /// right perturbation in the camera frame, `[v; w]` in m and rad); `None` where it was
+    /// not tracked or the alignment gave none.
+    pub odometry_covariance: Option<Covariance6>,
+    /// Covariance of [`Self::keyframe`]'s `keyframe_from_camera` composed along the odometry
+    /// references since the keyframe (same convention); `None` where it was not tracked.
+    pub keyframe_covariance: Option<Covariance6>,
 }
 
 /// What the odometry reported about one frame's alignment, for plots and failure analysis: a
@@ -530,6 +537,8 @@ impl Slam {
             covisibility: 0.0,
             keyframe_covisibility: 0.0,
             diagnostics: OdometryDiagnostics::default(),
+            odometry_covariance: None,
+            keyframe_covariance: None,
         };
         // Start of the first session: this frame is the origin.
         if self.current.is_none() && !self.lost {
@@ -635,17 +644,19 @@ impl Slam {
         record.fusion_ms = tf.elapsed().as_secs_f64() * 1e3;
         record.keyframe_covisibility = counts.covisibility();
         record.keyframe = Some((kf_id, kf_from_camera));
-        if counts.covisibility() < self.config.keyframe_covisibility {
-            let mut covariance = if r.stats.new_reference {
-                self.chain_covariance
-            } else {
-                self.chain_covariance.transported(&anchor_from_camera)
-            };
-            if !r.stats.new_reference {
-                if let Some(c) = r.covariance {
-                    covariance = covariance + c;
-                }
+        let mut covariance = if r.stats.new_reference {
+            self.chain_covariance
+        } else {
+            self.chain_covariance.transported(&anchor_from_camera)
+        };
+        if !r.stats.new_reference {
+            if let Some(c) = r.covariance {
+                covariance = covariance + c;
             }
+        }
+        record.odometry_covariance = r.covariance;
+        record.keyframe_covariance = (!covariance.is_zero()).then_some(covariance);
+        if counts.covisibility() < self.config.keyframe_covisibility {
             if covariance.is_zero() {
                 covariance = default_cov();
             }
@@ -693,7 +704,7 @@ impl Slam {
         let t = Instant::now();
         back.optimise()?;
         let keyframe_poses = back.keyframe_poses();
-        let trajectory = optimise_frames(&self.frames, &keyframe_poses)?;
+        let trajectory = optimise_frames(&self.frames, &keyframe_poses, self.config.frame_edges)?;
         let final_optimise_ms = t.elapsed().as_secs_f64() * 1e3;
         let odometry = self
             .frames
@@ -798,10 +809,11 @@ fn backend_messages(mut back: Backend, rx: Receiver<ToBackend>) -> Result<Backen
 
 /// All frames with the keyframes fixed: one vertex per tracked frame, an edge to its
 /// keyframe (`keyframe_from_camera`) and one to the previous tracked frame of the same
-/// tracking run; sigmas grow with the distance in frames to the keyframe.
+/// tracking run, weighted as `edges` says (thesis eq. 6.28).
 fn optimise_frames(
     frames: &[FrameRecord],
     keyframe_poses: &[Se3],
+    edges: FrameEdges,
 ) -> Result<Vec<TimedPose>, SlamError> {
     let mut g = PoseGraph3::new();
     let kf_offset = frames.len() as i64;
@@ -809,7 +821,7 @@ fn optimise_frames(
         let idx = g.add_vertex(kf_offset + k as i64, *p)?;
         g.fixed[idx] = true;
     }
-    let mut prev: Option<(usize, Se3)> = None;
+    let mut prev: Option<(usize, Se3, &FrameRecord)> = None;
     let mut since_kf = 0usize;
     for f in frames {
         let (Some(p), Some((kf, kf_from_cam))) = (f.frontworld_from_camera, f.keyframe) else {
@@ -830,23 +842,43 @@ fn optimise_frames(
             since_kf + 1
         };
         let s = 0.002 * (1.0 + since_kf as f64).sqrt();
+        let kf_covariance = match edges {
+            FrameEdges::Fixed => None,
+            FrameEdges::Odometry => f.keyframe_covariance,
+        };
         g.add_edge(
             kf_offset + kf as i64,
             f.index as i64,
             kf_from_cam,
-            information_from(None, s, s),
+            information_from(kf_covariance.as_ref(), s, s),
         )?;
-        if let Some((pi, p_prev)) = prev {
+        if let Some((pi, p_prev, r_prev)) = prev {
             if f.status != FrameStatus::Relocalised {
+                let prev_from_cur = p_prev.inverse() * p;
+                let covariance = match edges {
+                    FrameEdges::Fixed => None,
+                    // The previous frame became the reference: the alignment is the edge.
+                    FrameEdges::Odometry if r_prev.diagnostics.new_reference => {
+                        f.odometry_covariance
+                    }
+                    // Both aligned to the same reference: the previous frame's covariance
+                    // carried into this frame, plus this frame's.
+                    FrameEdges::Odometry => {
+                        match (r_prev.odometry_covariance, f.odometry_covariance) {
+                            (Some(a), Some(b)) => Some(a.transported(&prev_from_cur) + b),
+                            _ => None,
+                        }
+                    }
+                };
                 g.add_edge(
                     pi as i64,
                     f.index as i64,
-                    p_prev.inverse() * p,
-                    information_from(None, 0.002, 0.002),
+                    prev_from_cur,
+                    information_from(covariance.as_ref(), 0.002, 0.002),
                 )?;
             }
         }
-        prev = Some((f.index, p));
+        prev = Some((f.index, p, f));
     }
     if g.edges.is_empty() {
         // Nothing to optimise (a single frame).
@@ -932,5 +964,44 @@ mod tests {
         };
         assert!(err(&predicted) < 0.05, "adjoint {}", err(&predicted));
         assert!(err(&naive) > 0.3, "naive {}", err(&naive));
+    }
+
+    /// Two frames under one keyframe whose keyframe edge and frame-to-frame edge disagree
+    /// (10 cm against 20 cm): with the odometry covariances the confident keyframe edge wins,
+    /// with the fixed sigmas the frame lands between the two.
+    #[test]
+    fn frame_edges_follow_the_odometry_covariances() {
+        use glam::DVec3;
+        let at = |x: f64| Se3::new(glam::DQuat::IDENTITY, DVec3::new(x, 0.0, 0.0));
+        let record = |index: usize, status, front: Se3, kf_from_cam: Se3| FrameRecord {
+            index,
+            timestamp: index as f64 / 30.0,
+            status,
+            frontworld_from_camera: Some(front),
+            keyframe: Some((0, kf_from_cam)),
+            frontend_ms: 0.0,
+            times: StageTimes::default(),
+            fusion_ms: 0.0,
+            covisibility: 1.0,
+            keyframe_covisibility: 1.0,
+            diagnostics: OdometryDiagnostics::default(),
+            odometry_covariance: None,
+            keyframe_covariance: None,
+        };
+        let mut first = record(0, FrameStatus::NewKeyframe, Se3::IDENTITY, Se3::IDENTITY);
+        // The first frame is the second one's odometry reference.
+        first.diagnostics.new_reference = true;
+        let mut second = record(1, FrameStatus::Tracking, at(0.2), at(0.1));
+        second.odometry_covariance = Some(Covariance6::from_diagonal([1.0; 6]));
+        second.keyframe_covariance = Some(Covariance6::from_diagonal([1e-6; 6]));
+        let frames = [first, second];
+        let x = |edges| -> f64 {
+            let t = optimise_frames(&frames, &[Se3::IDENTITY], edges).expect("frame graph");
+            t[1].world_from_camera.translation.x
+        };
+        let odometry = x(FrameEdges::Odometry);
+        let fixed = x(FrameEdges::Fixed);
+        assert!((odometry - 0.1).abs() < 2e-3, "odometry edges: {odometry}");
+        assert!(fixed > 0.12 && fixed < 0.19, "fixed edges: {fixed}");
     }
 }
