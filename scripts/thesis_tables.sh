@@ -16,7 +16,9 @@ uptime > "$O/load_start.txt"
 variants() {
   for est in student huber tukey leastsquares; do
     for geo in inversedepth depth; do
-      for sc in ml mad; do
+      for sc in ml mad mscale; do
+        # The M-scale differs from ML for Huber and Tukey only.
+        case $est-$sc in student-mscale | leastsquares-mscale) continue ;; esac
         echo "t41-$est-$geo-$sc|--set estimator=$est --set geometric=$geo --set scale=$sc"
       done
     done

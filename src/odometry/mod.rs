@@ -6,8 +6,8 @@
 //! nearest inverse depth). Two residuals are formed: photometric `I_cur(w(x)) - I_ref(x)` and
 //! geometric `rho_cur(w(x)) - 1/z'` in inverse depth (or in depth, for comparison). Their
 //! Jacobians (6.12, 6.13) feed an IRLS Gauss-Newton solve (6.14) with Student-t (default), Huber,
-//! Tukey or least-squares weights; scales come from maximum likelihood (6.15, 6.16) or MAD (4.25)
-//! on a systematic sample of at most 19200 pixels. Coarse-to-fine over an image pyramid, with a
+//! Tukey or least-squares weights; scales come from maximum likelihood (6.15, 6.16), MAD (4.25)
+//! or, for Huber and Tukey, a Gaussian-consistent M-scale, on a systematic sample of at most 19200 pixels. Coarse-to-fine over an image pyramid, with a
 //! constant-velocity initial guess and the reference frame switched when the dense covisibility
 //! ratio (6.10) drops below a threshold (6.4.1).
 //!

@@ -65,10 +65,20 @@ pub fn weight(estimator: u32, z: f32, nu: f32) -> f32 {
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ScaleMethod {
-    /// Maximum likelihood for the chosen estimator (eq. 6.15): quadratic seed, then the loss.
+    /// Maximum likelihood for the chosen estimator (eq. 4.26, 6.15): quadratic seed, then the
+    /// fixed point of the likelihood's stationarity condition `mean(w(r/sigma) (r/sigma)^2) =
+    /// 1` of the density `exp(-rho(r/sigma)) / sigma`. For Tukey that density is improper
+    /// (rho is bounded), so this is the formal stationary point the thesis' ML definition
+    /// gives, not the scale of a distribution.
     Ml,
     /// Median absolute deviation, 1.4826 * MAD (eq. 4.25).
     Mad,
+    /// Huber and Tukey: the Gaussian-consistent M-scale `sigma^2 = mean(w r^2) / E[w Z^2]`
+    /// (equal to the standard deviation on Gaussian residuals). Student-t and least squares:
+    /// the same as [`ScaleMethod::Ml`].
+    #[serde(rename = "mscale")]
+    #[cfg_attr(feature = "clap", value(name = "mscale"))]
+    MScale,
     /// Fixed scales (`sigmaFix`: sigma_I = 5, sigma_W = 0.0025 1/m).
     Fixed,
 }
@@ -180,6 +190,16 @@ pub fn estimate_nu(z2: &[f64]) -> f64 {
 
 /// `E[w(Z) Z^2]` for a standard normal Z: the consistency constant of the M-scale (computed
 /// once per estimator).
+/// The divisor of the fixed-point scale step: 1 for maximum likelihood, `E[w Z^2]` for the
+/// Gaussian-consistent M-scale.
+fn consistency(estimator: u32, method: ScaleMethod) -> f64 {
+    if method == ScaleMethod::MScale {
+        gaussian_consistency(estimator)
+    } else {
+        1.0
+    }
+}
+
 fn gaussian_consistency(estimator: u32) -> f64 {
     static CACHE: std::sync::OnceLock<[f64; 4]> = std::sync::OnceLock::new();
     CACHE.get_or_init(|| [0, 1, 2, 3].map(gaussian_consistency_uncached))[estimator.min(3) as usize]
@@ -221,9 +241,10 @@ pub fn mad_sigma(r: &[f64]) -> f64 {
 /// Estimates the scale of residuals `r` for `estimator`.
 ///
 /// `Ml`: quadratic seed `sigma^2 = mean(r^2)`, then fixed-point iterations of the estimator's
-/// likelihood: for Student-t `sigma^2 = mean(w r^2)` alternated with the nu bisection; for
-/// Huber/Tukey the Gaussian-consistent M-scale `sigma^2 = mean(w r^2) / E[w Z^2]`.
-/// `Mad`: 1.4826 MAD (nu then estimated as for `Ml`). `Fixed` is handled by the caller.
+/// likelihood `sigma^2 = mean(w r^2)`, for Student-t alternated with the nu bisection.
+/// `MScale`: for Huber/Tukey the Gaussian-consistent M-scale `sigma^2 = mean(w r^2) /
+/// E[w Z^2]`, else as `Ml`. `Mad`: 1.4826 MAD (nu then estimated as for `Ml`). `Fixed` is
+/// handled by the caller.
 pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> ScaleEstimate {
     let n = r.len();
     if n < 8 {
@@ -252,7 +273,7 @@ pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> S
                 nu = estimate_nu(&z2);
             }
         }
-        (Estimator::Student, ScaleMethod::Ml) => {
+        (Estimator::Student, ScaleMethod::Ml | ScaleMethod::MScale) => {
             for outer in 0..2 {
                 for _ in 0..8 {
                     let s: f64 = r
@@ -276,8 +297,8 @@ pub fn estimate_scale(r: &[f64], estimator: Estimator, method: ScaleMethod) -> S
                 }
             }
         }
-        (Estimator::Huber | Estimator::Tukey, ScaleMethod::Ml) => {
-            let c = gaussian_consistency(code);
+        (Estimator::Huber | Estimator::Tukey, ScaleMethod::Ml | ScaleMethod::MScale) => {
+            let c = consistency(code, method);
             for _ in 0..30 {
                 let s = sigma2.sqrt();
                 let acc: f64 = r
@@ -320,15 +341,15 @@ pub fn update_scale(
         (Estimator::LeastSquares, _) | (_, ScaleMethod::Fixed) => {
             r.iter().map(|x| x * x).sum::<f64>() / n as f64
         }
-        (Estimator::Student, ScaleMethod::Ml) => {
+        (Estimator::Student, ScaleMethod::Ml | ScaleMethod::MScale) => {
             let s2 = prev.sigma * prev.sigma;
             r.iter()
                 .map(|x| x * x * (nu + 1.0) / (nu + x * x / s2))
                 .sum::<f64>()
                 / n as f64
         }
-        (Estimator::Huber | Estimator::Tukey, ScaleMethod::Ml) => {
-            let c = gaussian_consistency(code);
+        (Estimator::Huber | Estimator::Tukey, ScaleMethod::Ml | ScaleMethod::MScale) => {
+            let c = consistency(code, method);
             let s = prev.sigma;
             r.iter()
                 .map(|x| f64::from(weight(code, (x / s) as f32, 0.0)) * x * x)
@@ -391,10 +412,45 @@ mod tests {
     fn scales_are_consistent_at_the_gaussian() {
         let r = gaussian(20000, 3.0, 1);
         for est in [Estimator::LeastSquares, Estimator::Huber, Estimator::Tukey] {
-            let s = estimate_scale(&r, est, ScaleMethod::Ml).sigma;
+            let s = estimate_scale(&r, est, ScaleMethod::MScale).sigma;
             assert!((s - 3.0).abs() < 0.1, "{est:?}: {s}");
         }
         assert!((mad_sigma(&r) - 3.0).abs() < 0.1);
+    }
+
+    /// The ML scale of Huber's density `exp(-rho(r/sigma)) / sigma` maximises the likelihood
+    /// (Huber's rho is `u^2/2` inside k and `k|u| - k^2/2` outside); Tukey's satisfies the
+    /// same stationarity condition; both lie below the Gaussian-consistent M-scale on
+    /// Gaussian residuals, where `E[w Z^2] < 1`.
+    #[test]
+    fn ml_scale_is_the_likelihood_stationary_point() {
+        let r = gaussian(20000, 3.0, 3);
+        let k = f64::from(HUBER_K);
+        let huber_rho = |u: f64| {
+            if u.abs() <= k {
+                0.5 * u * u
+            } else {
+                k * u.abs() - 0.5 * k * k
+            }
+        };
+        let log_l = |s: f64| -> f64 { r.iter().map(|x| -s.ln() - huber_rho(x / s)).sum() };
+        let ml = estimate_scale(&r, Estimator::Huber, ScaleMethod::Ml).sigma;
+        assert!(
+            log_l(ml) > log_l(ml * 1.02) && log_l(ml) > log_l(ml * 0.98),
+            "huber ml {ml}"
+        );
+        for est in [Estimator::Huber, Estimator::Tukey] {
+            let ml = estimate_scale(&r, est, ScaleMethod::Ml).sigma;
+            let m = estimate_scale(&r, est, ScaleMethod::MScale).sigma;
+            let code = est as u32;
+            let stationary = r
+                .iter()
+                .map(|x| f64::from(weight(code, (x / ml) as f32, 0.0)) * (x / ml).powi(2))
+                .sum::<f64>()
+                / r.len() as f64;
+            assert!((stationary - 1.0).abs() < 5e-3, "{est:?}: {stationary}");
+            assert!(ml < m - 0.05, "{est:?}: ml {ml}, m-scale {m}");
+        }
     }
 
     #[test]
