@@ -1,5 +1,6 @@
-//! Where frames come from: a TUM RGB-D folder or a generated ([`crate::synth`]) sequence, behind
-//! one interface (used by `rgbid slam`, `rgbid demo` and the viewer).
+//! Where frames come from: a dataset folder or a generated ([`crate::synth`]) sequence, behind
+//! one interface (used by `rgbid slam`, `rgbid demo` and the viewer), and [`RgbdStream`], the
+//! streaming form any input can take, including frames pushed from user code ([`pushed`]).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -313,5 +314,244 @@ impl FrameSource {
             FrameSource::Tum(s) => s.ground_truth().ok().flatten(),
             FrameSource::Synth(s, _) => Some(s.ground_truth()),
         }
+    }
+}
+
+/// A stream of RGB-D frames: what a SLAM or odometry loop consumes, whatever the frames come
+/// from (a dataset folder, a generated sequence, a live camera, frames pushed from user code).
+/// Implement it for your own input; [`Frames`] adapts an opened [`FrameSource`] and
+/// [`pushed`] makes one fed from another thread. `Send`, so a loop can run on its own thread.
+pub trait RgbdStream: Send {
+    /// The undistorted pinhole camera of the frames (pixels).
+    fn camera(&self) -> PinholeCamera;
+    /// Number of frames still to come when known (datasets), `None` for live input.
+    fn len_hint(&self) -> Option<usize>;
+    /// The next frame; `None` at the end of the stream. A frame that cannot be read is an
+    /// error for that frame only: the stream goes on with the next one.
+    fn next_frame(&mut self) -> Option<Result<RgbdFrame, SourceError>>;
+    /// Ground truth (`world_from_camera` per time stamp, seconds) when the input has some.
+    fn groundtruth(&self) -> Option<Vec<TimedPose>> {
+        None
+    }
+}
+
+/// An opened [`FrameSource`] read in order as an [`RgbdStream`]; frames stay available by
+/// index through [`Frames::source`].
+pub struct Frames {
+    source: FrameSource,
+    next: usize,
+}
+
+impl Frames {
+    /// Streams `source` from its first frame.
+    pub fn new(source: FrameSource) -> Frames {
+        Frames { source, next: 0 }
+    }
+
+    /// The underlying source (random access by index).
+    pub fn source(&mut self) -> &mut FrameSource {
+        &mut self.source
+    }
+}
+
+impl RgbdStream for Frames {
+    fn camera(&self) -> PinholeCamera {
+        self.source.camera()
+    }
+    fn len_hint(&self) -> Option<usize> {
+        Some(self.source.len().saturating_sub(self.next))
+    }
+    fn next_frame(&mut self) -> Option<Result<RgbdFrame, SourceError>> {
+        if self.next >= self.source.len() {
+            return None;
+        }
+        let i = self.next;
+        self.next += 1;
+        Some(self.source.load(i))
+    }
+    fn groundtruth(&self) -> Option<Vec<TimedPose>> {
+        self.source.groundtruth()
+    }
+}
+
+/// The sending end of [`pushed`]: user code (a camera callback, a ROS subscriber, another
+/// thread) hands frames to the stream. Dropping every sender ends the stream.
+#[derive(Clone)]
+pub struct FrameSender {
+    tx: std::sync::mpsc::SyncSender<RgbdFrame>,
+    camera: PinholeCamera,
+    dropped: Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl FrameSender {
+    /// Queues `frame`, waiting while the queue is full (for recorded input, where no frame
+    /// may be lost). Errors when the frame's size is not the stream's camera's or the
+    /// receiving end is gone.
+    pub fn push(&self, frame: RgbdFrame) -> Result<(), SourceError> {
+        self.check(&frame)?;
+        self.tx
+            .send(frame)
+            .map_err(|_| SourceError::Invalid("the frame stream was closed".into()))
+    }
+
+    /// Queues `frame` unless the queue is full, in which case the frame is dropped and
+    /// counted (for live input, where the consumer must not fall behind the camera).
+    /// Returns whether the frame was queued.
+    pub fn try_push(&self, frame: RgbdFrame) -> Result<bool, SourceError> {
+        self.check(&frame)?;
+        match self.tx.try_send(frame) {
+            Ok(()) => Ok(true),
+            Err(std::sync::mpsc::TrySendError::Full(_)) => {
+                self.dropped
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                Ok(false)
+            }
+            Err(std::sync::mpsc::TrySendError::Disconnected(_)) => {
+                Err(SourceError::Invalid("the frame stream was closed".into()))
+            }
+        }
+    }
+
+    /// Frames dropped by [`Self::try_push`] so far.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    fn check(&self, frame: &RgbdFrame) -> Result<(), SourceError> {
+        let (w, h) = (frame.width(), frame.height());
+        if w != self.camera.width as usize || h != self.camera.height as usize {
+            return Err(SourceError::Invalid(format!(
+                "pushed frame at {} s is {w} x {h} pixels, the stream's camera {} x {}",
+                frame.timestamp, self.camera.width, self.camera.height
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The receiving end of [`pushed`], an [`RgbdStream`] of the frames pushed so far, in order.
+pub struct PushedFrames {
+    rx: std::sync::mpsc::Receiver<RgbdFrame>,
+    camera: PinholeCamera,
+    dropped: Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl PushedFrames {
+    /// Frames the senders dropped because the queue was full.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
+impl RgbdStream for PushedFrames {
+    fn camera(&self) -> PinholeCamera {
+        self.camera
+    }
+    fn len_hint(&self) -> Option<usize> {
+        None
+    }
+    /// Waits for the next pushed frame; `None` once every sender is dropped and the queue is
+    /// empty.
+    fn next_frame(&mut self) -> Option<Result<RgbdFrame, SourceError>> {
+        self.rx.recv().ok().map(Ok)
+    }
+}
+
+/// A stream fed from user code: frames of `camera` pushed through the returned
+/// [`FrameSender`] (clone it for several producers) come out of the [`PushedFrames`] in
+/// order. At most `capacity` frames (>= 1) wait in between.
+pub fn pushed(camera: PinholeCamera, capacity: usize) -> (FrameSender, PushedFrames) {
+    let (tx, rx) = std::sync::mpsc::sync_channel(capacity.max(1));
+    let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    (
+        FrameSender {
+            tx,
+            camera,
+            dropped: dropped.clone(),
+        },
+        PushedFrames {
+            rx,
+            camera,
+            dropped,
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::odometry::{Odometry, OdometryConfig};
+
+    fn generated(frames: usize) -> FrameSource {
+        let spec = SourceSpec::Synth {
+            spec: "office:handheld".into(),
+            frames,
+            width: 160,
+            seed: 3,
+            session: 0,
+            lap_seconds: None,
+        };
+        FrameSource::open(&spec, &ComputeBackend::Cpu).expect("generated sequence")
+    }
+
+    fn track_all(stream: &mut dyn RgbdStream) -> Vec<crate::geometry::Se3> {
+        let mut odo = Odometry::new(
+            OdometryConfig::default(),
+            stream.camera(),
+            &ComputeBackend::Cpu,
+        )
+        .expect("odometry");
+        let mut poses = Vec::new();
+        while let Some(frame) = stream.next_frame() {
+            let frame = frame.expect("frame");
+            poses.push(odo.track(&frame).expect("tracked").world_from_camera);
+        }
+        poses
+    }
+
+    /// Frames pushed from another thread give the same trajectory as the source read
+    /// directly, in order, and the end of the producer ends the stream.
+    #[test]
+    fn pushed_frames_track_like_the_source() {
+        let n = 12;
+        let mut direct = Frames::new(generated(n));
+        assert_eq!(direct.len_hint(), Some(n));
+        let expected = track_all(&mut direct);
+        assert_eq!(direct.len_hint(), Some(0));
+
+        let mut source = generated(n);
+        let (tx, mut rx) = pushed(source.camera(), 2);
+        let producer = std::thread::spawn(move || {
+            for i in 0..source.len() {
+                tx.push(source.load(i).expect("frame")).expect("pushed");
+            }
+        });
+        assert_eq!(rx.len_hint(), None);
+        let got = track_all(&mut rx);
+        producer.join().expect("producer");
+        assert_eq!(got.len(), n);
+        for (a, b) in got.iter().zip(&expected) {
+            assert!((a.translation - b.translation).length() < 1e-12);
+        }
+        assert_eq!(rx.dropped(), 0);
+    }
+
+    /// A full queue drops and counts with `try_push`; a frame of the wrong size is refused
+    /// with both sizes in the message; a closed stream is an error.
+    #[test]
+    fn try_push_drops_and_counts_and_sizes_are_checked() {
+        let mut source = generated(3);
+        let frame = source.load(0).expect("frame");
+        let (tx, rx) = pushed(source.camera(), 1);
+        assert!(tx.try_push(frame.clone()).expect("queued"));
+        assert!(!tx.try_push(frame.clone()).expect("dropped"));
+        assert_eq!((tx.dropped(), rx.dropped()), (1, 1));
+        let mut small = source.camera();
+        small.width /= 2;
+        let (tx2, _rx2) = pushed(small, 1);
+        let e = tx2.push(frame.clone()).expect_err("wrong size").to_string();
+        assert!(e.contains("160 x 120") && e.contains("80 x 120"), "{e}");
+        drop(rx);
+        assert!(tx.push(frame).is_err());
     }
 }
