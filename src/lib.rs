@@ -35,6 +35,7 @@ pub mod gpu;
 pub mod io;
 // Algorithms.
 pub mod graph;
+pub mod live;
 pub mod odometry;
 pub mod place;
 pub mod segment;
