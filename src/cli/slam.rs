@@ -15,7 +15,7 @@ use rgbid::io::settings::Provenance;
 use rgbid::io::Layout;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_mesh, build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
+    build_coloured_model, build_mesh, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
 use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
@@ -570,9 +570,9 @@ fn write_outputs(
             voxel: a.voxel,
             ..Default::default()
         };
-        let filtered = build_model(r.keyframes(), &r.keyframe_poses, camera, &params);
+        let filtered = build_coloured_model(r.keyframes(), &r.keyframe_poses, camera, &params);
         model_points = filtered.len();
-        writer.model(&filtered)?;
+        writer.model_coloured(&filtered)?;
     }
     if a.mesh {
         let t = Instant::now();
