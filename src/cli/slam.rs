@@ -90,7 +90,8 @@ pub struct Args {
     pub voxel: f64,
     /// Also write mesh.ply: a TSDF of every keyframe's fused inverse depth at its final
     /// (optimised) pose, built after the run on the compute backend, so loop closures move
-    /// the surface; vertices coloured by keyframe intensity (grey).
+    /// the surface; vertices carry normals and the keyframes' colour (grey from the
+    /// intensity when the input has no colour).
     #[arg(long)]
     pub mesh: bool,
     /// Vocabulary file (default: the embedded one).
