@@ -561,6 +561,10 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
     // first keyframe.
     let scene = Scene::preset("kitchen", 2).unwrap();
     let kfs = r.keyframes();
+    assert!(
+        kfs.iter().all(|k| k.colour.is_some()),
+        "keyframes without colour"
+    );
     let params = TsdfParams {
         voxel_size: 0.02,
         ..Default::default()
@@ -571,6 +575,17 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
         let mesh = build_mesh(kfs, &poses, &cam, &params, 2, &ComputeBackend::Cpu).unwrap();
         let acc = mesh_accuracy(&mesh.vertices, |p| scene.surface_distance(p), &[], 0.04);
         assert!(acc.vertices > 1000, "{} vertices", acc.vertices);
+        // The keyframes keep the generated frames' colour, so the mesh is coloured.
+        let coloured = mesh
+            .colours
+            .iter()
+            .filter(|c| c[0] != c[1] || c[1] != c[2])
+            .count();
+        assert!(
+            2 * coloured > mesh.colours.len(),
+            "{coloured} of {} vertices coloured",
+            mesh.colours.len()
+        );
         acc.mean_m
     };
     let optimised = mean_distance(r.keyframe_poses.clone());

@@ -575,6 +575,7 @@ fn write_outputs(
         model_points = filtered.len();
         writer.model_coloured(&filtered)?;
     }
+    let mut mesh_summary = None;
     if a.mesh {
         let t = Instant::now();
         let params = TsdfParams {
@@ -591,6 +592,11 @@ fn write_outputs(
         )?;
         let path = out.join("mesh.ply");
         mesh.write_ply(&path)?;
+        mesh_summary = Some(serde_json::json!({
+            "seconds": t.elapsed().as_secs_f64(),
+            "vertices": mesh.vertices.len(),
+            "triangles": mesh.triangles.len(),
+        }));
         println!(
             "mesh: {} keyframes integrated at their optimised poses, {} vertices, {} \
              triangles, {:.2} s -> {}",
@@ -733,6 +739,10 @@ fn write_outputs(
     summary
         .extra
         .insert("provenance".into(), serde_json::to_value(provenance)?);
+    if let Some(m) = mesh_summary {
+        // Built after the last frame: not part of `wall_s`.
+        summary.extra.insert("mesh".into(), m);
+    }
     if let Some(gt) = source.groundtruth() {
         writer.groundtruth(&gt)?;
         let opts = EvalOptions::default();
