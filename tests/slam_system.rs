@@ -322,13 +322,19 @@ fn two_instances_account_their_own_memory() {
     assert!(ra.keyframes().len() > rb.keyframes().len());
     for r in [&ra, &rb] {
         let m = r.memory;
-        // This instance's keyframe images (4 bytes per pixel) and no other's.
+        // This instance's keyframe images (4 bytes per pixel, and 3 of RGB: the generated
+        // frames have colour) and no other's.
         let images: usize = r
             .keyframes()
             .iter()
-            .map(|k| k.intensity.len() + 2 * k.inverse_depth.len() + k.weight.len())
+            .map(|k| {
+                k.intensity.len()
+                    + 2 * k.inverse_depth.len()
+                    + k.weight.len()
+                    + k.colour.as_ref().map_or(0, |c| c.rgb().len())
+            })
             .sum();
-        assert_eq!(images, 4 * pixels * r.keyframes().len());
+        assert_eq!(images, 7 * pixels * r.keyframes().len());
         assert!(
             m.now.keyframes >= images && m.now.keyframes < images + 64 * 1024,
             "{} keyframe bytes for {} keyframes",
