@@ -144,12 +144,15 @@ fn model_grid(
     grid
 }
 
+/// One voxel of [`VoxelGrid`]: sum of positions, sums of intensity and of R, G, B, point
+/// count.
+type Cell = (DVec3, [u32; 4], usize);
+
 /// Running voxel-grid average of position, intensity and RGB (or a plain list when the size
 /// is not positive).
 struct VoxelGrid {
     size: f64,
-    /// Per cell: sum of positions, sums of intensity and of R, G, B, point count.
-    cells: HashMap<(i64, i64, i64), (DVec3, [u32; 4], usize)>,
+    cells: HashMap<(i64, i64, i64), Cell>,
     order: Vec<(i64, i64, i64)>,
     raw: Vec<(DVec3, u8, [u8; 3])>,
 }
