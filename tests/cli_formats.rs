@@ -201,19 +201,46 @@ fn export_writes_trajectories_models_and_graphs_of_runs_and_maps() {
     assert!(o.status.success(), "{}", text(&o));
     let run_points = rgbid::io::ply::read_ply(&ply).expect("ply");
     assert!(run_points.len() > 1000, "{} points", run_points.len());
-    let (o, ply) = export(&map, "ply", "map.ply", &[]);
-    assert!(o.status.success(), "{}", text(&o));
-    assert_eq!(
-        rgbid::io::ply::read_ply(&ply).expect("ply").len(),
+    // The generated frames have colour: the model is coloured, not grey.
+    let model = rgbid::io::ply::read_ply(&run.join("model.ply")).expect("model");
+    assert_eq!(model, run_points);
+    let coloured = run_points
+        .iter()
+        .filter(|(_, c)| c[0] != c[1] || c[1] != c[2])
+        .count();
+    assert!(
+        coloured > run_points.len() / 2,
+        "{coloured} of {} points coloured",
         run_points.len()
     );
+    let (o, ply) = export(&map, "ply", "map.ply", &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let map_points = rgbid::io::ply::read_ply(&ply).expect("ply");
+    assert_eq!(map_points.len(), run_points.len());
+    // The map keeps the keyframes' colour: the same colours as the run's model.
+    for ((p, c), (q, k)) in map_points.iter().zip(&run_points) {
+        assert!((*p - *q).length() < 1e-5, "{p} {q}");
+        assert_eq!(c, k);
+    }
     let (o, obj) = export(&map, "obj", "map.obj", &[]);
     assert!(o.status.success(), "{}", text(&o));
     let obj = std::fs::read_to_string(obj).expect("obj");
-    assert_eq!(
-        obj.lines().filter(|l| l.starts_with("v ")).count(),
-        run_points.len()
-    );
+    let vertices: Vec<&str> = obj.lines().filter(|l| l.starts_with("v ")).collect();
+    assert_eq!(vertices.len(), run_points.len());
+    // OBJ colour in 0..1 per vertex, as the PLY's.
+    for (line, (_, c)) in vertices.iter().zip(&map_points).take(100) {
+        let rgb: Vec<f64> = line
+            .split_whitespace()
+            .skip(4)
+            .map(|v| v.parse().expect("number"))
+            .collect();
+        for k in 0..3 {
+            assert!(
+                (rgb[k] * 255.0 - f64::from(c[k])).abs() < 0.02,
+                "{line} {c:?}"
+            );
+        }
+    }
 
     // The pose graph: one vertex per keyframe, the keyframe chain as edges, readable as g2o.
     let (o, g2o) = export(&map, "g2o", "map.g2o", &[]);

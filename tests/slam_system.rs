@@ -322,13 +322,19 @@ fn two_instances_account_their_own_memory() {
     assert!(ra.keyframes().len() > rb.keyframes().len());
     for r in [&ra, &rb] {
         let m = r.memory;
-        // This instance's keyframe images (4 bytes per pixel) and no other's.
+        // This instance's keyframe images (4 bytes per pixel, and 3 of RGB: the generated
+        // frames have colour) and no other's.
         let images: usize = r
             .keyframes()
             .iter()
-            .map(|k| k.intensity.len() + 2 * k.inverse_depth.len() + k.weight.len())
+            .map(|k| {
+                k.intensity.len()
+                    + 2 * k.inverse_depth.len()
+                    + k.weight.len()
+                    + k.colour.as_ref().map_or(0, |c| c.rgb().len())
+            })
             .sum();
-        assert_eq!(images, 4 * pixels * r.keyframes().len());
+        assert_eq!(images, 7 * pixels * r.keyframes().len());
         assert!(
             m.now.keyframes >= images && m.now.keyframes < images + 64 * 1024,
             "{} keyframe bytes for {} keyframes",
@@ -561,6 +567,10 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
     // first keyframe.
     let scene = Scene::preset("kitchen", 2).unwrap();
     let kfs = r.keyframes();
+    assert!(
+        kfs.iter().all(|k| k.colour.is_some()),
+        "keyframes without colour"
+    );
     let params = TsdfParams {
         voxel_size: 0.02,
         ..Default::default()
@@ -571,6 +581,17 @@ fn loop_closure_halves_the_odometry_error_on_two_laps() {
         let mesh = build_mesh(kfs, &poses, &cam, &params, 2, &ComputeBackend::Cpu).unwrap();
         let acc = mesh_accuracy(&mesh.vertices, |p| scene.surface_distance(p), &[], 0.04);
         assert!(acc.vertices > 1000, "{} vertices", acc.vertices);
+        // The keyframes keep the generated frames' colour, so the mesh is coloured.
+        let coloured = mesh
+            .colours
+            .iter()
+            .filter(|c| c[0] != c[1] || c[1] != c[2])
+            .count();
+        assert!(
+            2 * coloured > mesh.colours.len(),
+            "{coloured} of {} vertices coloured",
+            mesh.colours.len()
+        );
         acc.mean_m
     };
     let optimised = mean_distance(r.keyframe_poses.clone());

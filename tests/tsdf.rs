@@ -116,8 +116,43 @@ fn mesh_of_noisy_frames_lies_on_the_true_surface_and_covers_it() {
 fn ray_cast_depth_matches_the_true_depth() {
     let (_, data) = frames(12);
     let vol = volume(&data, 0.02);
-    let (_, pose, truth) = &data[6];
+    let (frame, pose, truth) = &data[6];
     let cast = vol.ray_cast(&camera(), pose).unwrap();
+    // Colour: where a surface was found, the ray cast colour is that of the frame seen from
+    // the same pose (averaged over the frames and the voxels around the hit), far closer to it
+    // than the frame's mean colour is.
+    let rgb = frame.colour().expect("generated frames have colour");
+    let mut cast_err = Vec::new();
+    let mut mean_err = Vec::new();
+    let hits: Vec<usize> = (0..truth.len())
+        .filter(|&i| cast.depth.data()[i] > 0.0)
+        .collect();
+    let mean: [f64; 3] = [0, 1, 2].map(|k| {
+        hits.iter()
+            .map(|&i| f64::from(rgb.rgb()[3 * i + k]))
+            .sum::<f64>()
+            / hits.len() as f64
+    });
+    for &i in &hits {
+        let seen = [0, 1, 2].map(|k| f64::from(rgb.rgb()[3 * i + k]));
+        let c = cast.colours[i].map(f64::from);
+        cast_err.push((0..3).map(|k| (c[k] - seen[k]).abs()).sum::<f64>() / 3.0);
+        mean_err.push((0..3).map(|k| (mean[k] - seen[k]).abs()).sum::<f64>() / 3.0);
+    }
+    assert!(cast
+        .depth
+        .data()
+        .iter()
+        .zip(&cast.colours)
+        .all(|(&d, c)| d > 0.0 || *c == [0; 3]));
+    cast_err.sort_by(f64::total_cmp);
+    mean_err.sort_by(f64::total_cmp);
+    let (cast_med, mean_med) = (cast_err[cast_err.len() / 2], mean_err[mean_err.len() / 2]);
+    eprintln!("colour: median error {cast_med:.1} (mean colour: {mean_med:.1}) levels");
+    assert!(
+        cast_med < 0.5 * mean_med,
+        "ray cast colour {cast_med} levels off, the mean colour {mean_med}"
+    );
     let mut err: Vec<f64> = Vec::new();
     let mut with_truth = 0usize;
     let mut with_normal = 0usize;

@@ -29,8 +29,9 @@ pub enum Command {
     /// Odometry speed and accuracy per backend on a TUM sequence, against OpenCV / Open3D run
     /// on the same data by `../shared/eval/peer_odometry.py`.
     Odometry(Box<OdometryBench>),
-    /// TSDF integration speed per backend and mesh accuracy on a generated room with exact
-    /// geometry, against Open3D's VoxelBlockGrid on the same frames (`scripts/tsdf_open3d.py`).
+    /// TSDF integration speed per backend (with the frames' colour, and depth only) and mesh
+    /// accuracy on a generated room with exact geometry, against Open3D's VoxelBlockGrid on
+    /// the same frames (`scripts/tsdf_open3d.py`).
     Tsdf(Box<super::mesh::TsdfBench>),
     /// SLAM under load on generated frames (CPU backend): memory over a long run (bytes per
     /// keyframe, growth per frame beyond the map) and two sessions on two threads against the

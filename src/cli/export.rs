@@ -16,7 +16,7 @@ use rgbid::graph::g2o::{write_g2o, LoadedGraph};
 use rgbid::graph::PoseGraph3;
 use rgbid::io::run_folder::RunFolder;
 use rgbid::io::trajectory::{write_trajectory, TrajectoryFormat};
-use rgbid::slam::{build_model, Map, ModelParams};
+use rgbid::slam::{build_coloured_model, Map, ModelParams};
 use rgbid::trajectory::TimedPose;
 
 /// Output formats of `rgbid export`.
@@ -91,7 +91,7 @@ pub fn run(args: Args) -> Result<()> {
             format!("{} poses", poses.len())
         }
         Format::Ply | Format::Obj => {
-            let points = model(&input, args.voxel);
+            let points = model(&input, args.voxel)?;
             if points.is_empty() {
                 bail!("{}: the model has no points", args.input.display());
             }
@@ -139,11 +139,19 @@ fn trajectory(input: &Input, keyframes: bool) -> Result<Vec<TimedPose>> {
     Ok(poses)
 }
 
-/// World points (metres) with their colour: a run folder's model, or a map's model rebuilt
-/// from its keyframes at their optimised poses (grey as RGB, since keyframes keep intensity).
-fn model(input: &Input, voxel: f64) -> Vec<(DVec3, [u8; 3])> {
-    match input {
-        Input::Run(run) => run.model.iter().map(|&(p, g)| (p, [g; 3])).collect(),
+/// World points (metres) with their colour: a run folder's model (as `model.ply` holds it), or
+/// a map's model rebuilt from its keyframes at their optimised poses (keyframe colour, grey
+/// for keyframes without colour).
+fn model(input: &Input, voxel: f64) -> Result<Vec<(DVec3, [u8; 3])>> {
+    Ok(match input {
+        Input::Run(run) => {
+            let path = run.dir.join(rgbid::io::run_folder::files::MODEL);
+            if path.is_file() {
+                rgbid::io::ply::read_ply(&path)?
+            } else {
+                Vec::new()
+            }
+        }
         Input::Map(map) => {
             let poses: Vec<_> = map
                 .keyframes
@@ -154,12 +162,9 @@ fn model(input: &Input, voxel: f64) -> Vec<(DVec3, [u8; 3])> {
                 voxel,
                 ..ModelParams::default()
             };
-            build_model(&map.keyframes, &poses, &map.camera, &params)
-                .into_iter()
-                .map(|(p, g)| (p, [g; 3]))
-                .collect()
+            build_coloured_model(&map.keyframes, &poses, &map.camera, &params)
         }
-    }
+    })
 }
 
 /// The map's keyframe graph: vertices at the optimised poses (ids as in the map), the map's

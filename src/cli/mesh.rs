@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::associate;
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::image::RgbdFrame;
 use rgbid::io::trajectory::read_tum;
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::synth::tum_export::TumWriter;
@@ -166,6 +167,8 @@ pub struct TsdfBench {
 #[derive(serde::Serialize)]
 struct TsdfRow {
     method: String,
+    /// Whether colour was integrated (rgbid rows measure both; Open3D integrates colour).
+    colour: bool,
     /// Median ms to integrate one frame (allocation + kernel; Open3D: block coordinates +
     /// integration).
     integrate_ms: f64,
@@ -274,35 +277,48 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
         if let ComputeBackend::Gpu(ctx) = &backend {
             adapters.push(ctx.adapter_info().name.clone());
         }
-        let mut vol = TsdfVolume::new(params, cam, &backend)?;
-        let (mut total, mut alloc, mut kernel) = (Vec::new(), Vec::new(), Vec::new());
-        let mut blocks = Vec::new();
-        for i in 0..tum.len() {
-            let frame = tum.load(i)?;
-            let pose = gt
-                .get(i)
-                .context("ground truth shorter than the sequence")?
-                .world_from_camera;
+        // With the frames' colour, then depth only (the same frames without their colour).
+        for colour in [true, false] {
+            let mut vol = TsdfVolume::new(params, cam, &backend)?;
+            let (mut total, mut alloc, mut kernel) = (Vec::new(), Vec::new(), Vec::new());
+            let mut blocks = Vec::new();
+            for i in 0..tum.len() {
+                let mut frame = tum.load(i)?;
+                if !colour {
+                    let t = frame.timestamp();
+                    let (intensity, rho) = frame.into_images();
+                    frame = RgbdFrame::new(t, intensity, rho)?;
+                }
+                let pose = gt
+                    .get(i)
+                    .context("ground truth shorter than the sequence")?
+                    .world_from_camera;
+                let t = Instant::now();
+                let s = vol.integrate(&frame, &pose)?;
+                total.push(t.elapsed().as_secs_f64() * 1e3);
+                alloc.push(s.allocate_s * 1e3);
+                kernel.push(s.kernel_s * 1e3);
+                blocks.push(s.active_blocks as f64);
+            }
             let t = Instant::now();
-            let s = vol.integrate(&frame, &pose)?;
-            total.push(t.elapsed().as_secs_f64() * 1e3);
-            alloc.push(s.allocate_s * 1e3);
-            kernel.push(s.kernel_s * 1e3);
-            blocks.push(s.active_blocks as f64);
+            let mesh = vol.extract_mesh()?;
+            let extract_s = t.elapsed().as_secs_f64();
+            rows.push(TsdfRow {
+                method: format!(
+                    "rgbid {}{}",
+                    backend.name(),
+                    if colour { "" } else { ", no colour" }
+                ),
+                colour,
+                integrate_ms: median(&mut total),
+                allocate_ms: Some(median(&mut alloc)),
+                kernel_ms: Some(median(&mut kernel)),
+                active_blocks: Some(median(&mut blocks)),
+                extract_s,
+                open3d_ratio: None,
+                accuracy: mesh_accuracy(&mesh.vertices, distance, &reference, 0.02),
+            });
         }
-        let t = Instant::now();
-        let mesh = vol.extract_mesh()?;
-        let extract_s = t.elapsed().as_secs_f64();
-        rows.push(TsdfRow {
-            method: format!("rgbid {}", backend.name()),
-            integrate_ms: median(&mut total),
-            allocate_ms: Some(median(&mut alloc)),
-            kernel_ms: Some(median(&mut kernel)),
-            active_blocks: Some(median(&mut blocks)),
-            extract_s,
-            open3d_ratio: None,
-            accuracy: mesh_accuracy(&mesh.vertices, distance, &reference, 0.02),
-        });
     }
     if !a.python.is_empty() {
         let mesh_path = work.join("open3d.ply");
@@ -340,6 +356,7 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
                         "Open3D {} VoxelBlockGrid (CPU)",
                         doc["open3d"].as_str().unwrap_or("?")
                     ),
+                    colour: true,
                     integrate_ms: o3d_ms,
                     allocate_ms: None,
                     kernel_ms: None,

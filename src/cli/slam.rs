@@ -15,7 +15,7 @@ use rgbid::io::settings::Provenance;
 use rgbid::io::Layout;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_mesh, build_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
+    build_coloured_model, build_mesh, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
 use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
@@ -90,7 +90,8 @@ pub struct Args {
     pub voxel: f64,
     /// Also write mesh.ply: a TSDF of every keyframe's fused inverse depth at its final
     /// (optimised) pose, built after the run on the compute backend, so loop closures move
-    /// the surface; vertices coloured by keyframe intensity (grey).
+    /// the surface; vertices carry normals and the keyframes' colour (grey from the
+    /// intensity when the input has no colour).
     #[arg(long)]
     pub mesh: bool,
     /// Vocabulary file (default: the embedded one).
@@ -570,10 +571,11 @@ fn write_outputs(
             voxel: a.voxel,
             ..Default::default()
         };
-        let filtered = build_model(r.keyframes(), &r.keyframe_poses, camera, &params);
+        let filtered = build_coloured_model(r.keyframes(), &r.keyframe_poses, camera, &params);
         model_points = filtered.len();
-        writer.model(&filtered)?;
+        writer.model_coloured(&filtered)?;
     }
+    let mut mesh_summary = None;
     if a.mesh {
         let t = Instant::now();
         let params = TsdfParams {
@@ -590,6 +592,11 @@ fn write_outputs(
         )?;
         let path = out.join("mesh.ply");
         mesh.write_ply(&path)?;
+        mesh_summary = Some(serde_json::json!({
+            "seconds": t.elapsed().as_secs_f64(),
+            "vertices": mesh.vertices.len(),
+            "triangles": mesh.triangles.len(),
+        }));
         println!(
             "mesh: {} keyframes integrated at their optimised poses, {} vertices, {} \
              triangles, {:.2} s -> {}",
@@ -732,6 +739,10 @@ fn write_outputs(
     summary
         .extra
         .insert("provenance".into(), serde_json::to_value(provenance)?);
+    if let Some(m) = mesh_summary {
+        // Built after the last frame: not part of `wall_s`.
+        summary.extra.insert("mesh".into(), m);
+    }
     if let Some(gt) = source.groundtruth() {
         writer.groundtruth(&gt)?;
         let opts = EvalOptions::default();

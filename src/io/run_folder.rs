@@ -428,9 +428,15 @@ impl RunFolderWriter {
         super::trajectory::write_tum(&self.dir.join(files::GROUNDTRUTH), poses)
     }
 
-    /// Writes the model (`model.ply`, grey points).
+    /// Writes the model (`model.ply`, grey points: `(world position in metres, intensity)`).
     pub fn model(&self, points: &[(DVec3, u8)]) -> Result<(), IoError> {
         super::ply::write_ply_grey(&self.dir.join(files::MODEL), points)
+    }
+
+    /// Writes the model (`model.ply`) with 8-bit RGB colour per point (world position in
+    /// metres).
+    pub fn model_coloured(&self, points: &[(DVec3, [u8; 3])]) -> Result<(), IoError> {
+        super::ply::write_ply(&self.dir.join(files::MODEL), points)
     }
 
     /// Writes `summary.json` with [`FORMAT_VERSION`] and `complete: true` and closes the

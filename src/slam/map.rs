@@ -1,10 +1,13 @@
 //! Saved maps: keyframes (compact images), ORB features with their mask flags (the BoW
 //! histograms are recomputed from them with the vocabulary), optimised poses and the graph.
 //!
-//! File layout, version 2 (little endian): `b"RGBIDMAP"`, `u32` version, `u64` length of a
+//! File layout, version 3 (little endian): `b"RGBIDMAP"`, `u32` version, `u64` length of a
 //! JSON header, `u32` CRC-32 of the header, the header, then per keyframe `u64` block length,
-//! `u32` CRC-32 of the block and the block, then `b"RGBIDEND"`. Version 1 (no lengths or
-//! checksums) still loads.
+//! `u32` CRC-32 of the block and the block, then `b"RGBIDEND"`. A keyframe block holds the
+//! intensity (u8), inverse depth (f16), weights (u8), the keyframe's RGB colour (3 u8 per
+//! pixel, only when its header entry says `"colour": true`), then its features. Version 2 (the
+//! same without colour) and version 1 (no lengths or checksums either) still load, without
+//! colour.
 //!
 //! Loading is bounded and checked: the magic is read first, the file is read up to its own
 //! length, every declared size is compared with the bytes left before anything is allocated,
@@ -23,10 +26,11 @@ use super::keyframe::{Keyframe, KeyframeLink};
 use super::SlamError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
+use crate::image::ColourImage;
 use crate::place::{Descriptor, KeyPoint, OrbFeatures};
 
-/// Current map file version (2: a length and a CRC-32 per block).
-pub const MAP_VERSION: u32 = 2;
+/// Current map file version (2: a length and a CRC-32 per block; 3: keyframe colour).
+pub const MAP_VERSION: u32 = 3;
 /// The oldest map version this build still reads.
 pub const MAP_VERSION_OLDEST: u32 = 1;
 const MAGIC: &[u8; 8] = b"RGBIDMAP";
@@ -126,6 +130,9 @@ struct KeyframeHeader {
     world_from_keyframe: [f64; 7],
     features: usize,
     masks: usize,
+    /// The block holds the keyframe's RGB colour (version 3 on; absent in older files).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    colour: bool,
 }
 
 fn pose_to(p: &Se3) -> [f64; 7] {
@@ -247,6 +254,7 @@ impl Map {
                     world_from_keyframe: pose_to(&k.world_from_keyframe),
                     features: f.len(),
                     masks: m.len(),
+                    colour: k.colour.is_some(),
                 })
                 .collect(),
             edges: self
@@ -282,15 +290,17 @@ impl Map {
         })
     }
 
-    /// Reads a map written by [`Map::save`] (this version or version 1).
+    /// Reads a map written by [`Map::save`] (this version, or versions 1 and 2 without
+    /// keyframe colour).
     pub fn load(path: &Path) -> Result<Map, MapError> {
         let bytes = read_bounded(path)?;
         parse_map(&bytes, path)
     }
 }
 
-/// A keyframe's binary block: intensity, inverse depth (f16), weights, then per feature its
-/// key point, descriptor, optional 3D point and mask flags.
+/// A keyframe's binary block: intensity, inverse depth (f16), weights, colour (RGB, when the
+/// keyframe has it), then per feature its key point, descriptor, optional 3D point and mask
+/// flags.
 fn keyframe_block(k: &Keyframe, f: &OrbFeatures, masks: &[Vec<bool>]) -> Vec<u8> {
     let mut b = Vec::with_capacity(k.image_bytes() + f.len() * 90);
     b.extend_from_slice(&k.intensity);
@@ -298,6 +308,9 @@ fn keyframe_block(k: &Keyframe, f: &OrbFeatures, masks: &[Vec<bool>]) -> Vec<u8>
         b.extend_from_slice(&r.to_bits().to_le_bytes());
     }
     b.extend_from_slice(&k.weight);
+    if let Some(c) = &k.colour {
+        b.extend_from_slice(c.rgb());
+    }
     for i in 0..f.len() {
         let kp = &f.keypoints[i];
         b.extend_from_slice(&kp.uv.x.to_le_bytes());
@@ -446,12 +459,16 @@ fn parse_map(bytes: &[u8], path: &Path) -> Result<Map, MapError> {
         if !kh.timestamp.is_finite() {
             return Err(bad("time stamp not finite".into()));
         }
+        if kh.colour && version < 3 {
+            return Err(bad(format!("colour in a version {version} map")));
+        }
+        let colour_bytes = if kh.colour { 3 * px } else { 0 };
         // The smallest block these sizes need, checked against the bytes left before
         // anything is allocated.
         let need = kh
             .features
             .checked_mul(FEATURE_BYTES + kh.masks)
-            .and_then(|f| f.checked_add(4 * px));
+            .and_then(|f| f.checked_add(4 * px + colour_bytes));
         let mut block = if checksums {
             let declared = r
                 .u64()
@@ -517,6 +534,15 @@ fn parse_map(bytes: &[u8], path: &Path) -> Result<Map, MapError> {
             ));
         }
         let weight = block.take(px).ok_or_else(|| short(&block))?.to_vec();
+        let colour = if kh.colour {
+            let rgb = block.take(colour_bytes).ok_or_else(|| short(&block))?;
+            Some(
+                ColourImage::from_rgb(cam_w, cam_h, rgb.to_vec())
+                    .map_err(|e| bad(format!("colour: {e}")))?,
+            )
+        } else {
+            None
+        };
         let mut f = OrbFeatures {
             width: kh.width,
             height: kh.height,
@@ -602,6 +628,7 @@ fn parse_map(bytes: &[u8], path: &Path) -> Result<Map, MapError> {
             intensity,
             inverse_depth,
             weight,
+            colour,
             world_from_keyframe,
             link: KeyframeLink::First,
         });
@@ -695,6 +722,11 @@ mod tests {
                     .map(|i| f16::from_f32(0.5 + i as f32 * 0.01))
                     .collect(),
                 weight: vec![3; W * H],
+                // Keyframe 1 has colour, keyframe 0 not (a map extended by a colour session).
+                colour: (id == 1).then(|| {
+                    ColourImage::from_rgb(W, H, (0..3 * W * H).map(|i| (7 * i) as u8).collect())
+                        .unwrap()
+                }),
                 world_from_keyframe: Se3::new(DQuat::IDENTITY, DVec3::new(id as f64, 0.0, 0.0)),
                 link: KeyframeLink::First,
             })
@@ -758,6 +790,9 @@ mod tests {
             back.keyframes[1].inverse_depth,
             map.keyframes[1].inverse_depth
         );
+        assert!(back.keyframes[0].colour.is_none());
+        assert_eq!(back.keyframes[1].colour, map.keyframes[1].colour);
+        assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 3);
         assert_eq!(
             back.features[1].keypoints[0].uv,
             map.features[1].keypoints[0].uv
@@ -835,10 +870,64 @@ mod tests {
         }
     }
 
+    /// A version 2 map (lengths and checksums, no colour), written byte by byte as version 2
+    /// wrote it, still loads, without colour; a version 2 header that claims colour is refused.
+    #[test]
+    fn version_2_still_loads_without_colour() {
+        let mut map = small_map();
+        for k in &mut map.keyframes {
+            k.colour = None;
+        }
+        let header = |colour: bool| {
+            let (_d, _p, bytes) = saved(&map);
+            let len = u64::from_le_bytes(bytes[12..20].try_into().unwrap()) as usize;
+            let json = String::from_utf8(bytes[24..24 + len].to_vec()).unwrap();
+            assert!(!json.contains("colour"), "{json}");
+            if colour {
+                json.replacen("\"masks\":1", "\"masks\":1,\"colour\":true", 1)
+            } else {
+                json
+            }
+        };
+        let v2 = |json: String| {
+            let mut v2 = Vec::new();
+            v2.extend_from_slice(MAGIC);
+            v2.extend_from_slice(&2u32.to_le_bytes());
+            v2.extend_from_slice(&(json.len() as u64).to_le_bytes());
+            v2.extend_from_slice(&crc32fast::hash(json.as_bytes()).to_le_bytes());
+            v2.extend_from_slice(json.as_bytes());
+            for ((k, f), m) in map.keyframes.iter().zip(&map.features).zip(&map.mask_flags) {
+                let mut b = Vec::new();
+                b.extend_from_slice(&k.intensity);
+                for r in &k.inverse_depth {
+                    b.extend_from_slice(&r.to_bits().to_le_bytes());
+                }
+                b.extend_from_slice(&k.weight);
+                b.extend_from_slice(&keyframe_block(k, f, m)[4 * W * H..]);
+                v2.extend_from_slice(&(b.len() as u64).to_le_bytes());
+                v2.extend_from_slice(&crc32fast::hash(&b).to_le_bytes());
+                v2.extend_from_slice(&b);
+            }
+            v2.extend_from_slice(END);
+            v2
+        };
+        let back = parse_map(&v2(header(false)), Path::new("v2.rgbmap")).unwrap();
+        assert_eq!(back.keyframes.len(), 2);
+        assert!(back.keyframes.iter().all(|k| k.colour.is_none()));
+        assert_eq!(back.keyframes[1].intensity, map.keyframes[1].intensity);
+        assert_eq!(back.features[1].descriptors, map.features[1].descriptors);
+        assert_eq!(back.edges, map.edges);
+        let e = parse_map(&v2(header(true)), Path::new("v2.rgbmap")).unwrap_err();
+        assert!(e.to_string().contains("colour in a version 2 map"), "{e}");
+    }
+
     /// Version 1 (no lengths, no checksums) still loads.
     #[test]
     fn version_1_still_loads() {
-        let map = small_map();
+        let mut map = small_map();
+        for k in &mut map.keyframes {
+            k.colour = None;
+        }
         let header_json = {
             let (_d, _p, bytes) = saved(&map);
             let len = u64::from_le_bytes(bytes[12..20].try_into().unwrap()) as usize;

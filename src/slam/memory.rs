@@ -14,8 +14,9 @@ use super::keyframe::Keyframe;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct MemoryBreakdown {
     /// The keyframes (8-bit intensity, half-precision fused inverse depth, 8-bit weights,
-    /// 4 bytes per pixel) the back-end keeps as the map, and the intensity of the keyframe the
-    /// front-end is building.
+    /// 4 bytes per pixel, and 3 more for 8-bit RGB when the input has colour) the back-end
+    /// keeps as the map, and the intensity (and colour) of the keyframe the front-end is
+    /// building.
     pub keyframes: usize,
     /// Place recognition: the vocabulary tree, the keyframe database (inverted index, stored
     /// bags of words) and every keyframe's description (ORB keypoints, descriptors, 3D points,
@@ -140,5 +141,8 @@ pub(crate) fn vec_bytes<T>(v: &Vec<T>) -> usize {
 
 /// Bytes of a keyframe's images.
 pub(crate) fn keyframe_bytes(k: &Keyframe) -> usize {
-    vec_bytes(&k.intensity) + vec_bytes(&k.inverse_depth) + vec_bytes(&k.weight)
+    vec_bytes(&k.intensity)
+        + vec_bytes(&k.inverse_depth)
+        + vec_bytes(&k.weight)
+        + k.colour.as_ref().map_or(0, |c| c.rgb().len())
 }

@@ -40,8 +40,8 @@ impl Default for ModelParams {
 
 /// A TSDF mesh of the keyframes (world frame, metres): every keyframe's fused inverse depth
 /// integrated at its pose in `world_from_keyframe` (one per keyframe, e.g. the optimised
-/// poses of [`crate::slam::SlamResult::keyframe_poses`]), coloured by its intensity (grey:
-/// keyframes keep no colour).
+/// poses of [`crate::slam::SlamResult::keyframe_poses`]), coloured by the keyframe's colour,
+/// or grey from its intensity when it has none.
 ///
 /// The volume is built from scratch for the poses given, which re-integrates every keyframe
 /// after a pose-graph optimisation: at one keyframe per few dozen frames the whole map costs
@@ -69,8 +69,12 @@ pub fn build_mesh(
                 *r = 0.0;
             }
         }
-        let grey: Vec<u8> = kf.intensity.iter().flat_map(|&v| [v, v, v]).collect();
-        let frame = frame.with_colour(ColourImage::from_rgb(kf.width, kf.height, grey)?)?;
+        let frame = if frame.colour().is_some() {
+            frame
+        } else {
+            let grey: Vec<u8> = kf.intensity.iter().flat_map(|&v| [v, v, v]).collect();
+            frame.with_colour(ColourImage::from_rgb(kf.width, kf.height, grey)?)?
+        };
         volume.integrate(&frame, pose)?;
     }
     volume.extract_mesh()
@@ -86,6 +90,28 @@ pub fn build_model(
     camera: &PinholeCamera,
     params: &ModelParams,
 ) -> Vec<(DVec3, u8)> {
+    model_grid(keyframes, world_from_keyframe, camera, params).points()
+}
+
+/// The points of [`build_model`] with 8-bit RGB colour: the mean colour of the keyframe
+/// pixels in each voxel, taken from the keyframes' colour (grey from the intensity for
+/// keyframes without colour).
+pub fn build_coloured_model(
+    keyframes: &[Keyframe],
+    world_from_keyframe: &[Se3],
+    camera: &PinholeCamera,
+    params: &ModelParams,
+) -> Vec<(DVec3, [u8; 3])> {
+    model_grid(keyframes, world_from_keyframe, camera, params).coloured_points()
+}
+
+/// The voxel grid of the model (see [`build_model`]).
+fn model_grid(
+    keyframes: &[Keyframe],
+    world_from_keyframe: &[Se3],
+    camera: &PinholeCamera,
+    params: &ModelParams,
+) -> VoxelGrid {
     let mut grid = VoxelGrid::new(params.voxel);
     for (k, (kf, pose)) in keyframes.iter().zip(world_from_keyframe.iter()).enumerate() {
         let prev = if k > 0 && keyframes[k - 1].session == kf.session {
@@ -96,7 +122,7 @@ pub fn build_model(
         } else {
             None
         };
-        for (p, i) in kf.points(camera, params.step, params.min_weight) {
+        for (p, i) in kf.pixel_points(camera, params.step, params.min_weight) {
             if let Some((pk, prev_from_this)) = &prev {
                 let q = prev_from_this.transform_point(p);
                 if q.z > 0.0 {
@@ -112,18 +138,23 @@ pub fn build_model(
                     }
                 }
             }
-            grid.add(pose.transform_point(p), i);
+            grid.add(pose.transform_point(p), kf.intensity[i], kf.rgb_at(i));
         }
     }
-    grid.points()
+    grid
 }
 
-/// Running voxel-grid average (or a plain list when the size is not positive).
+/// One voxel of [`VoxelGrid`]: sum of positions, sums of intensity and of R, G, B, point
+/// count.
+type Cell = (DVec3, [u32; 4], usize);
+
+/// Running voxel-grid average of position, intensity and RGB (or a plain list when the size
+/// is not positive).
 struct VoxelGrid {
     size: f64,
-    cells: HashMap<(i64, i64, i64), (DVec3, u32, usize)>,
+    cells: HashMap<(i64, i64, i64), Cell>,
     order: Vec<(i64, i64, i64)>,
-    raw: Vec<(DVec3, u8)>,
+    raw: Vec<(DVec3, u8, [u8; 3])>,
 }
 
 impl VoxelGrid {
@@ -136,12 +167,12 @@ impl VoxelGrid {
         }
     }
 
-    fn add(&mut self, p: DVec3, i: u8) {
+    fn add(&mut self, p: DVec3, i: u8, rgb: [u8; 3]) {
         if !p.is_finite() {
             return;
         }
         if self.size <= 0.0 {
-            self.raw.push((p, i));
+            self.raw.push((p, i, rgb));
             return;
         }
         let key = (
@@ -152,22 +183,36 @@ impl VoxelGrid {
         let order = &mut self.order;
         let e = self.cells.entry(key).or_insert_with(|| {
             order.push(key);
-            (DVec3::ZERO, 0, 0)
+            (DVec3::ZERO, [0; 4], 0)
         });
         e.0 += p;
-        e.1 += u32::from(i);
+        for (sum, v) in e.1.iter_mut().zip([i, rgb[0], rgb[1], rgb[2]]) {
+            *sum += u32::from(v);
+        }
         e.2 += 1;
+    }
+
+    /// Mean position and the means of intensity and R, G, B (rounded down) per cell, in the
+    /// order the cells were first filled.
+    fn means(&self) -> impl Iterator<Item = (DVec3, [u8; 4])> + '_ {
+        self.order
+            .iter()
+            .filter_map(|k| self.cells.get(k))
+            .map(|(s, sums, n)| (*s / *n as f64, sums.map(|v| (v / *n as u32) as u8)))
     }
 
     fn points(self) -> Vec<(DVec3, u8)> {
         if self.size <= 0.0 {
-            return self.raw;
+            return self.raw.into_iter().map(|(p, i, _)| (p, i)).collect();
         }
-        self.order
-            .iter()
-            .filter_map(|k| self.cells.get(k))
-            .map(|(s, i, n)| (*s / *n as f64, (*i / *n as u32) as u8))
-            .collect()
+        self.means().map(|(p, m)| (p, m[0])).collect()
+    }
+
+    fn coloured_points(self) -> Vec<(DVec3, [u8; 3])> {
+        if self.size <= 0.0 {
+            return self.raw.into_iter().map(|(p, _, c)| (p, c)).collect();
+        }
+        self.means().map(|(p, m)| (p, [m[1], m[2], m[3]])).collect()
     }
 }
 
@@ -176,7 +221,83 @@ impl VoxelGrid {
 pub fn voxel_filter(points: &[(DVec3, u8)], size: f64) -> Vec<(DVec3, u8)> {
     let mut grid = VoxelGrid::new(size);
     for (p, i) in points {
-        grid.add(*p, *i);
+        grid.add(*p, *i, [*i; 3]);
     }
     grid.points()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::slam::keyframe::KeyframeLink;
+    use half::f16;
+
+    const W: usize = 8;
+    const H: usize = 6;
+
+    /// A keyframe of a wall 2 m in front of the camera, intensity `10 + i`, colour
+    /// `(i, 2 i, 255 - i)` per pixel index `i` when `colour`.
+    fn keyframe(colour: bool) -> Keyframe {
+        let kf = Keyframe {
+            id: 0,
+            frame_index: 0,
+            session: 0,
+            timestamp: 0.0,
+            width: W,
+            height: H,
+            intensity: (0..W * H).map(|i| 10 + i as u8).collect(),
+            inverse_depth: vec![f16::from_f32(0.5); W * H],
+            weight: vec![5; W * H],
+            colour: None,
+            world_from_keyframe: Se3::IDENTITY,
+            link: KeyframeLink::First,
+        };
+        if !colour {
+            return kf;
+        }
+        let rgb = (0..W * H)
+            .flat_map(|i| [i as u8, 2 * i as u8, 255 - i as u8])
+            .collect();
+        kf.with_colour(ColourImage::from_rgb(W, H, rgb).unwrap())
+            .unwrap()
+    }
+
+    #[test]
+    fn model_points_carry_the_keyframe_colour() {
+        let camera = PinholeCamera::new(10.0, 10.0, 3.5, 2.5, W as u32, H as u32);
+        let every = ModelParams {
+            step: 1,
+            voxel: 0.0,
+            ..ModelParams::default()
+        };
+        // Placed so that every point has positive coordinates (one voxel of 10 m holds all).
+        let poses = [Se3::new(glam::DQuat::IDENTITY, DVec3::new(5.0, 5.0, 0.0))];
+        // Every pixel a point: its own colour, and the intensity model is unchanged.
+        let kf = keyframe(true);
+        let coloured = build_coloured_model(std::slice::from_ref(&kf), &poses, &camera, &every);
+        let grey = build_model(std::slice::from_ref(&kf), &poses, &camera, &every);
+        assert_eq!(coloured.len(), W * H);
+        assert_eq!(grey.len(), W * H);
+        for (i, ((p, c), (q, g))) in coloured.iter().zip(&grey).enumerate() {
+            assert_eq!(p, q);
+            assert_eq!(*c, [i as u8, 2 * i as u8, 255 - i as u8]);
+            assert_eq!(*g, 10 + i as u8);
+        }
+        // One voxel around the whole wall: the mean colour (rounded down).
+        let one = ModelParams {
+            voxel: 10.0,
+            ..every
+        };
+        let c = build_coloured_model(std::slice::from_ref(&kf), &poses, &camera, &one);
+        let n = (W * H) as u32;
+        let mean = |f: &dyn Fn(u32) -> u32| ((0..n).map(f).sum::<u32>() / n) as u8;
+        assert_eq!(c.len(), 1);
+        assert_eq!(c[0].1, [mean(&|i| i), mean(&|i| 2 * i), mean(&|i| 255 - i)]);
+        // A keyframe without colour gives grey points of its intensity.
+        let g = build_coloured_model(&[keyframe(false)], &poses, &camera, &every);
+        assert!(g
+            .iter()
+            .enumerate()
+            .all(|(i, (_, c))| *c == [10 + i as u8; 3]));
+    }
 }

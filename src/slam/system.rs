@@ -19,7 +19,7 @@ use crate::camera::PinholeCamera;
 use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
 use crate::graph::{PoseGraph3, SolverOptions};
-use crate::image::{ImageF32, RgbdFrame};
+use crate::image::{ColourImage, ImageF32, RgbdFrame};
 use crate::odometry::{GeometricParam, Odometry, StageTimes};
 use crate::place::Vocabulary;
 use crate::trajectory::TimedPose;
@@ -142,6 +142,8 @@ struct CurrentKeyframe {
     frame_index: usize,
     timestamp: f64,
     intensity: ImageF32,
+    /// The reference frame's colour, kept with the keyframe (for coloured models and meshes).
+    colour: Option<ColourImage>,
     frontworld_from_keyframe: Se3,
     link: KeyframeLink,
 }
@@ -299,10 +301,9 @@ impl Slam {
                 .map(|(rho, _, _)| vec_bytes(&rho.data))
                 .sum::<usize>();
         MemoryBreakdown {
-            keyframes: self
-                .current
-                .as_ref()
-                .map_or(0, |c| vec_bytes(&c.intensity.data)),
+            keyframes: self.current.as_ref().map_or(0, |c| {
+                vec_bytes(&c.intensity.data) + c.colour.as_ref().map_or(0, |c| c.rgb().len())
+            }),
             odometry,
             fusion: fusion + buffered,
             records: vec_bytes(&self.frames) + loop_records,
@@ -357,6 +358,13 @@ impl Slam {
             cur.frontworld_from_keyframe,
             cur.link,
         );
+        let kf = match cur.colour {
+            // The frame's constructors checked the colour's size against the frame's.
+            Some(c) => kf
+                .with_colour(c)
+                .map_err(|e| SlamError::Internal(e.to_string()))?,
+            None => kf,
+        };
         self.send(ToBackend::Keyframe(Box::new(kf)))
     }
 
@@ -381,6 +389,7 @@ impl Slam {
             frame_index: index,
             timestamp: frame.timestamp,
             intensity: frame.intensity.clone(),
+            colour: frame.colour.clone(),
             frontworld_from_keyframe: frontworld_from_camera,
             link,
         });

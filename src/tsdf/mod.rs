@@ -17,7 +17,7 @@
 //!   is its inverse depth variance relative to a measurement at 1 m, `(1 m / z)^4`.
 //! * Meshes (`mesh.rs`): marching tetrahedra on the CPU (six tetrahedra per voxel cube),
 //!   vertices shared between faces, per-vertex normals and colours.
-//! * Ray casting (`raycast.rs`): depth and normals from any pose, on the CPU.
+//! * Ray casting (`raycast.rs`): depth, normals and colour from any pose, on the CPU.
 //!
 //! Frames: the volume lives in the world frame; frames are integrated at `world_from_camera`.
 //! Units: metres; inverse depth in 1/m with 0 = no measurement.

@@ -1,8 +1,9 @@
-//! Ray casting of the volume on the CPU: depth and normals of the zero crossing seen from
-//! a camera.
+//! Ray casting of the volume on the CPU: depth, normals and colour of the zero crossing seen
+//! from a camera.
 
 use rayon::prelude::*;
 
+use super::integrate::Voxel;
 use super::volume::VolumeView;
 use super::BLOCK_SIDE;
 use crate::camera::PinholeCamera;
@@ -17,17 +18,37 @@ pub struct RayCastImages {
     /// Unit surface normals in the camera frame, facing the camera (`[0; 3]` where no
     /// surface was found), row-major.
     pub normals: Vec<[f32; 3]>,
+    /// 8-bit RGB of the surface, trilinear in the voxels' colours (`[0; 3]` where no surface
+    /// was found), row-major.
+    pub colours: Vec<[u8; 3]>,
 }
 
 /// The trilinear TSDF at world point `p` (metres), `None` when one of the 8 voxels around it
 /// is unallocated or unobserved.
 fn sample(view: &VolumeView<'_>, p: [f32; 3]) -> Option<f32> {
+    trilinear(view, p, |v| [v.tsdf, 0.0, 0.0, 0.0]).map(|a| a[0])
+}
+
+/// The trilinear colour (R, G, B in 0-255) at world point `p` (metres), `None` as [`sample`].
+fn sample_colour(view: &VolumeView<'_>, p: [f32; 3]) -> Option<[u8; 3]> {
+    let ch = |rgb: u32, k: u32| ((rgb >> (8 * k)) & 255) as f32;
+    let c = trilinear(view, p, |v| [ch(v.rgb, 0), ch(v.rgb, 1), ch(v.rgb, 2), 0.0])?;
+    Some([0, 1, 2].map(|k| (c[k] + 0.5).floor().clamp(0.0, 255.0) as u8))
+}
+
+/// Trilinear interpolation of `value` over the 8 voxels around world point `p` (metres),
+/// `None` when one of them is unallocated or unobserved.
+fn trilinear(
+    view: &VolumeView<'_>,
+    p: [f32; 3],
+    value: impl Fn(&Voxel) -> [f32; 4],
+) -> Option<[f32; 4]> {
     let s = view.voxel_size as f32;
     let q = p.map(|c| c / s);
     let b = q.map(|c| c.floor());
     let f = [q[0] - b[0], q[1] - b[1], q[2] - b[2]];
     let g = b.map(|c| c as i32);
-    let mut acc = 0.0f32;
+    let mut acc = [0.0f32; 4];
     for c in 0..8 {
         let o = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
         let v = view.voxel([g[0] + o[0], g[1] + o[1], g[2] + o[2]])?;
@@ -37,7 +58,9 @@ fn sample(view: &VolumeView<'_>, p: [f32; 3]) -> Option<f32> {
         let w = (0..3)
             .map(|k| if o[k] == 1 { f[k] } else { 1.0 - f[k] })
             .product::<f32>();
-        acc += w * v.tsdf;
+        for (a, x) in acc.iter_mut().zip(value(v)) {
+            *a += w * x;
+        }
     }
     Some(acc)
 }
@@ -62,11 +85,13 @@ pub(crate) fn cast(
     let origin = [t.x as f32, t.y as f32, t.z as f32];
     let voxel = view.voxel_size as f32;
     let block = voxel * BLOCK_SIDE as f32;
-    let rows: Vec<(Vec<f32>, Vec<[f32; 3]>)> = (0..h)
+    type Row = (Vec<f32>, Vec<[f32; 3]>, Vec<[u8; 3]>);
+    let rows: Vec<Row> = (0..h)
         .into_par_iter()
         .map(|y| {
             let mut depth = vec![0.0f32; w];
             let mut normals = vec![[0.0f32; 3]; w];
+            let mut colours = vec![[0u8; 3]; w];
             for x in 0..w {
                 let ray_c = [
                     (x as f32 - camera.cx as f32) / camera.fx as f32,
@@ -100,6 +125,7 @@ pub(crate) fn cast(
                                     let zh = zp + (z - zp) * sp / (sp - s);
                                     depth[x] = zh;
                                     normals[x] = normal(view, at(zh), voxel, ray_c, &r);
+                                    colours[x] = sample_colour(view, at(zh)).unwrap_or([0; 3]);
                                     break;
                                 }
                                 if sp < 0.0 && s > 0.0 {
@@ -113,18 +139,21 @@ pub(crate) fn cast(
                     }
                 }
             }
-            (depth, normals)
+            (depth, normals, colours)
         })
         .collect();
     let mut depth = Vec::with_capacity(w * h);
     let mut normals = Vec::with_capacity(w * h);
-    for (d, n) in rows {
+    let mut colours = Vec::with_capacity(w * h);
+    for (d, n, c) in rows {
         depth.extend(d);
         normals.extend(n);
+        colours.extend(c);
     }
     RayCastImages {
         depth: ImageF32::from_vec(w, h, depth).unwrap_or_else(|| ImageF32::filled(w, h, 0.0)),
         normals,
+        colours,
     }
 }
 

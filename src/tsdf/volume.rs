@@ -385,8 +385,8 @@ impl TsdfVolume {
         Ok(mesh::extract(&self.snapshot()?))
     }
 
-    /// Depth (metres along the optical axis, 0 = no surface) and normals (camera frame) of
-    /// the surface seen by `camera` at `world_from_camera`, ray cast on the CPU.
+    /// Depth (metres along the optical axis, 0 = no surface), normals (camera frame) and
+    /// colour of the surface seen by `camera` at `world_from_camera`, ray cast on the CPU.
     pub fn ray_cast(
         &self,
         camera: &PinholeCamera,
