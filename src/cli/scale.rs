@@ -186,7 +186,8 @@ fn sweep(
             let mut c = cfg.clone();
             c.dynscale.window = t_dft;
             c.dynscale.update = t_upd;
-            let (mut rel, mut scale_err, mut walking, mut sections) = (Vec::new(), Vec::new(), 0, 0);
+            let (mut rel, mut scale_err, mut walking, mut sections) =
+                (Vec::new(), Vec::new(), 0, 0);
             for (name, seed, run) in runs {
                 let Some(spec) = seqs.iter().find(|s| &s.name == name) else {
                     continue;

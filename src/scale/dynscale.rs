@@ -358,7 +358,9 @@ impl GridView<'_> {
             return DVec3::ZERO;
         }
         let x = ((t - self.t0) * self.fps).clamp(self.first as f64, (n - 1) as f64);
-        let i = (x.floor() as usize).min(n.saturating_sub(2)).max(self.first);
+        let i = (x.floor() as usize)
+            .min(n.saturating_sub(2))
+            .max(self.first);
         let a = self.grid[i - self.first];
         let b = self.grid[(i + 1 - self.first).min(held - 1)];
         let p = a.lerp(b, x - i as f64);

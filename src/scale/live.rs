@@ -31,7 +31,9 @@ use std::collections::VecDeque;
 use glam::DVec3;
 use rustfft::{num_complex::Complex, FftPlanner};
 
-use super::dynscale::{DynScale, DynScaleConfig, DynScaleResult, GridView, Section, UpAxis, WindowState};
+use super::dynscale::{
+    DynScale, DynScaleConfig, DynScaleResult, GridView, Section, UpAxis, WindowState,
+};
 use super::spectrum::{HighPass, StepAnalysis};
 use super::ScaleError;
 use crate::trajectory::TimedPose;
@@ -165,7 +167,10 @@ impl LiveDynScale {
     /// walking flag and scale (metres per SLAM unit; NaN before the first walking window).
     pub fn push(&mut self, pose: TimedPose) -> Result<Vec<Section>, ScaleError> {
         if !pose.timestamp.is_finite() || !pose.world_from_camera.is_finite() {
-            return Err(ScaleError::NonFinite(format!("pose at {} s", pose.timestamp)));
+            return Err(ScaleError::NonFinite(format!(
+                "pose at {} s",
+                pose.timestamp
+            )));
         }
         if let Some(last) = &self.last {
             if !(pose.timestamp > last.timestamp) {
@@ -189,8 +194,8 @@ impl LiveDynScale {
             Some(last) => {
                 let a = last.world_from_camera.translation;
                 let lerp = |t: f64| {
-                    let u = ((t - last.timestamp) / (pose.timestamp - last.timestamp))
-                        .clamp(0.0, 1.0);
+                    let u =
+                        ((t - last.timestamp) / (pose.timestamp - last.timestamp)).clamp(0.0, 1.0);
                     a.lerp(p, u)
                 };
                 // Grid samples in [last, pose) (interpolate_position's bracketing).
@@ -291,7 +296,11 @@ impl LiveDynScale {
             if !due {
                 break;
             }
-            let t_start = if j == 0 { t0 } else { self.section_end(t0, j - 1) };
+            let t_start = if j == 0 {
+                t0
+            } else {
+                self.section_end(t0, j - 1)
+            };
             if self.up.is_none() {
                 self.try_find_up(t_end)?;
             }
@@ -418,8 +427,7 @@ impl LiveDynScale {
         let j = if t < t0 + c.window {
             0
         } else {
-            (((t - t0 - c.window) / c.update).floor() as usize + 1)
-                .min(self.origins_raw.len() - 1)
+            (((t - t0 - c.window) / c.update).floor() as usize + 1).min(self.origins_raw.len() - 1)
         };
         let scale = match self.sections.get(j) {
             Some(s) if s.scale.is_finite() => s.scale,
