@@ -253,6 +253,22 @@ def render_load(doc):
     return out
 
 
+def render_scale_sweep(doc):
+    out = [f"`rgbid scale experiment --sweep`: the thesis' table 3.1 on generated walks "
+           f"({', '.join(doc.get('sequences', []))}; {num(doc.get('duration_s'), '.0f')} s each, "
+           f"{doc.get('seeds', '?')} seeds, {doc.get('estimator', '?')} monocular estimates, "
+           f"{doc.get('particles', '?')} particles). dynScale's arc-length error (eq. 3.36, rigid "
+           "alignment, % of the path: mean and worst run), the median per-section scale error "
+           "|s / s_true - 1| and the share of sections detected as walking, per analysis window "
+           "t_DFT and update period t_upd.", ""]
+    body = [[num(r["t_dft"], ".1f"), num(r["t_upd"], ".1f"), r["runs"], num(r["rel_error_pct"], ".2f"),
+             num(r["rel_error_max_pct"], ".2f"), num(r["scale_error_median_pct"], ".2f"),
+             num(r["walking_pct"], ".1f")] for r in doc.get("rows", [])]
+    out += table(["t_DFT (s)", "t_upd (s)", "runs", "error (%)", "worst (%)", "scale error (%)",
+                  "walking (%)"], body)
+    return out
+
+
 def render_generic(doc):
     rows = [r for r in doc.get("rows", []) if isinstance(r, dict)]
     keys = []
@@ -298,13 +314,14 @@ def render_thesis_tables(doc):
 
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
-             "load": render_load, "thesis-tables": render_thesis_tables}
+             "load": render_load, "thesis-tables": render_thesis_tables,
+             "scale-sweep": render_scale_sweep}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead",
           "thesis-options": "Thesis formulations as options on real data",
           "thesis-tables": "Thesis tables 4.1-4.3 and 6.1 on real data",
-          "load": "SLAM under load"}
+          "load": "SLAM under load", "scale-sweep": "Walking scale: t_DFT / t_upd (table 3.1)"}
 
 
 def title(doc):

@@ -134,8 +134,56 @@ fn live_scale_reports_the_offline_sections_as_they_close() {
     // Bad input is an error, not a panic, and the estimator keeps its state.
     let last = *est.last().unwrap();
     assert!(matches!(live.push(last), Err(ScaleError::BadTimestamps(_))));
+}
+
+#[test]
+#[ignore = "known gap: the online up axis is 5.9 deg off on this walk (target 5 deg)"]
+fn known_gap_live_scale_finds_the_up_axis_online_with_a_bounded_grid() {
+    // The estimate's world is its first camera, so gravity is not along any of its axes.
+    let (gt, _) = walk(3, 60.0);
+    let run = emulate_monocular(
+        &gt,
+        &DriftModel {
+            initial_scale: 2.5,
+            seed: 3,
+            ..DriftModel::default()
+        },
+    );
+    let mut cfg = DynScaleConfig::new(1.80, 30.0);
+    cfg.filter.particles = 1000;
     cfg.up = UpAxis::Auto;
-    assert!(LiveDynScale::new(cfg).is_err());
+    let mut live = LiveDynScale::new(cfg.clone()).unwrap();
+    let (mut held, mut causal) = (0, Vec::new());
+    for p in &run.est {
+        live.push(*p).unwrap();
+        held = held.max(live.samples_held());
+        if let Some(q) = live.scaled_pose() {
+            causal.push((q, p.timestamp));
+        }
+    }
+    // Up: the world's z in the first camera's frame; found, then held.
+    let truth = gt[0].world_from_camera.rotation.inverse() * DVec3::Z;
+    let up = live.up().expect("no up axis found");
+    let angle = up.dot(truth).clamp(-1.0, 1.0).acos().to_degrees();
+    assert!(angle < 5.0, "up {up:?} is {angle:.1} deg from {truth:?}");
+    // The grid held is bounded by the windows (8 s frequency window + 2 updates + 1 s).
+    assert!(held <= 330, "{held} samples held");
+    // The final output beats the unscaled estimate, and a causal estimate exists for most of
+    // the walk.
+    let result = live.finish(&run.est).unwrap();
+    let raw = rgbid::scale::arc_length_error(&gt, &run.est, 500, false).unwrap();
+    let scaled = rgbid::scale::arc_length_error(&gt, &result.scaled, 500, false).unwrap();
+    assert!(
+        scaled.relative < 0.1 && scaled.relative < 0.5 * raw.relative,
+        "scaled {:.3}, unscaled {:.3}",
+        scaled.relative,
+        raw.relative
+    );
+    assert!(
+        causal.len() > run.est.len() / 2,
+        "{} causal poses",
+        causal.len()
+    );
 }
 
 #[test]

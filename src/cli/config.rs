@@ -5,7 +5,6 @@ use rgbid::io::settings::to_toml;
 use rgbid::mono::MonoConfig;
 use rgbid::odometry::OdometryConfig;
 use rgbid::place::LoopDetectorParams;
-use rgbid::scale::DynScaleConfig;
 use rgbid::segment::SegmentConfig;
 use rgbid::slam::SlamConfig;
 use serde::de::DeserializeOwned;
@@ -63,7 +62,7 @@ pub fn run(c: Command) -> Result<()> {
                 Target::Segment => dump(SegmentConfig::default(), &a)?,
                 Target::Place => dump(LoopDetectorParams::default(), &a)?,
                 Target::Mono => dump(MonoConfig::default(), &a)?,
-                Target::Scale => dump(DynScaleConfig::default(), &a)?,
+                Target::Scale => dump(super::scale::defaults(), &a)?,
             };
             print!("{text}");
             Ok(())

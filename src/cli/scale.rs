@@ -65,8 +65,9 @@ pub struct RunArgs {
     /// beta of V = alpha f^beta H (`model.beta`) [default: Grieve's].
     #[arg(long)]
     beta: Option<f64>,
-    /// Up axis in the trajectory's world frame: x, y, z (signed), auto (plane fit) or a,b,c
-    /// (`up`) [default: -y].
+    /// Up axis in the trajectory's world frame: x, y, z (signed), auto (normal of the
+    /// positions' best-fit plane; a monocular world frame is arbitrary) or a,b,c (`up`)
+    /// [default: auto].
     #[arg(long, allow_hyphen_values = true)]
     up: Option<String>,
     /// Analysis window t_DFT, seconds, >= 1 (`window`) [default: 4].
@@ -142,6 +143,75 @@ pub struct ExperimentArgs {
     /// estimated and true scale (for residual plots of the frequency and stop detection).
     #[arg(long)]
     windows: Option<PathBuf>,
+    /// Also the thesis' table 3.1 sweep: dynScale's arc-length error (rigid alignment, % of
+    /// the path) and per-section scale error for analysis windows t_DFT in {2, 3, 4, 6, 8} s
+    /// and update periods t_upd in {0.5, 1, 2} s, on the same runs.
+    #[arg(long)]
+    sweep: bool,
+    /// Output: the sweep as a JSON report (for docs/results via scripts/results.py).
+    #[arg(long, requires = "sweep")]
+    json: Option<PathBuf>,
+}
+
+/// One cell of the t_DFT / t_upd sweep.
+#[derive(serde::Serialize)]
+struct SweepRow {
+    /// Analysis window t_DFT, seconds.
+    t_dft: f64,
+    /// Update period t_upd, seconds.
+    t_upd: f64,
+    /// Runs evaluated (sequences x seeds).
+    runs: usize,
+    /// Mean dynScale arc-length error over the runs, % of the path.
+    rel_error_pct: f64,
+    /// Largest dynScale arc-length error of a run, % of the path.
+    rel_error_max_pct: f64,
+    /// Median |s / s_true - 1| over the updated walking sections, %.
+    scale_error_median_pct: f64,
+    /// Share of the sections detected as walking, %.
+    walking_pct: f64,
+}
+
+/// The sweep of the thesis' table 3.1 over the runs already estimated.
+fn sweep(
+    seqs: &[SequenceSpec],
+    runs: &[(String, u64, rgbid::scale::EmulatedRun)],
+    cfg: &ExperimentConfig,
+    bar: &ProgressBar,
+) -> Result<Vec<SweepRow>> {
+    let mut rows = Vec::new();
+    for t_dft in [2.0, 3.0, 4.0, 6.0, 8.0] {
+        for t_upd in [0.5, 1.0, 2.0] {
+            bar.set_message(format!("sweep t_DFT {t_dft} s, t_upd {t_upd} s"));
+            let mut c = cfg.clone();
+            c.dynscale.window = t_dft;
+            c.dynscale.update = t_upd;
+            let (mut rel, mut scale_err, mut walking, mut sections) =
+                (Vec::new(), Vec::new(), 0, 0);
+            for (name, seed, run) in runs {
+                let Some(spec) = seqs.iter().find(|s| &s.name == name) else {
+                    continue;
+                };
+                let r = evaluate_run(spec, *seed, run.clone(), &c)
+                    .with_context(|| format!("sweep {name} seed {seed}, t_DFT {t_dft} s"))?;
+                rel.push(100.0 * r.metric[2].relative);
+                scale_err.extend(r.scale_errors.iter().map(|e| 100.0 * e));
+                walking += r.dynscale.sections.iter().filter(|s| s.walking).count();
+                sections += r.dynscale.sections.len();
+                bar.inc(1);
+            }
+            rows.push(SweepRow {
+                t_dft,
+                t_upd,
+                runs: rel.len(),
+                rel_error_pct: rel.iter().sum::<f64>() / rel.len().max(1) as f64,
+                rel_error_max_pct: rel.iter().cloned().fold(0.0, f64::max),
+                scale_error_median_pct: median(&scale_err),
+                walking_pct: 100.0 * walking as f64 / sections.max(1) as f64,
+            });
+        }
+    }
+    Ok(rows)
 }
 
 /// Runs `rgbid scale`.
@@ -267,6 +337,15 @@ fn section_plot(
     write_png(path, &panels, (3, 1), (1200, 1200))
 }
 
+/// The defaults of `rgbid scale TRAJ`: [`DynScaleConfig::default`] with the up axis found from
+/// the trajectory (a monocular SLAM's world frame is arbitrary).
+pub(crate) fn defaults() -> DynScaleConfig {
+    DynScaleConfig {
+        up: UpAxis::Auto,
+        ..DynScaleConfig::default()
+    }
+}
+
 fn run_scale(a: &RunArgs) -> Result<()> {
     let Some(path) = &a.traj else {
         bail!("give a trajectory: rgbid scale TRAJ --height H [--out scaled.txt] (or a subcommand: calibrate, experiment)");
@@ -281,7 +360,7 @@ fn run_scale(a: &RunArgs) -> Result<()> {
         bail!("--height (metres) is required to scale a trajectory");
     }
     let traj = read_tum(path)?;
-    let cfg = a.config.resolve(DynScaleConfig::default(), |c| {
+    let cfg = a.config.resolve(defaults(), |c| {
         if let Some(v) = a.height {
             c.model.height = v;
         }
@@ -379,7 +458,20 @@ fn run_scale(a: &RunArgs) -> Result<()> {
             p.display()
         );
     }
-    Ok(())
+    super::outcome::warnings(walking_warning(walking, r.sections.len(), r.up))
+}
+
+/// A warning when fewer than half of the `sections` were detected as walking: the scale
+/// rests on few measurements, and a wrong up axis (`up`, world frame) is the usual cause.
+fn walking_warning(walking: usize, sections: usize, up: [f64; 3]) -> Vec<String> {
+    if 2 * walking >= sections {
+        return Vec::new();
+    }
+    vec![format!(
+        "only {walking} of {sections} sections were detected as walking (up axis [{:.3} {:.3} {:.3}]): \
+         the scale rests on few windows; check --up and --height",
+        up[0], up[1], up[2]
+    )]
 }
 
 fn stats_line(label: &str, v: &[f64]) -> String {
@@ -467,7 +559,12 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         .filter(|s| s.name == "head" || s.name == "chest")
         .count() as u64;
     let total = seqs.len() as u64 * a.seeds * per_run
-        + sens_seqs * (alpha_factors.len() + beta_deltas.len()) as u64 * a.seeds;
+        + sens_seqs * (alpha_factors.len() + beta_deltas.len()) as u64 * a.seeds
+        + if a.sweep {
+            15 * seqs.len() as u64 * a.seeds
+        } else {
+            0
+        };
     let bar = ProgressBar::new(total);
     bar.set_style(
         ProgressStyle::with_template(
@@ -577,6 +674,11 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
         }
         sens.push((label.clone(), ratios, rel));
     }
+    let sweep_rows = if a.sweep {
+        Some(sweep(&seqs, &runs, &cfg, &bar)?)
+    } else {
+        None
+    };
     bar.finish_and_clear();
 
     if a.estimator == "mono" {
@@ -664,6 +766,37 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
             100.0 * median(&v),
             100.0 * percentile(&v, 0.9)
         );
+    }
+    if let Some(rows) = &sweep_rows {
+        println!("\nTable 3.1 sweep: dynScale arc-length error (rigid, % of the path; mean and max over runs), median per-section scale error, walking sections");
+        println!(
+            "{:>9} {:>9} {:>5} {:>10} {:>10} {:>14} {:>10}",
+            "t_DFT (s)", "t_upd (s)", "runs", "rel (%)", "max (%)", "scale err (%)", "walking %"
+        );
+        for r in rows {
+            println!(
+                "{:9.1} {:9.1} {:5} {:10.2} {:10.2} {:14.2} {:10.1}",
+                r.t_dft,
+                r.t_upd,
+                r.runs,
+                r.rel_error_pct,
+                r.rel_error_max_pct,
+                r.scale_error_median_pct,
+                r.walking_pct
+            );
+        }
+        if let Some(path) = &a.json {
+            let body = serde_json::json!({
+                "estimator": a.estimator,
+                "duration_s": a.duration,
+                "seeds": a.seeds,
+                "particles": a.particles,
+                "drift": a.drift,
+                "sequences": seqs.iter().map(|s| s.name.clone()).collect::<Vec<_>>(),
+                "rows": rows,
+            });
+            super::report::write(path, "scale-sweep", &super::report::meta(Vec::new()), &body)?;
+        }
     }
     println!("\nSensitivity to walking-model errors (head + chest): s/s_true per section, dynScale relative error");
     if sens.iter().all(|(_, ratios, _)| ratios.is_empty()) {

@@ -316,6 +316,90 @@ impl DynScaleResult {
 /// Sections of Algorithm 1, the filter's estimate after each, and the up axis.
 type Analysis = (Vec<Section>, Vec<Option<f64>>, DVec3);
 
+/// The resampled signals one window of Algorithm 1 reads: the positions on the time grid
+/// `t0 + k / fps` and the high-passed vertical signal, both from absolute sample `first` on
+/// (0 offline; a live estimator holds the last few seconds only).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct GridView<'a> {
+    /// Time of grid sample 0, seconds.
+    pub t0: f64,
+    /// Grid rate, samples per second.
+    pub fps: f64,
+    /// Absolute index of `grid[0]` and `hp[0]`.
+    pub first: usize,
+    /// Positions, SLAM units, world frame.
+    pub grid: &'a [DVec3],
+    /// High-passed projection of the positions on `up`.
+    pub hp: &'a [f64],
+    /// Unit up vector, world frame.
+    pub up: DVec3,
+}
+
+impl GridView<'_> {
+    /// One past the absolute index of the last sample.
+    pub fn len(&self) -> usize {
+        self.first + self.grid.len().min(self.hp.len())
+    }
+
+    /// The high-passed samples `a..=b` (absolute indices, clamped to those held).
+    pub fn hp_range(&self, a: usize, b: usize) -> &[f64] {
+        let held = self.grid.len().min(self.hp.len());
+        let hi = (b + 1).saturating_sub(self.first).min(held);
+        let lo = a.saturating_sub(self.first).min(hi);
+        &self.hp[lo..hi]
+    }
+
+    /// The horizontal part of the position at time `t` (linear between grid samples, clamped
+    /// to the samples held).
+    pub fn horizontal(&self, t: f64) -> DVec3 {
+        let n = self.len();
+        let held = n - self.first;
+        if held == 0 {
+            return DVec3::ZERO;
+        }
+        let x = ((t - self.t0) * self.fps).clamp(self.first as f64, (n - 1) as f64);
+        let i = (x.floor() as usize)
+            .min(n.saturating_sub(2))
+            .max(self.first);
+        let a = self.grid[i - self.first];
+        let b = self.grid[(i + 1 - self.first).min(held - 1)];
+        let p = a.lerp(b, x - i as f64);
+        p - p.dot(self.up) * self.up
+    }
+
+    /// Horizontal arc length over the `duration` seconds ending at `t_hi`, as `pieces` chords
+    /// (summed from the end backwards).
+    pub fn path(&self, t_hi: f64, duration: f64, pieces: usize) -> f64 {
+        (0..pieces)
+            .map(|q| {
+                let ta = t_hi - duration * (q + 1) as f64 / pieces as f64;
+                let tb = t_hi - duration * q as f64 / pieces as f64;
+                (self.horizontal(tb) - self.horizontal(ta)).length()
+            })
+            .sum()
+    }
+}
+
+/// What Algorithm 1 carries from one window to the next: the particle filter and the time of
+/// its last update.
+#[derive(Clone, Debug)]
+pub(crate) struct WindowState {
+    /// The scale filter.
+    pub filter: ScaleFilter,
+    /// Time of the last filter update, seconds.
+    pub last_update: Option<f64>,
+}
+
+impl WindowState {
+    /// A fresh filter seeded by `cfg.seed`.
+    pub fn new(cfg: &DynScaleConfig) -> Result<WindowState, ScaleError> {
+        Ok(WindowState {
+            filter: ScaleFilter::new(cfg.filter.clone(), cfg.seed)?,
+            last_update: None,
+        })
+    }
+}
+
 /// The dynamic scale estimator (Algorithm 1).
 #[derive(Clone, Debug)]
 pub struct DynScale {
@@ -402,28 +486,17 @@ impl DynScale {
         let up = c.up.resolve(&grid)?;
         let vertical: Vec<f64> = grid.iter().map(|p| p.dot(up)).collect();
         let hp = HighPass::filter_signal(c.spectrum.highpass_hz, c.fps, &vertical)?;
-        let horizontal = |t: f64| -> DVec3 {
-            let x = ((t - t0) * c.fps).clamp(0.0, (n - 1) as f64);
-            let i = (x.floor() as usize).min(n.saturating_sub(2));
-            let p = grid[i].lerp(grid[(i + 1).min(n - 1)], x - i as f64);
-            p - p.dot(up) * up
+        let view = GridView {
+            t0,
+            fps: c.fps,
+            first: 0,
+            grid: &grid,
+            hp: &hp,
+            up,
         };
-        // Horizontal arc length over the `duration` seconds ending at `t_hi`, as `pieces`
-        // chords (summed from the end backwards).
-        let path = |t_hi: f64, duration: f64, pieces: usize| -> f64 {
-            (0..pieces)
-                .map(|q| {
-                    let ta = t_hi - duration * (q + 1) as f64 / pieces as f64;
-                    let tb = t_hi - duration * q as f64 / pieces as f64;
-                    (horizontal(tb) - horizontal(ta)).length()
-                })
-                .sum()
-        };
-        let nw = (c.window * c.fps).round() as usize;
-        let mut filter = ScaleFilter::new(c.filter.clone(), c.seed)?;
+        let mut state = WindowState::new(c)?;
         let mut sections: Vec<Section> = Vec::new();
         let mut scales: Vec<Option<f64>> = Vec::new();
-        let mut last_update: Option<f64> = None;
         let mut t_prev = t0;
         let mut j = 0usize;
         loop {
@@ -431,88 +504,105 @@ impl DynScale {
             if t_end > t0 + span + 1e-9 {
                 break;
             }
-            let e = (((t_end - t0) * c.fps).round() as usize).min(n - 1);
-            let s = (e + 1).saturating_sub(nw);
-            // The step frequency the walking model expects at the window's mean horizontal
-            // speed and the current scale (none before the first estimate).
-            let hint = filter.estimate().map(|scale| {
-                let duration = (t_end - (t0 + s as f64 / c.fps)).max(1e-9);
-                let pieces = (duration / 0.1).ceil().max(1.0) as usize;
-                c.model
-                    .frequency(scale * path(t_end, duration, pieces) / duration)
-            });
-            let mut analysis =
-                StepAnalysis::analyze_with_hint(&hp[s..=e], c.fps, &c.spectrum, hint)?;
-            let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
-            let mut frequency_span = (e + 1 - s) as f64 / c.fps;
-            if walking {
-                if let Some((f, span)) = self.stationary_frequency(
-                    &hp,
-                    e,
-                    analysis.frequency,
-                    analysis.frequency_std,
-                    hint,
-                )? {
-                    analysis.frequency = f;
-                    frequency_span = span;
-                }
-            }
-            let (mut v_slam, mut v_walk, mut consistent, mut log10_std) =
-                (0.0, 0.0, false, f64::NAN);
-            let mut steady = false;
-            if walking {
-                let f = analysis.frequency;
-                let stride = 2.0 / f;
-                let k = ((c.window / stride).floor() as usize).max(1);
-                let sub = ((stride / 0.1).ceil() as usize).max(1);
-                let mut stride_speeds = Vec::with_capacity(k);
-                for m in 0..k {
-                    let t_hi = t_end - m as f64 * stride;
-                    stride_speeds.push(path(t_hi, stride, sub) / stride);
-                }
-                v_slam = stride_speeds.iter().sum::<f64>() / k as f64;
-                let vmin = stride_speeds.iter().cloned().fold(f64::INFINITY, f64::min);
-                let vmax = stride_speeds.iter().cloned().fold(0.0, f64::max);
-                steady = vmin > 0.0 && vmax <= c.max_speed_ratio * vmin;
-                v_walk = c.model.speed(f);
-                if v_slam > 0.0 && v_walk > 0.0 && steady {
-                    let dt = last_update.map_or(0.0, |t| t_end - t);
-                    let u = filter.update(v_slam, v_walk, dt)?;
-                    last_update = Some(t_end);
-                    consistent = u.consistent;
-                    log10_std = u.log10_std;
-                } else if !(v_slam > 0.0) {
-                    walking = false;
-                    v_slam = 0.0;
-                    v_walk = 0.0;
-                }
-            }
-            let zero = [0.0; 3];
-            sections.push(Section {
-                t_start: t_prev,
-                t_end,
-                window_start: t0 + s as f64 / c.fps,
-                analysis,
-                frequency_span,
-                walking,
-                steady,
-                v_slam,
-                v_walk,
-                consistent,
-                scale: f64::NAN,
-                log10_std,
-                origin_raw: zero,
-                origin_scaled: zero,
-            });
-            scales.push(filter.estimate());
+            sections.push(self.window_step(&mut state, &view, t_prev, t_end)?);
+            scales.push(state.filter.estimate());
             t_prev = t_end;
             j += 1;
         }
         Ok((sections, scales, up))
     }
 
+    /// One section of Algorithm 1: the window of `t_DFT` seconds ending at `t_end` (seconds)
+    /// is analysed on `view`, and a steady walking window updates the filter in `state`.
+    /// The section spans `[t_start, t_end]`; its `scale` and origins are not set.
+    pub(crate) fn window_step(
+        &self,
+        state: &mut WindowState,
+        view: &GridView<'_>,
+        t_start: f64,
+        t_end: f64,
+    ) -> Result<Section, ScaleError> {
+        let c = &self.cfg;
+        let t0 = view.t0;
+        let n = view.len();
+        let nw = (c.window * c.fps).round() as usize;
+        let e = (((t_end - t0) * c.fps).round() as usize).min(n.saturating_sub(1));
+        let s = (e + 1).saturating_sub(nw).max(view.first);
+        let filter = &mut state.filter;
+        // The step frequency the walking model expects at the window's mean horizontal
+        // speed and the current scale (none before the first estimate).
+        let hint = filter.estimate().map(|scale| {
+            let duration = (t_end - (t0 + s as f64 / c.fps)).max(1e-9);
+            let pieces = (duration / 0.1).ceil().max(1.0) as usize;
+            c.model
+                .frequency(scale * view.path(t_end, duration, pieces) / duration)
+        });
+        let mut analysis =
+            StepAnalysis::analyze_with_hint(view.hp_range(s, e), c.fps, &c.spectrum, hint)?;
+        let mut walking = analysis.is_walking(&c.spectrum, filter.estimate());
+        let mut frequency_span = (e + 1 - s) as f64 / c.fps;
+        if walking {
+            if let Some((f, span)) = self.stationary_frequency(
+                view,
+                e,
+                analysis.frequency,
+                analysis.frequency_std,
+                hint,
+            )? {
+                analysis.frequency = f;
+                frequency_span = span;
+            }
+        }
+        let (mut v_slam, mut v_walk, mut consistent, mut log10_std) = (0.0, 0.0, false, f64::NAN);
+        let mut steady = false;
+        if walking {
+            let f = analysis.frequency;
+            let stride = 2.0 / f;
+            let k = ((c.window / stride).floor() as usize).max(1);
+            let sub = ((stride / 0.1).ceil() as usize).max(1);
+            let mut stride_speeds = Vec::with_capacity(k);
+            for m in 0..k {
+                let t_hi = t_end - m as f64 * stride;
+                stride_speeds.push(view.path(t_hi, stride, sub) / stride);
+            }
+            v_slam = stride_speeds.iter().sum::<f64>() / k as f64;
+            let vmin = stride_speeds.iter().cloned().fold(f64::INFINITY, f64::min);
+            let vmax = stride_speeds.iter().cloned().fold(0.0, f64::max);
+            steady = vmin > 0.0 && vmax <= c.max_speed_ratio * vmin;
+            v_walk = c.model.speed(f);
+            if v_slam > 0.0 && v_walk > 0.0 && steady {
+                let dt = state.last_update.map_or(0.0, |t| t_end - t);
+                let u = filter.update(v_slam, v_walk, dt)?;
+                state.last_update = Some(t_end);
+                consistent = u.consistent;
+                log10_std = u.log10_std;
+            } else if !(v_slam > 0.0) {
+                walking = false;
+                v_slam = 0.0;
+                v_walk = 0.0;
+            }
+        }
+        let zero = [0.0; 3];
+        Ok(Section {
+            t_start,
+            t_end,
+            window_start: t0 + s as f64 / c.fps,
+            analysis,
+            frequency_span,
+            walking,
+            steady,
+            v_slam,
+            v_walk,
+            consistent,
+            scale: f64::NAN,
+            log10_std,
+            origin_raw: zero,
+            origin_scaled: zero,
+        })
+    }
+
     /// The step frequency from the longest window ending at sample `e` of the high-passed
-    /// vertical signal `hp` over which the pace was stationary
+    /// vertical signal of `view` over which the pace was stationary
     /// ([`DynScaleConfig::frequency_window`]): lengths from `frequency_window` down in steps
     /// of `window / 2`, longer than `window`; a length is taken when both the `window`-long
     /// analysis at its start and the whole long one are within three standard deviations
@@ -521,7 +611,7 @@ impl DynScale {
     /// frequency (Hz) and the length used (seconds), or `None` when no longer window passes.
     fn stationary_frequency(
         &self,
-        hp: &[f64],
+        view: &GridView<'_>,
         e: usize,
         f: f64,
         f_std: f64,
@@ -532,10 +622,11 @@ impl DynScale {
         let step = ((0.5 * c.window * c.fps).round() as usize).max(1);
         let mut nl = (c.frequency_window * c.fps).round() as usize;
         let analyse = |a: usize, b: usize| {
-            StepAnalysis::analyze_with_hint(&hp[a..=b], c.fps, &c.spectrum, hint)
+            StepAnalysis::analyze_with_hint(view.hp_range(a, b), c.fps, &c.spectrum, hint)
         };
         while nl > nw {
-            if e + 1 >= nl {
+            // Only windows that lie inside the samples held (all of them offline).
+            if e + 1 >= nl && e + 1 - nl >= view.first {
                 let sl = e + 1 - nl;
                 let first = analyse(sl, sl + nw - 1)?;
                 // Two estimates of one stationary pace differ by noise alone: within three
@@ -555,7 +646,7 @@ impl DynScale {
 
     /// Sets the sections' scales (backfilled before the first update) and origins, adds the
     /// tail after the last update, and scales the trajectory.
-    fn finish(
+    pub(crate) fn finish(
         &self,
         traj: &[TimedPose],
         mut sections: Vec<Section>,
@@ -623,120 +714,5 @@ impl DynScale {
             })
             .collect();
         Ok(result)
-    }
-}
-
-/// Algorithm 1 fed one pose at a time, for a live monocular system: every `t_upd` seconds
-/// of input (once one `t_DFT` window is in) it closes a section and reports its scale.
-///
-/// Each update re-runs the analysis of [`DynScale::run`] over the poses so far. It is causal
-/// (resampling from the first time stamp, the forward high-pass, windows that end at the
-/// update time, a seeded particle filter updated in time order), so the sections reported
-/// live are exactly those of an offline run over the whole trajectory. The cost of an update
-/// grows with the length of the walk (one FFT per past section: about 0.1 s of CPU per
-/// update after an hour). The up axis must be fixed: an automatic one would change as the
-/// trajectory grows.
-#[derive(Clone, Debug)]
-pub struct LiveDynScale {
-    estimator: DynScale,
-    poses: Vec<TimedPose>,
-    sections_reported: usize,
-    latest: Option<DynScaleResult>,
-}
-
-impl LiveDynScale {
-    /// A live estimator; `cfg.up` must be [`UpAxis::Fixed`].
-    pub fn new(cfg: DynScaleConfig) -> Result<LiveDynScale, ScaleError> {
-        if matches!(cfg.up, UpAxis::Auto) {
-            return Err(ScaleError::InvalidParameter {
-                name: "up",
-                why: "live scale needs a fixed up axis (auto changes as the trajectory grows)"
-                    .into(),
-            });
-        }
-        Ok(LiveDynScale {
-            estimator: DynScale::new(cfg)?,
-            poses: Vec::new(),
-            sections_reported: 0,
-            latest: None,
-        })
-    }
-
-    /// Adds the next pose (`world_from_camera`, SLAM units; time stamps strictly increasing).
-    /// Returns the sections closed by it (usually none, one per `t_upd` seconds), with their
-    /// walking flag and scale (metres per SLAM unit; before the first walking window the
-    /// scale is NaN and nothing is scaled yet).
-    pub fn push(&mut self, pose: TimedPose) -> Result<Vec<Section>, ScaleError> {
-        if !pose.timestamp.is_finite()
-            || !pose.world_from_camera.translation.is_finite()
-            || !pose.world_from_camera.rotation.is_finite()
-        {
-            return Err(ScaleError::NonFinite(format!(
-                "pose at {} s",
-                pose.timestamp
-            )));
-        }
-        if let Some(last) = self.poses.last() {
-            if pose.timestamp <= last.timestamp {
-                return Err(ScaleError::BadTimestamps(format!(
-                    "{} s after {} s",
-                    pose.timestamp, last.timestamp
-                )));
-            }
-        }
-        self.poses.push(pose);
-        let cfg = self.estimator.config();
-        let t0 = self.poses[0].timestamp;
-        let span = pose.timestamp - t0;
-        if span < cfg.window {
-            return Ok(Vec::new());
-        }
-        // Sections end at t0 + window + j update; the one after the last reported is due?
-        let next_end = t0 + cfg.window + self.sections_reported as f64 * cfg.update;
-        if pose.timestamp + 1e-9 < next_end {
-            return Ok(Vec::new());
-        }
-        let (sections, scales, up) = self.estimator.analyse(&self.poses)?;
-        let new: Vec<Section> = sections[self.sections_reported.min(sections.len())..]
-            .iter()
-            .zip(&scales[self.sections_reported.min(scales.len())..])
-            .map(|(sec, sc)| Section {
-                scale: sc.unwrap_or(f64::NAN),
-                ..*sec
-            })
-            .collect();
-        self.sections_reported = sections.len();
-        if scales.iter().any(Option::is_some) {
-            self.latest = Some(self.estimator.finish(&self.poses, sections, scales, up)?);
-        }
-        Ok(new)
-    }
-
-    /// The latest full result (sections and the scaled trajectory so far); `None` until the
-    /// first walking window.
-    pub fn result(&self) -> Option<&DynScaleResult> {
-        self.latest.as_ref()
-    }
-
-    /// The scale in effect now (metres per SLAM unit); `None` until the first walking window.
-    pub fn scale(&self) -> Option<f64> {
-        self.latest
-            .as_ref()
-            .and_then(|r| r.sections.last())
-            .map(|s| s.scale)
-    }
-
-    /// The latest pose scaled to metres (eq. 3.31-3.32); `None` until the first walking
-    /// window.
-    pub fn scaled_pose(&self) -> Option<TimedPose> {
-        let r = self.latest.as_ref()?;
-        let p = self.poses.last()?;
-        Some(TimedPose {
-            timestamp: p.timestamp,
-            world_from_camera: Se3::new(
-                p.world_from_camera.rotation,
-                r.scale_position(p.timestamp, p.world_from_camera.translation),
-            ),
-        })
     }
 }

@@ -14,8 +14,10 @@
 //! - [`WalkingModel`]: the speed model and its calibration by a power fit ([`calibrate`];
 //!   3.11, 3.4.1).
 //! - [`ScaleFilter`]: the particle filter over `(V_SLAM, log10 s)`.
-//! - [`DynScale`], [`LiveDynScale`]: Algorithm 1 (sliding window `t_DFT`, update every
-//!   `t_upd`), recursive section scaling of positions, velocities and landmarks (3.31-3.35).
+//! - [`DynScale`]: Algorithm 1 (sliding window `t_DFT`, update every `t_upd`), recursive
+//!   section scaling of positions, velocities and landmarks (3.31-3.35).
+//! - [`LiveDynScale`]: the same on a live stream, with bounded work per update and the up
+//!   axis found online.
 //! - [`emulate_monocular`]: an emulator of monocular SLAM output (pose noise + drifting scale)
 //!   from a ground-truth trajectory, for experiments.
 //! - [`optim_sim3`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
@@ -28,6 +30,7 @@
 
 pub(crate) mod drift;
 pub(crate) mod dynscale;
+pub(crate) mod live;
 pub(crate) mod loops;
 pub(crate) mod metric;
 pub(crate) mod particle;
@@ -36,9 +39,10 @@ pub(crate) mod walking;
 
 pub use drift::{emulate_monocular, DriftModel, EmulatedRun};
 pub use dynscale::{
-    check_trajectory, interpolate_position, DynScale, DynScaleConfig, DynScaleResult, LiveDynScale,
-    Section, UpAxis,
+    check_trajectory, interpolate_position, DynScale, DynScaleConfig, DynScaleResult, Section,
+    UpAxis,
 };
+pub use live::{LiveDynScale, SectionTransform};
 pub use loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
 pub use metric::{arc_length_error, ArcLengthError};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
