@@ -235,15 +235,31 @@ def render_load(doc):
     out = [f"`rgbid bench load`: {doc.get('frames', '?')} generated frames ({doc.get('width', '?')}x"
            f"{doc.get('height', '?')}, `office:loop`, a lap every 300 frames, CPU backend) in "
            f"{num(doc.get('wall_s'), '.0f')} s, {doc.get('keyframes', '?')} keyframes. Memory sampled "
-           "during the run: the process (VmRSS) and the SLAM instance's own account.", ""]
-    out += table(["frame", "keyframes", "process MB", "instance MB"],
-                 [[s["frame"], s["keyframes"], mb(s.get("rss_bytes")), mb(s.get("instance_bytes"))]
-                  for s in doc.get("samples", [])])
+           "during the run: the process (VmRSS), its live heap (allocated and not freed, counted by the "
+           "program's allocator) and the SLAM instance's own account." + (
+               "" if doc.get("complete", True) else
+               f" Partial report: the run was stopped after frame {(doc.get('samples') or [{}])[-1].get('frame', '?')}"
+               " (the figures below are of the samples so far)."), ""]
+    has_heap = any("heap_bytes" in s for s in doc.get("samples", []))
+    if has_heap:
+        out += table(["frame", "keyframes", "process MB", "heap MB", "instance MB"],
+                     [[s["frame"], s["keyframes"], mb(s.get("rss_bytes")), mb(s.get("heap_bytes")),
+                       mb(s.get("instance_bytes"))] for s in doc.get("samples", [])])
+    else:
+        out += table(["frame", "keyframes", "process MB", "instance MB"],
+                     [[s["frame"], s["keyframes"], mb(s.get("rss_bytes")), mb(s.get("instance_bytes"))]
+                      for s in doc.get("samples", [])])
+    heap = (f"heap {num(doc.get('heap_bytes_per_keyframe'), '.0f')}, " if has_heap else "")
     out += ["", "Bytes per keyframe (slope over the keyframe count): process "
-            f"{num(doc.get('rss_bytes_per_keyframe'), '.0f')}, instance "
+            f"{num(doc.get('rss_bytes_per_keyframe'), '.0f')}, {heap}instance "
             f"{num(doc.get('instance_bytes_per_keyframe'), '.0f')}, saved map "
             f"{num(doc.get('map_bytes_per_keyframe'), '.0f')}. Process memory besides the instance "
-            f"grows {num(doc.get('other_bytes_per_frame'), '.1f')} bytes per frame (slope over frames).", ""]
+            f"grows {num(doc.get('other_bytes_per_frame'), '.1f')} bytes per frame (slope over frames)."]
+    if has_heap:
+        out += ["Live heap outside the instance's account (least squares over keyframes and frames "
+                f"together): {num(doc.get('unaccounted_heap_bytes_per_keyframe'), '.0f')} bytes per "
+                f"keyframe, {num(doc.get('unaccounted_heap_bytes_per_frame'), '.1f')} bytes per frame."]
+    out += [""]
     t = doc.get("threads")
     if t:
         out += [f"Two sessions of {t['frames']} frames in one process: one after the other "

@@ -22,8 +22,8 @@ pub struct LoadBench {
     /// Frames of the long run, at 30 per second, one lap of the loop every 300 frames (>= 2).
     #[arg(long, value_parser = range::at_least_two, default_value_t = 20_000)]
     pub frames: usize,
-    /// Image width in pixels (the height is 3/4 of it), >= 16.
-    #[arg(long, value_parser = clap::value_parser!(u32).range(16..), default_value_t = 320)]
+    /// Image width in pixels (the height is 3/4 of it), 16 to 16384.
+    #[arg(long, value_parser = range::image_side, default_value_t = 320)]
     pub width: u32,
     /// Frames between two memory samples (>= 1).
     #[arg(long, value_parser = range::at_least_one, default_value_t = 500)]
@@ -46,6 +46,8 @@ struct Sample {
     keyframes: usize,
     /// Resident memory of the process, bytes (VmRSS).
     rss_bytes: Option<u64>,
+    /// Live heap of the process (allocated and not freed), bytes: see [`super::heap`].
+    heap_bytes: usize,
     /// What the SLAM instance holds by its own account, bytes.
     instance_bytes: usize,
 }
@@ -85,6 +87,39 @@ fn slope(points: &[(f64, f64)]) -> f64 {
         sxy / sxx
     } else {
         f64::NAN
+    }
+}
+
+/// Least-squares fit of `y = a + b k + c f` over points `(k, f, y)`: `(b, c)`, the growth per
+/// keyframe and per frame (NaN when the two are not separable, e.g. too few points).
+fn growth(points: &[(f64, f64, f64)]) -> (f64, f64) {
+    use nalgebra::{Matrix3, Vector3};
+    // Keyframe and frame counts that move together cannot be told apart.
+    let n = points.len() as f64;
+    let (mk, mf) = (
+        points.iter().map(|p| p.0).sum::<f64>() / n,
+        points.iter().map(|p| p.1).sum::<f64>() / n,
+    );
+    let (mut skk, mut sff, mut skf) = (0.0, 0.0, 0.0);
+    for &(k, f, _) in points {
+        skk += (k - mk) * (k - mk);
+        sff += (f - mf) * (f - mf);
+        skf += (k - mk) * (f - mf);
+    }
+    let correlation = skf / (skk * sff).sqrt();
+    if points.len() < 3 || !(correlation.abs() < 1.0 - 1e-9) {
+        return (f64::NAN, f64::NAN);
+    }
+    let mut ata = Matrix3::<f64>::zeros();
+    let mut aty = Vector3::<f64>::zeros();
+    for &(k, f, y) in points {
+        let row = Vector3::new(1.0, k, f);
+        ata += row * row.transpose();
+        aty += row * y;
+    }
+    match ata.lu().solve(&aty) {
+        Some(x) if x.iter().all(|v| v.is_finite()) => (x[1], x[2]),
+        _ => (f64::NAN, f64::NAN),
     }
 }
 
@@ -162,6 +197,7 @@ pub fn run(a: LoadBench) -> Result<()> {
                 frame: i + 1,
                 keyframes,
                 rss_bytes: rss_bytes(),
+                heap_bytes: super::heap::live_bytes(),
                 instance_bytes: slam.memory().now.total(),
             };
             bar.set_message(format!(
@@ -169,20 +205,35 @@ pub fn run(a: LoadBench) -> Result<()> {
                 s.rss_bytes.unwrap_or(0) as f64 / 1e6
             ));
             samples.push(s);
+            if let Some(path) = &a.json {
+                // The curve so far, so that a long run stopped early still leaves it.
+                let body = serde_json::json!({
+                    "frames": a.frames,
+                    "width": camera.width,
+                    "height": camera.height,
+                    "complete": false,
+                    "wall_s": t0.elapsed().as_secs_f64(),
+                    "keyframes": keyframes,
+                    "samples": samples,
+                });
+                let meta = super::report::meta(Vec::new());
+                bar.suspend(|| super::report::write(path, "load", &meta, &body))?;
+            }
         }
     }
     bar.finish_and_clear();
     let result = slam.finish()?;
     let wall_s = t0.elapsed().as_secs_f64();
-    println!("| frame | keyframes | rss MB | instance MB |");
-    println!("|---|---|---|---|");
+    println!("| frame | keyframes | rss MB | heap MB | instance MB |");
+    println!("|---|---|---|---|---|");
     for s in &samples {
         println!(
-            "| {} | {} | {} | {:.1} |",
+            "| {} | {} | {} | {:.1} | {:.1} |",
             s.frame,
             s.keyframes,
             s.rss_bytes
                 .map_or("?".into(), |b| format!("{:.1}", b as f64 / 1e6)),
+            s.heap_bytes as f64 / 1e6,
             s.instance_bytes as f64 / 1e6
         );
     }
@@ -197,7 +248,22 @@ pub fn run(a: LoadBench) -> Result<()> {
         )
     };
     let rss_per_keyframe = per_kf(&|s| s.rss_bytes.map(|b| b as f64));
+    let heap_per_keyframe = per_kf(&|s| Some(s.heap_bytes as f64));
     let instance_per_keyframe = per_kf(&|s| Some(s.instance_bytes as f64));
+    // The heap the instance's account does not cover, split into growth per keyframe and per
+    // frame (separable once revisits make keyframes rarer than in the first lap).
+    let (unaccounted_per_keyframe, unaccounted_per_frame) = growth(
+        &samples
+            .iter()
+            .map(|s| {
+                (
+                    s.keyframes as f64,
+                    s.frame as f64,
+                    s.heap_bytes as f64 - s.instance_bytes as f64,
+                )
+            })
+            .collect::<Vec<_>>(),
+    );
     let other_per_frame = slope(
         &samples
             .iter()
@@ -212,8 +278,10 @@ pub fn run(a: LoadBench) -> Result<()> {
     let map_per_keyframe = result.map.bytes_per_keyframe();
     println!(
         "{} keyframes in {wall_s:.0} s; bytes per keyframe: process {rss_per_keyframe:.0}, \
-         instance {instance_per_keyframe:.0}, saved map {map_per_keyframe:.0}; process memory \
-         besides the instance grows {other_per_frame:.1} bytes per frame",
+         heap {heap_per_keyframe:.0}, instance {instance_per_keyframe:.0}, saved map \
+         {map_per_keyframe:.0}; process memory besides the instance grows {other_per_frame:.1} \
+         bytes per frame; heap outside the instance's account: {unaccounted_per_keyframe:.0} \
+         bytes per keyframe and {unaccounted_per_frame:.1} bytes per frame",
         result.keyframes().len()
     );
     drop(result);
@@ -260,10 +328,14 @@ pub fn run(a: LoadBench) -> Result<()> {
             "frames": a.frames,
             "width": camera.width,
             "height": camera.height,
+            "complete": true,
             "wall_s": wall_s,
             "keyframes": keyframes,
             "samples": samples,
             "rss_bytes_per_keyframe": rss_per_keyframe,
+            "heap_bytes_per_keyframe": heap_per_keyframe,
+            "unaccounted_heap_bytes_per_keyframe": unaccounted_per_keyframe,
+            "unaccounted_heap_bytes_per_frame": unaccounted_per_frame,
             "instance_bytes_per_keyframe": instance_per_keyframe,
             "map_bytes_per_keyframe": map_per_keyframe,
             "other_bytes_per_frame": other_per_frame,
@@ -283,5 +355,20 @@ mod tests {
         let s = slope(&[(0.0, 1.0), (1.0, 3.0), (2.0, 5.0)]);
         assert!((s - 2.0).abs() < 1e-12);
         assert!(slope(&[(1.0, 1.0), (1.0, 2.0)]).is_nan());
+    }
+
+    #[test]
+    fn growth_separates_keyframes_from_frames() {
+        // y = 5 + 1000 k + 3 f, with keyframes rarer in the second half.
+        let pts: Vec<(f64, f64, f64)> = [(10.0, 100.0), (20.0, 200.0), (25.0, 300.0), (28.0, 400.0)]
+            .into_iter()
+            .map(|(k, f)| (k, f, 5.0 + 1000.0 * k + 3.0 * f))
+            .collect();
+        let (per_kf, per_frame) = growth(&pts);
+        assert!((per_kf - 1000.0).abs() < 1e-6 && (per_frame - 3.0).abs() < 1e-6);
+        // Keyframes proportional to frames: not separable.
+        let line: Vec<(f64, f64, f64)> = (1..5).map(|i| (i as f64, 10.0 * i as f64, 1.0)).collect();
+        let (a, b) = growth(&line);
+        assert!(a.is_nan() && b.is_nan(), "{a} {b}");
     }
 }

@@ -12,6 +12,8 @@ mod testing;
 
 pub use backend::{describe_adapters, select_backend, BackendChoice, ComputeBackend};
 pub use context::{GpuContext, GpuError};
+#[doc(hidden)]
+pub use context::LOSE_DEVICE_ENV;
 #[cfg(test)]
 pub(crate) use testing::{host_layout, layout_mismatches};
 #[doc(hidden)]

@@ -97,6 +97,7 @@ pub struct TumSequence {
     undistort: Option<Arc<UndistortMap>>,
     truth: Truth,
     colour_camera: Option<Box<PinholeCamera>>,
+    depth_warning: Option<String>,
 }
 
 impl TumSequence {
@@ -203,11 +204,19 @@ impl TumSequence {
             // first image's header must agree with the camera before the table is built.
             check_image_size(&entries[0].rgb, &cfg.camera, &cfg.source)?;
         }
-        if let Ok(d) = decode_depth(&entries[0].depth) {
-            if let Some(w) = depth_range_warning(&d.raw, cfg.depth_factor) {
-                log::warn!("{}: {w}", entries[0].depth.display());
-            }
-        }
+        // The first frame with enough measurements judges the depth factor for the sequence
+        // (a wrong factor is the same for every frame); unreadable or blank frames are the
+        // loader's to report.
+        let depth_warning = entries
+            .iter()
+            .take(DEPTH_CHECK_FRAMES)
+            .filter_map(|e| decode_depth(&e.depth).ok().map(|d| (e, d)))
+            .find_map(|(e, d)| {
+                depth_range_warning(&d.raw, cfg.depth_factor)
+                    .map(|w| Some(format!("{}: {w}", e.depth.display())))
+                    .or_else(|| enough_depths(&d.raw).then_some(None))
+            })
+            .flatten();
         let undistort =
             (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
         let seq = TumSequence {
@@ -221,9 +230,18 @@ impl TumSequence {
             undistort,
             truth,
             colour_camera,
+            depth_warning,
         };
         seq.load(0)?;
         Ok(seq)
+    }
+
+    /// A warning when the depth factor looks wrong for the sensor's range: many valid depths
+    /// of the first frame with measurements fall outside [`SENSOR_RANGE_M`] at
+    /// [`Self::depth_factor`]; the message names the image and the common factor that would
+    /// fit. Frames still load (a scene can be unusual); the caller reports it.
+    pub fn depth_range_warning(&self) -> Option<&str> {
+        self.depth_warning.as_deref()
     }
 
     /// Number of frames.
@@ -806,17 +824,33 @@ pub const SENSOR_RANGE_M: (f64, f64) = (0.3, 10.0);
 /// sensor measures nothing below its minimum range, so even a fifth there is suspect).
 const OUT_OF_RANGE_SHARE: f64 = 0.2;
 
-/// A warning when many valid depths (of a sample) fall outside [`SENSOR_RANGE_M`] at
-/// `factor`, naming the common factor that would put the most of them inside.
-fn depth_range_warning(raw: &[u16], factor: f64) -> Option<String> {
+/// Frames read at most, from the first, to find one with enough measurements to judge the
+/// depth factor by.
+const DEPTH_CHECK_FRAMES: usize = 5;
+
+/// Valid depths of a sample needed to judge the depth factor by.
+const MIN_DEPTH_SAMPLE: usize = 20;
+
+/// The valid raw depths of a sample of at most about 16384 pixels.
+fn depth_sample(raw: &[u16]) -> Vec<f64> {
     let stride = (raw.len() / 16384).max(1);
-    let sample: Vec<f64> = raw
-        .iter()
+    raw.iter()
         .step_by(stride)
         .filter(|&&d| d > 0)
         .map(|&d| f64::from(d))
-        .collect();
-    if sample.len() < 20 {
+        .collect()
+}
+
+/// Whether an image has enough valid depths for [`depth_range_warning`] to judge it.
+fn enough_depths(raw: &[u16]) -> bool {
+    depth_sample(raw).len() >= MIN_DEPTH_SAMPLE
+}
+
+/// A warning when many valid depths (of a sample) fall outside [`SENSOR_RANGE_M`] at
+/// `factor`, naming the common factor that would put the most of them inside.
+fn depth_range_warning(raw: &[u16], factor: f64) -> Option<String> {
+    let sample = depth_sample(raw);
+    if sample.len() < MIN_DEPTH_SAMPLE {
         return None;
     }
     let (lo, hi) = SENSOR_RANGE_M;
