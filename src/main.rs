@@ -70,6 +70,7 @@ enum Command {
 }
 
 fn main() {
+    cli::heap::init_trace_from_env();
     let cli = Cli::parse();
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
         // Mesa's Vulkan drivers complain on every adapter query when this is unset (headless
@@ -129,7 +130,7 @@ mod tests {
 
     /// What a message or a help text says to state a valid range.
     const RANGE_WORDS: [&str; 9] = [
-        ">= ", "> 0", " to ", "[0, 1]", "(0, 1)", "(-1, 1)", "finite", "[0.001", "at least",
+        ">= ", "> 0", " to ", "[0, 1]", "(0, ", "(-1, 1)", "finite", "[0.001", "at least",
     ];
 
     fn states_a_range(text: &str) -> bool {

@@ -83,10 +83,22 @@ fn bad_numbers_are_usage_errors_that_name_the_option_and_range() {
         (vec!["demo", "--width", "4"], "--width", "16 to 16384"),
         (vec!["slam", "--session", "5000"], "--session", "0 to 1000"),
         (vec!["synth", "--width", "0"], "--width", "16 to 16384"),
-        (vec!["synth", "--height", "99999"], "--height", "16 to 16384"),
+        (
+            vec!["synth", "--height", "99999"],
+            "--height",
+            "16 to 16384",
+        ),
         (vec!["synth", "--sessions", "0"], "--sessions", "1 to 1000"),
-        (vec!["synth", "--motion-blur", "1000"], "--motion-blur", "0 to 64"),
-        (vec!["synth", "--seed=-1"], "--seed", "0 to 18446744073709551615"),
+        (
+            vec!["synth", "--motion-blur", "1000"],
+            "--motion-blur",
+            "0 to 64",
+        ),
+        (
+            vec!["synth", "--seed=-1"],
+            "--seed",
+            "0 to 18446744073709551615",
+        ),
         (vec!["mono", "--zncc", "1"], "--zncc", "(-1, 1)"),
         (vec!["mono", "--frames", "0"], "--frames", ">= 1"),
         (vec!["scale", "--particles", "5"], "--particles", ">= 10"),
@@ -98,16 +110,36 @@ fn bad_numbers_are_usage_errors_that_name_the_option_and_range() {
         ),
         (vec!["segment", "--k", "0"], "--k", "> 0"),
         (vec!["mesh", "s", "--voxel", "0"], "--voxel", "> 0"),
-        (vec!["eval", "a", "b", "--t-offset", "nan"], "--t-offset", "finite"),
+        (
+            vec!["eval", "a", "b", "--t-offset", "nan"],
+            "--t-offset",
+            "finite",
+        ),
         (
             vec!["graph", "optimize", "a.g2o", "--max-iterations=-1"],
             "--max-iterations",
             ">= 0",
         ),
-        (vec!["bench", "load", "--width", "8"], "--width", "16 to 16384"),
-        (vec!["bench", "tsdf", "--voxel", "x"], "--voxel", "not a number"),
-        (vec!["vocab", "train", "--procedural", "x"], "--procedural", ">= 0"),
-        (vec!["place", "loops", "s", "--min-separation=-3"], "--min-separation", ">= 0"),
+        (
+            vec!["bench", "load", "--width", "8"],
+            "--width",
+            "16 to 16384",
+        ),
+        (
+            vec!["bench", "tsdf", "--voxel", "x"],
+            "--voxel",
+            "not a number",
+        ),
+        (
+            vec!["vocab", "train", "--procedural", "x"],
+            "--procedural",
+            ">= 0",
+        ),
+        (
+            vec!["place", "loops", "s", "--min-separation=-3"],
+            "--min-separation",
+            ">= 0",
+        ),
         (
             vec!["eval", "a", "b", "--max-diff", "inf"],
             "--max-diff",
@@ -448,7 +480,10 @@ fn odometry_skips_and_counts_bad_frames() {
     .expect("json");
     let summary = &sidecar["summary"];
     assert_eq!(summary["skipped_frames"], 3, "{sidecar}");
-    assert_eq!((&summary["frames"], &summary["poses"]), (&10.into(), &7.into()));
+    assert_eq!(
+        (&summary["frames"], &summary["poses"]),
+        (&10.into(), &7.into())
+    );
     assert_eq!(summary["status"], "complete", "{sidecar}");
     assert!(summary["warnings"].to_string().contains("3 frames skipped"));
 }
@@ -485,7 +520,9 @@ fn a_depth_factor_5x_off_is_reported_with_the_factor_that_fits() {
     assert!(t.contains("outside the sensor range"), "{t}");
     assert!(t.contains("factor 5000 would put"), "{t}");
     assert_eq!(
-        rgbid::io::trajectory::read_tum(&out).expect("trajectory").len(),
+        rgbid::io::trajectory::read_tum(&out)
+            .expect("trajectory")
+            .len(),
         3
     );
     let sidecar: serde_json::Value = serde_json::from_str(

@@ -200,6 +200,19 @@ pub fn run(a: LoadBench) -> Result<()> {
                 heap_bytes: super::heap::live_bytes(),
                 instance_bytes: slam.memory().now.total(),
             };
+            let large = super::heap::large_classes()
+                .into_iter()
+                .map(|(size, bytes)| format!("{}M:{:.0}MB", size >> 20, bytes as f64 / 1e6))
+                .collect::<Vec<_>>()
+                .join(" ");
+            bar.suspend(|| {
+                println!(
+                    "frame {}: heap {:.1} MB, instance {:.1} MB; allocations >= 1 MiB by size: {large}",
+                    s.frame,
+                    s.heap_bytes as f64 / 1e6,
+                    s.instance_bytes as f64 / 1e6
+                )
+            });
             bar.set_message(format!(
                 "kf {keyframes}, rss {:.0} MB",
                 s.rss_bytes.unwrap_or(0) as f64 / 1e6
@@ -360,10 +373,11 @@ mod tests {
     #[test]
     fn growth_separates_keyframes_from_frames() {
         // y = 5 + 1000 k + 3 f, with keyframes rarer in the second half.
-        let pts: Vec<(f64, f64, f64)> = [(10.0, 100.0), (20.0, 200.0), (25.0, 300.0), (28.0, 400.0)]
-            .into_iter()
-            .map(|(k, f)| (k, f, 5.0 + 1000.0 * k + 3.0 * f))
-            .collect();
+        let pts: Vec<(f64, f64, f64)> =
+            [(10.0, 100.0), (20.0, 200.0), (25.0, 300.0), (28.0, 400.0)]
+                .into_iter()
+                .map(|(k, f)| (k, f, 5.0 + 1000.0 * k + 3.0 * f))
+                .collect();
         let (per_kf, per_frame) = growth(&pts);
         assert!((per_kf - 1000.0).abs() < 1e-6 && (per_frame - 3.0).abs() < 1e-6);
         // Keyframes proportional to frames: not separable.

@@ -268,7 +268,9 @@ pub fn run(args: Args) -> Result<()> {
         warnings: input_warning.into_iter().collect(),
     };
     if let Some(w) = skips.warning() {
-        summary.warnings.push(format!("{w} (counted in {})", sidecar.display()));
+        summary
+            .warnings
+            .push(format!("{w} (counted in {})", sidecar.display()));
     }
     if failures > 0 {
         summary

@@ -173,22 +173,32 @@ pub mod range {
 
     /// A finite number > 0.
     pub fn positive(s: &str) -> Result<f64, String> {
-        real(s, "must be a finite number > 0", |v| v.is_finite() && v > 0.0)
+        real(s, "must be a finite number > 0", |v| {
+            v.is_finite() && v > 0.0
+        })
     }
 
     /// A finite number >= 0.
     pub fn non_negative(s: &str) -> Result<f64, String> {
-        real(s, "must be a finite number >= 0", |v| v.is_finite() && v >= 0.0)
+        real(s, "must be a finite number >= 0", |v| {
+            v.is_finite() && v >= 0.0
+        })
     }
 
     /// A number > 0, `inf` included (a limit that `inf` switches off).
     pub fn positive_or_inf(s: &str) -> Result<f64, String> {
-        real(s, "must be a number > 0 (inf switches the limit off)", |v| v > 0.0)
+        real(
+            s,
+            "must be a number > 0 (inf switches the limit off)",
+            |v| v > 0.0,
+        )
     }
 
     /// A number in [0, 1].
     pub fn unit(s: &str) -> Result<f64, String> {
-        real(s, "must be a number in [0, 1]", |v| (0.0..=1.0).contains(&v))
+        real(s, "must be a number in [0, 1]", |v| {
+            (0.0..=1.0).contains(&v)
+        })
     }
 
     /// A number in (0, 1).
@@ -199,7 +209,11 @@ pub mod range {
     /// A frame rate for `--realtime`: finite, in [0.001, 10000] frames per second (the
     /// upper end is far beyond any camera; the lower end keeps the waits representable).
     pub fn frame_rate(s: &str) -> Result<f64, String> {
-        real(s, "must be a frame rate in [0.001, 10000] frames per second", |v| (1e-3..=1e4).contains(&v))
+        real(
+            s,
+            "must be a frame rate in [0.001, 10000] frames per second",
+            |v| (1e-3..=1e4).contains(&v),
+        )
     }
 
     fn integer(s: &str, lo: usize, hi: usize) -> Result<usize, String> {
@@ -208,10 +222,7 @@ pub mod range {
         } else {
             format!("a whole number in {lo} to {hi}")
         };
-        let v: usize = s
-            .trim()
-            .parse()
-            .map_err(|_| format!("not {valid}"))?;
+        let v: usize = s.trim().parse().map_err(|_| format!("not {valid}"))?;
         if (lo..=hi).contains(&v) {
             Ok(v)
         } else {
@@ -231,7 +242,9 @@ pub mod range {
 
     /// A finite number >= 1.
     pub fn at_least_one_real(s: &str) -> Result<f64, String> {
-        real(s, "must be a finite number >= 1", |v| v.is_finite() && v >= 1.0)
+        real(s, "must be a finite number >= 1", |v| {
+            v.is_finite() && v >= 1.0
+        })
     }
 
     /// A finite number > 0, as f32.
@@ -352,7 +365,9 @@ pub mod range {
             assert!(at_least_one("-3").unwrap_err().contains("whole number"));
             assert_eq!(image_side("16"), Ok(16));
             assert!(image_side("15").unwrap_err().contains("16 to 16384"));
-            assert!(image_side("99999999999").unwrap_err().contains("16 to 16384"));
+            assert!(image_side("99999999999")
+                .unwrap_err()
+                .contains("16 to 16384"));
             assert_eq!(session("0"), Ok(0));
             assert!(sessions("0").is_err() && pixel_step("0").is_err());
             assert_eq!(finite("-2.5"), Ok(-2.5));

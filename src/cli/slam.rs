@@ -444,7 +444,17 @@ fn run_slam(
             // The back-end's own error, reported once; the per-frame files hold every frame
             // processed before it and the summary says the run failed.
             let e = match error {
-                Some(first) => first.context(format!("and then: {e}")),
+                // The same cause (a lost device) stops the back-end too: said once.
+                Some(first)
+                    if super::outcome::message(&first)
+                        .contains(e.to_string().trim_end_matches([':', ' '])) =>
+                {
+                    first
+                }
+                Some(first) => anyhow::anyhow!(
+                    "{}; and then finishing failed: {e}",
+                    super::outcome::message(&first)
+                ),
                 None => anyhow::Error::new(e),
             };
             let summary = RunSummary {

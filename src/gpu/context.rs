@@ -71,6 +71,8 @@ pub struct GpuContext {
     submissions: AtomicU64,
     /// The submission before which the device is destroyed ([`LOSE_DEVICE_ENV`]).
     lose_at: Option<u64>,
+    /// Whether [`LOSE_DEVICE_ENV`] destroyed the device (its error says so).
+    simulated: AtomicBool,
 }
 
 /// Test hook, not a setting: when this environment variable holds a number N, the device is
@@ -133,7 +135,11 @@ impl GpuContext {
             device.set_device_lost_callback(move |reason, m| {
                 lost.store(true, Ordering::SeqCst);
                 if let Ok(mut g) = msg.lock() {
-                    *g = format!("{reason:?}: {m}");
+                    *g = if m.is_empty() {
+                        format!("{reason:?}")
+                    } else {
+                        format!("{reason:?}: {m}")
+                    };
                 }
             });
         }
@@ -171,6 +177,7 @@ impl GpuContext {
             lost_message,
             error,
             submissions: AtomicU64::new(0),
+            simulated: AtomicBool::new(false),
             lose_at: std::env::var(LOSE_DEVICE_ENV)
                 .ok()
                 .and_then(|v| v.trim().parse().ok()),
@@ -182,7 +189,7 @@ impl GpuContext {
     pub(crate) fn submit(&self, commands: wgpu::CommandBuffer) {
         let n = self.submissions.fetch_add(1, Ordering::SeqCst) + 1;
         if self.lose_at == Some(n) {
-            log::warn!("{LOSE_DEVICE_ENV}={n}: destroying the GPU device before submission {n}");
+            self.simulated.store(true, Ordering::SeqCst);
             self.device.destroy();
         }
         self.queue.submit([commands]);
@@ -196,7 +203,13 @@ impl GpuContext {
                 .lock()
                 .map(|g| g.clone())
                 .unwrap_or_default();
-            return Err(GpuError::DeviceLost(m));
+            return Err(GpuError::DeviceLost(
+                if self.simulated.load(Ordering::SeqCst) {
+                    format!("{m} (simulated: {LOSE_DEVICE_ENV} is set)")
+                } else {
+                    m
+                },
+            ));
         }
         if let Ok(mut g) = self.error.lock() {
             if let Some(e) = g.take() {

@@ -480,7 +480,10 @@ mod tests {
             b.extend_from_slice(&v.to_le_bytes());
         }
         let e = parse_ply(&b).unwrap_err();
-        assert!(e.starts_with(&format!("byte {}: vertex 1:", header + 12)), "{e}");
+        assert!(
+            e.starts_with(&format!("byte {}: vertex 1:", header + 12)),
+            "{e}"
+        );
         // Through the file reader, the error names the file.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("cloud.ply");
