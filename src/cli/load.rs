@@ -90,39 +90,6 @@ fn slope(points: &[(f64, f64)]) -> f64 {
     }
 }
 
-/// Least-squares fit of `y = a + b k + c f` over points `(k, f, y)`: `(b, c)`, the growth per
-/// keyframe and per frame (NaN when the two are not separable, e.g. too few points).
-fn growth(points: &[(f64, f64, f64)]) -> (f64, f64) {
-    use nalgebra::{Matrix3, Vector3};
-    // Keyframe and frame counts that move together cannot be told apart.
-    let n = points.len() as f64;
-    let (mk, mf) = (
-        points.iter().map(|p| p.0).sum::<f64>() / n,
-        points.iter().map(|p| p.1).sum::<f64>() / n,
-    );
-    let (mut skk, mut sff, mut skf) = (0.0, 0.0, 0.0);
-    for &(k, f, _) in points {
-        skk += (k - mk) * (k - mk);
-        sff += (f - mf) * (f - mf);
-        skf += (k - mk) * (f - mf);
-    }
-    let correlation = skf / (skk * sff).sqrt();
-    if points.len() < 3 || !(correlation.abs() < 1.0 - 1e-9) {
-        return (f64::NAN, f64::NAN);
-    }
-    let mut ata = Matrix3::<f64>::zeros();
-    let mut aty = Vector3::<f64>::zeros();
-    for &(k, f, y) in points {
-        let row = Vector3::new(1.0, k, f);
-        ata += row * row.transpose();
-        aty += row * y;
-    }
-    match ata.lu().solve(&aty) {
-        Some(x) if x.iter().all(|v| v.is_finite()) => (x[1], x[2]),
-        _ => (f64::NAN, f64::NAN),
-    }
-}
-
 /// The generated source of `frames` frames of `office:loop`, session `session`.
 fn source(frames: usize, width: u32, session: u32) -> Result<FrameSource> {
     let opts = SynthOptions {
@@ -263,38 +230,28 @@ pub fn run(a: LoadBench) -> Result<()> {
     let rss_per_keyframe = per_kf(&|s| s.rss_bytes.map(|b| b as f64));
     let heap_per_keyframe = per_kf(&|s| Some(s.heap_bytes as f64));
     let instance_per_keyframe = per_kf(&|s| Some(s.instance_bytes as f64));
-    // The heap the instance's account does not cover, split into growth per keyframe and per
-    // frame (separable once revisits make keyframes rarer than in the first lap).
-    let (unaccounted_per_keyframe, unaccounted_per_frame) = growth(
-        &samples
-            .iter()
-            .map(|s| {
-                (
-                    s.keyframes as f64,
-                    s.frame as f64,
-                    s.heap_bytes as f64 - s.instance_bytes as f64,
-                )
-            })
-            .collect::<Vec<_>>(),
-    );
-    let other_per_frame = slope(
-        &samples
-            .iter()
-            .filter_map(|s| {
-                Some((
-                    s.frame as f64,
-                    s.rss_bytes? as f64 - s.instance_bytes as f64,
-                ))
-            })
-            .collect::<Vec<_>>(),
-    );
+    // The heap the instance's account does not cover, and the process beyond the heap, per
+    // frame over the second half of the run (after one-time reservations such as the
+    // per-thread scratch of the pose graph's dense kernels).
+    let second_half = |f: &dyn Fn(&Sample) -> Option<f64>| {
+        slope(
+            &samples
+                .iter()
+                .filter(|s| 2 * s.frame >= a.frames)
+                .filter_map(|s| Some((s.frame as f64, f(s)?)))
+                .collect::<Vec<_>>(),
+        )
+    };
+    let unaccounted_per_frame =
+        second_half(&|s| Some(s.heap_bytes as f64 - s.instance_bytes as f64));
+    let beyond_heap_per_frame = second_half(&|s| Some(s.rss_bytes? as f64 - s.heap_bytes as f64));
     let map_per_keyframe = result.map.bytes_per_keyframe();
     println!(
         "{} keyframes in {wall_s:.0} s; bytes per keyframe: process {rss_per_keyframe:.0}, \
          heap {heap_per_keyframe:.0}, instance {instance_per_keyframe:.0}, saved map \
          {map_per_keyframe:.0}; process memory besides the instance grows {other_per_frame:.1} \
-         bytes per frame; heap outside the instance's account: {unaccounted_per_keyframe:.0} \
-         bytes per keyframe and {unaccounted_per_frame:.1} bytes per frame",
+         bytes per frame; over the second half, per frame: heap outside the instance's account \
+         {unaccounted_per_frame:.1} bytes, process beyond the heap {beyond_heap_per_frame:.1} bytes",
         result.keyframes().len()
     );
     drop(result);
@@ -347,8 +304,8 @@ pub fn run(a: LoadBench) -> Result<()> {
             "samples": samples,
             "rss_bytes_per_keyframe": rss_per_keyframe,
             "heap_bytes_per_keyframe": heap_per_keyframe,
-            "unaccounted_heap_bytes_per_keyframe": unaccounted_per_keyframe,
-            "unaccounted_heap_bytes_per_frame": unaccounted_per_frame,
+            "unaccounted_heap_bytes_per_frame_second_half": unaccounted_per_frame,
+            "beyond_heap_bytes_per_frame_second_half": beyond_heap_per_frame,
             "instance_bytes_per_keyframe": instance_per_keyframe,
             "map_bytes_per_keyframe": map_per_keyframe,
             "other_bytes_per_frame": other_per_frame,
@@ -368,21 +325,5 @@ mod tests {
         let s = slope(&[(0.0, 1.0), (1.0, 3.0), (2.0, 5.0)]);
         assert!((s - 2.0).abs() < 1e-12);
         assert!(slope(&[(1.0, 1.0), (1.0, 2.0)]).is_nan());
-    }
-
-    #[test]
-    fn growth_separates_keyframes_from_frames() {
-        // y = 5 + 1000 k + 3 f, with keyframes rarer in the second half.
-        let pts: Vec<(f64, f64, f64)> =
-            [(10.0, 100.0), (20.0, 200.0), (25.0, 300.0), (28.0, 400.0)]
-                .into_iter()
-                .map(|(k, f)| (k, f, 5.0 + 1000.0 * k + 3.0 * f))
-                .collect();
-        let (per_kf, per_frame) = growth(&pts);
-        assert!((per_kf - 1000.0).abs() < 1e-6 && (per_frame - 3.0).abs() < 1e-6);
-        // Keyframes proportional to frames: not separable.
-        let line: Vec<(f64, f64, f64)> = (1..5).map(|i| (i as f64, 10.0 * i as f64, 1.0)).collect();
-        let (a, b) = growth(&line);
-        assert!(a.is_nan() && b.is_nan(), "{a} {b}");
     }
 }
