@@ -245,6 +245,17 @@ pub fn run(a: LoadBench) -> Result<()> {
     let unaccounted_per_frame =
         second_half(&|s| Some(s.heap_bytes as f64 - s.instance_bytes as f64));
     let beyond_heap_per_frame = second_half(&|s| Some(s.rss_bytes? as f64 - s.heap_bytes as f64));
+    let other_per_frame = slope(
+        &samples
+            .iter()
+            .filter_map(|s| {
+                Some((
+                    s.frame as f64,
+                    s.rss_bytes? as f64 - s.instance_bytes as f64,
+                ))
+            })
+            .collect::<Vec<_>>(),
+    );
     let map_per_keyframe = result.map.bytes_per_keyframe();
     println!(
         "{} keyframes in {wall_s:.0} s; bytes per keyframe: process {rss_per_keyframe:.0}, \
