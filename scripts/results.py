@@ -250,7 +250,7 @@ def render_load(doc):
            "during the run: the process (VmRSS), its live heap (allocated and not freed, counted by the "
            "program's allocator) and the SLAM instance's own account." + (
                "" if doc.get("complete", True) else
-               f" Partial report: the run was stopped after frame {(doc.get('samples') or [{}])[-1].get('frame', '?')}"
+               f" Partial report, written after frame {(doc.get('samples') or [{}])[-1].get('frame', '?')} (the run had not finished)"
                " (the figures below are of the samples so far)."), ""]
     has_heap = any("heap_bytes" in s for s in doc.get("samples", []))
     if has_heap:
