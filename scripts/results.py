@@ -278,8 +278,9 @@ def render_load(doc):
                 "the keyframe pose graph (the back-end and the rayon workers): the GEMM kernel under faer's supernodal Cholesky "
                 "(`private-gemm-x86`) reserves a thread-local scratch of twice the L3 cache on its first "
                 "call, once the graph is large enough for supernodes (`RGBID_HEAP_TRACE_ABOVE` shows "
-                "where). Its pages become resident as the supernodes grow, which is the process growth "
-                "beyond the instance; it is bounded by that reservation."]
+                "where); its pages become resident as the supernodes grow, so the process stays below its "
+                "live heap until that reservation is touched. What grows per frame beyond it is given "
+                "above: live heap the account misses, and pages the C allocator keeps after frees."]
     out += [""]
     t = doc.get("threads")
     if t:
