@@ -7,6 +7,10 @@ use clap::{Parser, Subcommand};
 
 mod cli;
 
+/// Counts live heap bytes for `rgbid bench load` (see `cli::heap`).
+#[global_allocator]
+static HEAP: cli::heap::Counting = cli::heap::Counting;
+
 /// rgbid: dense RGB-D odometry with inverse depth, and the rest of the thesis' SLAM systems,
 /// on any GPU (or the CPU).
 #[derive(Parser)]
@@ -66,6 +70,7 @@ enum Command {
 }
 
 fn main() {
+    cli::heap::init_trace_from_env();
     let cli = Cli::parse();
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
         // Mesa's Vulkan drivers complain on every adapter query when this is unset (headless
@@ -114,5 +119,91 @@ fn run(command: Command) -> Result<()> {
             }
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+    use std::any::TypeId;
+
+    /// What a message or a help text says to state a valid range.
+    const RANGE_WORDS: [&str; 9] = [
+        ">= ", "> 0", " to ", "[0, 1]", "(0, ", "(-1, 1)", "finite", "[0.001", "at least",
+    ];
+
+    fn states_a_range(text: &str) -> bool {
+        RANGE_WORDS.iter().any(|w| text.contains(w))
+    }
+
+    /// Every option of every subcommand, with the subcommand path that reaches it.
+    fn options(cmd: &clap::Command, path: &[String], out: &mut Vec<(Vec<String>, clap::Arg)>) {
+        for a in cmd.get_arguments() {
+            out.push((path.to_vec(), a.clone()));
+        }
+        for sub in cmd.get_subcommands() {
+            let mut p = path.to_vec();
+            p.push(sub.get_name().to_string());
+            options(sub, &p, out);
+        }
+    }
+
+    /// Every numeric option of every subcommand rejects a value that is no number, and each
+    /// of NaN, -1 and 1e400 that it rejects, with a usage error that names the option and
+    /// states the valid range; its --help text states the range too.
+    #[test]
+    fn every_numeric_option_is_range_checked_with_a_message_naming_it() {
+        let numeric = [
+            TypeId::of::<f64>(),
+            TypeId::of::<f32>(),
+            TypeId::of::<usize>(),
+            TypeId::of::<u64>(),
+            TypeId::of::<u32>(),
+            TypeId::of::<u16>(),
+            TypeId::of::<u8>(),
+            TypeId::of::<i64>(),
+            TypeId::of::<i32>(),
+        ];
+        let mut all = Vec::new();
+        options(&Cli::command(), &[], &mut all);
+        let mut checked = 0;
+        let mut problems = Vec::new();
+        for (path, arg) in &all {
+            let ty = arg.get_value_parser().type_id();
+            let Some(long) = arg.get_long() else { continue };
+            if !numeric.iter().any(|t| ty == *t) {
+                continue;
+            }
+            checked += 1;
+            let name = format!("{} --{long}", path.join(" "));
+            let help = arg
+                .get_long_help()
+                .or(arg.get_help())
+                .map(|h| h.to_string())
+                .unwrap_or_default();
+            if !states_a_range(&help) {
+                problems.push(format!("{name}: --help states no range: {help}"));
+            }
+            for (k, bad) in ["x", "nan", "-1", "1e400"].into_iter().enumerate() {
+                let mut argv = vec!["rgbid".to_string()];
+                argv.extend(path.iter().cloned());
+                argv.push(format!("--{long}={bad}"));
+                match Cli::try_parse_from(&argv) {
+                    Err(e) if e.kind() == clap::error::ErrorKind::ValueValidation => {
+                        let m = e.to_string();
+                        if !m.contains(&format!("--{long}")) || !states_a_range(&m) {
+                            problems.push(format!("{name}={bad}: {m}"));
+                        }
+                        assert_eq!(e.exit_code(), 2, "{name}");
+                    }
+                    // Values in the range are accepted; a number that is no number is not.
+                    Ok(_) | Err(_) if k > 0 => {}
+                    other => problems.push(format!("{name}={bad}: {:?}", other.err())),
+                }
+            }
+        }
+        assert!(checked > 80, "{checked} numeric options");
+        assert!(problems.is_empty(), "{}", problems.join("\n"));
     }
 }

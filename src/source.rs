@@ -93,19 +93,53 @@ pub struct SynthOptions {
     #[cfg_attr(feature = "clap", arg(long, value_name = "SCENE:TRAJECTORY"))]
     pub synth: Option<String>,
     /// Frames of the generated sequence, at 30 per second (>= 1).
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().frames))]
+    #[cfg_attr(feature = "clap", arg(long, value_parser = ranges::frames, default_value_t = SynthOptions::default().frames))]
     pub frames: usize,
     /// Laps of a `loop` trajectory over the frames (> 0; the same closed path again, so a
     /// second lap revisits every place of the first: 1.3 revisits the start for the last
     /// 30 % of the frames). Other trajectories ignore it.
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().laps))]
+    #[cfg_attr(feature = "clap", arg(long, value_parser = ranges::laps, default_value_t = SynthOptions::default().laps))]
     pub laps: f64,
-    /// Image width of the generated sequence in pixels (the height is 3/4 of it).
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().width))]
+    /// Image width of the generated sequence in pixels (the height is 3/4 of it), 16 to
+    /// 16384.
+    #[cfg_attr(feature = "clap", arg(long, value_parser = ranges::width, default_value_t = SynthOptions::default().width))]
     pub width: u32,
-    /// Seed of the generated scene, trajectory and sensor noise.
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = SynthOptions::default().seed))]
+    /// Seed of the generated scene, trajectory and sensor noise (any whole number, 0 to
+    /// 2^64-1).
+    #[cfg_attr(feature = "clap", arg(long, value_parser = ranges::seed, default_value_t = SynthOptions::default().seed))]
     pub seed: u64,
+}
+
+/// Value parsers of [`SynthOptions`]' command-line options: a bad value is a usage error
+/// that names the valid range (clap names the option).
+#[cfg(feature = "clap")]
+mod ranges {
+    pub(super) fn frames(s: &str) -> Result<usize, String> {
+        match s.trim().parse::<usize>() {
+            Ok(v) if v >= 1 => Ok(v),
+            _ => Err("must be a whole number >= 1".into()),
+        }
+    }
+
+    pub(super) fn laps(s: &str) -> Result<f64, String> {
+        match s.trim().parse::<f64>() {
+            Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+            _ => Err("must be a finite number > 0".into()),
+        }
+    }
+
+    pub(super) fn width(s: &str) -> Result<u32, String> {
+        match s.trim().parse::<u32>() {
+            Ok(v) if (16..=16384).contains(&v) => Ok(v),
+            _ => Err("must be a whole number in 16 to 16384".into()),
+        }
+    }
+
+    pub(super) fn seed(s: &str) -> Result<u64, String> {
+        s.trim()
+            .parse()
+            .map_err(|_| "not a whole number in 0 to 18446744073709551615".into())
+    }
 }
 
 impl Default for SynthOptions {
@@ -280,6 +314,16 @@ impl FrameSource {
         match self {
             FrameSource::Tum(s) => s.len(),
             FrameSource::Synth(s, _) => s.len(),
+        }
+    }
+
+    /// A warning about the input found when it was opened (a depth factor that does not fit
+    /// the sensor's range, see [`TumSequence::depth_range_warning`]); generated sequences
+    /// have none.
+    pub fn input_warning(&self) -> Option<&str> {
+        match self {
+            FrameSource::Tum(s) => s.depth_range_warning(),
+            FrameSource::Synth(..) => None,
         }
     }
 

@@ -76,7 +76,69 @@ fn bad_numbers_are_usage_errors_that_name_the_option_and_range() {
         (
             vec!["odometry", "x", "--max-frames", "0"],
             "--max-frames",
-            "at least 1",
+            "whole number >= 1",
+        ),
+        (vec!["slam", "--laps", "0"], "--laps", "> 0"),
+        (vec!["slam", "--laps", "nan"], "--laps", "> 0"),
+        (vec!["demo", "--width", "4"], "--width", "16 to 16384"),
+        (vec!["slam", "--session", "5000"], "--session", "0 to 1000"),
+        (vec!["synth", "--width", "0"], "--width", "16 to 16384"),
+        (
+            vec!["synth", "--height", "99999"],
+            "--height",
+            "16 to 16384",
+        ),
+        (vec!["synth", "--sessions", "0"], "--sessions", "1 to 1000"),
+        (
+            vec!["synth", "--motion-blur", "1000"],
+            "--motion-blur",
+            "0 to 64",
+        ),
+        (
+            vec!["synth", "--seed=-1"],
+            "--seed",
+            "0 to 18446744073709551615",
+        ),
+        (vec!["mono", "--zncc", "1"], "--zncc", "(-1, 1)"),
+        (vec!["mono", "--frames", "0"], "--frames", ">= 1"),
+        (vec!["scale", "--particles", "5"], "--particles", ">= 10"),
+        (vec!["scale", "--window", "0.5"], "--window", ">= 1"),
+        (
+            vec!["segment", "experiment", "--thresholds", "0.5,2"],
+            "--thresholds",
+            "[0, 1]",
+        ),
+        (vec!["segment", "--k", "0"], "--k", "> 0"),
+        (vec!["mesh", "s", "--voxel", "0"], "--voxel", "> 0"),
+        (
+            vec!["eval", "a", "b", "--t-offset", "nan"],
+            "--t-offset",
+            "finite",
+        ),
+        (
+            vec!["graph", "optimize", "a.g2o", "--max-iterations=-1"],
+            "--max-iterations",
+            ">= 0",
+        ),
+        (
+            vec!["bench", "load", "--width", "8"],
+            "--width",
+            "16 to 16384",
+        ),
+        (
+            vec!["bench", "tsdf", "--voxel", "x"],
+            "--voxel",
+            "not a number",
+        ),
+        (
+            vec!["vocab", "train", "--procedural", "x"],
+            "--procedural",
+            ">= 0",
+        ),
+        (
+            vec!["place", "loops", "s", "--min-separation=-3"],
+            "--min-separation",
+            ">= 0",
         ),
         (
             vec!["eval", "a", "b", "--max-diff", "inf"],
@@ -411,6 +473,19 @@ fn odometry_skips_and_counts_bad_frames() {
     assert!(t.contains("80x60"), "{t}");
     let poses = rgbid::io::trajectory::read_tum(&out).expect("trajectory");
     assert_eq!(poses.len(), 7, "{t}");
+    // The sidecar counts them too.
+    let sidecar: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("t.txt.json")).expect("sidecar"),
+    )
+    .expect("json");
+    let summary = &sidecar["summary"];
+    assert_eq!(summary["skipped_frames"], 3, "{sidecar}");
+    assert_eq!(
+        (&summary["frames"], &summary["poses"]),
+        (&10.into(), &7.into())
+    );
+    assert_eq!(summary["status"], "complete", "{sidecar}");
+    assert!(summary["warnings"].to_string().contains("3 frames skipped"));
 }
 
 /// SLAM skips the same three kinds of bad frame and counts them in summary.json; the
@@ -428,7 +503,8 @@ fn slam_skips_wrong_size_truncated_and_blank_frames() {
 
 /// TUM depth (5000 per metre) read with the millimetre factor: the median depth stays
 /// plausible, but most depths fall outside the sensor's range, which is reported with the
-/// factor that fits.
+/// factor that fits; the trajectory is complete, so the exit code is 3 and the sidecar's
+/// summary holds the warning.
 #[test]
 fn a_depth_factor_5x_off_is_reported_with_the_factor_that_fits() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -440,8 +516,92 @@ fn a_depth_factor_5x_off_is_reported_with_the_factor_that_fits() {
     let out = tmp.path().join("t.txt");
     let o = rgbid(&["odometry", s(&seq), "--backend", "cpu", "--out", s(&out)]);
     let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
     assert!(t.contains("outside the sensor range"), "{t}");
     assert!(t.contains("factor 5000 would put"), "{t}");
+    assert_eq!(
+        rgbid::io::trajectory::read_tum(&out)
+            .expect("trajectory")
+            .len(),
+        3
+    );
+    let sidecar: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("t.txt.json")).expect("sidecar"),
+    )
+    .expect("json");
+    let summary = &sidecar["summary"];
+    assert_eq!(summary["status"], "complete", "{sidecar}");
+    assert_eq!(summary["skipped_frames"], 0, "{sidecar}");
+    let warnings = summary["warnings"].to_string();
+    assert!(warnings.contains("factor 5000 would put"), "{sidecar}");
+}
+
+/// Rewrites a 16-bit depth image of a TUM folder with every raw value mapped by `f`.
+fn map_depth(path: &Path, f: impl Fn(u16) -> u16) {
+    let mut img = image::open(path).expect("depth image").into_luma16();
+    for p in img.pixels_mut() {
+        p.0[0] = f(p.0[0]);
+    }
+    img.save(path).expect("save depth");
+}
+
+/// Millimetre depth (1000 per metre) read with TUM's factor 5000: every depth is 5x too
+/// short, the median stays plausible, and SLAM finishes with exit code 3, a warning naming
+/// factor 1000, and the warning in summary.json.
+#[test]
+fn millimetre_depth_read_with_the_tum_factor_is_a_warning_in_the_summary() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 4);
+    for (_, depth) in frame_files(&seq) {
+        map_depth(&seq.join(depth), |d| d / 5);
+    }
+    let out = tmp.path().join("out");
+    let o = rgbid(&[
+        "slam",
+        s(&seq),
+        "--backend",
+        "cpu",
+        "--no-model",
+        "--out",
+        s(&out),
+    ]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("at depth factor 5000"), "{t}");
+    assert!(t.contains("factor 1000 would put"), "{t}");
+    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
+    let summary = run.summary.as_ref().expect("summary");
+    assert_eq!(summary.status, "complete");
+    assert!(
+        summary
+            .warnings
+            .iter()
+            .any(|w| w.contains("factor 1000 would put")),
+        "{:?}",
+        summary.warnings
+    );
+}
+
+/// One frame in the middle whose depth is 100x off (its median is no plausible depth) is
+/// skipped and counted; the run finishes with every other frame (exit code 3).
+#[test]
+fn slam_skips_one_implausible_depth_frame() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 6);
+    let files = frame_files(&seq);
+    map_depth(&seq.join(&files[3].1), |d| d / 100);
+    let run = slam_skipping(&seq, &tmp.path().join("out"), 1, 5);
+    let summary = run.summary.as_ref().expect("summary");
+    assert!(
+        summary
+            .warnings
+            .iter()
+            .any(|w| w.contains("1 frames skipped") && w.contains("frame 3")),
+        "{:?}",
+        summary.warnings
+    );
 }
 
 /// Starts `rgbid slam` on a long generated sequence with checkpoints every 0.2 s of input and
@@ -661,4 +821,53 @@ fn manual_a_full_disk_keeps_the_last_checkpoint() {
     let (summary, poses) = checked.expect("the last checkpoint parses");
     assert_eq!(summary.status, "running", "{t}");
     assert!(summary.tracked > 0 && poses >= summary.tracked, "{t}");
+}
+
+/// A GPU device lost in the middle of a SLAM run (simulated: the test hook
+/// `rgbid::gpu::LOSE_DEVICE_ENV` destroys the wgpu device before a given submission, which
+/// wgpu reports through its device-lost callback) is an error, not a panic or a hang: the run
+/// exits 1 naming the lost device, the run folder keeps the frames processed before it
+/// (trajectory and per-frame rows parse) and summary.json says `failed: <error>`.
+#[test]
+#[ignore = "needs a GPU adapter"]
+fn gpu_a_lost_device_is_an_error_that_keeps_the_run_folder() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    tum_folder(&seq, 30);
+    let out = tmp.path().join("out");
+    let o = Command::new(program())
+        .args([
+            "slam",
+            s(&seq),
+            "--backend",
+            "gpu",
+            "--no-model",
+            "--checkpoint-every",
+            "0.1",
+            "--out",
+            s(&out),
+        ])
+        .env("RUST_LOG", "warn")
+        .env(rgbid::gpu::LOSE_DEVICE_ENV, "150")
+        .output()
+        .expect("running rgbid");
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("GPU device lost"), "{t}");
+    assert!(!t.contains("panicked"), "{t}");
+    let run = rgbid::io::run_folder::RunFolder::read(&out).expect("run folder");
+    let summary = run.summary.as_ref().expect("summary");
+    assert!(
+        summary.status.starts_with("failed: ") && summary.status.contains("GPU device lost"),
+        "{}",
+        summary.status
+    );
+    // Some frames ran before the loss, not all of them.
+    assert!(
+        (2..30).contains(&summary.frames),
+        "{} frames processed: {t}",
+        summary.frames
+    );
+    assert!(!run.trajectory.is_empty(), "{t}");
+    assert!(!out.join(".rgbid-lock").exists());
 }

@@ -18,8 +18,8 @@ pub struct Args {
     pub gt: PathBuf,
     /// Estimated trajectory (any of the same formats).
     pub est: PathBuf,
-    /// Seconds added to the estimate's time stamps before matching (a clock offset).
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    /// Seconds added to the estimate's time stamps before matching (a clock offset) (any finite number).
+    #[arg(long, value_parser = crate::cli::options::range::finite, default_value_t = 0.0, allow_negative_numbers = true)]
     pub t_offset: f64,
     /// Print one JSON line instead of a table.
     #[arg(long)]

@@ -107,8 +107,8 @@ pub struct SolveArgs {
     pub robust_delta: f64,
     /// Maximum iterations (0: report the initialisation alone, e.g. the linear 2D
     /// approximation). Hard graphs need more than 100 (M3500c from the linear
-    /// initialisation: 153).
-    #[arg(long, default_value_t = SolverOptions::default().max_iterations)]
+    /// initialisation: 153) (a whole number >= 0).
+    #[arg(long, value_parser = crate::cli::options::range::count, default_value_t = SolverOptions::default().max_iterations)]
     pub max_iterations: usize,
     /// Initial Levenberg-Marquardt damping, relative to the Hessian's diagonal. Default:
     /// 1e-9 after a linear / chordal initialisation (close to the optimum: nearly Gauss-Newton

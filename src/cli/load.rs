@@ -22,8 +22,8 @@ pub struct LoadBench {
     /// Frames of the long run, at 30 per second, one lap of the loop every 300 frames (>= 2).
     #[arg(long, value_parser = range::at_least_two, default_value_t = 20_000)]
     pub frames: usize,
-    /// Image width in pixels (the height is 3/4 of it), >= 16.
-    #[arg(long, value_parser = clap::value_parser!(u32).range(16..), default_value_t = 320)]
+    /// Image width in pixels (the height is 3/4 of it), 16 to 16384.
+    #[arg(long, value_parser = range::image_side, default_value_t = 320)]
     pub width: u32,
     /// Frames between two memory samples (>= 1).
     #[arg(long, value_parser = range::at_least_one, default_value_t = 500)]
@@ -46,6 +46,8 @@ struct Sample {
     keyframes: usize,
     /// Resident memory of the process, bytes (VmRSS).
     rss_bytes: Option<u64>,
+    /// Live heap of the process (allocated and not freed), bytes: see [`super::heap`].
+    heap_bytes: usize,
     /// What the SLAM instance holds by its own account, bytes.
     instance_bytes: usize,
 }
@@ -162,27 +164,56 @@ pub fn run(a: LoadBench) -> Result<()> {
                 frame: i + 1,
                 keyframes,
                 rss_bytes: rss_bytes(),
+                heap_bytes: super::heap::live_bytes(),
                 instance_bytes: slam.memory().now.total(),
             };
+            let large = super::heap::large_classes()
+                .into_iter()
+                .map(|(size, bytes)| format!("{}M:{:.0}MB", size >> 20, bytes as f64 / 1e6))
+                .collect::<Vec<_>>()
+                .join(" ");
+            bar.suspend(|| {
+                println!(
+                    "frame {}: heap {:.1} MB, instance {:.1} MB; allocations >= 1 MiB by size: {large}",
+                    s.frame,
+                    s.heap_bytes as f64 / 1e6,
+                    s.instance_bytes as f64 / 1e6
+                )
+            });
             bar.set_message(format!(
                 "kf {keyframes}, rss {:.0} MB",
                 s.rss_bytes.unwrap_or(0) as f64 / 1e6
             ));
             samples.push(s);
+            if let Some(path) = &a.json {
+                // The curve so far, so that a long run stopped early still leaves it.
+                let body = serde_json::json!({
+                    "frames": a.frames,
+                    "width": camera.width,
+                    "height": camera.height,
+                    "complete": false,
+                    "wall_s": t0.elapsed().as_secs_f64(),
+                    "keyframes": keyframes,
+                    "samples": samples,
+                });
+                let meta = super::report::meta(Vec::new());
+                bar.suspend(|| super::report::write(path, "load", &meta, &body))?;
+            }
         }
     }
     bar.finish_and_clear();
     let result = slam.finish()?;
     let wall_s = t0.elapsed().as_secs_f64();
-    println!("| frame | keyframes | rss MB | instance MB |");
-    println!("|---|---|---|---|");
+    println!("| frame | keyframes | rss MB | heap MB | instance MB |");
+    println!("|---|---|---|---|---|");
     for s in &samples {
         println!(
-            "| {} | {} | {} | {:.1} |",
+            "| {} | {} | {} | {:.1} | {:.1} |",
             s.frame,
             s.keyframes,
             s.rss_bytes
                 .map_or("?".into(), |b| format!("{:.1}", b as f64 / 1e6)),
+            s.heap_bytes as f64 / 1e6,
             s.instance_bytes as f64 / 1e6
         );
     }
@@ -197,7 +228,23 @@ pub fn run(a: LoadBench) -> Result<()> {
         )
     };
     let rss_per_keyframe = per_kf(&|s| s.rss_bytes.map(|b| b as f64));
+    let heap_per_keyframe = per_kf(&|s| Some(s.heap_bytes as f64));
     let instance_per_keyframe = per_kf(&|s| Some(s.instance_bytes as f64));
+    // The heap the instance's account does not cover, and the process beyond the heap, per
+    // frame over the second half of the run (after one-time reservations such as the
+    // per-thread scratch of the pose graph's dense kernels).
+    let second_half = |f: &dyn Fn(&Sample) -> Option<f64>| {
+        slope(
+            &samples
+                .iter()
+                .filter(|s| 2 * s.frame >= a.frames)
+                .filter_map(|s| Some((s.frame as f64, f(s)?)))
+                .collect::<Vec<_>>(),
+        )
+    };
+    let unaccounted_per_frame =
+        second_half(&|s| Some(s.heap_bytes as f64 - s.instance_bytes as f64));
+    let beyond_heap_per_frame = second_half(&|s| Some(s.rss_bytes? as f64 - s.heap_bytes as f64));
     let other_per_frame = slope(
         &samples
             .iter()
@@ -212,8 +259,10 @@ pub fn run(a: LoadBench) -> Result<()> {
     let map_per_keyframe = result.map.bytes_per_keyframe();
     println!(
         "{} keyframes in {wall_s:.0} s; bytes per keyframe: process {rss_per_keyframe:.0}, \
-         instance {instance_per_keyframe:.0}, saved map {map_per_keyframe:.0}; process memory \
-         besides the instance grows {other_per_frame:.1} bytes per frame",
+         heap {heap_per_keyframe:.0}, instance {instance_per_keyframe:.0}, saved map \
+         {map_per_keyframe:.0}; process memory besides the instance grows {other_per_frame:.1} \
+         bytes per frame; over the second half, per frame: heap outside the instance's account \
+         {unaccounted_per_frame:.1} bytes, process beyond the heap {beyond_heap_per_frame:.1} bytes",
         result.keyframes().len()
     );
     drop(result);
@@ -260,10 +309,14 @@ pub fn run(a: LoadBench) -> Result<()> {
             "frames": a.frames,
             "width": camera.width,
             "height": camera.height,
+            "complete": true,
             "wall_s": wall_s,
             "keyframes": keyframes,
             "samples": samples,
             "rss_bytes_per_keyframe": rss_per_keyframe,
+            "heap_bytes_per_keyframe": heap_per_keyframe,
+            "unaccounted_heap_bytes_per_frame_second_half": unaccounted_per_frame,
+            "beyond_heap_bytes_per_frame_second_half": beyond_heap_per_frame,
             "instance_bytes_per_keyframe": instance_per_keyframe,
             "map_bytes_per_keyframe": map_per_keyframe,
             "other_bytes_per_frame": other_per_frame,

@@ -32,25 +32,25 @@ pub struct Args {
     /// stamp within `--max-diff` seconds, unmatched frames are skipped.
     #[arg(long)]
     pub poses: PathBuf,
-    /// Voxel edge, metres (blocks are 8 voxels along each side).
-    #[arg(long, default_value_t = 0.01)]
+    /// Voxel edge, metres (blocks are 8 voxels along each side) (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.01)]
     pub voxel: f64,
     /// Output mesh, binary PLY with normals, colours and faces.
     #[arg(long, default_value = "mesh.ply")]
     pub out: PathBuf,
-    /// Largest pose/frame time-stamp difference, seconds.
-    #[arg(long, default_value_t = 0.02)]
+    /// Largest pose/frame time-stamp difference, seconds (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.02)]
     pub max_diff: f64,
-    /// Farthest depth integrated, metres.
-    #[arg(long, default_value_t = 4.0)]
+    /// Farthest depth integrated, metres (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 4.0)]
     pub max_depth: f64,
     /// Camera: a preset (default, tum_fr1, tum_fr2, tum_fr3, icl_nuim, 7scenes, replica) or a
     /// camera file (calib.txt, OpenCV / ORB-SLAM .yaml, or `key = value` lines). Default:
     /// calib.txt beside the sequence, else `default`. Frames are undistorted with it.
     #[arg(long)]
     pub camera: Option<String>,
-    /// Integrate only the first this many frames.
-    #[arg(long)]
+    /// Integrate only the first this many frames (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one)]
     pub max_frames: Option<usize>,
     /// Where the integration runs: auto (hardware GPU, else CPU), gpu (any adapter, lavapipe
     /// included), cpu (rayon).
@@ -134,20 +134,20 @@ pub struct TsdfBench {
     /// Scene preset of the generated room.
     #[arg(long, default_value = "office")]
     pub scene: String,
-    /// Seed of the scene, trajectory and noise.
-    #[arg(long, default_value_t = 1)]
+    /// Seed of the scene, trajectory and noise (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed, default_value_t = 1)]
     pub seed: u64,
-    /// Frames (30 per second along a handheld path; every frame is integrated).
-    #[arg(long, default_value_t = 150)]
+    /// Frames (30 per second along a handheld path; every frame is integrated) (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 150)]
     pub frames: usize,
-    /// Image width, pixels (a Kinect's 525 px focal length at 640 wide, scaled).
-    #[arg(long, default_value_t = 640)]
+    /// Image width, pixels (a Kinect's 525 px focal length at 640 wide, scaled) (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = 640)]
     pub width: u32,
-    /// Image height, pixels.
-    #[arg(long, default_value_t = 480)]
+    /// Image height, pixels (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = 480)]
     pub height: u32,
-    /// Voxel edge, metres.
-    #[arg(long, default_value_t = 0.02)]
+    /// Voxel edge, metres (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.02)]
     pub voxel: f64,
     /// Backends to measure, comma-separated: cpu, gpu.
     #[arg(long, default_value = "cpu,gpu")]

@@ -6,6 +6,7 @@ pub mod demo;
 pub mod eval;
 pub mod export;
 pub mod graph;
+pub mod heap;
 pub mod load;
 pub mod mesh;
 pub mod mono;

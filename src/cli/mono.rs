@@ -56,18 +56,18 @@ pub struct Args {
     #[arg(long, value_enum)]
     patch: Option<PatchArg>,
     /// ZNCC threshold of a match, in (-1, 1) (`zncc_threshold`) [default: 0.8].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::open_signed_unit)]
     zncc: Option<f64>,
-    /// Landmarks the system keeps predicted visible (`target_visible`) [default: 40].
-    #[arg(long)]
+    /// Landmarks the system keeps predicted visible (`target_visible`); >= 1 [default: 40].
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one)]
     target_visible: Option<usize>,
     /// Most landmarks in the filter state, at least --target-visible (`max_landmarks`)
     /// [default: 120].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one)]
     max_landmarks: Option<usize>,
     /// Initial inverse depth of new landmarks, 1/m; sets the map's nominal scale
-    /// (`initial_inverse_depth`) [default: 0.5].
-    #[arg(long)]
+    /// (`initial_inverse_depth`); > 0 [default: 0.5].
+    #[arg(long, value_parser = crate::cli::options::range::positive)]
     inverse_depth: Option<f64>,
     /// Configuration: a `MonoConfig` file (`rgbid config dump --command mono`).
     #[command(flatten)]
@@ -76,14 +76,14 @@ pub struct Args {
     /// Sim(3)-aligned error against its ground truth.
     #[arg(long, value_enum)]
     synthetic: Option<SynthArg>,
-    /// Frames of the synthetic sequence.
-    #[arg(long, default_value_t = 150)]
+    /// Frames of the synthetic sequence (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 150)]
     frames: usize,
-    /// Synthetic image width (default 320 pinhole, 400 omni).
-    #[arg(long)]
+    /// Synthetic image width (default 320 pinhole, 400 omni) (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side)]
     width: Option<u32>,
-    /// Synthetic image height (default 240 pinhole, 400 omni).
-    #[arg(long)]
+    /// Synthetic image height (default 240 pinhole, 400 omni) (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side)]
     height: Option<u32>,
     /// Synthetic scene preset.
     #[arg(long, default_value = "office")]
@@ -91,8 +91,8 @@ pub struct Args {
     /// Synthetic trajectory.
     #[arg(long, default_value = "handheld")]
     trajectory: String,
-    /// Seed of the synthetic sequence.
-    #[arg(long, default_value_t = 7)]
+    /// Seed of the synthetic sequence (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed, default_value_t = 7)]
     seed: u64,
     /// Print the median ms/frame and per-stage medians.
     #[arg(long)]

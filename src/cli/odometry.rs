@@ -12,7 +12,8 @@ use rgbid::io::Layout;
 use rgbid::odometry::{Odometry, OdometryError};
 use rgbid::trajectory::TimedPose;
 
-use super::options::{range, write_sidecar, BackendArgs, ConfigArgs, OdometryOptions};
+use super::options::{range, BackendArgs, ConfigArgs, OdometryOptions};
+use rgbid::io::settings::Provenance;
 
 /// Arguments of `rgbid odometry`.
 #[derive(clap::Args)]
@@ -91,8 +92,14 @@ pub fn run(args: Args) -> Result<()> {
     let backend = select_backend(args.backend.backend, args.backend.adapter.as_deref())?;
     log::info!("{} frames, backend {}", seq.len(), backend.name());
     // The provenance does not change during the run: written first, it describes every
-    // checkpoint of the trajectory.
-    write_sidecar(&args.out, &config, &backend)?;
+    // checkpoint of the trajectory; the run's summary is added at the end.
+    let provenance = Provenance::new(&config, &backend)?;
+    let sidecar = provenance.write_sidecar(&args.out)?;
+    // Said now, so that a long run can be stopped, and again with the outcome (exit code 3).
+    let input_warning = seq.depth_range_warning().map(str::to_owned);
+    if let Some(w) = &input_warning {
+        log::warn!("{w}");
+    }
     let format = args
         .traj_format
         .unwrap_or_else(|| TrajectoryFormat::from_extension(&args.out));
@@ -248,23 +255,63 @@ pub fn run(args: Args) -> Result<()> {
     if failures > 0 {
         println!("{failures} frames failed to track (see the log)");
     }
+    let mut summary = Summary {
+        status: match (&outcome, interrupted) {
+            (Err(e), _) => format!("failed: {}", super::outcome::message(e)),
+            (Ok(()), true) => "interrupted".into(),
+            (Ok(()), false) => "complete".into(),
+        },
+        frames: seq.len(),
+        poses: poses.len(),
+        skipped_frames: skips.count,
+        failed_to_track: failures,
+        warnings: input_warning.into_iter().collect(),
+    };
+    if let Some(w) = skips.warning() {
+        summary
+            .warnings
+            .push(format!("{w} (counted in {})", sidecar.display()));
+    }
+    if failures > 0 {
+        summary
+            .warnings
+            .push(format!("{failures} frames failed to track"));
+    }
+    if outcome.is_ok() && !interrupted {
+        if let Some(gt) = &groundtruth {
+            // The trajectory is written and complete: an evaluation that cannot be done is a
+            // warning (exit code 3), not an error.
+            if let Err(e) = crate::cli::eval::print_against(gt, &args.out) {
+                summary.warnings.push(format!(
+                    "trajectory not evaluated: {}",
+                    super::outcome::message(&e)
+                ));
+            }
+        }
+    }
+    let written = provenance.write_sidecar_with_summary(&args.out, &summary);
     outcome?;
+    written?;
     if interrupted {
         return Err(super::outcome::Interrupted { out: args.out }.into());
     }
-    let mut warnings: Vec<String> = skips.warning().into_iter().collect();
-    if failures > 0 {
-        warnings.push(format!("{failures} frames failed to track"));
-    }
-    if let Some(gt) = &groundtruth {
-        // The trajectory is written and complete: an evaluation that cannot be done is a
-        // warning (exit code 3), not an error.
-        if let Err(e) = crate::cli::eval::print_against(gt, &args.out) {
-            warnings.push(format!(
-                "trajectory not evaluated: {}",
-                super::outcome::message(&e)
-            ));
-        }
-    }
-    super::outcome::warnings(warnings)
+    super::outcome::warnings(summary.warnings)
+}
+
+/// What a run did, under `summary` in the trajectory's sidecar `<OUT>.json`.
+#[derive(serde::Serialize)]
+struct Summary {
+    /// `complete`, `interrupted` or `failed: <error>`.
+    status: String,
+    /// Frames of the sequence (or of `--max-frames`).
+    frames: usize,
+    /// Poses written to the trajectory.
+    poses: usize,
+    /// Frames skipped because their images could not be used (corrupt, wrongly sized, no
+    /// valid depth, an implausible depth scale): no pose for them.
+    skipped_frames: usize,
+    /// Frames whose tracking failed (they keep the previous pose).
+    failed_to_track: usize,
+    /// The warnings of exit code 3, as printed.
+    warnings: Vec<String>,
 }

@@ -73,8 +73,8 @@ pub struct OdometryOptions {
     #[arg(long, value_parser = range::pyramid_level)]
     pub stop_level: Option<usize>,
     /// Levels wider than this many pixels are not optimised (at 640x480 the finest optimised
-    /// level is then 320x240); 0 optimises every level down to --stop-level [default: 320].
-    #[arg(long)]
+    /// level is then 320x240); 0 optimises every level down to --stop-level; a whole number >= 0 [default: 320].
+    #[arg(long, value_parser = range::count)]
     pub max_width: Option<usize>,
     /// Align every frame to the previous one (no reference-frame keeping).
     #[arg(long)]
@@ -162,85 +162,158 @@ pub fn write_sidecar<T: Serialize>(
 /// (exit code 2) naming the option and its valid range, before any work starts. clap adds
 /// "invalid value 'X' for '--option <VALUE>'" in front of the message returned here.
 pub mod range {
-    fn number(s: &str) -> Result<f64, String> {
-        s.trim()
-            .parse::<f64>()
-            .map_err(|_| "not a number".to_string())
+    /// A number that `ok` accepts; `valid` says which ("must be a finite number > 0").
+    fn real(s: &str, valid: &str, ok: impl Fn(f64) -> bool) -> Result<f64, String> {
+        match s.trim().parse::<f64>() {
+            Ok(v) if ok(v) => Ok(v),
+            Ok(_) => Err(valid.to_string()),
+            Err(_) => Err(format!("not a number: {valid}")),
+        }
     }
 
     /// A finite number > 0.
     pub fn positive(s: &str) -> Result<f64, String> {
-        let v = number(s)?;
-        if v.is_finite() && v > 0.0 {
-            Ok(v)
-        } else {
-            Err("must be a finite number > 0".into())
-        }
+        real(s, "must be a finite number > 0", |v| {
+            v.is_finite() && v > 0.0
+        })
     }
 
     /// A finite number >= 0.
     pub fn non_negative(s: &str) -> Result<f64, String> {
-        let v = number(s)?;
-        if v.is_finite() && v >= 0.0 {
-            Ok(v)
-        } else {
-            Err("must be a finite number >= 0".into())
-        }
+        real(s, "must be a finite number >= 0", |v| {
+            v.is_finite() && v >= 0.0
+        })
     }
 
     /// A number > 0, `inf` included (a limit that `inf` switches off).
     pub fn positive_or_inf(s: &str) -> Result<f64, String> {
-        let v = number(s)?;
-        if v > 0.0 {
-            Ok(v)
-        } else {
-            Err("must be a number > 0 (inf switches the limit off)".into())
-        }
+        real(
+            s,
+            "must be a number > 0 (inf switches the limit off)",
+            |v| v > 0.0,
+        )
     }
 
     /// A number in [0, 1].
     pub fn unit(s: &str) -> Result<f64, String> {
-        let v = number(s)?;
-        if (0.0..=1.0).contains(&v) {
-            Ok(v)
-        } else {
-            Err("must be a number in [0, 1]".into())
-        }
+        real(s, "must be a number in [0, 1]", |v| {
+            (0.0..=1.0).contains(&v)
+        })
     }
 
     /// A number in (0, 1).
     pub fn open_unit(s: &str) -> Result<f64, String> {
-        let v = number(s)?;
-        if v > 0.0 && v < 1.0 {
-            Ok(v)
-        } else {
-            Err("must be a number in (0, 1)".into())
-        }
+        real(s, "must be a number in (0, 1)", |v| v > 0.0 && v < 1.0)
     }
 
     /// A frame rate for `--realtime`: finite, in [0.001, 10000] frames per second (the
     /// upper end is far beyond any camera; the lower end keeps the waits representable).
     pub fn frame_rate(s: &str) -> Result<f64, String> {
-        let v = number(s)?;
-        if (1e-3..=1e4).contains(&v) {
-            Ok(v)
-        } else {
-            Err("must be a frame rate in [0.001, 10000] frames per second".into())
-        }
+        real(
+            s,
+            "must be a frame rate in [0.001, 10000] frames per second",
+            |v| (1e-3..=1e4).contains(&v),
+        )
     }
 
     fn integer(s: &str, lo: usize, hi: usize) -> Result<usize, String> {
-        let v: usize = s
-            .trim()
-            .parse()
-            .map_err(|_| format!("not a whole number (valid: {lo} to {hi})"))?;
+        let valid = if hi == usize::MAX {
+            format!("a whole number >= {lo}")
+        } else {
+            format!("a whole number in {lo} to {hi}")
+        };
+        let v: usize = s.trim().parse().map_err(|_| format!("not {valid}"))?;
         if (lo..=hi).contains(&v) {
             Ok(v)
-        } else if hi == usize::MAX {
-            Err(format!("must be at least {lo}"))
         } else {
-            Err(format!("must be in {lo} to {hi}"))
+            Err(format!("must be {valid}"))
         }
+    }
+
+    /// An integer in `[lo, hi]` of a narrower type.
+    fn integer_as<T: TryFrom<usize>>(s: &str, lo: usize, hi: usize) -> Result<T, String> {
+        T::try_from(integer(s, lo, hi)?).map_err(|_| format!("must be at most {hi}"))
+    }
+
+    /// Any finite number (negative included).
+    pub fn finite(s: &str) -> Result<f64, String> {
+        real(s, "must be a finite number", |v| v.is_finite())
+    }
+
+    /// A finite number >= 1.
+    pub fn at_least_one_real(s: &str) -> Result<f64, String> {
+        real(s, "must be a finite number >= 1", |v| {
+            v.is_finite() && v >= 1.0
+        })
+    }
+
+    /// A finite number > 0, as f32.
+    pub fn positive_f32(s: &str) -> Result<f32, String> {
+        let valid = "must be a finite number > 0 (single precision)";
+        real(s, valid, |v| (v as f32).is_finite() && v as f32 > 0.0).map(|v| v as f32)
+    }
+
+    /// A finite number, as f32.
+    pub fn finite_f32(s: &str) -> Result<f32, String> {
+        let valid = "must be a finite number (single precision)";
+        real(s, valid, |v| (v as f32).is_finite()).map(|v| v as f32)
+    }
+
+    /// A number in (-1, 1) (a correlation threshold).
+    pub fn open_signed_unit(s: &str) -> Result<f64, String> {
+        real(s, "must be a number in (-1, 1)", |v| v > -1.0 && v < 1.0)
+    }
+
+    /// A whole number >= 0.
+    pub fn count(s: &str) -> Result<usize, String> {
+        integer(s, 0, usize::MAX)
+    }
+
+    /// A whole number >= 10 (particles of a filter).
+    pub fn at_least_ten(s: &str) -> Result<usize, String> {
+        integer(s, 10, usize::MAX)
+    }
+
+    /// An image side in pixels: 16 to 16384.
+    pub fn image_side(s: &str) -> Result<u32, String> {
+        integer_as(s, 16, 16384)
+    }
+
+    /// A seed: any whole number in 0 to 2^64 - 1.
+    pub fn seed(s: &str) -> Result<u64, String> {
+        s.trim()
+            .parse()
+            .map_err(|_| "not a whole number in 0 to 18446744073709551615".into())
+    }
+
+    /// A number of seeds: 1 to 1000.
+    pub fn seeds(s: &str) -> Result<u64, String> {
+        integer_as(s, 1, 1000)
+    }
+
+    /// A session of a generated scene: 0 (as generated) to 1000.
+    pub fn session(s: &str) -> Result<u32, String> {
+        integer_as(s, 0, 1000)
+    }
+
+    /// A number of sessions: 1 to 1000.
+    pub fn sessions(s: &str) -> Result<u32, String> {
+        integer_as(s, 1, 1000)
+    }
+
+    /// A pixel step (finite differences): 1 to 64.
+    pub fn pixel_step(s: &str) -> Result<u32, String> {
+        integer_as(s, 1, 64)
+    }
+
+    /// A radius in pixels: 0 to 64.
+    pub fn pixel_radius(s: &str) -> Result<u32, String> {
+        integer_as(s, 0, 64)
+    }
+
+    /// Sub-frames of a motion-blurred render: 0 (off) to 64.
+    pub fn sub_frames(s: &str) -> Result<usize, String> {
+        integer(s, 0, 64)
     }
 
     /// A whole number >= 1.
@@ -288,8 +361,25 @@ pub mod range {
             assert_eq!(pyramid_levels("8"), Ok(8));
             assert!(pyramid_levels("9").unwrap_err().contains("1 to 8"));
             assert!(pyramid_levels("0").is_err());
-            assert!(at_least_one("0").unwrap_err().contains("at least 1"));
+            assert!(at_least_one("0").unwrap_err().contains(">= 1"));
             assert!(at_least_one("-3").unwrap_err().contains("whole number"));
+            assert_eq!(image_side("16"), Ok(16));
+            assert!(image_side("15").unwrap_err().contains("16 to 16384"));
+            assert!(image_side("99999999999")
+                .unwrap_err()
+                .contains("16 to 16384"));
+            assert_eq!(session("0"), Ok(0));
+            assert!(sessions("0").is_err() && pixel_step("0").is_err());
+            assert_eq!(finite("-2.5"), Ok(-2.5));
+            assert!(finite("inf").is_err() && finite("nan").is_err());
+            assert!(open_signed_unit("-1").is_err() && open_signed_unit("1").is_err());
+            assert_eq!(open_signed_unit("-0.5"), Ok(-0.5));
+            assert!(positive_f32("1e39").is_err() && positive_f32("0").is_err());
+            assert!(finite_f32("1e39").is_err());
+            assert!(seed("-1").is_err() && seed("18446744073709551615").is_ok());
+            assert!(at_least_one_real("0.5").is_err() && at_least_one_real("1").is_ok());
+            assert!(at_least_ten("9").unwrap_err().contains(">= 10"));
+            assert_eq!(count("0"), Ok(0));
         }
     }
 }

@@ -39,8 +39,8 @@ pub struct LoopsArgs {
     #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 1)]
     pub every: usize,
     /// Minimum separation between loop keyframes, in keyframes (`query.min_separation`)
-    /// [default: 30].
-    #[arg(long)]
+    /// [default: 30]; a whole number >= 0.
+    #[arg(long, value_parser = crate::cli::options::range::count)]
     pub min_separation: Option<usize>,
     /// Minimum normalised score of a candidate, in [0, 1] (`query.min_normalised_score`)
     /// [default: 0.3].

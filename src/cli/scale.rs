@@ -37,8 +37,8 @@ pub enum Command {
     Calibrate {
         /// Calibration file.
         file: PathBuf,
-        /// Height of the walker, metres.
-        #[arg(long)]
+        /// Height of the walker, metres (> 0).
+        #[arg(long, value_parser = crate::cli::options::range::positive)]
         height: f64,
     },
     /// Generated walking sequences (head, chest, stops, stairs; several seeds) with emulated
@@ -52,18 +52,18 @@ pub enum Command {
 pub struct RunArgs {
     /// Unscaled TUM trajectory (`world_from_camera`, any units).
     traj: Option<PathBuf>,
-    /// Rate the trajectory is resampled at, frames per second (`fps`) [default: 30].
-    #[arg(long)]
+    /// Rate the trajectory is resampled at, frames per second (`fps`); > 0 [default: 30].
+    #[arg(long, value_parser = crate::cli::options::range::positive)]
     fps: Option<f64>,
     /// Height of the walker, metres (`model.height`; required unless the configuration
-    /// file or --set gives it).
-    #[arg(long)]
+    /// file or --set gives it) (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive)]
     height: Option<f64>,
-    /// alpha of V = alpha f^beta H (`model.alpha`) [default: Grieve's].
-    #[arg(long)]
+    /// alpha of V = alpha f^beta H (`model.alpha`); > 0 [default: Grieve's].
+    #[arg(long, value_parser = crate::cli::options::range::positive)]
     alpha: Option<f64>,
-    /// beta of V = alpha f^beta H (`model.beta`) [default: Grieve's].
-    #[arg(long)]
+    /// beta of V = alpha f^beta H (`model.beta`); any finite number [default: Grieve's].
+    #[arg(long, value_parser = crate::cli::options::range::finite)]
     beta: Option<f64>,
     /// Up axis in the trajectory's world frame: x, y, z (signed), auto (normal of the
     /// positions' best-fit plane; a monocular world frame is arbitrary) or a,b,c (`up`)
@@ -71,20 +71,20 @@ pub struct RunArgs {
     #[arg(long, allow_hyphen_values = true)]
     up: Option<String>,
     /// Analysis window t_DFT, seconds, >= 1 (`window`) [default: 4].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one_real)]
     window: Option<f64>,
     /// Update period t_upd (section length), seconds, in (0, window] (`update`)
     /// [default: 1].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::positive)]
     update: Option<f64>,
     /// Number of particles, >= 10 (`filter.particles`) [default: 5000].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::at_least_ten)]
     particles: Option<usize>,
-    /// Scale drift of the filter, decades per sqrt(s) (`filter.sigma_drift`) [default: 0.1].
-    #[arg(long)]
+    /// Scale drift of the filter, decades per sqrt(s) (`filter.sigma_drift`); >= 0 [default: 0.1].
+    #[arg(long, value_parser = crate::cli::options::range::non_negative)]
     sigma_drift: Option<f64>,
-    /// Seed of the particle filter (`seed`).
-    #[arg(long)]
+    /// Seed of the particle filter (`seed`) (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed)]
     seed: Option<u64>,
     /// Configuration: a `DynScaleConfig` file (`rgbid config dump --command scale`).
     #[command(flatten)]
@@ -106,25 +106,25 @@ pub struct RunArgs {
 /// Options of `rgbid scale experiment`.
 #[derive(clap::Args)]
 pub struct ExperimentArgs {
-    /// Duration of each sequence, seconds.
-    #[arg(long, default_value_t = 90.0)]
+    /// Duration of each sequence, seconds (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 90.0)]
     duration: f64,
-    /// Number of seeds per sequence.
-    #[arg(long, default_value_t = 3)]
+    /// Number of seeds per sequence (1 to 1000).
+    #[arg(long, value_parser = crate::cli::options::range::seeds, default_value_t = 3)]
     seeds: u64,
-    /// Number of particles.
-    #[arg(long, default_value_t = 5000)]
+    /// Number of particles (>= 10).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_ten, default_value_t = 5000)]
     particles: usize,
-    /// Scale drift of the emulated monocular SLAM, std of ln s per sqrt(s).
-    #[arg(long, default_value_t = 0.04)]
+    /// Scale drift of the emulated monocular SLAM, std of ln s per sqrt(s) (>= 0).
+    #[arg(long, value_parser = crate::cli::options::range::non_negative, default_value_t = 0.04)]
     drift: f64,
     /// Source of the monocular trajectories: `emulated` (ground truth with emulated scale
     /// drift, seconds) or `mono` (the monocular EKF on catadioptric images rendered along
     /// each walk: its own drift; ~70 ms of rendering per 400x400 frame).
     #[arg(long, default_value = "emulated", value_parser = ["emulated", "mono"])]
     estimator: String,
-    /// Image side of the catadioptric camera with `--estimator mono`, pixels.
-    #[arg(long, default_value_t = 400)]
+    /// Image side of the catadioptric camera with `--estimator mono`, pixels (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = 400)]
     size: u32,
     /// Sequences to run, comma separated (head, chest, stops, stairs); default all.
     #[arg(long, value_delimiter = ',')]

@@ -42,23 +42,23 @@ pub struct ExperimentArgs {
     /// Scene presets.
     #[arg(long, value_delimiter = ',', default_value = "office,kitchen,lab")]
     scenes: Vec<String>,
-    /// Scene seeds (each scene with each seed).
-    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    /// Scene seeds (each scene with each seed) (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed, value_delimiter = ',', default_value = "1,2")]
     seeds: Vec<u64>,
-    /// Changed sessions 1..=N compared with session 0.
-    #[arg(long, default_value_t = 2)]
+    /// Changed sessions 1..=N compared with session 0 (1 to 1000).
+    #[arg(long, value_parser = crate::cli::options::range::sessions, default_value_t = 2)]
     sessions: u32,
-    /// Frames per lap of the loop (30 fps).
-    #[arg(long, default_value_t = 300)]
+    /// Frames per lap of the loop (30 fps) (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 300)]
     lap_frames: usize,
-    /// Use every STEP-th frame.
-    #[arg(long, default_value_t = 20)]
+    /// Use every STEP-th frame (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 20)]
     step: usize,
-    /// The changed-session frame is OFFSET frames after the reference frame.
-    #[arg(long, default_value_t = 4)]
+    /// The changed-session frame is OFFSET frames after the reference frame (a whole number >= 0).
+    #[arg(long, value_parser = crate::cli::options::range::count, default_value_t = 4)]
     offset: usize,
-    /// Image width in pixels (height 3/4 of it).
-    #[arg(long, default_value_t = 320)]
+    /// Image width in pixels (height 3/4 of it) (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = 320)]
     width: u32,
     /// Depth sensor of the rendered frames: `kinect` (the generator's Kinect-like model:
     /// disparity noise 0.1 px and 1/8 px steps at the rendered image's focal length),
@@ -67,17 +67,17 @@ pub struct ExperimentArgs {
     #[arg(long, value_enum, default_value_t = SensorArg::Kinect)]
     sensor: SensorArg,
     /// Fuse the inverse depth of the next FUSE frames (true poses) into each frame before
-    /// segmenting it, as SLAM keyframes are fused (0 = single raw frames).
-    #[arg(long, default_value_t = 0)]
+    /// segmenting it, as SLAM keyframes are fused (0 = single raw frames) (a whole number >= 0).
+    #[arg(long, value_parser = crate::cli::options::range::count, default_value_t = 0)]
     fuse: usize,
-    /// Neg-entropy thresholds of the masks (an unmasked run is always added).
-    #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.6,0.7,0.8,0.9")]
+    /// Neg-entropy thresholds of the masks (an unmasked run is always added) (each in [0, 1]).
+    #[arg(long, value_parser = crate::cli::options::range::unit, value_delimiter = ',', default_value = "0.3,0.5,0.6,0.7,0.8,0.9")]
     thresholds: Vec<f64>,
-    /// Finite-difference step of the normals, pixels.
-    #[arg(long, default_value_t = NormalParams::default().step)]
+    /// Finite-difference step of the normals, pixels (1 to 64 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::pixel_step, default_value_t = NormalParams::default().step)]
     normal_step: u32,
-    /// Half-width of the edge-aware inverse-depth smoothing before the normals (0 = none).
-    #[arg(long, default_value_t = NormalParams::default().smooth_radius)]
+    /// Half-width of the edge-aware inverse-depth smoothing before the normals (0 = none) (0 to 64 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::pixel_radius, default_value_t = NormalParams::default().smooth_radius)]
     smooth_radius: u32,
     /// Where the frames are rendered.
     #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
@@ -100,25 +100,25 @@ pub struct RunArgs {
     /// Output folder (created if missing).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Neg-entropy thresholds of the masks.
-    #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.7")]
+    /// Neg-entropy thresholds of the masks (each in [0, 1]).
+    #[arg(long, value_parser = crate::cli::options::range::unit, value_delimiter = ',', default_value = "0.3,0.5,0.7")]
     pub thresholds: Vec<f64>,
     /// Felzenszwalb-Huttenlocher scale k, > 0 (`k`) [default: 0.6].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::cli::options::range::positive_f32)]
     pub k: Option<f32>,
-    /// Minimum superjut size in pixels (`min_size`) [default: 200].
-    #[arg(long)]
+    /// Minimum superjut size in pixels (`min_size`); >= 1 [default: 200].
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one)]
     pub min_size: Option<usize>,
-    /// Finite-difference step of the normals, pixels (`normals.step`) [default: 2].
-    #[arg(long)]
+    /// Finite-difference step of the normals, pixels (`normals.step`); 1 to 64 pixels [default: 2].
+    #[arg(long, value_parser = crate::cli::options::range::pixel_step)]
     pub normal_step: Option<u32>,
     /// Half-width of the edge-aware inverse-depth smoothing before the normals, pixels
-    /// (0 = none) (`normals.smooth_radius`) [default: 3].
-    #[arg(long)]
+    /// (0 = none) (`normals.smooth_radius`); 0 to 64 pixels [default: 3].
+    #[arg(long, value_parser = crate::cli::options::range::pixel_radius)]
     pub smooth_radius: Option<u32>,
     /// Up direction in the camera frame for horizontality, `x,y,z` (normalised) (`up`)
-    /// [default: 0,-1,0].
-    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    /// [default: 0,-1,0]; three finite numbers.
+    #[arg(long, value_parser = crate::cli::options::range::finite_f32, value_delimiter = ',', allow_hyphen_values = true)]
     pub up: Option<Vec<f32>>,
     /// Configuration: a `SegmentConfig` file (`rgbid config dump --command segment`).
     #[command(flatten)]

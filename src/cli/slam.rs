@@ -30,8 +30,8 @@ pub struct Args {
     pub sequence: Option<PathBuf>,
     #[command(flatten)]
     pub source: SynthOptions,
-    /// Session of a generated scene (0 = reference arrangement; others move objects).
-    #[arg(long, default_value_t = 0)]
+    /// Session of a generated scene (0 = reference arrangement; others move objects) (0 to 1000).
+    #[arg(long, value_parser = crate::cli::options::range::session, default_value_t = 0)]
     pub session: u32,
     /// Output folder: trajectory.txt (every frame), keyframes.txt, odometry.txt, loops.csv,
     /// model.ply, mesh.ply (with --mesh), timing.csv, keyframe_timing.csv, summary.json
@@ -287,6 +287,11 @@ fn run_slam(
 ) -> Result<()> {
     let camera = source.camera();
     let n = source.len();
+    // Said now, so that a long run can be stopped, and again with the outcome (exit code 3).
+    let input_warning = source.input_warning().map(str::to_owned);
+    if let Some(w) = &input_warning {
+        log::warn!("{w}");
+    }
     println!(
         "slam: {n} frames {}x{}, backend {}, masks {}{}",
         camera.width,
@@ -390,6 +395,7 @@ fn run_slam(
                         lost,
                         keyframes: slam.map_keyframes() + keyframe_poses.len(),
                         wall_s: t0.elapsed().as_secs_f64(),
+                        warnings: input_warning.iter().cloned().collect(),
                         ..Default::default()
                     };
                     summary
@@ -439,7 +445,17 @@ fn run_slam(
             // The back-end's own error, reported once; the per-frame files hold every frame
             // processed before it and the summary says the run failed.
             let e = match error {
-                Some(first) => first.context(format!("and then: {e}")),
+                // The same cause (a lost device) stops the back-end too: said once.
+                Some(first)
+                    if super::outcome::message(&first)
+                        .contains(e.to_string().trim_end_matches([':', ' '])) =>
+                {
+                    first
+                }
+                Some(first) => anyhow::anyhow!(
+                    "{}; and then finishing failed: {e}",
+                    super::outcome::message(&first)
+                ),
                 None => anyhow::Error::new(e),
             };
             let summary = RunSummary {
@@ -462,7 +478,11 @@ fn run_slam(
         (None, true) => RunStatus::Interrupted,
         (None, false) => RunStatus::Complete,
     };
-    let mut warnings = write_outputs(
+    let mut warnings: Vec<String> = input_warning.into_iter().collect();
+    if let Some(w) = skips.warning() {
+        warnings.push(format!("{w} (counted in summary.json)"));
+    }
+    let warnings = write_outputs(
         a,
         writer,
         source,
@@ -475,6 +495,7 @@ fn run_slam(
         wall,
         provenance,
         status,
+        warnings,
     )
     .map_err(|e| final_write_failed(e, error.take(), &a.out))?;
     if let Some(e) = error {
@@ -489,9 +510,6 @@ fn run_slam(
     }
     if interrupted {
         return Err(super::outcome::Interrupted { out: a.out.clone() }.into());
-    }
-    if let Some(w) = skips.warning() {
-        warnings.push(format!("{w} (counted in summary.json)"));
     }
     super::outcome::warnings(warnings)
 }
@@ -552,9 +570,9 @@ fn write_outputs(
     wall: f64,
     provenance: &Provenance,
     status: RunStatus,
+    mut warnings: Vec<String>,
 ) -> Result<Vec<String>> {
     let out = &a.out;
-    let mut warnings = Vec::new();
     writer.trajectory(&r.trajectory)?;
     let kf_traj: Vec<TimedPose> = r.keyframe_trajectory();
     writer.keyframes(&kf_traj)?;
@@ -776,6 +794,7 @@ fn write_outputs(
             }
         }
     }
+    summary.warnings = warnings.clone();
     writer.end(summary, status)?;
     println!("wrote {}", out.display());
     Ok(warnings)

@@ -42,15 +42,15 @@ pub struct Args {
     /// Camera model.
     #[arg(long, value_enum, default_value_t = CameraKind::Pinhole)]
     camera: CameraKind,
-    /// Image width in pixels.
-    #[arg(long, default_value_t = 640)]
+    /// Image width in pixels (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = 640)]
     width: u32,
     /// Image height in pixels (default: 3/4 of the width, as `rgbid slam --synth` and
-    /// `rgbid demo` use).
-    #[arg(long)]
+    /// `rgbid demo` use) (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side)]
     height: Option<u32>,
-    /// Seed of the scene, trajectory and noise.
-    #[arg(long, default_value_t = 7)]
+    /// Seed of the scene, trajectory and noise (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed, default_value_t = 7)]
     seed: u64,
     /// Output folder (required unless --bench).
     #[arg(long)]
@@ -60,13 +60,13 @@ pub struct Args {
     no_noise: bool,
     /// Render this many sessions of the changing environment (session_00, session_01, ...
     /// under --out; sessions > 0 move, remove or add objects and write moved-object masks).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, value_parser = crate::cli::options::range::sessions, default_value_t = 1)]
     sessions: u32,
     /// Smooth auto-exposure gain changes between frames.
     #[arg(long)]
     exposure_changes: bool,
-    /// Motion blur: sub-frame renders averaged over a 1/60 s exposure (0 = off).
-    #[arg(long, default_value_t = 0)]
+    /// Motion blur: sub-frame renders averaged over a 1/60 s exposure (0 = off) (0 to 64).
+    #[arg(long, value_parser = crate::cli::options::range::sub_frames, default_value_t = 0)]
     motion_blur: usize,
     /// Where the ray casting runs (auto: a hardware GPU if present, else the CPU).
     #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]

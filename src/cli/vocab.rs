@@ -50,11 +50,11 @@ pub struct TrainArgs {
     /// ORB keypoints per image, >= 1.
     #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = 1000)]
     pub features: usize,
-    /// Also train on N procedurally rendered images (random textured shapes, rendered here).
-    #[arg(long, default_value_t = 0)]
+    /// Also train on N procedurally rendered images (random textured shapes, rendered here) (a whole number >= 0).
+    #[arg(long, value_parser = crate::cli::options::range::count, default_value_t = 0)]
     pub procedural: usize,
-    /// Seed of the clustering and the procedural images.
-    #[arg(long, default_value_t = 7)]
+    /// Seed of the clustering and the procedural images (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed, default_value_t = 7)]
     pub seed: u64,
 }
 

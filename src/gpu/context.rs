@@ -1,4 +1,4 @@
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -67,7 +67,22 @@ pub struct GpuContext {
     lost: Arc<AtomicBool>,
     lost_message: Arc<Mutex<String>>,
     error: Arc<Mutex<Option<String>>>,
+    /// Submissions so far, for [`LOSE_DEVICE_ENV`].
+    submissions: AtomicU64,
+    /// The submission before which the device is destroyed ([`LOSE_DEVICE_ENV`]).
+    lose_at: Option<u64>,
+    /// Whether [`LOSE_DEVICE_ENV`] destroyed the device (its error says so).
+    simulated: AtomicBool,
 }
+
+/// Test hook, not a setting: when this environment variable holds a number N, the device is
+/// destroyed (`wgpu::Device::destroy`) just before the N-th submission of command buffers
+/// (counted from 1), which wgpu reports through the device-lost callback like a driver reset.
+/// It lets tests check on any adapter, lavapipe included, that a device lost in the middle of
+/// a run is an error that keeps what was written, which a real loss cannot be made to do on
+/// demand.
+#[doc(hidden)]
+pub const LOSE_DEVICE_ENV: &str = "RGBID_TEST_LOSE_GPU_AT_SUBMISSION";
 
 /// How long a single wait on the GPU may take before it is treated as a hang.
 pub(crate) const GPU_WAIT_TIMEOUT: Duration = Duration::from_secs(60);
@@ -120,7 +135,11 @@ impl GpuContext {
             device.set_device_lost_callback(move |reason, m| {
                 lost.store(true, Ordering::SeqCst);
                 if let Ok(mut g) = msg.lock() {
-                    *g = format!("{reason:?}: {m}");
+                    *g = if m.is_empty() {
+                        format!("{reason:?}")
+                    } else {
+                        format!("{reason:?}: {m}")
+                    };
                 }
             });
         }
@@ -157,7 +176,23 @@ impl GpuContext {
             lost,
             lost_message,
             error,
+            submissions: AtomicU64::new(0),
+            simulated: AtomicBool::new(false),
+            lose_at: std::env::var(LOSE_DEVICE_ENV)
+                .ok()
+                .and_then(|v| v.trim().parse().ok()),
         })
+    }
+
+    /// Submits `commands` to the queue (every submission of rgbid goes through here, so that
+    /// the [`LOSE_DEVICE_ENV`] hook sees them all).
+    pub(crate) fn submit(&self, commands: wgpu::CommandBuffer) {
+        let n = self.submissions.fetch_add(1, Ordering::SeqCst) + 1;
+        if self.lose_at == Some(n) {
+            self.simulated.store(true, Ordering::SeqCst);
+            self.device.destroy();
+        }
+        self.queue.submit([commands]);
     }
 
     /// Returns an error if the device was lost or an uncaptured validation error occurred.
@@ -168,7 +203,13 @@ impl GpuContext {
                 .lock()
                 .map(|g| g.clone())
                 .unwrap_or_default();
-            return Err(GpuError::DeviceLost(m));
+            return Err(GpuError::DeviceLost(
+                if self.simulated.load(Ordering::SeqCst) {
+                    format!("{m} (simulated: {LOSE_DEVICE_ENV} is set)")
+                } else {
+                    m
+                },
+            ));
         }
         if let Ok(mut g) = self.error.lock() {
             if let Some(e) = g.take() {
@@ -180,10 +221,24 @@ impl GpuContext {
 
     /// Waits for all submitted work, with a timeout, and reports loss or validation errors.
     pub(crate) fn wait(&self) -> Result<(), GpuError> {
-        let r = self.device.poll(wgpu::PollType::Wait {
-            submission_index: None,
-            timeout: Some(GPU_WAIT_TIMEOUT),
-        });
+        // A lost device is reported as such, without waiting on it.
+        self.check()?;
+        // wgpu panics inside `poll` on device errors other than a timeout (a device lost
+        // while the work ran): that panic is turned into the error it stands for.
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            self.device.poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: Some(GPU_WAIT_TIMEOUT),
+            })
+        }))
+        .map_err(|panic| {
+            let m = panic
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| panic.downcast_ref::<&str>().copied())
+                .unwrap_or("wgpu panicked while waiting");
+            GpuError::DeviceLost(m.to_string())
+        })?;
         self.check()?;
         match r {
             Ok(_) => Ok(()),
@@ -396,7 +451,7 @@ impl GpuContext {
                 label: Some("readback"),
             });
         enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
-        self.queue.submit([enc.finish()]);
+        self.submit(enc.finish());
         self.read_staging(&staging, count)
     }
 

@@ -11,6 +11,8 @@ pub(crate) mod shaders;
 mod testing;
 
 pub use backend::{describe_adapters, select_backend, BackendChoice, ComputeBackend};
+#[doc(hidden)]
+pub use context::LOSE_DEVICE_ENV;
 pub use context::{GpuContext, GpuError};
 #[cfg(test)]
 pub(crate) use testing::{host_layout, layout_mismatches};

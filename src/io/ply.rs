@@ -379,7 +379,11 @@ fn finish_parse(
                     names.len()
                 ));
             }
-            out.push((DVec3::new(v[ix], v[iy], v[iz]), colour(&|k| v[k])));
+            let p = DVec3::new(v[ix], v[iy], v[iz]);
+            if !p.is_finite() {
+                return Err(format!("line {at}: vertex {n}: {}", not_finite(p)));
+            }
+            out.push((p, colour(&|k| v[k])));
         }
     } else {
         let big = format == Format::Big;
@@ -397,12 +401,32 @@ fn finish_parse(
                 bytes.len()
             ));
         }
-        for rec in body[skip_bytes..].chunks_exact(stride.max(1)).take(count) {
+        for (n, rec) in body[skip_bytes..]
+            .chunks_exact(stride.max(1))
+            .take(count)
+            .enumerate()
+        {
             let v = |k: usize| types[k].read(&rec[offsets[k]..], big);
-            out.push((DVec3::new(v(ix), v(iy), v(iz)), colour(&v)));
+            let p = DVec3::new(v(ix), v(iy), v(iz));
+            if !p.is_finite() {
+                return Err(format!(
+                    "byte {}: vertex {n}: {}",
+                    body_offset + skip_bytes + n * stride,
+                    not_finite(p)
+                ));
+            }
+            out.push((p, colour(&v)));
         }
     }
     Ok(out)
+}
+
+/// What is wrong with a vertex position that is not finite.
+fn not_finite(p: DVec3) -> String {
+    format!(
+        "position ({}, {}, {}) is not finite (NaN or infinite coordinates are no point)",
+        p.x, p.y, p.z
+    )
 }
 
 #[cfg(test)]
@@ -438,6 +462,34 @@ mod tests {
             parse_ply(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty blob x\nend_header\n")
                 .unwrap_err();
         assert!(e.starts_with("line 4: unsupported property type"), "{e}");
+    }
+
+    #[test]
+    fn non_finite_positions_are_errors_that_say_where() {
+        let head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+        for bad in ["nan", "inf", "-inf", "1e999"] {
+            let text = format!("{head}1 2 3\n4 5 6\n7 {bad} 9\n");
+            let e = parse_ply(text.as_bytes()).unwrap_err();
+            assert!(e.starts_with("line 10: vertex 2: position"), "{e}");
+            assert!(e.contains("not finite"), "{e}");
+        }
+        // Binary: the vertex's byte offset (header 124 bytes, 12 bytes per vertex).
+        let mut b = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n".to_vec();
+        let header = b.len();
+        for v in [1.0f32, 2.0, 3.0, 4.0, f32::NAN, 6.0] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        let e = parse_ply(&b).unwrap_err();
+        assert!(
+            e.starts_with(&format!("byte {}: vertex 1:", header + 12)),
+            "{e}"
+        );
+        // Through the file reader, the error names the file.
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("cloud.ply");
+        std::fs::write(&p, &b).unwrap();
+        let e = read_ply(&p).unwrap_err().to_string();
+        assert!(e.contains("cloud.ply") && e.contains("vertex 1"), "{e}");
     }
 
     #[test]

@@ -213,6 +213,10 @@ pub struct RunSummary {
     /// Frames skipped because their images could not be used (corrupt, implausible depth).
     #[serde(default)]
     pub skipped_frames: usize,
+    /// Warnings of a run that finished with exit code 3 (frames skipped, a depth factor that
+    /// does not fit the sensor's range, an evaluation that could not be done), as printed.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     /// Frames with a front-end pose.
     #[serde(default)]
     pub tracked: usize,

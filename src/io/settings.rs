@@ -94,6 +94,9 @@ pub enum SettingsError {
     /// The configuration could not be turned into a value tree or into TOML.
     #[error("configuration could not be written: {0}")]
     Serialize(String),
+    /// A sidecar file could not be written.
+    #[error(transparent)]
+    Write(#[from] super::IoError),
 }
 
 /// File format of a configuration file, chosen by its extension.
@@ -437,6 +440,32 @@ impl Provenance {
         std::fs::write(&path, text + "\n").map_err(|source| SettingsError::Read {
             path: path.clone(),
             source,
+        })?;
+        Ok(path)
+    }
+
+    /// Writes the provenance and, under the key `summary`, what the run did (frames, frames
+    /// skipped, status, warnings) as pretty JSON to the sidecar of `output`, replacing the file
+    /// atomically (a run killed while writing leaves the previous sidecar); returns its path.
+    pub fn write_sidecar_with_summary<S: Serialize>(
+        &self,
+        output: &Path,
+        summary: &S,
+    ) -> Result<PathBuf, SettingsError> {
+        let path = Self::sidecar_path(output);
+        let mut value =
+            serde_json::to_value(self).map_err(|e| SettingsError::Serialize(e.to_string()))?;
+        let summary =
+            serde_json::to_value(summary).map_err(|e| SettingsError::Serialize(e.to_string()))?;
+        if let Value::Object(map) = &mut value {
+            map.insert("summary".into(), summary);
+        }
+        let text = serde_json::to_string_pretty(&value)
+            .map_err(|e| SettingsError::Serialize(e.to_string()))?;
+        super::write_atomic(&path, |w| {
+            use std::io::Write;
+            w.write_all(text.as_bytes())?;
+            w.write_all(b"\n")
         })?;
         Ok(path)
     }

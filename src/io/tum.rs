@@ -97,6 +97,7 @@ pub struct TumSequence {
     undistort: Option<Arc<UndistortMap>>,
     truth: Truth,
     colour_camera: Option<Box<PinholeCamera>>,
+    depth_warning: Option<String>,
 }
 
 impl TumSequence {
@@ -203,11 +204,7 @@ impl TumSequence {
             // first image's header must agree with the camera before the table is built.
             check_image_size(&entries[0].rgb, &cfg.camera, &cfg.source)?;
         }
-        if let Ok(d) = decode_depth(&entries[0].depth) {
-            if let Some(w) = depth_range_warning(&d.raw, cfg.depth_factor) {
-                log::warn!("{}: {w}", entries[0].depth.display());
-            }
-        }
+        let depth_warning = depth_factor_warning(&entries, cfg.depth_factor);
         let undistort =
             (!cfg.camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(&cfg.camera)));
         let seq = TumSequence {
@@ -221,9 +218,18 @@ impl TumSequence {
             undistort,
             truth,
             colour_camera,
+            depth_warning,
         };
         seq.load(0)?;
         Ok(seq)
+    }
+
+    /// A warning when the depth factor looks wrong for the sensor's range: in at least half
+    /// of a few frames spread over the sequence, many valid depths fall outside [`SENSOR_RANGE_M`] at
+    /// [`Self::depth_factor`]; the message names an image and the common factor that would
+    /// fit. Frames still load (a scene can be unusual); the caller reports it.
+    pub fn depth_range_warning(&self) -> Option<&str> {
+        self.depth_warning.as_deref()
     }
 
     /// Number of frames.
@@ -798,25 +804,84 @@ fn decode_depth(path: &Path) -> Result<RawDepth, IoError> {
     }
 }
 
-/// Range of an RGB-D sensor of the Kinect / Xtion / RealSense class, metres: depths outside it
-/// are rare in real data, so many of them point at a wrong depth factor (a 5x error, such as
-/// millimetre depth read with TUM's 5000, keeps the median plausible but not the range).
-pub const SENSOR_RANGE_M: (f64, f64) = (0.3, 10.0);
-/// Share of valid depths outside [`SENSOR_RANGE_M`] above which the factor is reported (a
-/// sensor measures nothing below its minimum range, so even a fifth there is suspect).
-const OUT_OF_RANGE_SHARE: f64 = 0.2;
+/// Range of an RGB-D sensor of the Kinect / Xtion / Kinect v2 class, metres: they measure
+/// nothing nearer than about 0.5 m and little beyond 10 m, so many depths outside it point at
+/// a wrong depth factor. A 5x error keeps the median plausible but not the range: a room read
+/// 5x too near has its nearest walls under 0.5 m, one read 5x too far its far walls beyond
+/// 10 m. (Sensors that do measure nearer, such as a RealSense at close range, get a warning
+/// that does not stop the run.)
+pub const SENSOR_RANGE_M: (f64, f64) = (0.5, 10.0);
+/// Share of valid depths outside [`SENSOR_RANGE_M`] above which a frame's depth factor is
+/// suspect: the real sequences and generated scenes at hand have none outside it, a room
+/// read 5x too near has a tenth or more under 0.5 m.
+const OUT_OF_RANGE_SHARE: f64 = 0.05;
+
+/// The warning of a sequence whose depth factor does not fit the sensor's range: frames
+/// spread over the sequence (up to [`DEPTH_CHECK_FRAMES`] with enough measurements) are
+/// judged one by one, and at least half of them must agree, so that one odd frame (skipped
+/// when it is loaded) does not speak for the sequence.
+fn depth_factor_warning(entries: &[SequenceEntry], factor: f64) -> Option<String> {
+    let n = entries.len();
+    let picks = DEPTH_CHECK_FRAMES.min(n);
+    let mut indices: Vec<usize> = (0..picks)
+        .map(|k| {
+            if picks > 1 {
+                k * (n - 1) / (picks - 1)
+            } else {
+                0
+            }
+        })
+        .collect();
+    indices.dedup();
+    let verdicts: Vec<Option<String>> = indices
+        .iter()
+        .filter_map(|&i| {
+            let d = decode_depth(&entries[i].depth).ok()?;
+            enough_depths(&d.raw).then(|| {
+                depth_range_warning(&d.raw, factor)
+                    .map(|w| format!("{}: {w}", entries[i].depth.display()))
+            })
+        })
+        .collect();
+    let flagged: Vec<&String> = verdicts.iter().flatten().collect();
+    // At least half: a view of far walls alone shows little of a room read 5x too near.
+    if flagged.is_empty() || 2 * flagged.len() < verdicts.len() {
+        return None;
+    }
+    Some(format!(
+        "{} ({} of {} frames checked are like it)",
+        flagged[0],
+        flagged.len(),
+        verdicts.len()
+    ))
+}
+
+/// Frames, spread over the sequence, whose depth judges the depth factor.
+const DEPTH_CHECK_FRAMES: usize = 5;
+
+/// Valid depths of a sample needed to judge the depth factor by.
+const MIN_DEPTH_SAMPLE: usize = 20;
+
+/// The valid raw depths of a sample of at most about 16384 pixels.
+fn depth_sample(raw: &[u16]) -> Vec<f64> {
+    let stride = (raw.len() / 16384).max(1);
+    raw.iter()
+        .step_by(stride)
+        .filter(|&&d| d > 0)
+        .map(|&d| f64::from(d))
+        .collect()
+}
+
+/// Whether an image has enough valid depths for [`depth_range_warning`] to judge it.
+fn enough_depths(raw: &[u16]) -> bool {
+    depth_sample(raw).len() >= MIN_DEPTH_SAMPLE
+}
 
 /// A warning when many valid depths (of a sample) fall outside [`SENSOR_RANGE_M`] at
 /// `factor`, naming the common factor that would put the most of them inside.
 fn depth_range_warning(raw: &[u16], factor: f64) -> Option<String> {
-    let stride = (raw.len() / 16384).max(1);
-    let sample: Vec<f64> = raw
-        .iter()
-        .step_by(stride)
-        .filter(|&&d| d > 0)
-        .map(|&d| f64::from(d))
-        .collect();
-    if sample.len() < 20 {
+    let sample = depth_sample(raw);
+    if sample.len() < MIN_DEPTH_SAMPLE {
         return None;
     }
     let (lo, hi) = SENSOR_RANGE_M;
@@ -924,6 +989,12 @@ mod tests {
         let w = depth_range_warning(&raw, 5000.0).expect("a warning");
         assert!(w.contains("factor 1000 would put 100 % inside"), "{w}");
         assert_eq!(depth_range_warning(&raw, 1000.0), None);
+        // A room (1.8-4.4 m) in millimetres read with 5000: 0.36-0.88 m, a plausible close-up
+        // but for the quarter under the sensor's 0.5 m.
+        let room: Vec<u16> = (0..1000).map(|i| 1800 + (i * 26 / 10) as u16).collect();
+        let w = depth_range_warning(&room, 5000.0).expect("a warning");
+        assert!(w.contains("factor 1000 would put 100 % inside"), "{w}");
+        assert_eq!(depth_range_warning(&room, 1000.0), None);
         // The reverse: TUM depth (5000 per metre) read as millimetres.
         let tum: Vec<u16> = raw.iter().map(|&d| d * 5).collect();
         let w = depth_range_warning(&tum, 1000.0).expect("a warning");

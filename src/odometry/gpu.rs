@@ -344,7 +344,7 @@ impl GpuKernels {
                 &mut u,
             );
         }
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc.finish());
         self.ctx.check()?;
         Ok(pyr)
     }
@@ -413,7 +413,7 @@ impl GpuKernels {
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(l.width.div_ceil(16) as u32, l.height.div_ceil(16) as u32, 1);
         }
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc.finish());
         self.ctx.check()?;
         Ok(dst)
     }
@@ -499,7 +499,7 @@ impl GpuKernels {
         if pairs > 0 {
             enc.copy_buffer_to_buffer(tail, 0, &o.staging, pbytes, (pairs * pair) as u64);
         }
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc.finish());
         let floats = (pbytes as usize + pairs * pair) / 4;
         let v: Vec<f32> = self.ctx.read_staging(&self.out.staging, floats)?;
         let bytes: &[u8] = bytemuck::cast_slice(&v);

@@ -112,7 +112,7 @@ impl GpuNormals {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups((w as u32).div_ceil(16), (h as u32).div_ceil(16), 1);
         }
-        ctx.queue.submit([enc.finish()]);
+        ctx.submit(enc.finish());
         let raw: Vec<[f32; 4]> = ctx.read_buffer(&out, w * h)?;
         let data = raw
             .into_iter()

@@ -540,7 +540,7 @@ impl FusionKernels for GpuFusion {
             pass.set_pipeline(&self.pipeline);
             pass.dispatch_workgroups(u.width.div_ceil(16), u.height.div_ceil(16), 1);
         }
-        ctx.queue.submit([enc.finish()]);
+        ctx.submit(enc.finish());
         let c: Vec<u32> = ctx.read_buffer(&self.counts, 5)?;
         ctx.check()?;
         let at = |k: usize| u64::from(c.get(k).copied().unwrap_or(0));

@@ -190,7 +190,7 @@ impl GpuRayCaster {
         let db = (self.pixels * 8) as u64;
         enc.copy_buffer_to_buffer(&self.out_color, 0, &self.staging_color, 0, cb);
         enc.copy_buffer_to_buffer(&self.out_depth, 0, &self.staging_depth, 0, db);
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc.finish());
         let color: Vec<[f32; 4]> = self.ctx.read_staging(&self.staging_color, self.pixels)?;
         let depth: Vec<[f32; 2]> = self.ctx.read_staging(&self.staging_depth, self.pixels)?;
         Ok(color

@@ -110,7 +110,7 @@ impl GpuTsdf {
                     label: Some("tsdf grow"),
                 });
             enc.copy_buffer_to_buffer(&o.voxels, 0, &voxels, 0, voxel_bytes(o.block_capacity));
-            ctx.queue.submit([enc.finish()]);
+            ctx.submit(enc.finish());
         }
         let bind = ctx.bind_buffers(
             "tsdf",
@@ -172,7 +172,7 @@ impl TsdfKernels for GpuTsdf {
             let n = active.len() as u32;
             pass.dispatch_workgroups(n.min(ROW), n.div_ceil(ROW), 1);
         }
-        ctx.queue.submit([enc.finish()]);
+        ctx.submit(enc.finish());
         ctx.wait()?;
         ctx.check()?;
         Ok(())
