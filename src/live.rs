@@ -186,15 +186,23 @@ impl LiveInput {
         }
     }
 
-    /// Stops the camera, waits for the recording to be complete and returns the counts.
-    pub fn finish(mut self) -> Result<LiveSummary, LiveError> {
+    /// Frames dropped so far because the consumer was not ready for them.
+    pub fn dropped(&self) -> u64 {
+        self.frames.dropped()
+    }
+
+    /// Stops the camera, waits for the recording to be complete and returns the counts (all
+    /// zero when called again).
+    pub fn finish(&mut self) -> Result<LiveSummary, LiveError> {
         self.stop.store(true, Ordering::Relaxed);
-        let dropped = self.frames.dropped();
-        let (received, recorded) = match self.producer.take().map(JoinHandle::join) {
-            Some(Ok(r)) => r?,
-            Some(Err(_)) => return Err(LiveError::Thread("camera")),
-            None => (0, 0),
+        let Some(producer) = self.producer.take() else {
+            return Ok(LiveSummary::default());
         };
+        let (received, recorded) = match producer.join() {
+            Ok(r) => r?,
+            Err(_) => return Err(LiveError::Thread("camera")),
+        };
+        let dropped = self.frames.dropped();
         Ok(LiveSummary {
             received,
             dropped,
@@ -229,10 +237,7 @@ type Recorder = (Sender<RgbdFrame>, JoinHandle<Result<u64, LiveError>>);
 
 /// The recorder thread: writes every frame it is sent, in order, and finishes the folder
 /// when the sender is dropped.
-fn start_recorder(
-    dir: PathBuf,
-    camera: PinholeCamera,
-) -> Result<Recorder, LiveError> {
+fn start_recorder(dir: PathBuf, camera: PinholeCamera) -> Result<Recorder, LiveError> {
     let mut writer = TumWriter::create_recording(&dir, &CameraModel::Pinhole(camera))?;
     let (tx, rx): (Sender<RgbdFrame>, Receiver<RgbdFrame>) = channel();
     let handle = std::thread::Builder::new()
@@ -311,10 +316,7 @@ pub(crate) fn deliver(
 }
 
 /// Ends a producer: closes the recorder and returns `(received, recorded)`.
-fn close(
-    received: u64,
-    recorder: Option<Recorder>,
-) -> Result<(u64, u64), LiveError> {
+fn close(received: u64, recorder: Option<Recorder>) -> Result<(u64, u64), LiveError> {
     let recorded = match recorder {
         Some((tx, handle)) => {
             drop(tx);

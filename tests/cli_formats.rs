@@ -267,3 +267,84 @@ fn export_writes_trajectories_models_and_graphs_of_runs_and_maps() {
         text(&o)
     );
 }
+
+/// `rgbid slam --live replay:FOLDER@FPS --record DIR` (a simulated camera) tracks what it
+/// receives and records it; `rgbid slam DIR` on the recording gives the same trajectory when
+/// no frame was dropped. A live source this build lacks is named with the feature to build.
+#[test]
+fn live_replay_records_and_the_recording_replays_to_the_same_trajectory() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let seq = tmp.path().join("seq");
+    let o = rgbid(&[
+        "synth",
+        "--frames",
+        "20",
+        "--width",
+        "160",
+        "--backend",
+        "cpu",
+        "--out",
+        path(&seq),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let (rec, live_out, replay_out) = (
+        tmp.path().join("rec"),
+        tmp.path().join("live"),
+        tmp.path().join("replay"),
+    );
+    let live = format!("replay:{}@8", path(&seq));
+    let o = rgbid(&[
+        "slam",
+        "--live",
+        &live,
+        "--record",
+        path(&rec),
+        "--backend",
+        "cpu",
+        "--out",
+        path(&live_out),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("live: 20 frames received, 0 dropped")
+            && text(&o).contains("20 recorded"),
+        "{}",
+        text(&o)
+    );
+    let o = rgbid(&[
+        "slam",
+        path(&rec),
+        "--backend",
+        "cpu",
+        "--out",
+        path(&replay_out),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let read =
+        |dir: &Path| std::fs::read_to_string(dir.join("trajectory.txt")).expect("trajectory");
+    let (a, b) = (read(&live_out), read(&replay_out));
+    assert_eq!(a.lines().filter(|l| !l.starts_with('#')).count(), 20);
+    assert_eq!(a, b, "live and replayed trajectories differ");
+    // The replayed folder's ground truth came along for the live run's evaluation.
+    assert!(live_out.join("groundtruth.txt").exists());
+
+    let o = rgbid(&[
+        "slam",
+        "--live",
+        "kinect",
+        "--out",
+        path(&tmp.path().join("x")),
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("`kinect`"), "{}", text(&o));
+    if !cfg!(feature = "openni2") {
+        let o = rgbid(&[
+            "slam",
+            "--live",
+            "openni2",
+            "--out",
+            path(&tmp.path().join("y")),
+        ]);
+        assert!(text(&o).contains("--features openni2"), "{}", text(&o));
+    }
+}

@@ -8,16 +8,18 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::PinholeCamera;
 use rgbid::eval::{evaluate, EvalOptions};
 use rgbid::gpu::{select_backend, ComputeBackend};
+use rgbid::image::RgbdFrame;
 use rgbid::io::run_folder::{
     FrameRow, KeyframeTimingRow, LoopRow, RunFolderWriter, RunStatus, RunSummary,
 };
 use rgbid::io::settings::Provenance;
 use rgbid::io::Layout;
+use rgbid::live::{LiveInput, LiveOptions, LiveSpec};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
     build_coloured_model, build_mesh, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
-use rgbid::source::{FrameSource, SourceSpec, SynthOptions};
+use rgbid::source::{FrameSource, RgbdStream, SourceError, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
 use rgbid::tsdf::TsdfParams;
 
@@ -54,6 +56,18 @@ pub struct Args {
     /// Save the map here at the end.
     #[arg(long)]
     pub map_out: Option<PathBuf>,
+    /// Live input instead of a folder: `openni2` (the first OpenNI2 device; needs the
+    /// `openni2` build feature), `openni2:URI`, or `replay:FOLDER[@FPS]` (a simulated camera
+    /// playing a folder at FPS frames per second of wall time, default 30). Frames that arrive
+    /// while tracking is busy are dropped and counted; Ctrl-C ends the run and writes every
+    /// output. `--camera` sets the intrinsics (OpenNI2 default: the `default` preset).
+    #[arg(long, conflicts_with_all = ["sequence", "realtime", "max_frames"])]
+    pub live: Option<String>,
+    /// With --live: record every frame the camera delivers (also the dropped ones) as a TUM
+    /// RGB-D folder here (rgb/, depth/ at 5000 per metre, the lists, calib.txt with the
+    /// undistorted camera); `rgbid slam DIR` on it replays the session.
+    #[arg(long, requires = "live")]
+    pub record: Option<PathBuf>,
     /// Feed frames at this rate (frames per second) as a live camera would: frames that
     /// arrive while the system is busy are dropped and counted (sets `queue = 2`); 0.001 to
     /// 10000 frames per second.
@@ -119,6 +133,8 @@ impl Args {
             max_frames: None,
             map_in: None,
             map_out: None,
+            live: None,
+            record: None,
             realtime: None,
             no_masks: false,
             keyframe_covisibility: None,
@@ -150,7 +166,7 @@ impl Args {
             if let Some(v) = self.max_angular_speed {
                 c.lost_max_angular_speed = v;
             }
-            if self.realtime.is_some() {
+            if self.realtime.is_some() || self.live.is_some() {
                 c.queue = 2;
             }
             self.odometry.apply(&mut c.odometry);
@@ -189,10 +205,57 @@ fn median(v: &mut [f64]) -> f64 {
     crate::cli::bench::median(v)
 }
 
+/// Where a run's frames come from.
+enum Input {
+    /// A folder or generated sequence, read by index.
+    Source(FrameSource),
+    /// A live camera (or a replayed folder) on its own thread.
+    Live(LiveInput),
+}
+
+impl Input {
+    fn camera(&self) -> PinholeCamera {
+        match self {
+            Input::Source(s) => s.camera(),
+            Input::Live(l) => l.camera(),
+        }
+    }
+
+    /// Frames to come, when known.
+    fn len(&self) -> Option<usize> {
+        match self {
+            Input::Source(s) => Some(s.len()),
+            Input::Live(_) => None,
+        }
+    }
+
+    fn input_warning(&self) -> Option<&str> {
+        match self {
+            Input::Source(s) => s.input_warning(),
+            Input::Live(_) => None,
+        }
+    }
+
+    /// Frame `i` of a source; the next frame of a live input (`i` counts them).
+    fn frame(&mut self, i: usize) -> Option<Result<RgbdFrame, SourceError>> {
+        match self {
+            Input::Source(s) => (i < s.len()).then(|| s.load(i)),
+            Input::Live(l) => l.next_frame(),
+        }
+    }
+
+    fn groundtruth(&self) -> Option<Vec<TimedPose>> {
+        match self {
+            Input::Source(s) => s.groundtruth(),
+            Input::Live(l) => l.groundtruth(),
+        }
+    }
+}
+
 /// What a run reads before its first frame.
 struct Inputs {
     backend: ComputeBackend,
-    source: FrameSource,
+    source: Input,
     vocabulary: Vocabulary,
     map: Option<Map>,
     provenance: Provenance,
@@ -201,11 +264,28 @@ struct Inputs {
 impl Inputs {
     fn open(a: &Args, config: &SlamConfig) -> Result<Self> {
         let backend = select_backend(a.backend.backend, a.backend.adapter.as_deref())?;
-        let spec = a.source_spec()?;
-        let source = FrameSource::open(&spec, &backend)?;
-        if source.is_empty() {
-            bail!("the sequence has no frames");
-        }
+        let source = match &a.live {
+            Some(live) => {
+                let spec: LiveSpec = live.parse()?;
+                if let Some(r) = &a.record {
+                    super::outputs::output_folder(r, None)?;
+                }
+                let options = LiveOptions {
+                    camera: a.camera.clone(),
+                    record: a.record.clone(),
+                    queue: 2,
+                };
+                Input::Live(LiveInput::open(&spec, &options)?)
+            }
+            None => {
+                let spec = a.source_spec()?;
+                let source = FrameSource::open(&spec, &backend)?;
+                if source.is_empty() {
+                    bail!("the sequence has no frames");
+                }
+                Input::Source(source)
+            }
+        };
         let vocabulary = match &a.vocabulary {
             Some(p) => Vocabulary::load(p)?,
             None => Vocabulary::embedded_default()?,
@@ -276,7 +356,7 @@ pub fn run(a: Args) -> Result<()> {
 #[allow(clippy::too_many_arguments)]
 fn run_slam(
     a: &Args,
-    source: &mut FrameSource,
+    source: &mut Input,
     config: SlamConfig,
     backend: &ComputeBackend,
     vocabulary: Vocabulary,
@@ -286,14 +366,19 @@ fn run_slam(
     stop: &super::outputs::Stop,
 ) -> Result<()> {
     let camera = source.camera();
-    let n = source.len();
+    let total = source.len();
+    let n = total.unwrap_or(usize::MAX);
     // Said now, so that a long run can be stopped, and again with the outcome (exit code 3).
     let input_warning = source.input_warning().map(str::to_owned);
     if let Some(w) = &input_warning {
         log::warn!("{w}");
     }
     println!(
-        "slam: {n} frames {}x{}, backend {}, masks {}{}",
+        "slam: {} {}x{}, backend {}, masks {}{}",
+        match (total, &a.live) {
+            (Some(n), _) => format!("{n} frames"),
+            (None, live) => format!("live input `{}`", live.as_deref().unwrap_or("?")),
+        },
         camera.width,
         camera.height,
         backend.name(),
@@ -315,11 +400,26 @@ fn run_slam(
             return Err(e);
         }
     };
-    let bar = ProgressBar::new(n as u64);
-    bar.set_style(
-        ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let bar = match total {
+        Some(n) => {
+            let bar = ProgressBar::new(n as u64);
+            bar.set_style(
+                ProgressStyle::with_template(
+                    "{bar:40} {pos}/{len} frames {per_sec} eta {eta} {msg}",
+                )
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            );
+            bar
+        }
+        None => {
+            let bar = ProgressBar::new_spinner();
+            bar.set_style(
+                ProgressStyle::with_template("{spinner} {pos} frames {per_sec} {msg}")
+                    .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+            );
+            bar
+        }
+    };
     let mut error: Option<anyhow::Error> = None;
     let mut interrupted = false;
     let mut dropped = 0usize;
@@ -350,9 +450,11 @@ fn run_slam(
             }
         }
         let tl = Instant::now();
-        let frame = match source.load(i) {
-            Ok(f) => f,
-            Err(e) if frame_content_error(&e) => {
+        let frame = match source.frame(i) {
+            // The end of a live stream.
+            None => break,
+            Some(Ok(f)) => f,
+            Some(Err(e)) if frame_content_error(&e) => {
                 if let Some(stop) = skips.skip(i, anyhow::Error::new(e)) {
                     error = Some(stop);
                     break;
@@ -361,7 +463,7 @@ fn run_slam(
                 i += 1;
                 continue;
             }
-            Err(e) => {
+            Some(Err(e)) => {
                 error = Some(anyhow::Error::new(e).context(format!("frame {i}")));
                 break;
             }
@@ -413,7 +515,9 @@ fn run_slam(
                     "kf {} loops {} lost {lost}{}",
                     r.keyframes,
                     r.loops,
-                    if a.realtime.is_some() {
+                    if let Input::Live(l) = &*source {
+                        format!(" dropped {}", l.dropped())
+                    } else if a.realtime.is_some() {
                         format!(" dropped {dropped}")
                     } else {
                         String::new()
@@ -438,6 +542,29 @@ fn run_slam(
         }
     }
     bar.finish_and_clear();
+    if let Input::Live(live) = source {
+        match live.finish() {
+            Ok(s) => {
+                dropped += s.dropped as usize;
+                println!(
+                    "live: {} frames received, {} dropped while tracking was busy{}",
+                    s.received,
+                    s.dropped,
+                    match &a.record {
+                        Some(d) => format!(", {} recorded in {}", s.recorded, d.display()),
+                        None => String::new(),
+                    }
+                );
+            }
+            Err(e) => {
+                let e = anyhow::Error::new(e).context("live input");
+                error = Some(match error.take() {
+                    Some(first) => first.context(format!("and then: {e:#}")),
+                    None => e,
+                });
+            }
+        }
+    }
     let processed = slam.frames();
     let result = match slam.finish() {
         Ok(r) => r,
@@ -560,7 +687,7 @@ fn write_frame(
 fn write_outputs(
     a: &Args,
     mut writer: RunFolderWriter,
-    source: &FrameSource,
+    source: &Input,
     camera: &PinholeCamera,
     backend: &ComputeBackend,
     r: &SlamResult,
