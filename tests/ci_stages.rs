@@ -6,6 +6,7 @@
 //! | GPU tests | `gpu_*`, `#[ignore = "needs a GPU adapter"]` | `cargo test --workspace --tests -- --ignored gpu_` |
 //! | real-data tests | ignored with a reason naming `../shared/data` | `cargo test --workspace --tests -- --ignored --skip gpu_ --skip known_gap_ --skip manual_` |
 //! | none | `known_gap_*` (unmet targets), `manual_*` (benchmarks, file writers) | by hand |
+//! | openni2 feature | `#[cfg(feature = "openni2")]` tests of `live` | `cargo test --lib --features openni2 live::` |
 //!
 //! The Python package's tests (`python/tests`, pytest) run in the stage `python` only.
 //!
