@@ -8,7 +8,7 @@ use std::path::Path;
 use rgbid::mono::MonoConfig;
 use rgbid::odometry::{Estimator, GeometricParam, OdometryConfig};
 use rgbid::place::LoopDetectorParams;
-use rgbid::scale::DynScaleConfig;
+use rgbid::scale::{DynScaleConfig, UpAxis};
 use rgbid::segment::SegmentConfig;
 use rgbid::slam::SlamConfig;
 use serde::de::DeserializeOwned;
@@ -46,7 +46,15 @@ fn config_dump_parses_back_to_the_defaults() {
         LoopDetectorParams::default()
     );
     assert_eq!(dump::<MonoConfig>("mono"), MonoConfig::default());
-    assert_eq!(dump::<DynScaleConfig>("scale"), DynScaleConfig::default());
+    // `rgbid scale` finds the up axis by default (a monocular world frame is arbitrary); the
+    // library's default keeps -y, which the experiment harnesses' generated walks use.
+    assert_eq!(
+        dump::<DynScaleConfig>("scale"),
+        DynScaleConfig {
+            up: UpAxis::Auto,
+            ..DynScaleConfig::default()
+        }
+    );
     // JSON too.
     let o = rgbid(&["config", "dump", "--command", "odometry", "--json"]);
     assert!(o.status.success(), "{}", text(&o));
