@@ -309,8 +309,7 @@ pub(crate) fn deliver(
     }
     match tx.try_push(frame) {
         Ok(_) => Ok(true),
-        // The stream's receiving end is gone: the consumer stopped.
-        Err(SourceError::Invalid(_)) => Ok(false),
+        Err(SourceError::Closed) => Ok(false),
         Err(e) => Err(e.into()),
     }
 }

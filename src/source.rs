@@ -28,6 +28,9 @@ pub enum SourceError {
     /// The description itself is unusable.
     #[error("{0}")]
     Invalid(String),
+    /// A pushed stream's receiving end is gone (its consumer stopped).
+    #[error("the frame stream was closed")]
+    Closed,
 }
 
 /// What to open: a description that can be sent to another thread and reopened.
@@ -433,9 +436,7 @@ impl FrameSender {
     /// receiving end is gone.
     pub fn push(&self, frame: RgbdFrame) -> Result<(), SourceError> {
         self.check(&frame)?;
-        self.tx
-            .send(frame)
-            .map_err(|_| SourceError::Invalid("the frame stream was closed".into()))
+        self.tx.send(frame).map_err(|_| SourceError::Closed)
     }
 
     /// Queues `frame` unless the queue is full, in which case the frame is dropped and
@@ -450,9 +451,7 @@ impl FrameSender {
                     .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 Ok(false)
             }
-            Err(std::sync::mpsc::TrySendError::Disconnected(_)) => {
-                Err(SourceError::Invalid("the frame stream was closed".into()))
-            }
+            Err(std::sync::mpsc::TrySendError::Disconnected(_)) => Err(SourceError::Closed),
         }
     }
 
