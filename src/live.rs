@@ -8,7 +8,8 @@
 //! Sources: OpenNI2 devices (the Kinect / Xtion family; the `openni2` feature, which needs
 //! Debian's `libopenni2-dev` and `OPENNI2_REDIST64=/usr/lib/x86_64-linux-gnu` at build time)
 //! and the simulated device. Another driver (e.g. librealsense) follows the same pattern: open
-//! the device on the producer thread, report the camera, then hand frames to [`deliver`].
+//! the device on the producer thread, report the camera, then hand frames to this module's
+//! delivery loop (`deliver`), which drops, counts and records them.
 
 use std::path::PathBuf;
 use std::str::FromStr;
