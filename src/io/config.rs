@@ -23,6 +23,11 @@ pub const PRESETS: [&str; 7] = [
 /// TUM's depth factor: raw 16-bit depth units per metre.
 pub const TUM_DEPTH_FACTOR: f64 = 5000.0;
 
+/// The constant depth-scale correction `ds` of the Freiburg 2 Kinect (true depth = `ds` times
+/// the stored depth), as the TUM RGB-D dataset documents it for its fr2 sequences and as the
+/// thesis applies it to them (6.5.1). The `tum_fr2` preset divides the depth factor by it.
+pub const TUM_FR2_DEPTH_SCALE: f64 = 1.031;
+
 /// A camera with its depth scale and a note of where it came from.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraConfig {
@@ -36,7 +41,9 @@ pub struct CameraConfig {
 
 impl CameraConfig {
     /// A built-in preset. 640 x 480 with depth factor 5000: `tum_fr1`/`tum_fr2` carry the
-    /// official TUM RGB-D intrinsics and distortion of the Freiburg 1/2 Kinects; `tum_fr3` is
+    /// official TUM RGB-D intrinsics and distortion of the Freiburg 1/2 Kinects, and `tum_fr2`
+    /// also the fr2 depth-scale correction ([`TUM_FR2_DEPTH_SCALE`]: depth factor 5000 / 1.031;
+    /// a camera file with `preset = tum_fr2` and `depth_factor = 5000` undoes it); `tum_fr3` is
     /// the (already undistorted) Freiburg 3 camera; `default` is the ROS default (525, 525,
     /// 319.5, 239.5) without distortion; `icl_nuim` is ICL-NUIM's TUM-compatible variant
     /// (481.2, 480, 319.5, 239.5). `7scenes`: Microsoft 7-Scenes (585, 585, 320, 240; 640 x
@@ -50,11 +57,11 @@ impl CameraConfig {
                 source: format!("preset {name}"),
             })
         };
-        let (fx, fy, cx, cy, d) = match name.to_ascii_lowercase().as_str() {
+        let (fx, fy, cx, cy, d, depth_scale) = match name.to_ascii_lowercase().as_str() {
             "icl_nuim" | "icl" => return other(481.2, 480.0, 319.5, 239.5, 640, 480, 5000.0),
             "7scenes" | "7-scenes" => return other(585.0, 585.0, 320.0, 240.0, 640, 480, 1000.0),
             "replica" => return other(600.0, 600.0, 599.5, 339.5, 1200, 680, 6553.5),
-            "default" => (525.0, 525.0, 319.5, 239.5, BrownConrady::default()),
+            "default" => (525.0, 525.0, 319.5, 239.5, BrownConrady::default(), 1.0),
             "tum_fr1" | "fr1" | "freiburg1" => (
                 517.3,
                 516.5,
@@ -67,6 +74,9 @@ impl CameraConfig {
                     p2: 0.0026,
                     k3: 1.1633,
                 },
+                // The dataset's fr1 factor (1.035) makes odometry and SLAM worse on fr1/rpy,
+                // and the thesis corrects fr2 alone.
+                1.0,
             ),
             "tum_fr2" | "fr2" | "freiburg2" => (
                 520.9,
@@ -80,9 +90,10 @@ impl CameraConfig {
                     p2: -0.0001,
                     k3: 0.9172,
                 },
+                TUM_FR2_DEPTH_SCALE,
             ),
             "tum_fr3" | "fr3" | "freiburg3" => {
-                (535.4, 539.2, 320.1, 247.6, BrownConrady::default())
+                (535.4, 539.2, 320.1, 247.6, BrownConrady::default(), 1.0)
             }
             _ => return None,
         };
@@ -90,7 +101,7 @@ impl CameraConfig {
         camera.distortion = d;
         Some(CameraConfig {
             camera,
-            depth_factor: TUM_DEPTH_FACTOR,
+            depth_factor: TUM_DEPTH_FACTOR / depth_scale,
             source: format!("preset {name}"),
         })
     }
@@ -355,6 +366,7 @@ mod tests {
             let want = match p {
                 "7scenes" => 1000.0,
                 "replica" => 6553.5,
+                "tum_fr2" => 5000.0 / 1.031,
                 _ => 5000.0,
             };
             assert_eq!(c.depth_factor, want, "{p}");
