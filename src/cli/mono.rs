@@ -2,7 +2,7 @@
 //! one; `--bench` prints ms/frame and per-stage medians, `--table21` the FI / Rm / Rf table
 //! for warped vs plain patches at ZNCC thresholds 0.8 / 0.9 / 0.95.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -11,8 +11,12 @@ use rgbid::camera::UnifiedCamera;
 use rgbid::eval::ate::ate;
 use rgbid::experiments::mono::{render, run as run_synthetic, SyntheticCamera, SyntheticSpec};
 use rgbid::gpu::ComputeBackend;
+use rgbid::image::ImageF32;
 use rgbid::io::trajectory::{read_tum, write_tum};
-use rgbid::mono::{load_camera, FrameReport, ImageSequence, MonoConfig, MonoSlam, PatchMode};
+use rgbid::mono::{
+    load_camera, FrameReport, ImageSequence, MetricMono, MonoConfig, MonoSlam, PatchMode,
+};
+use rgbid::scale::{arc_length_error_from_start, DynScaleConfig, WalkingModel};
 use rgbid::trajectory::TimedPose;
 
 use super::bench::median;
@@ -48,10 +52,22 @@ pub struct Args {
     /// sensor.yaml (images resampled onto its undistorted camera), else SEQ/camera.json.
     #[arg(long)]
     camera: Option<PathBuf>,
-    /// Output trajectory (TUM format, world_from_camera, filter world = first camera, scale
-    /// unknown).
+    /// Output trajectory (TUM format, world_from_camera, filter world = first camera). Scale
+    /// unknown, or metres with --walker-height (then the EKF's own trajectory goes to
+    /// NAME_unscaled.txt and each frame's causal metric pose to NAME_causal.txt beside it;
+    /// with --synthetic also the ground truth, to NAME_groundtruth.txt).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Height of the person wearing the camera, metres, in (0, 3]: runs the metric scale
+    /// estimation from the step frequency (thesis 3.4, Algorithm 1) beside the filter, with
+    /// the up axis found online and the `rgbid scale` defaults for everything else; reports
+    /// the eq. 3.36 errors when there is ground truth.
+    #[arg(long, value_parser = crate::cli::options::range::walker_height)]
+    walker_height: Option<f64>,
+    /// With --walker-height: a JSON report of the run (errors, sections, per-frame times;
+    /// `scripts/mono_walks.sh` collects them into docs/results).
+    #[arg(long, requires = "walker_height")]
+    json: Option<PathBuf>,
     /// Patch mode (default: warped for xi > 0, plain for pinhole cameras).
     #[arg(long, value_enum)]
     patch: Option<PatchArg>,
@@ -168,6 +184,19 @@ fn synthetic_spec(args: &Args, kind: SynthArg) -> SyntheticSpec {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
+    if let Some(json) = &args.json {
+        let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
+        super::outputs::output_file(json, "--json", &inputs)?;
+    }
+    if let Some(out) = &args.out {
+        let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
+        super::outputs::output_file(out, "--out", &inputs)?;
+        if args.walker_height.is_some() {
+            for suffix in ["unscaled", "causal", "groundtruth"] {
+                super::outputs::output_file(&beside(out, suffix), "--out", &inputs)?;
+            }
+        }
+    }
     if args.table21 {
         return table21(&args);
     }
@@ -195,6 +224,24 @@ pub fn run(args: Args) -> Result<()> {
         }
     };
     let cfg = config(&args, &camera)?;
+    if let Some(height) = args.walker_height {
+        let gt_path = seq_dir.join("groundtruth.txt");
+        let gt = if gt_path.is_file() {
+            Some(read_tum(&gt_path)?)
+        } else {
+            None
+        };
+        let frames = (0..seq.len()).map_while(|i| seq.load(i));
+        return metric(
+            &args,
+            camera,
+            &cfg,
+            height,
+            seq.len(),
+            frames,
+            gt.as_deref(),
+        );
+    }
     let mut slam = MonoSlam::new(camera, cfg.clone())?;
     let bar = progress(seq.len(), "mono");
     let mut reports = Vec::with_capacity(seq.len());
@@ -313,6 +360,18 @@ fn synthetic(args: &Args, kind: SynthArg) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let cfg = config(args, &frames.camera)?;
+    if let Some(height) = args.walker_height {
+        let images = frames.images.iter().map(|(t, img)| Ok((*t, img.clone())));
+        return metric(
+            args,
+            frames.camera,
+            &cfg,
+            height,
+            frames.images.len(),
+            images,
+            Some(&frames.ground_truth),
+        );
+    }
     let r = run_synthetic(&frames, &cfg)?;
     if let Some(out) = &args.out {
         write_tum(out, &r.estimate)?;
@@ -407,4 +466,194 @@ fn table21(args: &Args) -> Result<()> {
         println!("{r}");
     }
     Ok(())
+}
+
+/// `path` with `_suffix` added to its file stem (`traj.txt` -> `traj_unscaled.txt`).
+fn beside(path: &Path, suffix: &str) -> PathBuf {
+    let stem = path.file_stem().map_or_else(
+        || "trajectory".to_string(),
+        |s| s.to_string_lossy().into_owned(),
+    );
+    let ext = path
+        .extension()
+        .map_or(String::new(), |e| format!(".{}", e.to_string_lossy()));
+    path.with_file_name(format!("{stem}_{suffix}{ext}"))
+}
+
+/// `--walker-height`: the filter with the metric scale estimation beside it.
+fn metric<I>(
+    args: &Args,
+    camera: UnifiedCamera,
+    cfg: &MonoConfig,
+    height: f64,
+    len: usize,
+    frames: I,
+    gt: Option<&[TimedPose]>,
+) -> Result<()>
+where
+    I: Iterator<Item = Result<(f64, ImageF32), rgbid::mono::MonoError>>,
+{
+    let scale_cfg = DynScaleConfig {
+        model: WalkingModel {
+            height,
+            ..super::scale::defaults().model
+        },
+        ..super::scale::defaults()
+    };
+    let mut system = MetricMono::new(camera, cfg.clone(), scale_cfg.clone())?;
+    let bar = progress(len, "mono + scale");
+    let (mut ekf_ms, mut scale_ms) = (Vec::with_capacity(len), Vec::with_capacity(len));
+    let mut first_scaled = None;
+    for frame in frames {
+        let (t, img) = frame?;
+        let r = system.process(t, &img)?;
+        ekf_ms.push(r.report.times.total());
+        scale_ms.push(r.scale_ms);
+        if first_scaled.is_none() && r.metric.is_some() {
+            first_scaled = Some(t);
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let run = system.finish();
+    // The first frame only initialises features; leave it out of the timing.
+    let (ekf, sc) = (
+        median(&mut ekf_ms[1.min(ekf_ms.len())..].to_vec()),
+        median(&mut scale_ms[1.min(scale_ms.len())..].to_vec()),
+    );
+    println!(
+        "ms/frame (median): filter {ekf:.3}, scale estimation {sc:.4} ({:.2} % of the filter)",
+        100.0 * sc / ekf.max(1e-12)
+    );
+    let mut warnings = Vec::new();
+    let mut report = serde_json::json!({
+        "sequence": match args.synthetic {
+            Some(_) => format!("{} / {} ({} frames, seed {})", args.scene, args.trajectory, args.frames, args.seed),
+            None => args.seq.as_ref().map_or(String::new(), |p| p.display().to_string()),
+        },
+        "walker_height_m": height,
+        "frames": run.unscaled.len(),
+        "filter_ms": ekf,
+        "scale_ms": sc,
+        "sections": run.scaled.as_ref().map_or(0, |r| r.sections.len()),
+        "walking_sections": run.scaled.as_ref().map_or(0, |r| r.sections.iter().filter(|s| s.walking).count()),
+        "first_metric_s": first_scaled,
+    });
+    match &run.scaled {
+        Ok(r) => {
+            let walking = r.sections.iter().filter(|s| s.walking).count();
+            let u = r.up;
+            println!(
+                "{} frames; up [{:.3} {:.3} {:.3}] found online; {} of {} sections walking; \
+                 first metric pose at {}",
+                run.unscaled.len(),
+                u[0],
+                u[1],
+                u[2],
+                walking,
+                r.sections.len(),
+                first_scaled.map_or("none".to_string(), |t| format!("{t:.2} s"))
+            );
+            warnings.extend(super::scale::walking_warning(walking, r.sections.len(), u));
+        }
+        Err(e) => warnings.push(format!(
+            "no metric trajectory: {e}; the filter's own trajectory is kept (unscaled)"
+        )),
+    }
+    if let Some(out) = &args.out {
+        if let Ok(r) = &run.scaled {
+            write_tum(out, &r.scaled)?;
+        }
+        write_tum(&beside(out, "unscaled"), &run.unscaled)?;
+        write_tum(&beside(out, "causal"), &run.causal)?;
+        write_sidecar(
+            out,
+            &serde_json::json!({ "mono": cfg, "scale": scale_cfg }),
+            &ComputeBackend::Cpu,
+        )?;
+        println!(
+            "wrote {} ({}), {} ({} poses), {} ({} poses)",
+            out.display(),
+            run.scaled
+                .as_ref()
+                .map_or("not written: no scale".to_string(), |r| {
+                    format!("{} metric poses", r.scaled.len())
+                }),
+            beside(out, "unscaled").display(),
+            run.unscaled.len(),
+            beside(out, "causal").display(),
+            run.causal.len()
+        );
+    }
+    if let (Some(out), Some(gt), true) = (&args.out, gt, args.synthetic.is_some()) {
+        write_tum(&beside(out, "groundtruth"), gt)?;
+    }
+    if let Some(gt) = gt {
+        println!("eq. 3.36, placed on the ground truth at the first pose, never rescaled:");
+        let mut rows = vec![
+            ("unscaled (EKF)", &run.unscaled),
+            ("causal metric", &run.causal),
+        ];
+        if let Ok(r) = &run.scaled {
+            rows.push(("final metric", &r.scaled));
+        }
+        for (name, est) in rows {
+            let pairs = rgbid::eval::associate(est, gt, 0.02);
+            let e: Vec<TimedPose> = pairs.iter().map(|p| est[p.0]).collect();
+            let g: Vec<TimedPose> = pairs.iter().map(|p| gt[p.1]).collect();
+            let result = arc_length_error_from_start(&g, &e, 1000);
+            if let Ok(a) = &result {
+                let end = a.curve.last().map_or(f64::NAN, |c| c.1);
+                report[name.split(' ').next().unwrap_or(name)] = serde_json::json!({
+                    "mean_pct": 100.0 * a.relative,
+                    "end_pct": 100.0 * end / a.gt_length,
+                    "path_m": a.gt_length,
+                    "length_ratio": a.est_length / a.gt_length,
+                    "poses": pairs.len(),
+                });
+            }
+            match result {
+                Ok(a) => println!(
+                    "  {name:<15} mean {:.3} m ({:.2} % of {:.1} m), end {:.3} m ({:.2} %), \
+                     length ratio {:.3} over {} poses",
+                    a.mean,
+                    100.0 * a.relative,
+                    a.gt_length,
+                    a.curve.last().map_or(f64::NAN, |c| c.1),
+                    100.0 * a.curve.last().map_or(f64::NAN, |c| c.1) / a.gt_length,
+                    a.est_length / a.gt_length,
+                    pairs.len()
+                ),
+                Err(err) => println!("  {name:<15} not computed: {err}"),
+            }
+        }
+        let pairs = rgbid::eval::associate(&run.unscaled, gt, 0.02);
+        let e: Vec<TimedPose> = pairs.iter().map(|p| run.unscaled[p.0]).collect();
+        let g: Vec<TimedPose> = pairs.iter().map(|p| gt[p.1]).collect();
+        if let Ok(a) = ate(&g, &e, true) {
+            let pct = 100.0 * a.translation.rmse / path_length(&g).max(1e-12);
+            println!(
+                "EKF ATE after Sim(3) alignment: rmse {:.4} m ({pct:.2} % of the path), scale {:.4}",
+                a.translation.rmse, a.alignment.scale
+            );
+            report["ekf_sim3_ate_pct"] = pct.into();
+            report["ekf_sim3_scale"] = a.alignment.scale.into();
+        }
+    }
+    if let Some(path) = &args.json {
+        report["warnings"] = serde_json::json!(warnings);
+        super::report::write(
+            path,
+            "mono-metric",
+            &super::report::meta(Vec::new()),
+            &report,
+        )?;
+    }
+    super::outcome::warnings(warnings)
+}
+
+fn path_length(p: &[TimedPose]) -> f64 {
+    p.windows(2)
+        .map(|w| (w[1].world_from_camera.translation - w[0].world_from_camera.translation).length())
+        .sum()
 }

@@ -171,6 +171,13 @@ pub mod range {
         }
     }
 
+    /// A walker's height: metres in (0, 3].
+    pub fn walker_height(s: &str) -> Result<f64, String> {
+        real(s, "must be a height in metres in (0, 3]", |v| {
+            v.is_finite() && v > 0.0 && v <= 3.0
+        })
+    }
+
     /// A finite number > 0.
     pub fn positive(s: &str) -> Result<f64, String> {
         real(s, "must be a finite number > 0", |v| {

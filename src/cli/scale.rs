@@ -463,7 +463,7 @@ fn run_scale(a: &RunArgs) -> Result<()> {
 
 /// A warning when fewer than half of the `sections` were detected as walking: the scale
 /// rests on few measurements, and a wrong up axis (`up`, world frame) is the usual cause.
-fn walking_warning(walking: usize, sections: usize, up: [f64; 3]) -> Vec<String> {
+pub(crate) fn walking_warning(walking: usize, sections: usize, up: [f64; 3]) -> Vec<String> {
     if 2 * walking >= sections {
         return Vec::new();
     }

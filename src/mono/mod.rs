@@ -20,7 +20,8 @@
 //! discrete error model), [`InverseDepthLandmark`] (inverse-depth parametrisation, measurement
 //! model and Jacobians, initialisation with covariance), FAST-9 corners, ZNCC and catadioptric
 //! patch warping ([`PatchMode`]), [`MonoSlam`] (the SLAM loop: prediction, active search,
-//! 1-point RANSAC, update, map management, statistics), [`ImageSequence`] and [`load_camera`]
+//! 1-point RANSAC, update, map management, statistics), [`MetricMono`] (the filter with the
+//! metric scale from walking beside it, thesis 3.4), [`ImageSequence`] and [`load_camera`]
 //! (image-only sequences and camera files). Runs on generated sequences with ground truth are in
 //! `rgbid::experiments::mono` (feature `experiments`).
 
@@ -29,6 +30,7 @@ pub(crate) mod fast;
 pub(crate) mod filter;
 pub(crate) mod input;
 pub(crate) mod landmark;
+pub(crate) mod metric;
 pub(crate) mod patch;
 pub(crate) mod state;
 
@@ -37,6 +39,7 @@ use std::path::PathBuf;
 pub use filter::{FrameReport, MonoSlam, MonoStats, StageTimes};
 pub use input::{load_camera, load_grey, unified_from_model, ImageSequence};
 pub use landmark::InverseDepthLandmark;
+pub use metric::{MetricMono, MetricReport, MetricRun};
 pub use patch::PatchMode;
 pub use state::CameraState;
 
@@ -120,6 +123,9 @@ pub enum MonoError {
     /// Trajectory evaluation failed.
     #[error(transparent)]
     Eval(#[from] crate::eval::EvalError),
+    /// The metric scale estimation beside the filter failed ([`MetricMono`]).
+    #[error("scale: {0}")]
+    Scale(#[from] crate::scale::ScaleError),
 }
 
 /// Parameters of [`MonoSlam`].

@@ -63,6 +63,48 @@ pub fn arc_length_error(
     samples: usize,
     with_scale: bool,
 ) -> Result<ArcLengthError, ScaleError> {
+    compare(gt, est, samples, |re, rg| {
+        let a = align_umeyama(re, rg, with_scale).map_err(|e| ScaleError::InvalidParameter {
+            name: "alignment",
+            why: e.to_string(),
+        })?;
+        Ok((a.scale, Box::new(move |p| a.apply(p))))
+    })
+}
+
+/// Eq. 3.36 as the thesis scores a walk: the estimate is placed on the ground truth at its
+/// first pose (the rigid transform `gt[0] * est[0]^-1`, so the start agrees in position and
+/// orientation) and never rescaled, then compared by normalised arc length (`samples >= 3`).
+/// Scale errors, heading drift and the error of the first pose's orientation all show, as
+/// they would for a walker who only knows where they started. The error at the end of the
+/// walk is `curve.last()`.
+pub fn arc_length_error_from_start(
+    gt: &[TimedPose],
+    est: &[TimedPose],
+    samples: usize,
+) -> Result<ArcLengthError, ScaleError> {
+    let (Some(g0), Some(e0)) = (gt.first(), est.first()) else {
+        return Err(ScaleError::TooShort {
+            have: 0,
+            seconds: 0.0,
+            need: "2 poses in both trajectories".into(),
+        });
+    };
+    let gt_from_est = g0.world_from_camera * e0.world_from_camera.inverse();
+    compare(gt, est, samples, move |_, _| {
+        Ok((1.0, Box::new(move |p| gt_from_est.transform_point(p))))
+    })
+}
+
+/// A map from the estimate's world frame into the ground truth's, with its scale.
+type Align = (f64, Box<dyn Fn(DVec3) -> DVec3>);
+
+fn compare(
+    gt: &[TimedPose],
+    est: &[TimedPose],
+    samples: usize,
+    align: impl FnOnce(&[DVec3], &[DVec3]) -> Result<Align, ScaleError>,
+) -> Result<ArcLengthError, ScaleError> {
     if gt.len() < 2 || est.len() < 2 {
         return Err(ScaleError::TooShort {
             have: gt.len().min(est.len()),
@@ -87,15 +129,12 @@ pub fn arc_length_error(
             why: "zero path length".into(),
         });
     }
-    let a = align_umeyama(&re, &rg, with_scale).map_err(|e| ScaleError::InvalidParameter {
-        name: "alignment",
-        why: e.to_string(),
-    })?;
+    let (scale, apply) = align(&re, &rg)?;
     let curve: Vec<(f64, f64)> = rg
         .iter()
         .zip(&re)
         .enumerate()
-        .map(|(k, (g, e))| (k as f64 / (samples - 1) as f64, (*g - a.apply(*e)).length()))
+        .map(|(k, (g, e))| (k as f64 / (samples - 1) as f64, (*g - apply(*e)).length()))
         .collect();
     let mean = curve.iter().map(|c| c.1).sum::<f64>() / samples as f64;
     let max = curve.iter().fold(0.0f64, |m, c| m.max(c.1));
@@ -104,7 +143,70 @@ pub fn arc_length_error(
         max,
         relative: mean / lg,
         gt_length: lg,
-        est_length: le * a.scale,
+        est_length: le * scale,
         curve,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Se3;
+    use glam::DQuat;
+
+    /// An L-shaped walk: 10 m along x, then 5 m along y, one pose per 10 cm.
+    fn walk() -> Vec<TimedPose> {
+        let mut p = Vec::new();
+        for k in 0..=150 {
+            let s = k as f64 * 0.1;
+            let xy = if s <= 10.0 {
+                DVec3::new(s, 0.0, 0.0)
+            } else {
+                DVec3::new(10.0, s - 10.0, 0.0)
+            };
+            p.push(TimedPose {
+                timestamp: k as f64,
+                world_from_camera: Se3::new(DQuat::from_rotation_z(0.3), xy),
+            });
+        }
+        p
+    }
+
+    #[test]
+    fn start_alignment_keeps_the_scale_error_that_a_rigid_fit_spreads_out() {
+        let gt = walk();
+        // The estimate in another world frame: exact up to where it started.
+        let other_from_gt = Se3::new(DQuat::from_rotation_y(1.0), DVec3::new(3.0, -2.0, 1.0));
+        let moved: Vec<TimedPose> = gt
+            .iter()
+            .map(|p| TimedPose {
+                timestamp: p.timestamp,
+                world_from_camera: other_from_gt * p.world_from_camera,
+            })
+            .collect();
+        let e = arc_length_error_from_start(&gt, &moved, 301).unwrap();
+        assert!(e.max < 1e-9, "{}", e.max);
+        assert!((e.est_length - 15.0).abs() < 1e-9);
+        // 10 % too long: the error grows from 0 at the start to 10 % of the distance from
+        // the start at the end (|(10, 5)| = 11.18 m), and is never rescaled away.
+        let long: Vec<TimedPose> = moved
+            .iter()
+            .map(|p| {
+                let t = p.world_from_camera.translation;
+                let o = moved[0].world_from_camera.translation;
+                TimedPose {
+                    timestamp: p.timestamp,
+                    world_from_camera: Se3::new(p.world_from_camera.rotation, o + 1.1 * (t - o)),
+                }
+            })
+            .collect();
+        let e = arc_length_error_from_start(&gt, &long, 301).unwrap();
+        let end = e.curve.last().unwrap().1;
+        assert!((end - 0.1 * 125f64.sqrt()).abs() < 1e-6, "{end}");
+        assert!(e.curve[0].1 < 1e-9);
+        assert!((e.est_length / e.gt_length - 1.1).abs() < 1e-9);
+        // A rigid best fit moves the start to share the error out, so its end error is smaller.
+        let rigid = arc_length_error(&gt, &long, 301, false).unwrap();
+        assert!(rigid.curve.last().unwrap().1 < end && rigid.curve[0].1 > 0.1);
+    }
 }

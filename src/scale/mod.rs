@@ -22,6 +22,8 @@
 //!   from a ground-truth trajectory, for experiments.
 //! - [`optim_sim3`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
 //! - [`arc_length_error`]: position error against ground truth by normalised arc length (3.36).
+//! - [`arc_length_error_from_start`]: the same, placed on the ground truth at the first pose and
+//!   never rescaled (how the thesis scores a walk).
 //!
 //! Frames: trajectories are `world_from_camera` in the trajectory's own world frame (for a
 //! monocular SLAM output, usually the first camera: x right, y down, z forward). Units: seconds,
@@ -44,7 +46,7 @@ pub use dynscale::{
 };
 pub use live::{LiveDynScale, SectionTransform};
 pub use loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
-pub use metric::{arc_length_error, ArcLengthError};
+pub use metric::{arc_length_error, arc_length_error_from_start, ArcLengthError};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
 pub use spectrum::{HighPass, SpectrumConfig, StepAnalysis};
 pub use walking::{calibrate, CalibrationSample, WalkingModel, GRIEVE_ALPHA, GRIEVE_BETA};

@@ -362,7 +362,8 @@ enum Motion {
     Walk {
         path: Spline,
         params: WalkingParams,
-        table: Vec<(f64, f64)>,
+        /// `(distance walked, step phase, body heading)` every `dt` seconds.
+        table: Vec<(f64, f64, f64)>,
         dt: f64,
         head: [Jitter; 2],
     },
@@ -409,6 +410,21 @@ fn ellipse_points(
             [x, y, height, yaw, rng.random_range(-0.3..0.05)]
         })
         .collect()
+}
+
+/// Fastest turn of a walker's body, rad/s (about 150 degrees per second: a person turning
+/// round takes over a second).
+const MAX_TURN_RATE: f64 = 2.6;
+
+/// `(distance, phase, heading)` at time `t` from a walk's table (linear between entries;
+/// headings are unwrapped, so the interpolation is continuous).
+fn interpolate(table: &[(f64, f64, f64)], dt: f64, t: f64) -> (f64, f64, f64) {
+    let x = (t.max(0.0) / dt).min((table.len() - 1) as f64);
+    let i = (x.floor() as usize).min(table.len().saturating_sub(2));
+    let a = x - i as f64;
+    let (s0, p0, h0) = table[i];
+    let (s1, p1, h1) = table[(i + 1).min(table.len() - 1)];
+    (s0 + (s1 - s0) * a, p0 + (p1 - p0) * a, h0 + (h1 - h0) * a)
 }
 
 impl Trajectory {
@@ -536,13 +552,29 @@ impl Trajectory {
         let dt = 1e-3;
         let n = (duration.max(0.0) / dt).ceil() as usize + 2;
         let mut table = Vec::with_capacity(n);
-        let (mut s, mut phase) = (0.0, 0.0);
+        // Start where the loop is straightest, facing along it: a walk that began in the
+        // turn at the tip of a corridor's narrow loop would start with a spin.
+        let len = path.length();
+        let bend = |s: f64| {
+            ((path.heading_at(s + 0.5) - path.heading_at(s - 0.5) + PI).rem_euclid(TAU) - PI).abs()
+        };
+        let start = (0..(len / 0.1).ceil().max(1.0) as usize)
+            .map(|k| k as f64 * 0.1)
+            .min_by(|a, b| bend(*a).total_cmp(&bend(*b)))
+            .unwrap_or(0.0);
+        let (mut s, mut phase) = (start, 0.0);
+        let mut heading = path.heading_at(start);
         for i in 0..n {
-            table.push((s, phase));
+            table.push((s, phase, heading));
             let t = (i as f64 + 0.5) * dt;
             let f = params.frequency_at(t);
             s += params.speed(f) * dt;
             phase += f * dt;
+            // The body turns towards the path's tangent no faster than a person does: where
+            // the path doubles back (the tip of a corridor's narrow loop) the tangent swings
+            // by up to 180 degrees within a few centimetres.
+            let turn = (path.heading_at(s) - heading + PI).rem_euclid(TAU) - PI;
+            heading += turn.clamp(-MAX_TURN_RATE * dt, MAX_TURN_RATE * dt);
         }
         let head = [
             Jitter::new(&mut rng, 0.25, &[0.07, 0.13]),
@@ -581,12 +613,8 @@ impl Trajectory {
     pub fn walking_state(&self, t: f64) -> Option<(f64, f64)> {
         match &self.motion {
             Motion::Walk { table, dt, .. } => {
-                let x = (t.max(0.0) / dt).min((table.len() - 1) as f64);
-                let i = (x.floor() as usize).min(table.len() - 2);
-                let a = x - i as f64;
-                let (s0, p0) = table[i];
-                let (s1, p1) = table[i + 1];
-                Some((s0 + (s1 - s0) * a, p0 + (p1 - p0) * a))
+                let (s, phase, _) = interpolate(table, *dt, t);
+                Some((s - table[0].0, phase))
             }
             _ => None,
         }
@@ -633,11 +661,14 @@ impl Trajectory {
                 camera_pose(DVec3::new(p[0], p[1], 0.4), path.heading_at(s), 0.0, 0.0)
             }
             Motion::Walk {
-                path, params, head, ..
+                path,
+                params,
+                head,
+                table,
+                dt,
             } => {
-                let (s, phase) = self.walking_state(t).unwrap_or((0.0, 0.0));
+                let (s, phase, heading) = interpolate(table, *dt, t);
                 let p = path.at_length(s);
-                let heading = path.heading_at(s);
                 let f = params.frequency_at(t);
                 let v = params.speed(f);
                 let walking = (v / params.speed(1.8).max(1e-9)).clamp(0.0, 1.3);
