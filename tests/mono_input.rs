@@ -173,6 +173,42 @@ fn cli_runs_on_an_image_only_folder() {
     assert!(o.status.success());
     assert_eq!(read_tum(&out).unwrap().len(), frames.images.len());
 
+    // --walker-height on a 1.5 s handheld clip: no walking, so no scale. The run finishes
+    // with a warning (exit 3) and keeps the filter's trajectory and the report.
+    let metric = tmp.path().join("m").join("metric.txt");
+    let json = tmp.path().join("m").join("metric.json");
+    let o = Command::new(exe)
+        .args(["mono", seq.to_str().unwrap(), "--camera"])
+        .arg(&cam_file)
+        .args(["--walker-height", "1.75", "--out"])
+        .arg(&metric)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(3), "{stdout}{stderr}");
+    assert!(stderr.contains("no metric trajectory"), "{stderr}");
+    assert!(stdout.contains("unscaled (EKF)"), "{stdout}");
+    assert!(!metric.exists());
+    let unscaled = tmp.path().join("m").join("metric_unscaled.txt");
+    assert_eq!(read_tum(&unscaled).unwrap().len(), frames.images.len());
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(report["benchmark"], "mono-metric");
+    assert_eq!(report["frames"], frames.images.len());
+    assert!(report["unscaled"]["mean_pct"].as_f64().unwrap() >= 0.0);
+    assert_eq!(report["warnings"].as_array().unwrap().len(), 1);
+    let o = Command::new(exe)
+        .args(["mono", "--synthetic", "pinhole", "--walker-height", "3.5"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("(0, 3]"));
+
     let o = Command::new(exe)
         .args(["mono", tmp.path().join("missing").to_str().unwrap()])
         .output()
