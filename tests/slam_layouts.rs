@@ -7,6 +7,7 @@
 //! (ScanNet and Replica JPEG; ScanNet's colour also upsampled and resampled back).
 
 #[path = "common/cli.rs"]
+#[allow(dead_code)]
 mod cli;
 
 use std::path::Path;
@@ -149,6 +150,7 @@ fn slam_runs_on_every_layout_against_its_own_ground_truth() {
         assert!(ate < ATE_BOUND_M, "{layout}: ATE {ate} m");
         ates.push((layout, ate));
     }
+    eprintln!("ATE RMSE per layout (m): {ates:?}");
     let tum = ates[0].1;
     for (layout, ate) in &ates {
         assert!(

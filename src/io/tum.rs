@@ -890,12 +890,13 @@ const DEPTH_CHECK_FRAMES: usize = 5;
 /// Valid depths of a sample needed to judge the depth factor by.
 const MIN_DEPTH_SAMPLE: usize = 20;
 
-/// The valid raw depths of a sample of at most about 16384 pixels.
+/// The valid raw depths of a sample of at most about 16384 pixels (0 and 65535, 7-Scenes' mark
+/// of no measurement, are none).
 fn depth_sample(raw: &[u16]) -> Vec<f64> {
     let stride = (raw.len() / 16384).max(1);
     raw.iter()
         .step_by(stride)
-        .filter(|&&d| d > 0)
+        .filter(|&&d| d > 0 && d < u16::MAX)
         .map(|&d| f64::from(d))
         .collect()
 }
