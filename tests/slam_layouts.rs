@@ -215,3 +215,57 @@ fn keyframe_colour_off_keeps_keyframes_grey() {
     assert!(on.2 * 10 > on.3, "the coloured model is grey: {runs:?}");
     assert_eq!(off.2, 0, "grey keyframes gave coloured points: {runs:?}");
 }
+
+/// `--calib-format droid` on another command (`rgbid odometry`): the DROID-SLAM file is read
+/// with the first frame's size, a broken one is an error naming file and line, and the flag
+/// alone (without --camera) is a usage error.
+#[test]
+fn droid_calibration_reads_on_odometry_and_names_bad_lines() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    write_all(root, &[Layout::Tum]);
+    let dir = root.join("tum");
+    let c = camera();
+    let good = root.join("droid.txt");
+    std::fs::write(
+        &good,
+        format!("{} {} {} {} 0 0 0 0\n", c.fx, c.fy, c.cx, c.cy),
+    )
+    .unwrap();
+    let out = root.join("odo.txt");
+    let args = |calib: &Path| -> Vec<String> {
+        [
+            "odometry",
+            &dir.display().to_string(),
+            "--out",
+            &out.display().to_string(),
+            "--backend",
+            "cpu",
+            "--camera",
+            &calib.display().to_string(),
+            "--calib-format",
+            "droid",
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let (o, log) = run(&args(&good));
+    assert!(o.status.success(), "{log}");
+    assert!(log.contains("(DROID-SLAM calib) at 160 x 120"), "{log}");
+    let bad = root.join("bad.txt");
+    std::fs::write(&bad, "# fx fy cx cy\n100 100 x 60\n").unwrap();
+    let (o, log) = run(&args(&bad));
+    assert!(!o.status.success(), "{log}");
+    assert!(
+        log.contains("bad.txt:2:") && log.contains("'x' is not a number"),
+        "{log}"
+    );
+    let (o, log) = run(&[
+        "odometry".into(),
+        dir.display().to_string(),
+        "--calib-format".into(),
+        "droid".into(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{log}");
+    assert!(log.contains("--camera"), "{log}");
+}
