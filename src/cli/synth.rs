@@ -117,7 +117,7 @@ fn camera(kind: CameraKind, w: u32, h: u32) -> CameraModel {
 /// The writer of the output folder: TUM for any camera, the other layouts for pinhole ones.
 enum Writer {
     Tum(TumWriter),
-    Layout(LayoutWriter),
+    Layout(Box<LayoutWriter>),
 }
 
 fn progress(len: usize, what: &str) -> ProgressBar {
@@ -191,7 +191,7 @@ pub fn run(args: Args) -> Result<()> {
         )?;
         let mut writer = match (cam, args.layout) {
             (CameraModel::Pinhole(c), layout) => {
-                Writer::Layout(LayoutWriter::create(&dir, layout, &c)?)
+                Writer::Layout(Box::new(LayoutWriter::create(&dir, layout, &c)?))
             }
             (_, Layout::Tum) => Writer::Tum(TumWriter::create(&dir, &cam)?),
             (_, layout) => bail!("--layout {layout} needs --camera pinhole"),
