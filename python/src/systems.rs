@@ -14,7 +14,8 @@ use rgbid::io::UndistortMap;
 use rgbid::odometry::{OdometryConfig, OdometryError, TrackResult};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_coloured_model, FrameStatus, KeyframeLink, Map, ModelParams, SlamConfig, SlamEvent, SlamEvents,
+    build_coloured_model, FrameStatus, KeyframeLink, Map, ModelParams, SlamConfig, SlamEvent,
+    SlamEvents,
 };
 use rgbid::trajectory::TimedPose;
 
