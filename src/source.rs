@@ -8,6 +8,7 @@ use std::sync::Arc;
 use crate::camera::PinholeCamera;
 use crate::gpu::ComputeBackend;
 use crate::image::RgbdFrame;
+use crate::io::config::DROID_PREFIX;
 use crate::io::tum::{OpenOptions, TumSequence};
 use crate::io::{IoError, Layout};
 use crate::synth::{
@@ -43,8 +44,10 @@ pub enum SourceSpec {
         dir: PathBuf,
         /// Its layout; `None` detects it from the folder's content.
         format: Option<Layout>,
-        /// Camera preset or calibration file (see `rgbid odometry --help`); `None` = the
-        /// folder's `calib.txt`, else the default preset.
+        /// Camera preset or calibration file (see `rgbid odometry --help`), or
+        /// `droid:FILE` for a DROID-SLAM `calib.txt` (sized by the first frame, see
+        /// [`OpenOptions::droid_calib`]); `None` = the layout's camera, the folder's
+        /// `calib.txt`, else the default preset.
         camera: Option<String>,
         /// Only the first N frames.
         max_frames: Option<usize>,
@@ -304,8 +307,10 @@ impl FrameSource {
                     layout: *format,
                     ..Default::default()
                 };
-                if let Some(c) = camera {
-                    opts.camera = Some(c.parse()?);
+                match camera.as_deref().map(|c| (c, c.strip_prefix(DROID_PREFIX))) {
+                    Some((_, Some(file))) => opts.droid_calib = Some(file.into()),
+                    Some((c, None)) => opts.camera = Some(c.parse()?),
+                    None => {}
                 }
                 Ok(FrameSource::Tum(TumSequence::open(dir, &opts)?))
             }

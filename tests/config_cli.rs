@@ -31,6 +31,13 @@ fn config_dump_parses_back_to_the_defaults() {
         OdometryConfig::default()
     );
     let slam: SlamConfig = dump("slam");
+    assert!(slam.keyframe_colour, "keyframes keep colour by default");
+    let o = rgbid(&["config", "dump", "--command", "slam"]);
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("keyframe_colour = true"),
+        "{}",
+        text(&o)
+    );
     // SlamConfig has no PartialEq (its parts do): compare the serialised forms.
     assert_eq!(
         serde_json::to_value(&slam).expect("json"),

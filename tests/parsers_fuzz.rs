@@ -123,6 +123,8 @@ const G2O3: &[u8] = b"VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 1 1 0 0 0
 const ISAM: &[u8] = b"POSE2D 0 0 0 0\nPOSE2D 1 1 0 0\nEDGE2 0 1 1 0 0 10 0 0 10 0 100\n";
 const SLAM_TOML: &[u8] =
     b"masks = false\nkeyframe_covisibility = 0.6\n[odometry]\nlevels = 3\nestimator = \"huber\"\n";
+const DROID_CALIB: &[u8] =
+    b"# fx fy cx cy k1 k2 p1 p2 k3\n517.3 516.5 318.6 255.3 0.2624 -0.9531 -0.0054 0.0026 1.1633\n";
 const RGB_LIST: &[u8] = b"# rgb\n0.0 rgb/0.png\n0.1 rgb/1.png\n";
 
 proptest! {
@@ -147,6 +149,18 @@ proptest! {
         prop_assert!(peak <= bound(bytes.len()), "{peak} bytes");
         if let Err(e) = r {
             names_file(&e.to_string(), "cam.cfg")?;
+        }
+    }
+
+    #[test]
+    fn droid_calibration_files(bytes in inputs(DROID_CALIB)) {
+        let text = String::from_utf8_lossy(&bytes);
+        let (r, peak) = measured(|| {
+            CameraConfig::parse_droid(&text, Path::new("calib.txt"), 640, 480, 5000.0)
+        });
+        prop_assert!(peak <= bound(bytes.len()), "{peak} bytes");
+        if let Err(e) = r {
+            names_file(&e.to_string(), "calib.txt")?;
         }
     }
 

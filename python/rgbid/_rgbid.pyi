@@ -96,7 +96,8 @@ class SlamResult:
         """``float64[N, 3]`` world points, metres."""
     @property
     def colors(self) -> npt.NDArray[np.uint8]:
-        """``uint8[N, 3]`` (grey in all three channels)."""
+        """``uint8[N, 3]`` RGB: the keyframes' colour when the frames had colour and
+        ``keyframe_colour`` is on, else grey (the intensity in all three channels)."""
     @property
     def statuses(self) -> List[str]: ...
     def save_map(self, path: _Path) -> None: ...

@@ -14,7 +14,8 @@ use rgbid::io::UndistortMap;
 use rgbid::odometry::{OdometryConfig, OdometryError, TrackResult};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_model, FrameStatus, KeyframeLink, Map, ModelParams, SlamConfig, SlamEvent, SlamEvents,
+    build_coloured_model, FrameStatus, KeyframeLink, Map, ModelParams, SlamConfig, SlamEvent,
+    SlamEvents,
 };
 use rgbid::trajectory::TimedPose;
 
@@ -338,7 +339,7 @@ impl Slam {
                 voxel,
                 ..Default::default()
             };
-            let points = build_model(r.keyframes(), &r.keyframe_poses, &camera, &params);
+            let points = build_coloured_model(r.keyframes(), &r.keyframe_poses, &camera, &params);
             let keyframes = r.keyframe_trajectory();
             let statuses = r.frames.iter().map(|f| status_name(f.status)).collect();
             Ok(SlamResult {
@@ -361,7 +362,7 @@ pub struct SlamResult {
     odometry: Vec<TimedPose>,
     keyframes: Vec<TimedPose>,
     loops: Vec<LoopRow>,
-    points: Vec<(glam::DVec3, u8)>,
+    points: Vec<(glam::DVec3, [u8; 3])>,
     statuses: Vec<&'static str>,
     map: Map,
 }
@@ -402,14 +403,16 @@ impl SlamResult {
         }
         m.into_pyarray(py)
     }
-    /// ``uint8[N, 3]``: the points' colours. Keyframes keep intensity only, so the three
-    /// channels are the same grey value.
+    /// ``uint8[N, 3]``: the points' RGB, the mean colour of the keyframe pixels in each
+    /// voxel. Keyframes keep the RGB of their reference frame when the frames had colour
+    /// (and the configuration's ``keyframe_colour`` is on); otherwise the three channels are
+    /// the same grey value, the intensity.
     #[getter]
     fn colors<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<u8>> {
         let mut m = Array2::<u8>::zeros((self.points.len(), 3));
-        for (i, (_, g)) in self.points.iter().enumerate() {
-            for c in 0..3 {
-                m[[i, c]] = *g;
+        for (i, (_, rgb)) in self.points.iter().enumerate() {
+            for (c, v) in rgb.iter().enumerate() {
+                m[[i, c]] = *v;
             }
         }
         m.into_pyarray(py)

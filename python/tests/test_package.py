@@ -118,6 +118,28 @@ def test_slam_matches_the_cli(tum_dir: Path, tmp_path: Path):
     assert again.frames == 0
 
 
+def slam_colors(seq, config=None) -> np.ndarray:
+    slam = rgbid.Slam(seq.camera, config=config, backend="cpu")
+    for t, image, depth, factor in seq:
+        slam.process(image, depth, factor, t)
+    colors = slam.finish().colors
+    assert colors.dtype == np.uint8 and colors.ndim == 2 and colors.shape[1] == 3
+    assert colors.shape[0] > 100
+    return colors
+
+
+def test_slam_colors_are_the_keyframes_rgb():
+    # The generated scene is coloured: keyframes keep their reference frame's RGB, so most
+    # model points differ between channels; with keyframe_colour off every point is grey.
+    seq = rgbid.synth.render(SCENE, TRAJECTORY, FRAMES, SEED, width=WIDTH)
+    colors = slam_colors(seq).astype(int)
+    non_grey = (colors[:, 0] != colors[:, 1]) | (colors[:, 1] != colors[:, 2])
+    assert non_grey.mean() > 0.1, non_grey.mean()
+    grey = slam_colors(seq, config={"keyframe_colour": False})
+    assert (grey[:, 0] == grey[:, 1]).all() and (grey[:, 1] == grey[:, 2]).all()
+    assert rgbid.default_config("slam")["keyframe_colour"] is True
+
+
 def test_read_sequence_gives_the_stored_frames(tum_dir: Path):
     seq = rgbid.read_sequence(tum_dir)
     mem = rgbid.synth.render(SCENE, TRAJECTORY, FRAMES, SEED, width=WIDTH)

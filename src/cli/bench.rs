@@ -8,6 +8,7 @@ use rgbid::camera::PinholeCamera;
 use rgbid::geometry::Se3;
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::image::test_pattern;
+use rgbid::io::CalibFormat;
 use std::path::PathBuf;
 
 use anyhow::Context;
@@ -373,6 +374,14 @@ pub struct OdometryBench {
     /// Camera preset or config file (default: calib.txt beside the sequence).
     #[arg(long)]
     pub camera: Option<String>,
+    /// How --camera FILE is read: `auto` (by the file: `calib.txt` is rgbid's `fx fy cx cy
+    /// [depth_factor [width height]]`, `.yaml`/`.yml` OpenCV / ORB-SLAM, else `key = value`
+    /// lines) or `droid` (DROID-SLAM's calib.txt: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]`,
+    /// pixels; the image size is taken from the sequence's first image, the depth factor is
+    /// the layout's: TUM and ETH3D 5000 per metre, 7-Scenes and ScanNet 1000, Replica
+    /// 6553.5).
+    #[arg(long, value_enum, default_value_t = CalibFormat::Auto, requires = "camera")]
+    pub calib_format: CalibFormat,
     /// Also write the results as JSON (machine, commit, command and every row) to this file,
     /// e.g. `docs/results/odometry_redkitchen.json` for `scripts/results.py`.
     #[arg(long, value_name = "FILE")]
@@ -481,9 +490,7 @@ fn odometry(a: OdometryBench) -> Result<()> {
         max_frames: a.max_frames,
         ..Default::default()
     };
-    if let Some(c) = &a.camera {
-        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
-    }
+    super::options::set_camera(&mut opts, a.camera.as_deref(), a.calib_format)?;
     let seq = TumSequence::open(&a.sequence, &opts)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
     let gt = seq.ground_truth()?;

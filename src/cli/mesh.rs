@@ -14,6 +14,7 @@ use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
 use rgbid::image::RgbdFrame;
 use rgbid::io::trajectory::read_tum;
 use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::io::CalibFormat;
 use rgbid::synth::tum_export::TumWriter;
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
@@ -49,6 +50,14 @@ pub struct Args {
     /// calib.txt beside the sequence, else `default`. Frames are undistorted with it.
     #[arg(long)]
     pub camera: Option<String>,
+    /// How --camera FILE is read: `auto` (by the file: `calib.txt` is rgbid's `fx fy cx cy
+    /// [depth_factor [width height]]`, `.yaml`/`.yml` OpenCV / ORB-SLAM, else `key = value`
+    /// lines) or `droid` (DROID-SLAM's calib.txt: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]`,
+    /// pixels; the image size is taken from the sequence's first image, the depth factor is
+    /// the layout's: TUM and ETH3D 5000 per metre, 7-Scenes and ScanNet 1000, Replica
+    /// 6553.5).
+    #[arg(long, value_enum, default_value_t = CalibFormat::Auto, requires = "camera")]
+    pub calib_format: CalibFormat,
     /// Integrate only the first this many frames (>= 1).
     #[arg(long, value_parser = crate::cli::options::range::at_least_one)]
     pub max_frames: Option<usize>,
@@ -73,9 +82,7 @@ pub fn run(args: Args) -> Result<()> {
         max_frames: args.max_frames,
         ..Default::default()
     };
-    if let Some(c) = &args.camera {
-        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
-    }
+    super::options::set_camera(&mut opts, args.camera.as_deref(), args.calib_format)?;
     let seq = TumSequence::open(&args.sequence, &opts)?;
     let poses = read_tum(&args.poses).context("reading --poses")?;
     let stamps: Vec<TimedPose> = seq

@@ -8,6 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::gpu::select_backend;
 use rgbid::io::trajectory::{write_trajectory, TrajectoryFormat};
 use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::io::CalibFormat;
 use rgbid::io::Layout;
 use rgbid::odometry::{Odometry, OdometryError};
 use rgbid::trajectory::TimedPose;
@@ -35,6 +36,14 @@ pub struct Args {
     /// 7scenes or replica preset), else calib.txt beside the sequence, else `default`.
     #[arg(long)]
     pub camera: Option<String>,
+    /// How --camera FILE is read: `auto` (by the file: `calib.txt` is rgbid's `fx fy cx cy
+    /// [depth_factor [width height]]`, `.yaml`/`.yml` OpenCV / ORB-SLAM, else `key = value`
+    /// lines) or `droid` (DROID-SLAM's calib.txt: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]`,
+    /// pixels; the image size is taken from the sequence's first image, the depth factor is
+    /// the layout's: TUM and ETH3D 5000 per metre, 7-Scenes and ScanNet 1000, Replica
+    /// 6553.5).
+    #[arg(long, value_enum, default_value_t = CalibFormat::Auto, requires = "camera")]
+    pub calib_format: CalibFormat,
     /// Layout of the sequence folder: tum (also Bonn, ICL-NUIM), eth3d, 7scenes (one seq-NN
     /// folder), scannet (the exporter's color/ depth/ pose/ intrinsic/), replica (NICE-SLAM's
     /// rendering) [default: detected from its content].
@@ -73,9 +82,7 @@ pub fn run(args: Args) -> Result<()> {
         frame_rate: args.fps,
         ..Default::default()
     };
-    if let Some(c) = &args.camera {
-        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
-    }
+    super::options::set_camera(&mut opts, args.camera.as_deref(), args.calib_format)?;
     let seq = TumSequence::open(&args.sequence, &opts)?;
     // Output locations are checked before any frame runs; the sequence's own files are
     // never outputs.

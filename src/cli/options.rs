@@ -3,9 +3,12 @@
 
 use std::path::{Path, PathBuf};
 
+use anyhow::Context;
 use anyhow::Result;
 use rgbid::gpu::{BackendChoice, ComputeBackend};
+use rgbid::io::config::DROID_PREFIX;
 use rgbid::io::settings::{self, Assignment, Provenance};
+use rgbid::io::{CalibFormat, OpenOptions};
 use rgbid::odometry::{Estimator, GeometricParam, OdometryConfig, ScaleMethod, Terms};
 use serde::de::DeserializeOwned;
 use serde::Serialize;
@@ -47,6 +50,28 @@ impl ConfigArgs {
         }
         Ok(config)
     }
+}
+
+/// Sets the camera of `opts` from `--camera` read as `--calib-format` says: a preset or camera
+/// file (`auto`), or a DROID-SLAM `calib.txt` sized by the sequence's first frame (`droid`).
+pub fn set_camera(opts: &mut OpenOptions, camera: Option<&str>, format: CalibFormat) -> Result<()> {
+    match (camera, format) {
+        (Some(c), CalibFormat::Auto) => {
+            opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
+        }
+        (Some(c), CalibFormat::Droid) => opts.droid_calib = Some(PathBuf::from(c)),
+        (None, _) => {}
+    }
+    Ok(())
+}
+
+/// `--camera` as [`rgbid::source::SourceSpec`]'s camera text (`droid:FILE` for a DROID-SLAM
+/// `calib.txt`).
+pub fn camera_spec(camera: Option<&str>, format: CalibFormat) -> Option<String> {
+    camera.map(|c| match format {
+        CalibFormat::Auto => c.to_string(),
+        CalibFormat::Droid => format!("{DROID_PREFIX}{c}"),
+    })
 }
 
 /// The odometry flags shared by every command that runs the odometry (`odometry`, `slam`,

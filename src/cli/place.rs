@@ -8,6 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::geometry::Se3;
 use rgbid::image::{rgb_to_intensity, ImageF32};
 use rgbid::io::tum::{OpenOptions, TumSequence};
+use rgbid::io::CalibFormat;
 use rgbid::place::{
     extract_orb, DetectedLoop, LoopDetector, LoopDetectorParams, OrbParams, Vocabulary,
 };
@@ -55,6 +56,14 @@ pub struct LoopsArgs {
     /// the depth factor). Default: calib.txt beside the sequence, else the `default` preset.
     #[arg(long)]
     pub camera: Option<String>,
+    /// How --camera FILE is read: `auto` (by the file: `calib.txt` is rgbid's `fx fy cx cy
+    /// [depth_factor [width height]]`, `.yaml`/`.yml` OpenCV / ORB-SLAM, else `key = value`
+    /// lines) or `droid` (DROID-SLAM's calib.txt: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]`,
+    /// pixels; the image size is taken from the sequence's first image, the depth factor is
+    /// the layout's: TUM and ETH3D 5000 per metre, 7-Scenes and ScanNet 1000, Replica
+    /// 6553.5).
+    #[arg(long, value_enum, default_value_t = CalibFormat::Auto, requires = "camera")]
+    pub calib_format: CalibFormat,
     /// Ground-truth revisit: camera centres closer than this (metres, > 0)...
     #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.5)]
     pub gt_distance: f64,
@@ -132,9 +141,7 @@ fn nearest_pose(gt: &[rgbid::trajectory::TimedPose], t: f64) -> Option<Se3> {
 
 fn loops(a: LoopsArgs) -> Result<()> {
     let mut opts = OpenOptions::default();
-    if let Some(c) = &a.camera {
-        opts.camera = Some(c.parse().with_context(|| format!("camera '{c}'"))?);
-    }
+    super::options::set_camera(&mut opts, a.camera.as_deref(), a.calib_format)?;
     let seq = TumSequence::open(&a.seq, &opts)?;
     let vocab = match &a.vocab {
         Some(p) => Vocabulary::load(p)?,

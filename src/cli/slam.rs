@@ -13,6 +13,7 @@ use rgbid::io::run_folder::{
     FrameRow, KeyframeTimingRow, LoopRow, RunFolderWriter, RunStatus, RunSummary,
 };
 use rgbid::io::settings::Provenance;
+use rgbid::io::CalibFormat;
 use rgbid::io::Layout;
 use rgbid::live::{LiveInput, LiveOptions, LiveSpec};
 use rgbid::place::Vocabulary;
@@ -44,6 +45,14 @@ pub struct Args {
     /// Camera preset or calibration file for a sequence folder (see `rgbid odometry --help`).
     #[arg(long)]
     pub camera: Option<String>,
+    /// How --camera FILE is read: `auto` (by the file: `calib.txt` is rgbid's `fx fy cx cy
+    /// [depth_factor [width height]]`, `.yaml`/`.yml` OpenCV / ORB-SLAM, else `key = value`
+    /// lines) or `droid` (DROID-SLAM's calib.txt: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]`,
+    /// pixels; the image size is taken from the sequence's first image, the depth factor is
+    /// the layout's: TUM and ETH3D 5000 per metre, 7-Scenes and ScanNet 1000, Replica
+    /// 6553.5).
+    #[arg(long, value_enum, default_value_t = CalibFormat::Auto, requires = "camera")]
+    pub calib_format: CalibFormat,
     /// Layout of the sequence folder [default: detected from its content].
     #[arg(long, value_enum)]
     pub format: Option<Layout>,
@@ -129,6 +138,7 @@ impl Args {
             session: 0,
             out,
             camera: None,
+            calib_format: CalibFormat::Auto,
             format: None,
             max_frames: None,
             map_in: None,
@@ -188,7 +198,7 @@ impl Args {
         Ok(SourceSpec::Tum {
             dir: dir.clone(),
             format: self.format,
-            camera: self.camera.clone(),
+            camera: super::options::camera_spec(self.camera.as_deref(), self.calib_format),
             max_frames: self.max_frames,
         })
     }
@@ -267,6 +277,9 @@ impl Inputs {
         let source = match &a.live {
             Some(live) => {
                 let spec: LiveSpec = live.parse()?;
+                if a.calib_format == CalibFormat::Droid {
+                    bail!("--calib-format droid reads the image size from a sequence folder, not --live input");
+                }
                 if let Some(r) = &a.record {
                     super::outputs::output_folder(r, None)?;
                 }

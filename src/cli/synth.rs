@@ -1,5 +1,6 @@
 //! `rgbid synth`: renders a synthetic RGB-D (or omnidirectional) sequence with exact ground
-//! truth into a TUM-layout folder, or times the renderer on each backend (`--bench`).
+//! truth into a dataset folder (TUM, or another layout with `--layout`), or times the renderer
+//! on each backend (`--bench`).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -9,6 +10,8 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::{PinholeCamera, UnifiedCamera};
 use rgbid::gpu::{select_backend, BackendChoice, ComputeBackend};
+use rgbid::io::Layout;
+use rgbid::synth::layout_export::LayoutWriter;
 use rgbid::synth::trajectory::{TrajectoryKind, TRAJECTORIES};
 use rgbid::synth::tum_export::TumWriter;
 use rgbid::synth::{
@@ -52,6 +55,13 @@ pub struct Args {
     /// Seed of the scene, trajectory and noise (any whole number, 0 to 2^64-1).
     #[arg(long, value_parser = crate::cli::options::range::seed, default_value_t = 7)]
     seed: u64,
+    /// Folder layout of the output: tum (also ICL-NUIM's TUM variant), eth3d, 7scenes,
+    /// scannet (colour written at twice the depth size with its own intrinsics), replica
+    /// (NICE-SLAM's). 7scenes and replica folders also get a DROID-SLAM `calib.txt` for
+    /// `--camera DIR/calib.txt --calib-format droid`. Layouts other than tum need the pinhole
+    /// camera and one session without noise-free masks.
+    #[arg(long, value_enum, default_value_t = Layout::Tum)]
+    layout: Layout,
     /// Output folder (required unless --bench).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -102,6 +112,12 @@ fn camera(kind: CameraKind, w: u32, h: u32) -> CameraModel {
         }
         CameraKind::Omni => CameraModel::Unified(UnifiedCamera::catadioptric(w, h)),
     }
+}
+
+/// The writer of the output folder: TUM for any camera, the other layouts for pinhole ones.
+enum Writer {
+    Tum(TumWriter),
+    Layout(Box<LayoutWriter>),
 }
 
 fn progress(len: usize, what: &str) -> ProgressBar {
@@ -156,6 +172,9 @@ pub fn run(args: Args) -> Result<()> {
         ComputeBackend::Gpu(g) => RenderBackend::Gpu(g),
     };
     let sessions = args.sessions.max(1);
+    if args.layout != Layout::Tum && sessions > 1 {
+        bail!("--sessions > 1 writes moved-object masks, which only --layout tum holds");
+    }
     for s in 0..sessions {
         let scene = Arc::new(base.session(s));
         let dir = if sessions > 1 {
@@ -170,12 +189,21 @@ pub fn run(args: Args) -> Result<()> {
             config.clone(),
             &backend,
         )?;
-        let mut writer = TumWriter::create(&dir, &cam)?;
+        let mut writer = match (cam, args.layout) {
+            (CameraModel::Pinhole(c), layout) => {
+                Writer::Layout(Box::new(LayoutWriter::create(&dir, layout, &c)?))
+            }
+            (_, Layout::Tum) => Writer::Tum(TumWriter::create(&dir, &cam)?),
+            (_, layout) => bail!("--layout {layout} needs --camera pinhole"),
+        };
         let bar = progress(args.frames, &format!("session {s}"));
         let started = Instant::now();
         for f in &mut seq {
             let f = f?;
-            writer.write_frame(f.timestamp, &f.world_from_camera, &f.frame)?;
+            match &mut writer {
+                Writer::Tum(w) => w.write_frame(f.timestamp, &f.world_from_camera, &f.frame)?,
+                Writer::Layout(w) => w.write_frame(f.timestamp, &f.world_from_camera, &f.frame)?,
+            }
             bar.inc(1);
         }
         bar.finish_and_clear();
@@ -198,13 +226,14 @@ pub fn run(args: Args) -> Result<()> {
         );
         let scene_json =
             serde_json::to_string_pretty(scene.params()).context("scene parameters to JSON")?;
-        writer.finish(
-            &readme,
-            &[
-                ("session.txt", session_txt),
-                ("scene.json", scene_json + "\n"),
-            ],
-        )?;
+        let extra = [
+            ("session.txt", session_txt),
+            ("scene.json", scene_json + "\n"),
+        ];
+        match writer {
+            Writer::Tum(w) => w.finish(&readme, &extra)?,
+            Writer::Layout(w) => w.finish(&readme, &extra)?,
+        }
         println!(
             "wrote {} frames to {} in {:.1} s ({})",
             args.frames,
@@ -230,15 +259,17 @@ fn readme(
         "Synthetic sequence rendered by rgbid synth (exact ground truth).\n\
          \n\
          command: rgbid synth --scene {} --trajectory {} --frames {} --fps {} --camera {:?} \
-         --width {} --height {} --seed {}{}{}{} --sessions {}\n\
+         --width {} --height {} --seed {}{}{}{} --sessions {} --layout {}\n\
          session: {session} (changed objects: {:?})\n\
          scene: {} ({} primitives, {} objects)\n\
          camera: {camera}\n\
          sensor: {sensor}\n\
          ray casting backend used: {backend} (output does not depend on it beyond f32 rounding)\n\
          \n\
-         World frame: z up, floor at z = 0. groundtruth.txt holds world_from_camera (camera x right,\n\
-         y down, z forward) in TUM format. Depth PNGs: 16-bit, 5000 per metre, 0 = no measurement.\n\
+         World frame: z up, floor at z = 0. Ground truth is world_from_camera (camera x right,\n\
+         y down, z forward): groundtruth.txt in TUM format for the tum and eth3d layouts, else the\n\
+         layout's own pose files. Depth PNGs: 16-bit, 5000 per metre, 0 = no measurement (tum,\n\
+         eth3d; 7scenes and scannet: millimetres, replica: 6553.5 per metre).\n\
          masks/ (sessions > 0): 255 where the pixel sees an object moved or added since session 0.\n\
          Available scenes: {}; trajectories: {}.\n",
         args.scene,
@@ -253,6 +284,7 @@ fn readme(
         if args.exposure_changes { " --exposure-changes" } else { "" },
         if args.motion_blur > 1 { format!(" --motion-blur {}", args.motion_blur) } else { String::new() },
         args.sessions,
+        args.layout,
         scene.changed_objects(),
         scene.params().name,
         scene.primitive_count(),

@@ -8,6 +8,10 @@
 //! start from a preset and override some of its values. Errors name `file:line`.
 //!
 //! `calib.txt` (beside a sequence) is one line `fx fy cx cy [depth_factor [width height]]`.
+//!
+//! DROID-SLAM's `calib.txt` ([`CalibFormat::Droid`], only when asked for: it shares the
+//! name) is one line `fx fy cx cy [k1 k2 p1 p2 [k3]]` without the image size, which comes from
+//! the images ([`CameraConfig::parse_droid`]).
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -19,6 +23,20 @@ use crate::camera::{BrownConrady, PinholeCamera};
 pub const PRESETS: [&str; 7] = [
     "default", "tum_fr1", "tum_fr2", "tum_fr3", "icl_nuim", "7scenes", "replica",
 ];
+
+/// How a camera file named on the command line is read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum CalibFormat {
+    /// By the file: `calib.txt` is rgbid's `fx fy cx cy [depth_factor [width height]]`,
+    /// `.yaml` / `.yml` OpenCV / ORB-SLAM, anything else `key = value` lines; or a preset name.
+    #[default]
+    Auto,
+    /// DROID-SLAM's `calib.txt`: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]` (pixels; Brown-Conrady
+    /// distortion of the raw images). It holds no image size (taken from the sequence's first
+    /// frame) and no depth scale (the layout's).
+    Droid,
+}
 
 /// TUM's depth factor: raw 16-bit depth units per metre.
 pub const TUM_DEPTH_FACTOR: f64 = 5000.0;
@@ -290,6 +308,77 @@ impl CameraConfig {
         Ok(cfg)
     }
 
+    /// Reads DROID-SLAM's `calib.txt` ([`CalibFormat::Droid`]) for images of `width` x
+    /// `height` pixels with `depth_factor` raw depth units per metre.
+    pub fn from_droid_calib(
+        path: &Path,
+        width: u32,
+        height: u32,
+        depth_factor: f64,
+    ) -> Result<CameraConfig, IoError> {
+        let text = super::read_text(path)?;
+        Self::parse_droid(&text, path, width, height, depth_factor)
+    }
+
+    /// Parses the text of a DROID-SLAM `calib.txt`: one line `fx fy cx cy [k1 k2 p1 p2 [k3]]`
+    /// (pixels, pixel centres at integers; numbers separated by spaces or commas), `#`
+    /// comments and blank lines skipped. The file holds no image size or depth scale: they
+    /// are `width` x `height` pixels and `depth_factor` units per metre. Errors name
+    /// `path:line` and the cause; `path` is only used in errors.
+    pub fn parse_droid(
+        text: &str,
+        path: &Path,
+        width: u32,
+        height: u32,
+        depth_factor: f64,
+    ) -> Result<CameraConfig, IoError> {
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .map(|(i, l)| (i + 1, l.split('#').next().unwrap_or("").trim()))
+            .filter(|(_, l)| !l.is_empty());
+        let (line, s) = lines.next().ok_or_else(|| IoError::Empty {
+            path: path.into(),
+            message: "no calibration line (DROID-SLAM calib.txt: `fx fy cx cy [k1 k2 p1 p2 [k3]]`)"
+                .into(),
+        })?;
+        if let Some((extra, _)) = lines.next() {
+            return Err(IoError::parse(
+                path,
+                extra,
+                "a DROID-SLAM calib.txt holds one line of numbers",
+            ));
+        }
+        let v = parse_numbers(s).map_err(|m| IoError::parse(path, line, m))?;
+        if !matches!(v.len(), 4 | 8 | 9) {
+            return Err(IoError::parse(
+                path,
+                line,
+                format!(
+                    "expected `fx fy cx cy [k1 k2 p1 p2 [k3]]` (4, 8 or 9 numbers), found {}",
+                    v.len()
+                ),
+            ));
+        }
+        let mut camera = PinholeCamera::new(v[0], v[1], v[2], v[3], width, height);
+        if v.len() > 4 {
+            camera.distortion = BrownConrady {
+                k1: v[4],
+                k2: v[5],
+                p1: v[6],
+                p2: v[7],
+                k3: v.get(8).copied().unwrap_or(0.0),
+            };
+        }
+        let cfg = CameraConfig {
+            camera,
+            depth_factor,
+            source: format!("{} (DROID-SLAM calib)", path.display()),
+        };
+        cfg.validate(path)?;
+        Ok(cfg)
+    }
+
     /// A preset name or, failing that, the path of a camera file (for a `--camera` flag):
     /// `calib.txt`, OpenCV / ORB-SLAM YAML (`.yaml`, `.yml`), else `key = value` lines.
     pub fn from_name_or_path(s: &str) -> Result<CameraConfig, IoError> {
@@ -309,6 +398,14 @@ impl CameraConfig {
                 return Self::from_opencv_yaml(&p);
             }
             return Self::from_file(&p);
+        }
+        if let Some(file) = s.strip_prefix(DROID_PREFIX) {
+            return Err(IoError::Malformed {
+                path: file.into(),
+                message: "a DROID-SLAM calibration holds no image size: it is read with a \
+                          sequence folder, whose first frame gives the size"
+                    .into(),
+            });
         }
         Err(IoError::UnknownCamera {
             name: s.to_string(),
@@ -340,6 +437,10 @@ impl FromStr for CameraConfig {
         Self::from_name_or_path(s)
     }
 }
+
+/// The prefix of a camera given as text (`SourceSpec`'s `camera`) that names a DROID-SLAM
+/// `calib.txt` ([`CalibFormat::Droid`]): `droid:FILE`.
+pub const DROID_PREFIX: &str = "droid:";
 
 /// Splits on whitespace and commas and parses finite f64s; the message names the bad field.
 pub(crate) fn parse_numbers(s: &str) -> Result<Vec<f64>, String> {
@@ -385,6 +486,66 @@ mod tests {
             .distortion
             .is_zero());
         assert!(CameraConfig::preset("nope").is_none());
+    }
+
+    #[test]
+    fn droid_calib_parses_and_reports_lines() {
+        let p = Path::new("calib.txt");
+        let c =
+            CameraConfig::parse_droid("# DROID\n500 501 300 200\n", p, 320, 240, 1000.0).unwrap();
+        assert_eq!(
+            (c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy),
+            (500.0, 501.0, 300.0, 200.0)
+        );
+        assert_eq!(
+            (c.camera.width, c.camera.height, c.depth_factor),
+            (320, 240, 1000.0)
+        );
+        assert!(c.camera.distortion.is_zero());
+        let c =
+            CameraConfig::parse_droid("500 500 300 200 0.1 -0.2 0.01 0.02", p, 640, 480, 5000.0)
+                .unwrap();
+        let d = c.camera.distortion;
+        assert_eq!((d.k1, d.k2, d.p1, d.p2, d.k3), (0.1, -0.2, 0.01, 0.02, 0.0));
+        let c = CameraConfig::parse_droid(
+            "500,500,300,200,0.1,-0.2,0.01,0.02,0.3",
+            p,
+            640,
+            480,
+            5000.0,
+        )
+        .unwrap();
+        assert_eq!(c.camera.distortion.k3, 0.3);
+        let err = |text: &str| {
+            CameraConfig::parse_droid(text, p, 640, 480, 5000.0)
+                .unwrap_err()
+                .to_string()
+        };
+        let e = err("\n500 500 300\n");
+        assert!(
+            e.starts_with("calib.txt:2:") && e.contains("found 3"),
+            "{e}"
+        );
+        let e = err("500 500 300 200 0.1\n");
+        assert!(e.contains(":1:") && e.contains("found 5"), "{e}");
+        let e = err("500 500 x 200\n");
+        assert!(
+            e.contains(":1:") && e.contains("'x' is not a number"),
+            "{e}"
+        );
+        let e = err("500 500 300 200\n1 2 3 4\n");
+        assert!(e.contains(":2:") && e.contains("one line"), "{e}");
+        let e = err("# nothing\n");
+        assert!(
+            e.contains("calib.txt") && e.contains("no calibration line"),
+            "{e}"
+        );
+        let e = err("-500 500 300 200\n");
+        assert!(e.contains("calib.txt"), "{e}");
+        assert!(CameraConfig::from_name_or_path("droid:calib.txt")
+            .unwrap_err()
+            .to_string()
+            .contains("no image size"));
     }
 
     #[test]

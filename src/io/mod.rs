@@ -14,7 +14,7 @@ pub mod trajectory;
 pub mod tum;
 pub mod undistort;
 
-pub use config::CameraConfig;
+pub use config::{CalibFormat, CameraConfig};
 pub use layouts::Layout;
 pub use tum::{
     load_pair_frame, parse_pose_line, read_intrinsic_matrix, read_pose_file, OpenOptions, RawFrame,

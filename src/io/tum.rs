@@ -54,6 +54,12 @@ pub struct OpenOptions {
     pub max_time_difference: f64,
     /// The camera; `None` uses `calib.txt` beside the sequence, else the `default` preset.
     pub camera: Option<CameraConfig>,
+    /// A DROID-SLAM `calib.txt` ([`CalibFormat::Droid`](super::CalibFormat::Droid)) to take
+    /// the camera from instead of `camera`: its image size is the first frame's (the depth
+    /// image's for ScanNet, whose frames are on the depth camera, else the colour image's),
+    /// its depth factor the layout's (TUM and ETH3D 5000, 7-Scenes and ScanNet 1000 per
+    /// metre, Replica 6553.5).
+    pub droid_calib: Option<PathBuf>,
     /// Keep only the first this many frames.
     pub max_frames: Option<usize>,
     /// The folder's layout; `None` detects it from the content ([`Layout::detect`]).
@@ -67,6 +73,7 @@ impl Default for OpenOptions {
         Self {
             max_time_difference: DEFAULT_MAX_TIME_DIFFERENCE,
             camera: None,
+            droid_calib: None,
             max_frames: None,
             layout: None,
             frame_rate: 30.0,
@@ -108,12 +115,19 @@ impl TumSequence {
             return Err(IoError::MissingFolder { path: dir.into() });
         }
         let layout = opts.layout.unwrap_or_else(|| Layout::detect(dir));
-        let cfg = match (&opts.camera, layout_camera(layout, dir)?) {
-            (Some(c), _) => c.clone(),
-            (None, Some(c)) => c,
-            (None, None) => {
+        let own = layout_camera(layout, dir)?;
+        // A DROID-SLAM calibration is sized by the first frame, which is known only once the
+        // frames are listed; until then the layout's camera stands in.
+        let droid_depth_factor = own
+            .as_ref()
+            .map_or(super::config::TUM_DEPTH_FACTOR, |c| c.depth_factor);
+        let cfg = match (&opts.camera, own) {
+            (Some(c), _) if opts.droid_calib.is_none() => c.clone(),
+            (_, Some(c)) => c,
+            (_, None) => {
                 let calib = dir.join("calib.txt");
-                if calib.is_file() {
+                // The folder's calib.txt may be the DROID-SLAM file itself.
+                if calib.is_file() && opts.droid_calib.is_none() {
                     CameraConfig::from_calib_txt(&calib)?
                 } else {
                     CameraConfig::preset("default").ok_or_else(|| IoError::UnknownCamera {
@@ -124,6 +138,8 @@ impl TumSequence {
             }
         };
         cfg.validate(Path::new(&cfg.source))?;
+        let droid = opts.droid_calib.as_deref();
+        let mut cfg = cfg;
         log::info!(
             "{}: {layout} layout, camera from {}",
             dir.display(),
@@ -187,6 +203,18 @@ impl TumSequence {
                 path: dir.into(),
                 message: "the sequence has no frames".into(),
             });
+        }
+        if let Some(calib) = droid {
+            let first = match layout {
+                Layout::ScanNet => &entries[0].depth,
+                _ => &entries[0].rgb,
+            };
+            let (w, h) = image::image_dimensions(first).map_err(|e| IoError::Image {
+                path: first.clone(),
+                message: e.to_string(),
+            })?;
+            cfg = CameraConfig::from_droid_calib(calib, w, h, droid_depth_factor)?;
+            log::info!("camera from {} at {w} x {h}", cfg.source);
         }
         let colour_camera = match layout {
             Layout::ScanNet => {
@@ -862,12 +890,13 @@ const DEPTH_CHECK_FRAMES: usize = 5;
 /// Valid depths of a sample needed to judge the depth factor by.
 const MIN_DEPTH_SAMPLE: usize = 20;
 
-/// The valid raw depths of a sample of at most about 16384 pixels.
+/// The valid raw depths of a sample of at most about 16384 pixels (0 and 65535, 7-Scenes' mark
+/// of no measurement, are none).
 fn depth_sample(raw: &[u16]) -> Vec<f64> {
     let stride = (raw.len() / 16384).max(1);
     raw.iter()
         .step_by(stride)
-        .filter(|&&d| d > 0)
+        .filter(|&&d| d > 0 && d < u16::MAX)
         .map(|&d| f64::from(d))
         .collect()
 }

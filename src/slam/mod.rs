@@ -144,6 +144,11 @@ pub struct SlamConfig {
     /// Information of the frame-level pose graph that places every frame between the
     /// optimised keyframes at the end of a run (thesis eq. 6.28).
     pub frame_edges: FrameEdges,
+    /// Keep the RGB of each keyframe's reference frame when the input has colour (3 bytes per
+    /// pixel on top of the keyframe's 4: coloured `model.ply`, meshes and map colours);
+    /// `false` keeps keyframes grey, and every model built from them takes its colour from
+    /// the intensity.
+    pub keyframe_colour: bool,
 }
 
 /// Information of the edges of the frame-level pose graph (thesis eq. 6.28): frame to
@@ -226,6 +231,7 @@ impl Default for SlamConfig {
             loop_min_covisibility: 0.3,
             relocalise_every: 1,
             frame_edges: FrameEdges::Odometry,
+            keyframe_colour: true,
         }
     }
 }

@@ -389,7 +389,11 @@ impl Slam {
             frame_index: index,
             timestamp: frame.timestamp,
             intensity: frame.intensity.clone(),
-            colour: frame.colour.clone(),
+            colour: if self.config.keyframe_colour {
+                frame.colour.clone()
+            } else {
+                None
+            },
             frontworld_from_keyframe: frontworld_from_camera,
             link,
         });

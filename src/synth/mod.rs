@@ -17,6 +17,7 @@
 mod bvh;
 mod distance;
 mod gpu;
+pub mod layout_export;
 pub(crate) mod raycast;
 mod render;
 mod scene;
