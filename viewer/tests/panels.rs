@@ -781,11 +781,15 @@ fn live_openni2_without_the_feature_names_it() {
 }
 
 /// A run folder as `rgbid slam --out DIR --mesh` writes it (trajectory, keyframes, coloured
-/// model, mesh.ply), from SLAM on the small generated run.
+/// model, mesh.ply), from SLAM on the sequence of `run` (the small generated run by default).
 fn mesh_run_folder(dir: &std::path::Path) {
+    mesh_run_folder_of(dir, small_run(true));
+}
+
+fn mesh_run_folder_of(dir: &std::path::Path, run: RunConfig) {
     use rgbid::slam::{build_coloured_model, build_mesh, ModelParams, Slam, SlamConfig};
     let backend = rgbid::gpu::ComputeBackend::Cpu;
-    let RunSource::Sequence(spec) = small_run(true).source else {
+    let RunSource::Sequence(spec) = run.source else {
         panic!("a sequence");
     };
     let mut source = rgbid_viewer::source::FrameSource::open(&spec, &backend).expect("source");
@@ -944,7 +948,17 @@ fn manual_mesh_screenshot() {
         return;
     };
     let dir = tempfile_dir("mesh-doc");
-    mesh_run_folder(&dir);
+    // One lap of the generated office.
+    let mut cfg = RunConfig::new(SourceSpec::Synth {
+        spec: "office:loop".into(),
+        frames: 150,
+        width: 320,
+        seed: 1,
+        session: 0,
+        lap_seconds: Some(5.0),
+    });
+    cfg.backend = BackendChoice::Cpu;
+    mesh_run_folder_of(&dir, cfg);
     let state = ViewerState::from_output(rgbid_viewer::output::load_output(&dir).expect("load"));
     std::fs::remove_dir_all(&dir).ok();
     let mut app = ViewerApp::new(state, None);
@@ -954,6 +968,9 @@ fn manual_mesh_screenshot() {
         egui::CentralPanel::default().show(ui, |ui| app.scene_ui(ui));
     });
     h.run_steps(3);
+    // Closer than "frame all", which also frames stray far points.
+    h.state_mut().camera.zoom(0.6);
+    h.run_steps(2);
     let img = h.render().expect("render");
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/viewer_mesh.png");
     img.save(path).expect("save");
