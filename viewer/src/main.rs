@@ -60,7 +60,7 @@ struct Args {
     #[arg(long, value_name = "DIR", requires = "live")]
     record: Option<PathBuf>,
     /// At the end of a run, build a TSDF mesh of the keyframes with this voxel size (metres,
-    /// > 0; as `rgbid slam --mesh --voxel`) and draw it.
+    /// > 0; as `rgbid slam --mesh --voxel`) and draw it. Default: no mesh.
     #[arg(long, value_name = "METRES", value_parser = positive_metres)]
     mesh_voxel: Option<f64>,
     /// Compute backend of the SLAM run.
