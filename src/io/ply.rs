@@ -5,6 +5,7 @@
 //! and `uchar red green blue`. The reader takes binary (little- or big-endian) and ASCII
 //! files with any scalar property types and extra elements (faces are skipped when they come
 //! after the vertices); it needs `x`, `y` and `z`, and uses `red`, `green`, `blue` when present.
+//! [`read_mesh_ply`] reads the faces too (the meshes of [`write_mesh_ply`] and other tools).
 
 use std::io::Write;
 use std::path::Path;
@@ -212,11 +213,11 @@ impl Scalar {
     }
 }
 
-/// One property of an element: a named scalar, or a list (its count and item types are
-/// checked; lists are only skipped, in ASCII files).
+/// One property of an element: a named scalar, or a named list with its count and item types
+/// (lists are read only in faces; elsewhere they are skipped, in ASCII files).
 enum Property {
     Scalar(String, Scalar),
-    List,
+    List(String, Scalar, Scalar),
 }
 
 struct Element {
@@ -227,6 +228,20 @@ struct Element {
 
 /// Parses the bytes of a PLY file (see [`read_ply`]); the error says what is wrong.
 pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
+    let h = parse_header(bytes)?;
+    finish_parse(bytes, h.header, h.body, h.body_start, h.format, &h.elements)
+}
+
+/// A parsed PLY header and where its body starts.
+struct Header<'a> {
+    header: &'a str,
+    body: &'a [u8],
+    body_start: usize,
+    format: Option<Format>,
+    elements: Vec<Element>,
+}
+
+fn parse_header(bytes: &[u8]) -> Result<Header<'_>, String> {
     const END: &[u8] = b"end_header";
     let Some(end) = bytes.windows(END.len()).position(|w| w == END) else {
         return Err("no end_header line".into());
@@ -248,7 +263,13 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Vec<(DVec3, [u8; 3])>, String> {
     for (i, l) in lines.enumerate() {
         header_line(l, &mut format, &mut elements).map_err(|e| format!("line {}: {e}", i + 2))?;
     }
-    finish_parse(bytes, header, body, body_start + 1, format, &elements)
+    Ok(Header {
+        header,
+        body,
+        body_start: body_start + 1,
+        format,
+        elements,
+    })
 }
 
 /// Reads one header line after the first into `format` and `elements`.
@@ -271,11 +292,13 @@ fn header_line(
                     .map_err(|_| format!("element {name}: count '{n}' is not a number"))?,
                 properties: Vec::new(),
             }),
-            ["property", "list", c, t, _] => {
+            ["property", "list", c, t, name] => {
                 let e = elements.last_mut().ok_or("property before any element")?;
-                Scalar::parse(c)?;
-                Scalar::parse(t)?;
-                e.properties.push(Property::List);
+                e.properties.push(Property::List(
+                    name.to_string(),
+                    Scalar::parse(c)?,
+                    Scalar::parse(t)?,
+                ));
             }
             ["property", t, name] => {
                 let e = elements.last_mut().ok_or("property before any element")?;
@@ -312,13 +335,13 @@ fn finish_parse(
                 Property::Scalar(_, s) => {
                     skip_bytes = skip_bytes.saturating_add(e.count.saturating_mul(s.size()))
                 }
-                Property::List if format != Format::Ascii => {
+                Property::List(..) if format != Format::Ascii => {
                     return Err(format!(
                         "element {} with a list property comes before the vertices",
                         e.name
                     ))
                 }
-                Property::List => {}
+                Property::List(..) => {}
             }
         }
     }
@@ -331,7 +354,7 @@ fn finish_parse(
                 names.push(n.as_str());
                 types.push(*t);
             }
-            Property::List => return Err("list property in the vertex element".into()),
+            Property::List(..) => return Err("list property in the vertex element".into()),
         }
     }
     let find = |n: &str| names.iter().position(|&m| m == n);
@@ -419,6 +442,184 @@ fn finish_parse(
         }
     }
     Ok(out)
+}
+
+/// A triangle mesh read from PLY: coloured vertices and triangles.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PlyMesh {
+    /// Vertex positions (metres, the file's frame) and RGB colours ([`DEFAULT_COLOUR`] when
+    /// the file has none).
+    pub vertices: Vec<(DVec3, [u8; 3])>,
+    /// Triangles as indices into `vertices`; faces of more than three corners are split into
+    /// a fan of triangles, faces of fewer are left out.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// Reads a PLY triangle mesh: the vertices as [`read_ply`] reads them and the `face`
+/// element's `vertex_indices` (or `vertex_index`) lists. A file without faces gives a mesh
+/// without triangles. Errors name the file and what is wrong (e.g. an index past the
+/// vertices, or a file that ends inside the faces).
+pub fn read_mesh_ply(path: &Path) -> Result<PlyMesh, IoError> {
+    let bytes = std::fs::read(path).map_err(|e| IoError::file(path, e))?;
+    parse_mesh_ply(&bytes).map_err(|message| IoError::Malformed {
+        path: path.to_path_buf(),
+        message,
+    })
+}
+
+/// Parses the bytes of a PLY mesh (see [`read_mesh_ply`]); the error says what is wrong.
+pub fn parse_mesh_ply(bytes: &[u8]) -> Result<PlyMesh, String> {
+    let vertices = parse_ply(bytes)?;
+    let h = parse_header(bytes)?;
+    let format = h.format.ok_or("no format line")?;
+    let n = vertices.len();
+    let Some(fi) = h.elements.iter().position(|e| e.name == "face") else {
+        return Ok(PlyMesh {
+            vertices,
+            triangles: Vec::new(),
+        });
+    };
+    let Some(vi) = h.elements.iter().position(|e| e.name == "vertex") else {
+        return Err("no vertex element".into());
+    };
+    if fi < vi {
+        return Err("the face element comes before the vertices".into());
+    }
+    let face = &h.elements[fi];
+    let target = face
+        .properties
+        .iter()
+        .position(|p| {
+            matches!(p, Property::List(name, ..) if name == "vertex_indices" || name == "vertex_index")
+        })
+        .ok_or("the face element has no vertex_indices list")?;
+    // Faces claim at least one byte each: bound the reservation by the body.
+    let mut triangles = Vec::with_capacity(face.count.min(h.body.len()));
+    // `at` says where the face is (a line or byte), for errors.
+    let emit = |at: &str, f: usize, corners: &[f64], triangles: &mut Vec<[u32; 3]>| {
+        let mut idx = Vec::with_capacity(corners.len());
+        for &c in corners {
+            if !(c >= 0.0 && c < n as f64 && c.fract() == 0.0) {
+                return Err(format!(
+                    "{at}: face {f}: vertex index {c} is not one of the {n} vertices"
+                ));
+            }
+            idx.push(c as u32);
+        }
+        for k in 2..idx.len() {
+            triangles.push([idx[0], idx[k - 1], idx[k]]);
+        }
+        Ok(())
+    };
+    let mut corners: Vec<f64> = Vec::new();
+    if format == Format::Ascii {
+        let text = std::str::from_utf8(h.body).map_err(|_| "ASCII body is not UTF-8")?;
+        let before: usize = h.elements[..fi].iter().map(|e| e.count).sum();
+        // Body line `i` is file line `first_line + i` (the header ends with `end_header`).
+        let first_line = h.header.lines().count() + 2;
+        let mut rows = text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
+            .skip(before);
+        for f in 0..face.count {
+            let (i, line) = rows.next().ok_or_else(|| {
+                format!(
+                    "line {}: file ends early: {f} of {} faces",
+                    first_line + text.lines().count(),
+                    face.count
+                )
+            })?;
+            let at = format!("line {}", first_line + i);
+            let mut values = line.split_whitespace().map(str::parse::<f64>);
+            let mut next = || -> Result<f64, String> {
+                values
+                    .next()
+                    .ok_or_else(|| format!("{at}: face {f}: too few values"))?
+                    .map_err(|e| format!("{at}: face {f}: {e}"))
+            };
+            for (k, p) in face.properties.iter().enumerate() {
+                match p {
+                    Property::Scalar(..) => {
+                        next()?;
+                    }
+                    Property::List(..) => {
+                        let count = next()?;
+                        if !(0.0..=1e6).contains(&count) {
+                            return Err(format!("{at}: face {f}: list of {count} items"));
+                        }
+                        corners.clear();
+                        for _ in 0..count as usize {
+                            corners.push(next()?);
+                        }
+                        if k == target {
+                            emit(&at, f, &corners, &mut triangles)?;
+                        }
+                    }
+                }
+            }
+        }
+    } else {
+        let big = format == Format::Big;
+        // Everything before the faces has fixed-size records (lists there are refused).
+        let mut pos = 0usize;
+        for e in &h.elements[..fi] {
+            for p in &e.properties {
+                match p {
+                    Property::Scalar(_, s) => {
+                        pos = pos.saturating_add(e.count.saturating_mul(s.size()))
+                    }
+                    Property::List(..) => {
+                        return Err(format!(
+                            "element {} with a list property comes before the faces",
+                            e.name
+                        ))
+                    }
+                }
+            }
+        }
+        let body = h.body;
+        let ends_early = |f: usize| {
+            format!(
+                "file ends early at byte {}: {f} of {} faces",
+                bytes.len(),
+                face.count
+            )
+        };
+        let read = |s: Scalar, pos: &mut usize, f: usize| -> Result<f64, String> {
+            let end = pos.checked_add(s.size()).ok_or_else(|| ends_early(f))?;
+            let b = body.get(*pos..end).ok_or_else(|| ends_early(f))?;
+            *pos = end;
+            Ok(s.read(b, big))
+        };
+        for f in 0..face.count {
+            let at = format!("byte {}", h.body_start.saturating_add(pos));
+            for (k, p) in face.properties.iter().enumerate() {
+                match p {
+                    Property::Scalar(_, s) => {
+                        read(*s, &mut pos, f)?;
+                    }
+                    Property::List(_, c, t) => {
+                        let count = read(*c, &mut pos, f)?;
+                        if !(0.0..=1e6).contains(&count) {
+                            return Err(format!("{at}: face {f}: list of {count} items"));
+                        }
+                        corners.clear();
+                        for _ in 0..count as usize {
+                            corners.push(read(*t, &mut pos, f)?);
+                        }
+                        if k == target {
+                            emit(&at, f, &corners, &mut triangles)?;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(PlyMesh {
+        vertices,
+        triangles,
+    })
 }
 
 /// What is wrong with a vertex position that is not finite.
@@ -521,5 +722,55 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let e = read_ply(&dir.path().join("none.ply")).unwrap_err();
         assert!(e.to_string().contains("none.ply"), "{e}");
+    }
+
+    #[test]
+    fn mesh_round_trip_and_other_layouts() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("mesh.ply");
+        let vertices = [
+            [0.0f32, 0.0, 1.0],
+            [1.0, 0.0, 1.0],
+            [0.0, 1.0, 1.0],
+            [1.0, 1.0, 1.0],
+        ];
+        let normals = [[0.0f32, 0.0, -1.0]; 4];
+        let colours = [[255u8, 0, 0], [0, 255, 0], [0, 0, 255], [9, 9, 9]];
+        let triangles = [[0u32, 1, 2], [2, 1, 3]];
+        write_mesh_ply(&p, &vertices, &normals, &colours, &triangles).unwrap();
+        let m = read_mesh_ply(&p).unwrap();
+        assert_eq!(m.triangles, triangles);
+        assert_eq!(m.vertices.len(), 4);
+        assert_eq!(m.vertices[3], (DVec3::new(1.0, 1.0, 1.0), [9, 9, 9]));
+        // ASCII: a quad becomes a fan of two triangles; an extra face property is skipped.
+        let quad = parse_mesh_ply(b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty uchar flags\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n7 4 0 1 2 3\n").unwrap();
+        assert_eq!(quad.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        // A point cloud is a mesh without triangles.
+        let cloud = dir.path().join("cloud.ply");
+        write_ply(&cloud, &[(DVec3::ONE, [1, 2, 3])]).unwrap();
+        assert!(read_mesh_ply(&cloud).unwrap().triangles.is_empty());
+    }
+
+    #[test]
+    fn mesh_errors_say_what_is_wrong() {
+        let head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n";
+        let e = parse_mesh_ply(format!("{head}3 0 1 2\n3 0 1 3\n").as_bytes()).unwrap_err();
+        assert!(e.contains("face 1: vertex index 3"), "{e}");
+        let e = parse_mesh_ply(format!("{head}3 0 1 2\n").as_bytes()).unwrap_err();
+        assert!(e.contains("1 of 2 faces"), "{e}");
+        // Binary, cut inside the second face.
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let v = [[0.0f32; 3]; 3];
+        write_mesh_ply(&p, &v, &v, &[[0u8; 3]; 3], &[[0, 1, 2], [2, 1, 0]]).unwrap();
+        let mut b = std::fs::read(&p).unwrap();
+        b.truncate(b.len() - 5);
+        let e = parse_mesh_ply(&b).unwrap_err();
+        assert!(
+            e.contains("ends early") && e.contains("1 of 2 faces"),
+            "{e}"
+        );
+        std::fs::write(&p, &b).unwrap();
+        assert!(read_mesh_ply(&p).unwrap_err().to_string().contains("m.ply"));
     }
 }

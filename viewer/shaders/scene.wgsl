@@ -1,5 +1,6 @@
-// 3D view of the viewer: coloured points and line segments drawn into an offscreen colour +
-// depth target, then copied (blit) into egui's render pass.
+// 3D view of the viewer: line segments and mesh triangles drawn into an offscreen colour +
+// depth target (after the splatted points, see splat.wgsl), then copied (blit) into egui's
+// render pass.
 
 struct Camera {
     clip_from_world: mat4x4<f32>,
@@ -23,6 +24,35 @@ fn vs_scene(@location(0) world: vec3<f32>, @location(1) colour: vec4<f32>) -> Sc
 @fragment
 fn fs_scene(in: SceneOut) -> @location(0) vec4<f32> {
     return in.colour;
+}
+
+struct MeshOut {
+    @builtin(position) position: vec4<f32>,
+    @location(0) colour: vec4<f32>,
+    @location(1) world: vec3<f32>,
+};
+
+@vertex
+fn vs_mesh(@location(0) world: vec3<f32>, @location(1) colour: vec4<f32>) -> MeshOut {
+    var out: MeshOut;
+    out.position = camera.clip_from_world * vec4<f32>(world, 1.0);
+    out.colour = colour;
+    out.world = world;
+    return out;
+}
+
+// Flat shading from the triangle's normal (the screen-space derivatives of the world
+// position), lit from both sides by a light from above (world -y is up) and a little from the
+// side, so that walls and floors of the same colour differ.
+@fragment
+fn fs_mesh(in: MeshOut) -> @location(0) vec4<f32> {
+    let c = cross(dpdx(in.world), dpdy(in.world));
+    let len = length(c);
+    // Degenerate (sub-pixel) triangles have no normal: ambient only.
+    let n = select(vec3<f32>(0.0), c / len, len > 0.0);
+    let light = normalize(vec3<f32>(0.4, -1.0, -0.3));
+    let shade = 0.35 + 0.65 * abs(dot(n, light));
+    return vec4<f32>(in.colour.rgb * shade, 1.0);
 }
 
 @group(0) @binding(0) var scene_colour: texture_2d<f32>;

@@ -16,7 +16,7 @@ use crate::images;
 use crate::output::{known, load_map, load_output};
 use crate::scene3d::{OrbitCamera, SceneCallback};
 use crate::source::{SourceSpec, SynthOptions};
-use crate::state::{colours, ViewerState};
+use crate::state::{colours, PointColours, ViewerState};
 use crate::worker::{Command, RunConfig, Worker};
 use rgbid::io::run_folder::FrameRow;
 
@@ -45,6 +45,15 @@ pub const SPEEDS: [(f64, &str); 5] = [
     (2.0, "2x"),
     (0.0, "max"),
 ];
+
+/// What the 3D view draws of the map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Surface {
+    /// The keyframe points (live) or the model's points (finished).
+    Points,
+    /// The TSDF mesh, when the run has one (points otherwise).
+    Mesh,
+}
 
 /// The viewer application.
 pub struct ViewerApp {
@@ -77,6 +86,8 @@ pub struct ViewerApp {
     /// Most points drawn per frame in the 3D view (`None` = all). Points are stored in an
     /// interleaved order, so a budget draws a uniform subsample.
     pub point_budget: Option<u32>,
+    /// Points or mesh in the 3D view; `None` = the mesh when there is one, else the points.
+    pub surface: Option<Surface>,
     framed: bool,
     textures: Textures,
     frame_ms: VecDeque<f64>,
@@ -141,6 +152,7 @@ impl ViewerApp {
             has_3d: false,
             show_timing: true,
             point_budget: None,
+            surface: None,
             framed: false,
             textures: Textures::default(),
             frame_ms: VecDeque::new(),
@@ -157,8 +169,7 @@ impl ViewerApp {
     /// (Re)starts the SLAM run with the current settings.
     pub fn restart(&mut self) {
         self.worker = None; // joins the old thread
-        self.state = ViewerState::default();
-        self.framed = false;
+        self.replace_state(ViewerState::default());
         let Some(mut cfg) = self.run_config.clone() else {
             return;
         };
@@ -179,14 +190,12 @@ impl ViewerApp {
             let folder = load_output(path)?;
             self.worker = None;
             self.run_config = None;
-            self.state = ViewerState::from_output(folder);
-            self.framed = false;
+            self.replace_state(ViewerState::from_output(folder));
         } else if path.is_file() {
             let run = load_map(path, rgbid::slam::ModelParams::default().voxel)?;
             self.worker = None;
             self.run_config = None;
-            self.state = ViewerState::from_run(run);
-            self.framed = false;
+            self.replace_state(ViewerState::from_run(run));
         } else if path.is_dir() {
             let backend = self
                 .run_config
@@ -206,6 +215,18 @@ impl ViewerApp {
             anyhow::bail!("{} does not exist", path.display());
         }
         Ok(())
+    }
+
+    /// Shows `state` instead of the current one, keeping the colouring chosen.
+    fn replace_state(&mut self, mut state: ViewerState) {
+        state.set_point_colours(self.state.point_colours());
+        self.state = state;
+        self.framed = false;
+    }
+
+    /// Whether the 3D view draws the mesh (chosen, or by default when the run has one).
+    pub fn shows_mesh(&self) -> bool {
+        self.state.geometry.mesh.is_some() && self.surface != Some(Surface::Points)
     }
 
     /// Applies pending messages of the SLAM thread (at most a bounded number per call).
@@ -428,7 +449,8 @@ impl ViewerApp {
         let frames = s
             .start
             .as_ref()
-            .map_or(String::new(), |i| format!("/{}", i.frames));
+            .and_then(|i| i.frames)
+            .map_or(String::new(), |n| format!("/{n}"));
         let frame = s
             .last_frame
             .map_or("-".to_string(), |f| format!("{}{frames}", f + 1));
@@ -446,11 +468,39 @@ impl ViewerApp {
             .median_frame_ms()
             .filter(|_| self.show_timing)
             .map_or(String::new(), |m| format!(" | UI {m:.1} ms"));
+        let live = s.live.map_or(String::new(), |c| {
+            let recorded = match c.recorded {
+                Some(n) => format!(", {n} recorded"),
+                None if c.finished => String::new(),
+                None if self.records() => ", recording".to_string(),
+                None => String::new(),
+            };
+            format!(
+                " | live: {} received, {} dropped{recorded}{}",
+                c.received,
+                c.dropped,
+                if c.finished { " (camera stopped)" } else { "" }
+            )
+        });
+        let mesh = s.geometry.mesh.as_ref().map_or(String::new(), |m| {
+            format!(" | mesh {} triangles", m.triangles.len())
+        });
         format!(
-            "frame {frame} | {status} | {} keyframes | {} loops | {} points{backend}{ui_ms}",
+            "frame {frame} | {status} | {} keyframes | {} loops | {} points{mesh}{live}{backend}{ui_ms}",
             s.keyframe_count,
             s.loop_count,
             s.point_count()
+        )
+    }
+
+    /// Whether the current run records its live input.
+    fn records(&self) -> bool {
+        matches!(
+            &self.run_config,
+            Some(RunConfig {
+                source: crate::worker::RunSource::Live { options, .. },
+                ..
+            }) if options.record.is_some()
         )
     }
 
@@ -779,12 +829,36 @@ impl ViewerApp {
                         .speed(1000.0),
                 );
             }
+            let has_colour = self.state.has_colour();
+            let mut c = self.state.point_colours();
+            ui.add_enabled_ui(has_colour, |ui| {
+                ui.selectable_value(&mut c, PointColours::Colour, "colour")
+                    .on_disabled_hover_text("the run has no colour images");
+            });
+            ui.selectable_value(&mut c, PointColours::Intensity, "intensity");
+            self.state.set_point_colours(c);
+            if self.state.geometry.mesh.is_some() {
+                ui.separator();
+                let mut surface = if self.shows_mesh() {
+                    Surface::Mesh
+                } else {
+                    Surface::Points
+                };
+                let before = surface;
+                ui.selectable_value(&mut surface, Surface::Points, "points");
+                ui.selectable_value(&mut surface, Surface::Mesh, "mesh");
+                if surface != before {
+                    self.surface = Some(surface);
+                }
+            }
             ui.label("drag: orbit | right/middle drag: pan | scroll: zoom");
             ui.colored_label(rgb(colours::ESTIMATE), "estimate");
             ui.colored_label(rgb(colours::GROUND_TRUTH), "ground truth");
             ui.colored_label(rgb(colours::KEYFRAME), "keyframes");
             ui.colored_label(rgb(colours::LOOP), "loops");
         });
+        // A colouring chosen above shows in this frame.
+        self.state.rebuild_geometry();
         let (rect, response) = ui.allocate_exact_size(ui.available_size(), Sense::click_and_drag());
         if response.dragged_by(PointerButton::Primary) {
             let d = response.drag_delta();
@@ -835,6 +909,8 @@ impl ViewerApp {
             size_px,
             background: [0.07, 0.07, 0.09],
             point_budget: self.point_budget.unwrap_or(u32::MAX),
+            show_points: !self.shows_mesh(),
+            show_mesh: self.shows_mesh(),
         };
         ui.painter()
             .add(egui_wgpu::Callback::new_paint_callback(rect, cb));
@@ -857,7 +933,7 @@ impl ViewerApp {
     pub fn export_ply(&self) -> Result<PathBuf> {
         std::fs::create_dir_all(&self.export_dir)
             .with_context(|| format!("creating {}", self.export_dir.display()))?;
-        let pts: Vec<(glam::DVec3, u8)> = match &self.state.finished {
+        let pts: Vec<(glam::DVec3, [u8; 3])> = match &self.state.finished {
             Some(r) => r.model.clone(),
             None => self
                 .state
@@ -867,7 +943,7 @@ impl ViewerApp {
                 .collect(),
         };
         let p = self.export_dir.join("model.ply");
-        rgbid::io::ply::write_ply_grey(&p, &pts)?;
+        rgbid::io::ply::write_ply(&p, &pts)?;
         Ok(p)
     }
 

@@ -5,6 +5,8 @@
 //! rgbid-viewer --synth office:loop      # generated sequence
 //! rgbid-viewer --output slam-out        # a finished `rgbid slam` output folder
 //! rgbid-viewer --map office.map         # a saved map
+//! rgbid-viewer --live openni2 --record rec   # live camera (feature `openni2`), recorded
+//! rgbid-viewer --live replay:SEQ@30      # a folder played at camera rate
 //! rgbid-viewer --bench-points 1000000 --headless   # offscreen 3D frame time, no window
 //! ```
 
@@ -15,6 +17,7 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use egui_wgpu::wgpu;
 use rgbid::gpu::BackendChoice;
+use rgbid::live::LiveSpec;
 use rgbid_viewer::output::{load_map, load_output};
 use rgbid_viewer::scene3d::{self, OrbitCamera, SceneRenderer};
 use rgbid_viewer::source::{SourceSpec, SynthOptions};
@@ -32,7 +35,8 @@ struct Args {
     sequence: Option<PathBuf>,
     #[command(flatten)]
     source: SynthOptions,
-    /// Camera preset or calibration file for a TUM folder.
+    /// Camera preset or calibration file for a TUM folder or live input (default: the
+    /// folder's own camera; for OpenNI2 the `default` preset, 525 px at 640 x 480).
     #[arg(long)]
     camera: Option<String>,
     /// Only the first N frames of a TUM folder.
@@ -44,6 +48,21 @@ struct Args {
     /// Show a saved map.
     #[arg(long)]
     map: Option<PathBuf>,
+    /// Live input instead of a folder: `openni2` (the first OpenNI2 device; needs the
+    /// viewer built with `--features openni2`), `openni2:URI` (a device URI or an .oni file)
+    /// or `replay:FOLDER[@FPS]` (a dataset folder played at FPS frames per second of wall
+    /// time, default 30, as a simulated camera). Frames that arrive while SLAM is busy or
+    /// paused are dropped and counted in the status line.
+    #[arg(long, value_name = "SPEC", conflicts_with_all = ["output", "map", "sequence"])]
+    live: Option<String>,
+    /// With --live: record every frame the camera delivers (also the dropped ones) as a TUM
+    /// RGB-D folder (depth 5000 per metre) here.
+    #[arg(long, value_name = "DIR", requires = "live")]
+    record: Option<PathBuf>,
+    /// At the end of a run, build a TSDF mesh of the keyframes with this voxel size (metres,
+    /// > 0; as `rgbid slam --mesh --voxel`) and draw it. Default: no mesh.
+    #[arg(long, value_name = "METRES", value_parser = positive_metres)]
+    mesh_voxel: Option<f64>,
     /// Compute backend of the SLAM run.
     #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
     backend: BackendChoice,
@@ -65,6 +84,14 @@ struct Args {
     bench_budget: Option<u32>,
 }
 
+/// A length in metres that must be positive and finite.
+fn positive_metres(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("`{s}` is not a positive length in metres")),
+    }
+}
+
 fn main() -> Result<()> {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
     let a = Args::parse();
@@ -81,6 +108,9 @@ fn main() -> Result<()> {
         state = ViewerState::from_output(load_output(dir)?);
     } else if let Some(map) = &a.map {
         state = ViewerState::from_run(load_map(map, rgbid::slam::ModelParams::default().voxel)?);
+    } else if let Some(live) = &a.live {
+        let spec: LiveSpec = live.parse()?;
+        run = Some(RunConfig::live(spec, a.camera.clone(), a.record.clone()));
     } else if let Some(spec) = a.source.spec(0, None)? {
         run = Some(RunConfig::new(spec));
     } else if let Some(seq) = &a.sequence {
@@ -98,6 +128,7 @@ fn main() -> Result<()> {
     if let Some(r) = &mut run {
         r.backend = a.backend;
         r.autoplay = !a.paused;
+        r.mesh_voxel = a.mesh_voxel;
     }
     let bench_points = a.bench_points;
     let options = eframe::NativeOptions {

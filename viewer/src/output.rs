@@ -1,11 +1,15 @@
 //! Showing what `rgbid slam` wrote (a run folder, read by the library's
-//! [`rgbid::io::run_folder`]) and saved maps.
+//! [`rgbid::io::run_folder`], with the colours of its `model.ply` and its `mesh.ply`) and
+//! saved maps.
 
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use rgbid::io::run_folder::{FrameRow, RunFolder};
-use rgbid::slam::{build_model, voxel_filter, Map, ModelParams};
+use std::sync::Arc;
+
+use rgbid::io::ply::{read_mesh_ply, read_ply};
+use rgbid::io::run_folder::{files, FrameRow, RunFolder};
+use rgbid::slam::{build_coloured_model, Map, ModelParams};
 use rgbid::trajectory::TimedPose;
 
 use crate::worker::FinishedRun;
@@ -30,11 +34,35 @@ pub struct OutputFolder {
     pub stages: Vec<FrameRow>,
 }
 
+/// File name of the mesh in a run folder (`rgbid slam --mesh`).
+pub const MESH_FILE: &str = "mesh.ply";
+
+/// Whether a model has colour from colour images: some point's channels differ (a model of a
+/// run without colour is grey, red = green = blue).
+pub fn is_coloured(model: &[(glam::DVec3, [u8; 3])]) -> bool {
+    model.iter().any(|(_, c)| c[0] != c[1] || c[1] != c[2])
+}
+
 /// Loads an output folder of `rgbid slam` (see [`RunFolder::read`]: a trajectory is required,
-/// the rest optional; an interrupted run shows its front-end trajectory).
+/// the rest optional; an interrupted run shows its front-end trajectory), with the RGB
+/// colours of `model.ply` and the mesh `mesh.ply` when there is one.
 pub fn load_output(dir: &Path) -> Result<OutputFolder> {
     let folder = RunFolder::read(dir)
         .with_context(|| format!("{} is not a readable rgbid slam run folder", dir.display()))?;
+    // The library's reader keeps the model grey; the viewer shows its colours.
+    let model_path = dir.join(files::MODEL);
+    let model = if model_path.is_file() {
+        read_ply(&model_path)?
+    } else {
+        Vec::new()
+    };
+    let mesh_path = dir.join(MESH_FILE);
+    let mesh = if mesh_path.is_file() {
+        Some(Arc::new(read_mesh_ply(&mesh_path)?))
+    } else {
+        None
+    };
+    let coloured = is_coloured(&model) || mesh.as_ref().is_some_and(|m| is_coloured(&m.vertices));
     let n = folder.keyframes.len();
     let loops = folder
         .loops
@@ -49,7 +77,9 @@ pub fn load_output(dir: &Path) -> Result<OutputFolder> {
             trajectory: folder.trajectory,
             keyframes: folder.keyframes,
             loops,
-            model: folder.model,
+            model,
+            coloured,
+            mesh,
             final_optimise_ms: 0.0,
         },
     })
@@ -64,7 +94,16 @@ pub fn load_map(path: &Path, voxel: f64) -> Result<FinishedRun> {
         .iter()
         .map(|k| k.world_from_keyframe)
         .collect();
-    let model = build_model(&map.keyframes, &poses, &map.camera, &ModelParams::default());
+    let model = build_coloured_model(
+        &map.keyframes,
+        &poses,
+        &map.camera,
+        &ModelParams {
+            voxel,
+            ..ModelParams::default()
+        },
+    );
+    let coloured = map.keyframes.iter().any(|k| k.colour.is_some());
     let keyframes: Vec<TimedPose> = map
         .keyframes
         .iter()
@@ -83,7 +122,9 @@ pub fn load_map(path: &Path, voxel: f64) -> Result<FinishedRun> {
         trajectory: keyframes.clone(),
         keyframes,
         loops,
-        model: voxel_filter(&model, voxel),
+        model,
+        coloured,
+        mesh: None,
         final_optimise_ms: 0.0,
     })
 }

@@ -1,10 +1,11 @@
-//! The 3D view: keyframe point clouds, trajectories, keyframe frusta and loop edges drawn with
-//! wgpu inside egui (an `egui_wgpu` paint callback). The geometry lives in two GPU buffers
-//! (points, and segments as a line list) that are uploaded only when the geometry's version
-//! changes; every repaint writes the camera uniform, splats the points with two compute
-//! passes (`shaders/splat.wgsl`: one pixel per point, nearest wins; software rasterisers such
-//! as lavapipe draw point primitives about ten times slower), resolves them into an offscreen
-//! colour + depth target, draws the lines there with depth test, and copies the target into
+//! The 3D view: keyframe point clouds or a triangle mesh, trajectories, keyframe frusta and
+//! loop edges drawn with wgpu inside egui (an `egui_wgpu` paint callback). The geometry lives
+//! in GPU buffers (points, segments as a line list, mesh vertices and triangle indices) that
+//! are uploaded only when the geometry's versions change; every repaint writes the camera
+//! uniform, splats the points with two compute passes (`shaders/splat.wgsl`: one pixel per
+//! point, nearest wins; software rasterisers such as lavapipe draw point primitives about ten
+//! times slower), resolves them into an offscreen colour + depth target, draws the mesh
+//! (flat-shaded triangles) and the lines there with depth test, and copies the target into
 //! egui's render pass.
 
 use std::sync::Arc;
@@ -49,9 +50,18 @@ impl Vertex {
     }
 }
 
-/// Everything the 3D view draws. Points and lines have their own versions: the trajectory
-/// changes every frame, the point cloud only with new keyframes, and only what changed is
-/// uploaded again.
+/// A triangle mesh of the 3D view.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MeshGeometry {
+    /// Vertices: world position (metres) and colour.
+    pub vertices: Vec<Vertex>,
+    /// Triangles as indices into `vertices`.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// Everything the 3D view draws. Points, lines and the mesh have their own versions: the
+/// trajectory changes every frame, the point cloud only with new keyframes, and only what
+/// changed is uploaded again.
 #[derive(Clone, Debug, Default)]
 pub struct Geometry {
     /// Increases whenever `points` changes.
@@ -63,6 +73,10 @@ pub struct Geometry {
     pub lines_version: u64,
     /// Line segments as vertex pairs.
     pub lines: Vec<Vertex>,
+    /// Increases whenever `mesh` changes.
+    pub mesh_version: u64,
+    /// The surface mesh, when the run has one.
+    pub mesh: Option<Arc<MeshGeometry>>,
 }
 
 /// Reorders `v` so that every prefix is spread over the whole set: element `k` is
@@ -123,24 +137,31 @@ impl Geometry {
         }
     }
 
+    fn mesh_vertices(&self) -> &[Vertex] {
+        self.mesh.as_ref().map_or(&[], |m| &m.vertices)
+    }
+
     /// Axis-aligned bounds of all vertices, `None` when empty.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         let mut it = self
             .points
             .iter()
             .chain(&self.lines)
+            .chain(self.mesh_vertices())
             .map(|v| Vec3::from(v.position));
         let first = it.next()?;
         Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
     }
 
     /// Bounds that ignore stray points: the 1st-99th percentile box of (up to 20000 of) the
-    /// points, joined with the lines' bounds.
+    /// points and mesh vertices, joined with the lines' bounds.
     pub fn robust_bounds(&self) -> Option<(Vec3, Vec3)> {
-        let step = (self.points.len() / 20_000).max(1);
+        let n = self.points.len() + self.mesh_vertices().len();
+        let step = (n / 20_000).max(1);
         let sample: Vec<Vec3> = self
             .points
             .iter()
+            .chain(self.mesh_vertices())
             .step_by(step)
             .map(|v| Vec3::from(v.position))
             .collect();
@@ -275,6 +296,7 @@ pub struct SceneRenderer {
     resolve_layout: wgpu::BindGroupLayout,
     params_buffer: wgpu::Buffer,
     line_pipeline: wgpu::RenderPipeline,
+    mesh_pipeline: wgpu::RenderPipeline,
     blit_pipeline: wgpu::RenderPipeline,
     camera_buffer: wgpu::Buffer,
     camera_group: wgpu::BindGroup,
@@ -283,9 +305,14 @@ pub struct SceneRenderer {
     target: Option<Offscreen>,
     points: Option<(wgpu::Buffer, u32)>,
     lines: Option<(wgpu::Buffer, u32)>,
+    /// Mesh vertex buffer, index buffer and index count.
+    mesh: Option<(wgpu::Buffer, wgpu::Buffer, u32)>,
     points_version: Option<u64>,
     lines_version: Option<u64>,
+    mesh_version: Option<u64>,
     point_budget: u32,
+    show_points: bool,
+    show_mesh: bool,
 }
 
 struct Offscreen {
@@ -397,6 +424,39 @@ impl SceneRenderer {
             })
         };
         let line_pipeline = scene_pipeline(wgpu::PrimitiveTopology::LineList, "scene lines");
+        // Triangles from both sides (marching-cubes meshes are open surfaces), shaded in the
+        // fragment shader from the screen-space derivatives of the world position.
+        let mesh_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("scene mesh"),
+            layout: Some(&scene_pl),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_mesh"),
+                compilation_options: Default::default(),
+                buffers: &[Some(vertex_layout.clone())],
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleList,
+                cull_mode: None,
+                ..Default::default()
+            },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs_mesh"),
+                compilation_options: Default::default(),
+                targets: &[Some(OFFSCREEN_FORMAT.into())],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
         let blit_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("scene blit"),
             layout: Some(&blit_pl),
@@ -554,6 +614,7 @@ impl SceneRenderer {
             resolve_layout,
             params_buffer,
             line_pipeline,
+            mesh_pipeline,
             blit_pipeline,
             camera_buffer,
             camera_group,
@@ -562,9 +623,13 @@ impl SceneRenderer {
             target: None,
             points: None,
             lines: None,
+            mesh: None,
             points_version: None,
             lines_version: None,
+            mesh_version: None,
             point_budget: u32::MAX,
+            show_points: true,
+            show_mesh: true,
         }
     }
 
@@ -587,6 +652,26 @@ impl SceneRenderer {
             self.lines = make(&geometry.lines, "scene lines");
             self.lines_version = Some(geometry.lines_version);
         }
+        if self.mesh_version != Some(geometry.mesh_version) {
+            self.mesh = geometry
+                .mesh
+                .as_ref()
+                .filter(|m| !m.vertices.is_empty() && !m.triangles.is_empty())
+                .map(|m| {
+                    let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some("scene mesh vertices"),
+                        contents: bytemuck::cast_slice(&m.vertices),
+                        usage: wgpu::BufferUsages::VERTEX,
+                    });
+                    let indices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some("scene mesh indices"),
+                        contents: bytemuck::cast_slice(&m.triangles),
+                        usage: wgpu::BufferUsages::INDEX,
+                    });
+                    (vertices, indices, 3 * m.triangles.len() as u32)
+                });
+            self.mesh_version = Some(geometry.mesh_version);
+        }
         if self.points_version == Some(geometry.points_version) {
             return false;
         }
@@ -598,6 +683,12 @@ impl SceneRenderer {
     /// Most points drawn per frame (a prefix of the interleaved buffer); `u32::MAX` = all.
     pub fn set_point_budget(&mut self, budget: u32) {
         self.point_budget = budget.max(1);
+    }
+
+    /// Whether the points and the mesh are drawn (both by default).
+    pub fn set_visible(&mut self, points: bool, mesh: bool) {
+        self.show_points = points;
+        self.show_mesh = mesh;
     }
 
     fn ensure_target(&mut self, device: &wgpu::Device, size: [u32; 2]) {
@@ -713,6 +804,7 @@ impl SceneRenderer {
         let count = self
             .points
             .as_ref()
+            .filter(|_| self.show_points)
             .map_or(0, |(_, n)| (*n).min(self.point_budget));
         if let (Some((points, _)), true) = (&self.points, count > 0) {
             let groups = count.div_ceil(SPLAT_GROUP);
@@ -791,6 +883,13 @@ impl SceneRenderer {
             pass.set_bind_group(0, &target.resolve_group, &[]);
             pass.draw(0..3, 0..1);
         }
+        if let (Some((vertices, indices, n)), true) = (&self.mesh, self.show_mesh) {
+            pass.set_pipeline(&self.mesh_pipeline);
+            pass.set_bind_group(0, &self.camera_group, &[]);
+            pass.set_vertex_buffer(0, vertices.slice(..));
+            pass.set_index_buffer(indices.slice(..), wgpu::IndexFormat::Uint32);
+            pass.draw_indexed(0..*n, 0, 0..1);
+        }
         if let Some((buf, n)) = &self.lines {
             pass.set_pipeline(&self.line_pipeline);
             pass.set_bind_group(0, &self.camera_group, &[]);
@@ -811,6 +910,11 @@ impl SceneRenderer {
     /// The offscreen colour texture (for read-back in benchmarks and tests).
     pub fn colour_texture(&self) -> Option<&wgpu::Texture> {
         self.target.as_ref().map(|t| &t.colour)
+    }
+
+    /// Number of uploaded mesh triangle indices (3 per triangle).
+    pub fn mesh_indices(&self) -> u32 {
+        self.mesh.as_ref().map_or(0, |m| m.2)
     }
 
     /// Numbers of uploaded points and line vertices.
@@ -834,6 +938,10 @@ pub struct SceneCallback {
     pub background: [f32; 3],
     /// Most points drawn (`u32::MAX` = all).
     pub point_budget: u32,
+    /// Draw the points.
+    pub show_points: bool,
+    /// Draw the mesh (when the geometry has one).
+    pub show_mesh: bool,
 }
 
 impl egui_wgpu::CallbackTrait for SceneCallback {
@@ -848,6 +956,7 @@ impl egui_wgpu::CallbackTrait for SceneCallback {
         if let Some(r) = resources.get_mut::<SceneRenderer>() {
             r.upload(device, &self.geometry);
             r.set_point_budget(self.point_budget);
+            r.set_visible(self.show_points, self.show_mesh);
             r.render(
                 device,
                 queue,

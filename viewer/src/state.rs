@@ -12,10 +12,11 @@ use rgbid::slam::FrameStatus;
 use rgbid::trajectory::TimedPose;
 
 use crate::output::OutputFolder;
-use crate::scene3d::{Geometry, Vertex};
+use crate::scene3d::{Geometry, MeshGeometry, Vertex};
+pub use crate::worker::Cloud;
 use crate::worker::{
-    FinishedRun, FrameUpdate, KeyframeDescription, KeyframeUpdate, KeypointMark, LoopUpdate,
-    StartInfo, Update,
+    FinishedRun, FrameUpdate, KeyframeDescription, KeyframeUpdate, KeypointMark, LiveCounts,
+    LoopUpdate, StartInfo, Update,
 };
 
 /// Colours of the 3D view (RGBA8).
@@ -32,8 +33,22 @@ pub mod colours {
     pub const LOOP: [u8; 4] = [255, 40, 200, 255];
 }
 
-/// World points with an intensity (0-255).
-pub type Cloud = Vec<(DVec3, u8)>;
+/// How the points and the mesh of the 3D view are coloured.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PointColours {
+    /// The colour images' RGB (grey when the run has no colour).
+    #[default]
+    Colour,
+    /// Grey: the intensity (BT.601 luma of the colour).
+    Intensity,
+}
+
+/// Grey value (0-255) of an RGB colour: its BT.601 luma, as the SLAM intensity.
+pub fn intensity_of(c: [u8; 3]) -> u8 {
+    rgbid::image::rgb_to_intensity(c[0], c[1], c[2])
+        .round()
+        .clamp(0.0, 255.0) as u8
+}
 
 /// Images of the latest frame and keyframe.
 #[derive(Clone, Debug, Default)]
@@ -92,6 +107,10 @@ pub struct ViewerState {
     pub live_trajectory: Vec<TimedPose>,
     /// Live keyframes: pose and world points.
     pub live_keyframes: Vec<(Se3, Arc<Cloud>)>,
+    /// Whether the live keyframes came with colour.
+    pub live_coloured: bool,
+    /// Counts of live input (live runs only).
+    pub live: Option<LiveCounts>,
     /// The result once the run finished (or a loaded folder/map).
     pub finished: Option<FinishedRun>,
     /// Last error of the run.
@@ -100,6 +119,7 @@ pub struct ViewerState {
     pub geometry: Arc<Geometry>,
     /// Extra points (benchmark clouds) drawn with the rest.
     pub extra_points: Arc<Vec<Vertex>>,
+    point_colours: PointColours,
     geometry_dirty: bool,
     points_dirty: bool,
     gt_alignment: Option<Se3>,
@@ -172,7 +192,29 @@ impl ViewerState {
                 self.geometry_dirty = true;
                 self.points_dirty = true;
             }
+            Update::Live(c) => self.live = Some(c),
             Update::Error(e) => self.error = Some(e),
+        }
+    }
+
+    /// Whether the points (and mesh) have colour from colour images.
+    pub fn has_colour(&self) -> bool {
+        match &self.finished {
+            Some(run) => run.coloured,
+            None => self.live_coloured,
+        }
+    }
+
+    /// How points and mesh are coloured.
+    pub fn point_colours(&self) -> PointColours {
+        self.point_colours
+    }
+
+    /// Colours points and mesh by `c` (rebuilt on the next [`Self::rebuild_geometry`]).
+    pub fn set_point_colours(&mut self, c: PointColours) {
+        if c != self.point_colours {
+            self.point_colours = c;
+            self.points_dirty = true;
         }
     }
 
@@ -212,6 +254,7 @@ impl ViewerState {
     }
 
     fn apply_keyframe(&mut self, k: KeyframeUpdate) {
+        self.live_coloured |= k.coloured;
         self.live_keyframes
             .push((k.world_from_keyframe, Arc::new(k.points)));
         self.geometry_dirty = true;
@@ -260,20 +303,28 @@ impl ViewerState {
             return false;
         }
         let mut g = (*self.geometry).clone();
-        let grey = |v: u8| [v, v, v, 255];
+        let intensity = self.point_colours == PointColours::Intensity;
+        let colour = |c: [u8; 3]| {
+            if intensity {
+                let v = intensity_of(c);
+                [v, v, v, 255]
+            } else {
+                [c[0], c[1], c[2], 255]
+            }
+        };
         if self.points_dirty {
             self.points_dirty = false;
             let mut pts: Vec<Vertex> = match &self.finished {
                 Some(run) => run
                     .model
                     .iter()
-                    .map(|(p, v)| Vertex::new(*p, grey(*v)))
+                    .map(|(p, c)| Vertex::new(*p, colour(*c)))
                     .collect(),
                 None => {
                     let n: usize = self.live_keyframes.iter().map(|k| k.1.len()).sum();
                     let mut pts = Vec::with_capacity(n + self.extra_points.len());
                     for (_, kp) in &self.live_keyframes {
-                        pts.extend(kp.iter().map(|(p, v)| Vertex::new(*p, grey(*v))));
+                        pts.extend(kp.iter().map(|(p, c)| Vertex::new(*p, colour(*c))));
                     }
                     pts
                 }
@@ -281,6 +332,18 @@ impl ViewerState {
             pts.extend_from_slice(&self.extra_points);
             g.points = Arc::new(crate::scene3d::interleave(pts));
             g.points_version += 1;
+            let mesh = self.finished.as_ref().and_then(|r| r.mesh.as_ref());
+            g.mesh = mesh.map(|m| {
+                Arc::new(MeshGeometry {
+                    vertices: m
+                        .vertices
+                        .iter()
+                        .map(|(p, c)| Vertex::new(*p, colour(*c)))
+                        .collect(),
+                    triangles: m.triangles.clone(),
+                })
+            });
+            g.mesh_version += 1;
         }
         if self.geometry_dirty {
             self.geometry_dirty = false;

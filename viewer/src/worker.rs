@@ -12,22 +12,45 @@ use glam::DVec3;
 use rgbid::camera::PinholeCamera;
 use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::image::{ImageF32, RgbdFrame};
+use rgbid::io::ply::PlyMesh;
+use rgbid::live::{LiveInput, LiveOptions, LiveSpec, LiveSummary};
 use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustScales};
 use rgbid::place::{PixelMatch, Vocabulary};
 use rgbid::segment::label_colour;
 use rgbid::slam::{
-    build_model, voxel_filter, EventOptions, FrameReport, FrameStatus, KeyframeDescribed,
+    build_coloured_model, build_mesh, EventOptions, FrameReport, FrameStatus, KeyframeDescribed,
     LoopRecord, ModelParams, Slam, SlamConfig, SlamEvent, SlamEvents,
 };
+use rgbid::source::{RgbdStream, SourceError};
 use rgbid::trajectory::TimedPose;
+use rgbid::tsdf::TsdfParams;
 
 use crate::source::{FrameSource, SourceSpec};
+
+/// World points (metres) with their 8-bit RGB colour (grey, red = green = blue, for runs
+/// without colour).
+pub type Cloud = Vec<(DVec3, [u8; 3])>;
+
+/// Where the frames of a run come from.
+#[derive(Clone, Debug)]
+pub enum RunSource {
+    /// A folder or generated sequence, read frame by frame at the pace the UI asks for.
+    Sequence(SourceSpec),
+    /// A live camera (or a folder replayed at camera rate, [`LiveSpec::Replay`]) on its own
+    /// thread: frames that arrive while SLAM is busy (or paused) are dropped and counted.
+    Live {
+        /// Which camera.
+        spec: LiveSpec,
+        /// Camera file and recording folder ([`LiveOptions`]).
+        options: LiveOptions,
+    },
+}
 
 /// Settings of a run, chosen before it starts.
 #[derive(Clone, Debug)]
 pub struct RunConfig {
     /// What to open.
-    pub source: SourceSpec,
+    pub source: RunSource,
     /// Compute backend of the odometry, fusion and rendering of generated sequences.
     pub backend: BackendChoice,
     /// Keyframe covisibility threshold (`SlamConfig::keyframe_covisibility`).
@@ -46,11 +69,34 @@ pub struct RunConfig {
     /// Compute residual and weight images of every frame (a CPU pass over one pyramid
     /// level, a few ms per frame).
     pub residuals: bool,
+    /// At the end, also build a TSDF mesh of the keyframes with this voxel size (metres;
+    /// [`rgbid::slam::build_mesh`]); `None` = no mesh.
+    pub mesh_voxel: Option<f64>,
 }
 
 impl RunConfig {
-    /// Defaults for `source`.
+    /// Defaults for the sequence `source`.
     pub fn new(source: SourceSpec) -> Self {
+        Self::with_source(RunSource::Sequence(source))
+    }
+
+    /// Defaults for live input from `spec` (a queue of two frames, as `rgbid slam --live`).
+    pub fn live(
+        spec: LiveSpec,
+        camera: Option<String>,
+        record: Option<std::path::PathBuf>,
+    ) -> Self {
+        Self::with_source(RunSource::Live {
+            spec,
+            options: LiveOptions {
+                camera,
+                record,
+                queue: 2,
+            },
+        })
+    }
+
+    fn with_source(source: RunSource) -> Self {
         RunConfig {
             source,
             backend: BackendChoice::Auto,
@@ -61,6 +107,7 @@ impl RunConfig {
             voxel: ModelParams::default().voxel,
             autoplay: true,
             residuals: true,
+            mesh_voxel: None,
         }
     }
 }
@@ -74,7 +121,8 @@ pub enum Command {
     Pause,
     /// Process one frame, then pause.
     Step,
-    /// Pace: multiple of the sequence frame rate (30 fps); 0 = as fast as possible.
+    /// Pace: multiple of the sequence frame rate (30 fps); 0 = as fast as possible (live
+    /// input keeps the camera's rate).
     Speed(f64),
     /// Stop feeding frames and finish (final optimisation, model).
     Finish,
@@ -83,8 +131,8 @@ pub enum Command {
 /// Camera intrinsics + metadata sent when the run starts.
 #[derive(Clone, Debug)]
 pub struct StartInfo {
-    /// Frames in the sequence.
-    pub frames: usize,
+    /// Frames in the sequence (`None` for live input).
+    pub frames: Option<usize>,
     /// The camera.
     pub camera: PinholeCamera,
     /// Name of the compute backend.
@@ -119,8 +167,11 @@ pub struct KeyframeUpdate {
     pub frame_index: usize,
     /// `world_from_camera` of the keyframe (front-end estimate at creation).
     pub world_from_keyframe: rgbid::geometry::Se3,
-    /// Points in world coordinates with intensity, from the frame's inverse depth.
-    pub points: Vec<(DVec3, u8)>,
+    /// Points in world coordinates with the frame's colour (grey from the intensity when it
+    /// has none), from the frame's inverse depth.
+    pub points: Cloud,
+    /// Whether the frame had colour.
+    pub coloured: bool,
 }
 
 /// What the SLAM back-end found in a keyframe when it described it for place recognition
@@ -245,10 +296,30 @@ pub struct FinishedRun {
     pub keyframes: Vec<TimedPose>,
     /// Accepted loops as (query keyframe, candidate keyframe) indices into `keyframes`.
     pub loops: Vec<(usize, usize)>,
-    /// Voxel-filtered model (world points with intensity).
-    pub model: Vec<(DVec3, u8)>,
+    /// Voxel-filtered model: world points (metres) with RGB colour (grey when the run had
+    /// no colour).
+    pub model: Cloud,
+    /// Whether the model's colours come from colour images (false: grey from intensity).
+    pub coloured: bool,
+    /// TSDF mesh of the run, world frame (`mesh.ply` of a run folder, or built at the end
+    /// with [`RunConfig::mesh_voxel`]).
+    pub mesh: Option<std::sync::Arc<PlyMesh>>,
     /// Milliseconds of the final optimisation.
     pub final_optimise_ms: f64,
+}
+
+/// Counts of live input so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LiveCounts {
+    /// Frames the camera delivered so far (tracked, dropped or waiting in the queue).
+    pub received: u64,
+    /// Frames dropped because SLAM was busy (or paused).
+    pub dropped: u64,
+    /// Frames written to the recording: known once the camera stopped (`None` before, or
+    /// when nothing is recorded).
+    pub recorded: Option<u64>,
+    /// Whether the camera has stopped and these are the final counts.
+    pub finished: bool,
 }
 
 /// Messages to the UI.
@@ -264,6 +335,8 @@ pub enum Update {
     KeyframeDescribed(Box<KeyframeDescription>),
     /// The back-end verified a loop (sent in the order they were found).
     Loop(Box<LoopUpdate>),
+    /// Live input counts (after every frame of a live run, and once when it stops).
+    Live(LiveCounts),
     /// The run finished.
     Finished(Box<FinishedRun>),
     /// The run stopped with an error.
@@ -322,14 +395,16 @@ impl Drop for Worker {
     }
 }
 
-/// Points of a frame in world coordinates (every `step`-th pixel with inverse depth).
+/// Points of a frame in world coordinates with their colour (grey from the intensity when
+/// the frame has no colour), every `step`-th pixel with inverse depth.
 pub fn frame_points(
     frame: &RgbdFrame,
     camera: &PinholeCamera,
     world_from_camera: &rgbid::geometry::Se3,
     step: usize,
-) -> Vec<(DVec3, u8)> {
+) -> Cloud {
     let step = step.max(1);
+    let colour = frame.colour();
     let (w, h) = (frame.width(), frame.height());
     let mut out = Vec::with_capacity((w / step + 1) * (h / step + 1));
     for y in (0..h).step_by(step) {
@@ -343,8 +418,11 @@ pub fn frame_points(
                     (y as f64 - camera.cy) / camera.fy * z,
                     z,
                 );
-                let g = frame.intensity().data()[i].clamp(0.0, 255.0) as u8;
-                out.push((world_from_camera.transform_point(p), g));
+                let c = match colour {
+                    Some(c) => c.at(x, y),
+                    None => [frame.intensity().data()[i].round().clamp(0.0, 255.0) as u8; 3],
+                };
+                out.push((world_from_camera.transform_point(p), c));
             }
         }
     }
@@ -438,10 +516,103 @@ enum Pace {
     Stepping,
 }
 
+/// The open input of a run: a sequence read by index, or a live camera.
+enum Input {
+    Sequence { source: FrameSource, next: usize },
+    Live(LiveInput),
+}
+
+impl Input {
+    fn open(source: &RunSource, backend: &rgbid::gpu::ComputeBackend) -> Result<Input> {
+        Ok(match source {
+            RunSource::Sequence(spec) => Input::Sequence {
+                source: FrameSource::open(spec, backend)?,
+                next: 0,
+            },
+            RunSource::Live { spec, options } => {
+                Input::Live(LiveInput::open(spec, options).context("opening the live input")?)
+            }
+        })
+    }
+
+    fn camera(&self) -> PinholeCamera {
+        match self {
+            Input::Sequence { source, .. } => source.camera(),
+            Input::Live(l) => l.camera(),
+        }
+    }
+
+    fn len(&self) -> Option<usize> {
+        match self {
+            Input::Sequence { source, .. } => Some(source.len()),
+            Input::Live(_) => None,
+        }
+    }
+
+    fn groundtruth(&self) -> Option<Vec<TimedPose>> {
+        match self {
+            Input::Sequence { source, .. } => source.groundtruth(),
+            Input::Live(l) => l.groundtruth(),
+        }
+    }
+
+    /// The next frame; `None` at the end of the sequence or of the live stream.
+    fn next_frame(&mut self) -> Option<Result<RgbdFrame, SourceError>> {
+        match self {
+            Input::Sequence { source, next } => {
+                let i = *next;
+                (i < source.len()).then(|| {
+                    *next += 1;
+                    source.load(i)
+                })
+            }
+            Input::Live(l) => l.next_frame(),
+        }
+    }
+}
+
+/// The mesh of `result`'s keyframes at their optimised poses (as `rgbid slam --mesh`).
+fn keyframe_mesh(
+    result: &rgbid::slam::SlamResult,
+    camera: &PinholeCamera,
+    voxel: f64,
+    backend: &rgbid::gpu::ComputeBackend,
+) -> Result<PlyMesh> {
+    let params = TsdfParams {
+        voxel_size: voxel,
+        ..Default::default()
+    };
+    let mesh = build_mesh(
+        result.keyframes(),
+        &result.keyframe_poses,
+        camera,
+        &params,
+        ModelParams::default().min_weight,
+        backend,
+    )
+    .context("building the mesh")?;
+    Ok(PlyMesh {
+        vertices: mesh
+            .vertices
+            .iter()
+            .zip(&mesh.colours)
+            .map(|(p, c)| {
+                (
+                    DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])),
+                    *c,
+                )
+            })
+            .collect(),
+        triangles: mesh.triangles,
+    })
+}
+
 fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>) -> Result<()> {
     let backend = select_backend(config.backend, None).context("choosing the backend")?;
-    let mut source = FrameSource::open(&config.source, &backend)?;
-    let camera = source.camera();
+    let mut input = Input::open(&config.source, &backend)?;
+    let recording =
+        matches!(&config.source, RunSource::Live { options, .. } if options.record.is_some());
+    let camera = input.camera();
     let mut slam_config = SlamConfig {
         keyframe_covisibility: config.keyframe_covisibility,
         masks: config.masks,
@@ -471,10 +642,10 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     });
     let send = |u: Update| tx.send(u).map_err(|_| anyhow::anyhow!("the viewer closed"));
     send(Update::Started(Box::new(StartInfo {
-        frames: source.len(),
+        frames: input.len(),
         camera,
         backend: backend.name(),
-        groundtruth: source.groundtruth(),
+        groundtruth: input.groundtruth(),
     })))?;
     let mut pace = if config.autoplay {
         Pace::Playing
@@ -484,7 +655,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
     let mut speed = 0.0_f64;
     let mut next_due = Instant::now();
     let mut i = 0;
-    'frames: while i < source.len() {
+    'frames: loop {
         // Commands: block while paused, otherwise drain what is there.
         loop {
             let cmd = match pace {
@@ -505,7 +676,8 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                 Command::Finish => break 'frames,
             }
         }
-        if speed > 0.0 {
+        // A live camera sets its own rate.
+        if speed > 0.0 && matches!(input, Input::Sequence { .. }) {
             let now = Instant::now();
             if next_due > now {
                 std::thread::sleep(next_due - now);
@@ -513,7 +685,10 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
             next_due = Instant::now().max(next_due) + Duration::from_secs_f64(1.0 / (30.0 * speed));
         }
         let t0 = Instant::now();
-        let frame = source.load(i)?;
+        let Some(frame) = input.next_frame() else {
+            break;
+        };
+        let frame = frame.with_context(|| format!("frame {i}"))?;
         let load_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = slam.process(&frame)?;
         if matches!(
@@ -553,6 +728,7 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
                     frame_index: i,
                     world_from_keyframe,
                     points: frame_points(&frame, &camera, &world_from_keyframe, config.point_step),
+                    coloured: frame.colour().is_some(),
                 })
         } else {
             None
@@ -572,10 +748,35 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         for u in backend_updates {
             send(u)?;
         }
+        if let Input::Live(l) = &input {
+            let dropped = l.dropped();
+            send(Update::Live(LiveCounts {
+                received: i as u64 + 1 + dropped,
+                dropped,
+                recorded: None,
+                finished: false,
+            }))?;
+        }
         if matches!(pace, Pace::Stepping) {
             pace = Pace::Paused;
         }
         i += 1;
+    }
+    if let Input::Live(live) = &mut input {
+        // Stop the camera first: what it received is then final, and the recording complete.
+        match live.finish() {
+            Ok(LiveSummary {
+                received,
+                dropped,
+                recorded,
+            }) => send(Update::Live(LiveCounts {
+                received,
+                dropped,
+                recorded: recording.then_some(recorded),
+                finished: true,
+            }))?,
+            Err(e) => send(Update::Error(format!("live input: {e}")))?,
+        }
     }
     let result = slam.finish()?;
     // The last keyframes' descriptions and loops, from the back-end's finish.
@@ -590,18 +791,29 @@ fn run(config: &RunConfig, commands: &Receiver<Command>, tx: &SyncSender<Update>
         .filter(|l| l.verdict.is_accepted() && !l.relocalisation)
         .filter_map(|l| Some((index_of(l.query)?, index_of(l.candidate)?)))
         .collect();
-    let model = build_model(
+    let model = build_coloured_model(
         result.keyframes(),
         &result.keyframe_poses,
         &camera,
-        &ModelParams::default(),
+        &ModelParams {
+            voxel: config.voxel,
+            ..ModelParams::default()
+        },
     );
-    let model = voxel_filter(&model, config.voxel);
+    let coloured = result.keyframes().iter().any(|k| k.colour.is_some());
+    let mesh = match config.mesh_voxel {
+        Some(v) => Some(std::sync::Arc::new(keyframe_mesh(
+            &result, &camera, v, &backend,
+        )?)),
+        None => None,
+    };
     send(Update::Finished(Box::new(FinishedRun {
         trajectory: result.trajectory,
         keyframes,
         loops,
         model,
+        coloured,
+        mesh,
         final_optimise_ms: result.final_optimise_ms,
     })))?;
     Ok(())
