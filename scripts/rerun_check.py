@@ -2,10 +2,13 @@
 checks its entities and row counts against the run's own output files.
 
     python rerun_check.py slam RECORDING.rrd RUN_FOLDER
-    python rerun_check.py odometry RECORDING.rrd TRAJECTORY.txt FRAMES.csv
+    python rerun_check.py odometry RECORDING.rrd TRAJECTORY.txt FRAMES.csv [SEQUENCE]
+
+With SEQUENCE (the TUM folder odometry ran on), also compares the pinhole with its calib.txt
+and frame 0's logged images with its PNG files.
 
 Prints every entity path with its rows and component columns, then each check; exits 1 when
-a check fails. Needs only `rerun-sdk==0.36.*` (pyarrow comes with it).
+a check fails. Needs only `rerun-sdk==0.36.*` (pyarrow and pillow come with it).
 """
 
 from __future__ import annotations
@@ -39,9 +42,7 @@ def read(path: str):
         e = entities[c.entity_path]
         e["static" if c.is_static else "rows"] += c.num_rows
         batch = c.to_record_batch()
-        e["columns"].update(
-            n.split(":", 1)[-1] for n in batch.schema.names if ":" in n and not n.startswith("rerun.")
-        )
+        e["columns"].update(n for n in batch.schema.names if ":" in n and not n.startswith("rerun."))
         e["batches"].append(batch)
     print(f"{path}: {len(chunks)} chunks, {len(entities)} entities")
     for name in sorted(entities):
@@ -156,12 +157,45 @@ def odometry(rrd: str, trajectory: Path, frames_csv: Path) -> None:
     iterations = column_by_frame(entities, "/frame/iterations", "Scalars:scalars")
     same = all(int(flat(iterations[int(r["index"])])[0]) == int(r["iterations"]) for r in tracked)
     check(same, "/frame/iterations equals the --csv iterations on every tracked frame")
+    images_against_the_folder(entities, trajectory, frames_csv)
+
+
+def images_against_the_folder(entities, trajectory: Path, frames_csv: Path) -> None:
+    """The pinhole against calib.txt, frame 0's images against the folder's PNG files."""
+    from PIL import Image
+
+    seq = Path(sys.argv[5]) if len(sys.argv) > 5 else None
+    if seq is None:
+        return
+    fx, fy, cx, cy, factor, w, h = (float(v) for v in (seq / "calib.txt").read_text().split()[:7])
+    static = [b for b in entities["/world/camera"]["batches"] if "Pinhole:image_from_camera" in b.schema.names]
+    k = flat(static[0].column(static[0].schema.names.index("Pinhole:image_from_camera")).to_pylist()[0])
+    # Column-major 3x3; rerun's pixel centres are at +0.5 of ours.
+    want = [fx, 0, 0, 0, fy, 0, cx + 0.5, cy + 0.5, 1]
+    check(np.allclose(k, want, atol=1e-4), f"pinhole {k.round(3).tolist()} is calib.txt's (principal point + 0.5)")
+
+    def listed(name: str) -> str:
+        rows = [l.split() for l in (seq / name).read_text().splitlines() if l.strip() and not l.startswith("#")]
+        return rows[0][1]
+
+    depth_png = np.asarray(Image.open(seq / listed("depth.txt")), dtype=np.float64) / factor
+    logged = column_by_frame(entities, "/world/camera/depth", "DepthImage:buffer")[0]
+    depth = np.frombuffer(bytes(flat(logged).astype(np.uint8)), dtype=np.float32).reshape(int(h), int(w))
+    valid = depth_png > 0
+    err = np.abs(depth[valid] - depth_png[valid]).max()
+    check(
+        err < 1e-5 * depth_png.max() and (depth[~valid] == 0).all(),
+        f"frame 0's depth is the PNG's in metres (max difference {err:.1e} m, {valid.sum()} valid pixels)",
+    )
+    rgb_png = np.asarray(Image.open(seq / listed("rgb.txt")).convert("RGB"))
+    image = flat(column_by_frame(entities, "/world/camera/image", "Image:buffer")[0]).astype(np.uint8)
+    check(image.size == rgb_png.size and (image == rgb_png.reshape(-1)).all(), "frame 0's image is the RGB PNG")
 
 
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "slam":
         slam(sys.argv[2], Path(sys.argv[3]))
-    elif len(sys.argv) == 5 and sys.argv[1] == "odometry":
+    elif len(sys.argv) in (5, 6) and sys.argv[1] == "odometry":
         odometry(sys.argv[2], Path(sys.argv[3]), Path(sys.argv[4]))
     else:
         sys.exit(__doc__)

@@ -32,9 +32,11 @@ ls -l "$work/slam.rrd"
 "$venv/bin/python" scripts/rerun_check.py slam "$work/slam.rrd" "$work/slam"
 
 echo "== rgbid odometry on a generated TUM folder (60 frames, 160 px wide), CPU backend"
-rm -rf "$work/seq" "$work/odo.rrd" "$work/odo.txt" "$work/odo.csv"
+rm -rf "$work/seq" "$work/odo.rrd" "$work/odo.txt" "$work/odo.csv" \
+  "$work/seq"
 "$rgbid" synth --scene office --trajectory handheld --frames 60 --width 160 --out "$work/seq"
 "$rgbid" odometry "$work/seq" --backend cpu --out "$work/odo.txt" --csv "$work/odo.csv" \
   --rerun "save:$work/odo.rrd"
 ls -l "$work/odo.rrd"
-"$venv/bin/python" scripts/rerun_check.py odometry "$work/odo.rrd" "$work/odo.txt" "$work/odo.csv"
+"$venv/bin/python" scripts/rerun_check.py odometry "$work/odo.rrd" "$work/odo.txt" "$work/odo.csv" \
+  "$work/seq"

@@ -213,7 +213,14 @@ pub struct Recorder {
     relocalisations: Vec<(usize, usize)>,
     /// The last frame's index and time stamp (the time of what is logged after it).
     last: Option<(usize, f64)>,
+    /// Streaming to a viewer (not writing a file).
+    connected: bool,
 }
+
+/// Seconds [`Recorder::finish`] waits for a viewer to take what is still queued: an absent
+/// viewer would otherwise keep the program from ending.
+#[cfg(feature = "rerun")]
+pub const CONNECT_FLUSH_S: u64 = 30;
 
 /// An open recording (this build has no rerun support, so there is never one).
 #[cfg(not(feature = "rerun"))]
@@ -268,6 +275,9 @@ impl Recorder {
     pub fn open(spec: &RerunSpec, application: &'static str) -> Result<Recorder, RerunError> {
         // `default_enabled(true)` with nothing else: the `RERUN=off` environment variable
         // still turns the recording off, as it does for every rerun program.
+        if let RerunSpec::Connect(url) = spec {
+            probe(url.as_deref().unwrap_or(rerun::DEFAULT_CONNECT_URL))?;
+        }
         let builder = rerun::RecordingStreamBuilder::new(application).default_enabled(true);
         let rec = match spec {
             RerunSpec::Save(path) => builder.save(path),
@@ -284,6 +294,7 @@ impl Recorder {
             loops: Vec::new(),
             relocalisations: Vec::new(),
             last: None,
+            connected: matches!(spec, RerunSpec::Connect(_)),
         })
     }
 
@@ -372,10 +383,25 @@ impl Recorder {
         self.finish()
     }
 
-    /// Flushes the recording; the first logging error of the run, if any.
+    /// Flushes the recording (waiting at most [`CONNECT_FLUSH_S`] for a viewer); the first
+    /// logging error of the run, if any.
     pub fn finish(mut self) -> Result<(), RerunError> {
-        if let Err(e) = self.rec.flush_blocking() {
-            self.fail(RerunError::Sdk(e.to_string()));
+        let flushed = match self.connected {
+            false => self.rec.flush_blocking(),
+            true => self
+                .rec
+                .flush_with_timeout(std::time::Duration::from_secs(CONNECT_FLUSH_S)),
+        };
+        if let Err(e) = flushed {
+            self.fail(RerunError::Sdk(format!(
+                "{e} (the viewer did not take the whole recording)"
+            )));
+            // The SDK's sink thread waits for the viewer for as long as it takes, and
+            // dropping the stream (or disconnecting it) joins that thread: what is still
+            // queued is abandoned instead, so that the program can end.
+            let error = self.error.take();
+            std::mem::forget(self);
+            return Err(error.unwrap_or(RerunError::Sdk("flush failed".into())));
         }
         match self.error.take() {
             Some(e) => Err(e),
@@ -583,6 +609,41 @@ impl Recorder {
         }
     }
 }
+
+/// Checks that something listens at the viewer address of `url` (`SCHEME://HOST:PORT/...`):
+/// the SDK would otherwise wait for it without end once its queue is full.
+#[cfg(feature = "rerun")]
+fn probe(url: &str) -> Result<(), RerunError> {
+    use std::net::{TcpStream, ToSocketAddrs};
+    let authority = url
+        .split_once("://")
+        .map_or(url, |(_, rest)| rest)
+        .split('/')
+        .next()
+        .unwrap_or_default();
+    let no_viewer = |why: String| {
+        RerunError::Sdk(format!(
+            "no rerun viewer at {url} ({why}); start one first (`rerun`)"
+        ))
+    };
+    let addresses = authority
+        .to_socket_addrs()
+        .map_err(|e| no_viewer(format!("{authority}: {e}")))?;
+    let mut last = None;
+    for a in addresses {
+        match TcpStream::connect_timeout(&a, std::time::Duration::from_secs(PROBE_S)) {
+            Ok(_) => return Ok(()),
+            Err(e) => last = Some(e),
+        }
+    }
+    Err(no_viewer(
+        last.map_or("no address".into(), |e| e.to_string()),
+    ))
+}
+
+/// Seconds to wait for the viewer's port to answer.
+#[cfg(feature = "rerun")]
+const PROBE_S: u64 = 5;
 
 /// A position as rerun takes it (rerun has its own glam: plain arrays cross over).
 #[cfg(feature = "rerun")]
