@@ -14,13 +14,15 @@
 //!   relocalisations, one line segment between the two keyframes' positions each;
 //! - `frame/<name>`: the per-frame figures (the run folder's `timing.csv` row for `slam`,
 //!   the `--csv` row for `odometry`), one scalar series each; `frame/status` a text line for
-//!   every frame that is not plainly tracked.
+//!   every frame whose status is not plain tracking (`NewKeyframe`, `Lost`, `Relocalised`;
+//!   `not tracked` in `odometry`).
 //!
 //! Everything is logged on two timelines: `frame` (the frame index, from 0) and `time` (the
 //! frame's time stamp, as seconds since the Unix epoch: TUM stamps are that). Without the
 //! `rerun` build feature the option is parsed and then refused with a message that says how
-//! to build it. A failure of the recording never stops the run: logging stops at the first
-//! one and the run ends with it as a warning.
+//! to build it. `connect` fails at the start when nothing listens at the viewer's address.
+//! A later failure of the recording never stops the run: logging stops at the first one and
+//! the run ends with it as a warning (exit code 3).
 
 use std::path::PathBuf;
 use std::str::FromStr;
