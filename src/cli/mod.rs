@@ -17,6 +17,7 @@ pub mod outputs;
 pub mod place;
 pub mod plot;
 pub mod report;
+pub mod rerun;
 pub mod scale;
 pub mod segment;
 pub mod slam;

@@ -64,6 +64,13 @@ pub struct Args {
     /// Process at most this many frames (>= 1).
     #[arg(long, value_parser = range::at_least_one)]
     pub max_frames: Option<usize>,
+    /// Also log the run to rerun: `save:FILE.rrd` writes a recording, `connect` streams to a
+    /// running viewer at 127.0.0.1:9876, `connect=HOST:PORT` (or a `rerun+http://` URL)
+    /// elsewhere. Camera poses and pinhole, images (depth in metres) and the per-frame figures
+    /// (the --csv columns), on the timelines `frame` (index) and `time` (time stamp, s). Needs
+    /// the `rerun` build feature.
+    #[arg(long, value_name = "save:FILE.rrd|connect[=ADDR]", value_parser = super::rerun::parse_spec)]
+    pub rerun: Option<super::rerun::RerunSpec>,
     /// Configuration: an `OdometryConfig` file (`rgbid config dump --command odometry`).
     #[command(flatten)]
     pub config: ConfigArgs,
@@ -95,6 +102,13 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(p) = &args.csv {
         super::outputs::output_file(p, "--csv", &inputs)?;
     }
+    if let Some(p) = args.rerun.as_ref().and_then(|r| r.file()) {
+        super::outputs::output_file(p, "--rerun", &inputs)?;
+    }
+    let mut rerun = match &args.rerun {
+        Some(spec) => Some(super::rerun::Recorder::open(spec, "rgbid odometry")?),
+        None => None,
+    };
     let stop = super::outputs::Stop::install(|| {})?;
     let backend = select_backend(args.backend.backend, args.backend.adapter.as_deref())?;
     log::info!("{} frames, backend {}", seq.len(), backend.name());
@@ -169,7 +183,11 @@ pub fn run(args: Args) -> Result<()> {
                 break;
             }
         };
-        match odo.track(&frame) {
+        let tracked = odo.track(&frame);
+        if let Some(rr) = rerun.as_mut() {
+            rr.odometry_frame(i, &frame, &seq.camera, tracked.as_ref().ok());
+        }
+        match tracked {
             Ok(r) => {
                 last_pose = Some(r.world_from_camera);
                 poses.push(TimedPose {
@@ -283,6 +301,9 @@ pub fn run(args: Args) -> Result<()> {
         summary
             .warnings
             .push(format!("{failures} frames failed to track"));
+    }
+    if let Some(Err(e)) = rerun.map(|r| r.finish()) {
+        summary.warnings.push(e.to_string());
     }
     if outcome.is_ok() && !interrupted {
         if let Some(gt) = &groundtruth {

@@ -120,6 +120,13 @@ pub struct Args {
     /// Vocabulary file (default: the embedded one).
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
+    /// Also log the run to rerun: `save:FILE.rrd` writes a recording, `connect` streams to a
+    /// running viewer at 127.0.0.1:9876, `connect=HOST:PORT` (or a `rerun+http://` URL)
+    /// elsewhere. Camera poses and pinhole, images (depth in metres), keyframe points, loop
+    /// edges and the per-frame figures, on the timelines `frame` (index) and `time` (time
+    /// stamp, s). Needs the `rerun` build feature.
+    #[arg(long, value_name = "save:FILE.rrd|connect[=ADDR]", value_parser = super::rerun::parse_spec)]
+    pub rerun: Option<super::rerun::RerunSpec>,
     /// Configuration: a `SlamConfig` file (`rgbid config dump --command slam`).
     #[command(flatten)]
     pub config: ConfigArgs,
@@ -155,6 +162,7 @@ impl Args {
             voxel: ModelParams::default().voxel,
             mesh: false,
             vocabulary: None,
+            rerun: None,
             config: ConfigArgs::default(),
             odometry: OdometryOptions::default(),
             backend: BackendArgs::default(),
@@ -269,6 +277,7 @@ struct Inputs {
     vocabulary: Vocabulary,
     map: Option<Map>,
     provenance: Provenance,
+    rerun: Option<super::rerun::Recorder>,
 }
 
 impl Inputs {
@@ -308,12 +317,17 @@ impl Inputs {
             None => None,
         };
         let provenance = Provenance::new(config, &backend)?;
+        let rerun = match &a.rerun {
+            Some(spec) => Some(super::rerun::Recorder::open(spec, "rgbid slam")?),
+            None => None,
+        };
         Ok(Inputs {
             backend,
             source,
             vocabulary,
             map,
             provenance,
+            rerun,
         })
     }
 }
@@ -334,6 +348,10 @@ pub fn run(a: Args) -> Result<()> {
         let inputs: Vec<&std::path::Path> = a.map_in.iter().map(|p| p.as_path()).collect();
         super::outputs::output_file(p, "--map-out", &inputs)?;
     }
+    if let Some(p) = a.rerun.as_ref().and_then(|r| r.file()) {
+        let inputs: Vec<&std::path::Path> = a.map_in.iter().map(|p| p.as_path()).collect();
+        super::outputs::output_file(p, "--rerun", &inputs)?;
+    }
     let writer = RunFolderWriter::create(&a.out)?;
     let out = a.out.clone();
     let stop = super::outputs::Stop::install(move || super::outputs::mark_interrupted(&out))?;
@@ -343,6 +361,7 @@ pub fn run(a: Args) -> Result<()> {
         vocabulary,
         map,
         provenance,
+        rerun,
     } = match Inputs::open(&a, &config) {
         Ok(s) => s,
         Err(e) => {
@@ -363,6 +382,7 @@ pub fn run(a: Args) -> Result<()> {
         &provenance,
         writer,
         &stop,
+        rerun,
     )
 }
 
@@ -377,6 +397,7 @@ fn run_slam(
     provenance: &Provenance,
     mut writer: RunFolderWriter,
     stop: &super::outputs::Stop,
+    mut rerun: Option<super::rerun::Recorder>,
 ) -> Result<()> {
     let camera = source.camera();
     let total = source.len();
@@ -413,6 +434,9 @@ fn run_slam(
             return Err(e);
         }
     };
+    if let Some(r) = rerun.as_mut() {
+        r.attach(&slam, &camera);
+    }
     let bar = match total {
         Some(n) => {
             let bar = ProgressBar::new(n as u64);
@@ -484,6 +508,9 @@ fn run_slam(
         load_ms.push(tl.elapsed().as_secs_f64() * 1e3);
         match slam.process(&frame) {
             Ok(r) => {
+                if let Some(rr) = rerun.as_mut() {
+                    rr.slam_frame(&frame, &r);
+                }
                 if let Err(e) = write_frame(&mut writer, &slam, &r.record) {
                     error = Some(e.context(format!("frame {i}")));
                     break;
@@ -619,6 +646,9 @@ fn run_slam(
         (None, false) => RunStatus::Complete,
     };
     let mut warnings: Vec<String> = input_warning.into_iter().collect();
+    if let Some(Err(e)) = rerun.map(|r| r.slam_finish(&result)) {
+        warnings.push(e.to_string());
+    }
     if let Some(w) = skips.warning() {
         warnings.push(format!("{w} (counted in summary.json)"));
     }
