@@ -391,18 +391,22 @@ impl SceneRenderer {
             step_mode: wgpu::VertexStepMode::Vertex,
             attributes: &attributes,
         };
-        let scene_pipeline = |topology, label| {
+        // Lines (`vs_scene`/`fs_scene`) and mesh triangles (`vs_mesh`/`fs_mesh`: drawn from
+        // both sides, as marching-cubes meshes are open surfaces, and shaded in the fragment
+        // shader from the screen-space derivatives of the world position).
+        let scene_pipeline = |topology, label, (vs, fs): (&str, &str)| {
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
                 layout: Some(&scene_pl),
                 vertex: wgpu::VertexState {
                     module: &module,
-                    entry_point: Some("vs_scene"),
+                    entry_point: Some(vs),
                     compilation_options: Default::default(),
                     buffers: &[Some(vertex_layout.clone())],
                 },
                 primitive: wgpu::PrimitiveState {
                     topology,
+                    cull_mode: None,
                     ..Default::default()
                 },
                 depth_stencil: Some(wgpu::DepthStencilState {
@@ -415,7 +419,7 @@ impl SceneRenderer {
                 multisample: Default::default(),
                 fragment: Some(wgpu::FragmentState {
                     module: &module,
-                    entry_point: Some("fs_scene"),
+                    entry_point: Some(fs),
                     compilation_options: Default::default(),
                     targets: &[Some(OFFSCREEN_FORMAT.into())],
                 }),
@@ -423,40 +427,16 @@ impl SceneRenderer {
                 cache: None,
             })
         };
-        let line_pipeline = scene_pipeline(wgpu::PrimitiveTopology::LineList, "scene lines");
-        // Triangles from both sides (marching-cubes meshes are open surfaces), shaded in the
-        // fragment shader from the screen-space derivatives of the world position.
-        let mesh_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("scene mesh"),
-            layout: Some(&scene_pl),
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some("vs_mesh"),
-                compilation_options: Default::default(),
-                buffers: &[Some(vertex_layout.clone())],
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                cull_mode: None,
-                ..Default::default()
-            },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Less),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs_mesh"),
-                compilation_options: Default::default(),
-                targets: &[Some(OFFSCREEN_FORMAT.into())],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let line_pipeline = scene_pipeline(
+            wgpu::PrimitiveTopology::LineList,
+            "scene lines",
+            ("vs_scene", "fs_scene"),
+        );
+        let mesh_pipeline = scene_pipeline(
+            wgpu::PrimitiveTopology::TriangleList,
+            "scene mesh",
+            ("vs_mesh", "fs_mesh"),
+        );
         let blit_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("scene blit"),
             layout: Some(&blit_pl),
