@@ -10,8 +10,8 @@ bin=${1:-./target/release/rgbid}
 runs=${2:-/tmp/rgbid-mono-walks}
 mkdir -p "$runs"
 # scene:trajectory:frames at 30 Hz (the default pace schedule walks, stops and walks on). No
-# stairs: the generated scenes have no staircase, so a climbing walker would rise through the
-# ceiling.
+# stairs: the scene presets have no staircase, and `rgbid mono --synthetic` does not raise the
+# ceiling as the scale experiment harness does, so a climbing walker would rise through it.
 walks=(corridor:walk-head:1800 corridor:walk-chest:1800 office:walk-head:1800 corridor:walk-head:3600)
 for w in "${walks[@]}"; do
   IFS=: read -r scene traj frames <<<"$w"
