@@ -160,8 +160,10 @@ fn slam_runs_on_every_layout_against_its_own_ground_truth() {
     }
 }
 
-/// `keyframe_colour = false` keeps the keyframes grey: the same run holds 3 bytes per pixel
-/// and keyframe less (4 instead of 7), and `model.ply` is grey where the coloured run's is not.
+/// `keyframe_colour = false` from the command line keeps the keyframes grey: the same
+/// keyframes, and `model.ply` is grey where the coloured run's is not. (The memory it saves is
+/// checked in `slam_system.rs`: the run folder records only the account's peak, whose moment
+/// depends on the back-end thread.)
 #[test]
 fn keyframe_colour_off_keeps_keyframes_grey() {
     let tmp = tempfile::tempdir().unwrap();
@@ -191,29 +193,19 @@ fn keyframe_colour_off_keeps_keyframes_grey() {
             .unwrap()
             .summary
             .expect("summary.json");
-        let keyframe_bytes = summary.extra["instance_peak_breakdown_bytes"]["keyframes"]
-            .as_u64()
-            .expect("keyframe bytes");
         let model = rgbid::io::ply::read_ply(&out.join("model.ply")).unwrap();
         assert!(!model.is_empty(), "{name}");
         let coloured = model
             .iter()
             .filter(|(_, c)| c[0] != c[1] || c[1] != c[2])
             .count();
-        runs.push((summary.keyframes, keyframe_bytes, coloured, model.len()));
+        runs.push((summary.keyframes, coloured, model.len()));
     }
     let (on, off) = (runs[0], runs[1]);
     // The colour switch leaves tracking alone: the same keyframes.
     assert_eq!(on.0, off.0, "{runs:?}");
-    let pixels = (camera().width * camera().height) as u64;
-    let saved = on.1 - off.1;
-    let expected = 3 * pixels * on.0 as u64;
-    assert!(
-        saved.abs_diff(expected) * 100 <= expected,
-        "saved {saved} bytes, expected {expected} ({runs:?})"
-    );
-    assert!(on.2 * 10 > on.3, "the coloured model is grey: {runs:?}");
-    assert_eq!(off.2, 0, "grey keyframes gave coloured points: {runs:?}");
+    assert!(on.1 * 10 > on.2, "the coloured model is grey: {runs:?}");
+    assert_eq!(off.1, 0, "grey keyframes gave coloured points: {runs:?}");
 }
 
 /// `--calib-format droid` on another command (`rgbid odometry`): the DROID-SLAM file is read

@@ -696,3 +696,59 @@ fn events_never_block_a_run_whose_consumer_does_not_read() {
         Err(std::sync::mpsc::TryRecvError::Disconnected)
     ));
 }
+
+/// `keyframe_colour = false` keeps keyframes grey: the same keyframes at the same poses, no
+/// RGB in them, and the account holds 4 bytes per keyframe pixel instead of 7.
+#[test]
+fn keyframes_without_colour_hold_four_bytes_per_pixel() {
+    let cam = camera(160);
+    let pixels = 160 * 120;
+    let mut seq = sequence(
+        Scene::preset("office", 3).unwrap(),
+        TrajectoryKind::Handheld,
+        40,
+        3,
+        cam,
+    );
+    let frames: Vec<RgbdFrame> = (0..seq.len())
+        .map(|i| {
+            let f = seq.render_frame(i).unwrap();
+            f.frame.to_rgbd_frame(f.timestamp)
+        })
+        .collect();
+    let mut runs = Vec::new();
+    for keyframe_colour in [true, false] {
+        let config = SlamConfig {
+            keyframe_colour,
+            ..SlamConfig::default()
+        };
+        let vocabulary = Vocabulary::embedded_default().unwrap();
+        let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, vocabulary, None).unwrap();
+        for f in &frames {
+            slam.process(f).unwrap();
+        }
+        runs.push(slam.finish().unwrap());
+    }
+    let (on, off) = (&runs[0], &runs[1]);
+    let n = on.keyframes().len();
+    assert!(
+        n >= 2 && off.keyframes().len() == n,
+        "{n} / {}",
+        off.keyframes().len()
+    );
+    for (a, b) in on.keyframes().iter().zip(off.keyframes()) {
+        assert_eq!(
+            a.world_from_keyframe.translation,
+            b.world_from_keyframe.translation
+        );
+        assert!(a.colour.is_some() && b.colour.is_none());
+    }
+    for (run, bytes) in [(on, 7), (off, 4)] {
+        let held = run.memory.now.keyframes;
+        let images = bytes * pixels * n;
+        assert!(
+            held >= images && held < images + 64 * 1024,
+            "{held} keyframe bytes for {n} keyframes, {bytes} bytes per pixel"
+        );
+    }
+}
