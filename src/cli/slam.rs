@@ -18,7 +18,7 @@ use rgbid::io::Layout;
 use rgbid::live::{LiveInput, LiveOptions, LiveSpec};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_coloured_model, build_mesh, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
+    build_coloured_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
 use rgbid::source::{FrameSource, RgbdStream, SourceError, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
@@ -766,18 +766,7 @@ fn write_outputs(
     let mut mesh_summary = None;
     if a.mesh {
         let t = Instant::now();
-        let params = TsdfParams {
-            voxel_size: a.voxel,
-            ..Default::default()
-        };
-        let mesh = build_mesh(
-            r.keyframes(),
-            &r.keyframe_poses,
-            camera,
-            &params,
-            ModelParams::default().min_weight,
-            backend,
-        )?;
+        let mesh = r.mesh(camera, a.voxel, backend)?;
         let path = out.join("mesh.ply");
         mesh.write_ply(&path)?;
         mesh_summary = Some(serde_json::json!({

@@ -776,6 +776,29 @@ impl SlamResult {
             })
             .collect()
     }
+
+    /// The keyframes' surface as a mesh: their fused inverse depth (and colour) integrated
+    /// into a TSDF of `voxel` metres at their optimised poses, with the default truncation and
+    /// the model's minimum fusion weight ([`super::build_mesh`] with those settings).
+    pub fn mesh(
+        &self,
+        camera: &PinholeCamera,
+        voxel: f64,
+        backend: &ComputeBackend,
+    ) -> Result<crate::tsdf::Mesh, crate::tsdf::TsdfError> {
+        let params = crate::tsdf::TsdfParams {
+            voxel_size: voxel,
+            ..Default::default()
+        };
+        super::build_mesh(
+            self.keyframes(),
+            &self.keyframe_poses,
+            camera,
+            &params,
+            super::ModelParams::default().min_weight,
+            backend,
+        )
+    }
 }
 
 impl Drop for Slam {

@@ -18,12 +18,11 @@ use rgbid::odometry::{residual_images, OdometryConfig, ResidualImages, RobustSca
 use rgbid::place::{PixelMatch, Vocabulary};
 use rgbid::segment::label_colour;
 use rgbid::slam::{
-    build_coloured_model, build_mesh, EventOptions, FrameReport, FrameStatus, KeyframeDescribed,
-    LoopRecord, ModelParams, Slam, SlamConfig, SlamEvent, SlamEvents,
+    build_coloured_model, EventOptions, FrameReport, FrameStatus, KeyframeDescribed, LoopRecord,
+    ModelParams, Slam, SlamConfig, SlamEvent, SlamEvents,
 };
 use rgbid::source::{RgbdStream, SourceError};
 use rgbid::trajectory::TimedPose;
-use rgbid::tsdf::TsdfParams;
 
 use crate::source::{FrameSource, SourceSpec};
 
@@ -578,19 +577,9 @@ fn keyframe_mesh(
     voxel: f64,
     backend: &rgbid::gpu::ComputeBackend,
 ) -> Result<PlyMesh> {
-    let params = TsdfParams {
-        voxel_size: voxel,
-        ..Default::default()
-    };
-    let mesh = build_mesh(
-        result.keyframes(),
-        &result.keyframe_poses,
-        camera,
-        &params,
-        ModelParams::default().min_weight,
-        backend,
-    )
-    .context("building the mesh")?;
+    let mesh = result
+        .mesh(camera, voxel, backend)
+        .context("building the mesh")?;
     Ok(PlyMesh {
         vertices: mesh
             .vertices
