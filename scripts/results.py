@@ -352,6 +352,32 @@ def render_layouts(doc):
     return out + table(["layout", "detected", "frames", "keyframes", "ATE m", "odometry ATE m", "fps"], body)
 
 
+def render_camera_rate(doc):
+    """Camera rate on real data: whole-process wall time against camera time."""
+    out = [f"`rgbid slam SEQ --backend cpu --out DIR` and `rgbid odometry SEQ --backend cpu`, "
+           f"{doc.get('runs', '?')} runs each (medians): wall time of the whole process (start-up, "
+           "loading and decoding, back-end, final optimisation and output files) against the "
+           "sequence's camera time (first to last time stamp plus one 30 Hz period); front-end "
+           "milliseconds per frame from `timing.csv` (percentiles over the frames, median over the "
+           "runs); odometry wall time per frame with decoding, against OpenCV RGB_DEPTH's per-frame "
+           "compute median (`peer_odometry.py --methods cv_rgbd`, same script run). The 1-minute "
+           "load average before each run is in the report (`load_1min`).", ""]
+    body = []
+    for r in doc.get("rows", []):
+        loads = r.get("load_1min") or []
+        body.append([r["sequence"], r["frames"], num(r.get("camera_s"), ".2f"),
+                     num(r.get("slam_wall_s_median"), ".2f"),
+                     num(r["camera_s"] / r["slam_wall_s_median"], ".2f") if r.get("slam_wall_s_median") else "-",
+                     num(r.get("frontend_ms_p50"), ".1f"), num(r.get("frontend_ms_p95"), ".1f"),
+                     num(r.get("frontend_ms_max"), ".1f"), num(r.get("slam_ate_m"), ".4f"),
+                     num(r.get("odometry_wall_ms_per_frame"), ".1f"), num(r.get("opencv_ms_per_frame"), ".1f"),
+                     num(r.get("opencv_over_rgbid"), ".2f"),
+                     num(max(loads), ".2f") if loads else "-"])
+    return out + table(["sequence", "frames", "camera s", "slam wall s", "camera / wall",
+                        "front-end ms p50", "p95", "max", "SLAM ATE m", "odometry ms/frame (wall)",
+                        "OpenCV ms/frame (compute)", "OpenCV / rgbid", "highest load"], body)
+
+
 def render_generic(doc):
     rows = [r for r in doc.get("rows", []) if isinstance(r, dict)]
     keys = []
@@ -399,7 +425,7 @@ RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernel
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
              "load": render_load, "thesis-tables": render_thesis_tables,
              "scale-sweep": render_scale_sweep, "mono-walks": render_mono_walks,
-             "layouts": render_layouts}
+             "layouts": render_layouts, "camera-rate": render_camera_rate}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead",
@@ -407,7 +433,8 @@ TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odomet
           "thesis-tables": "Thesis tables 4.1-4.3 and 6.1 on real data",
           "load": "SLAM under load", "scale-sweep": "Walking scale: t_DFT / t_upd (table 3.1)",
           "mono-walks": "Metric monocular SLAM on generated walks",
-          "layouts": "`rgbid slam` on every dataset layout"}
+          "layouts": "`rgbid slam` on every dataset layout",
+          "camera-rate": "Camera rate on real data (`scripts/camera_rate.py`)"}
 
 
 def title(doc):

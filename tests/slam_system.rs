@@ -11,8 +11,8 @@ use rgbid::gpu::ComputeBackend;
 use rgbid::image::RgbdFrame;
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_mesh, EventOptions, FrameReport, FrameStatus, KeyframeLink, Map, MapError, Slam,
-    SlamConfig, SlamError, SlamEvent, SlamResult,
+    build_mesh, BufferedFusion, EventOptions, FrameReport, FrameStatus, KeyframeLink, Map,
+    MapError, Slam, SlamConfig, SlamError, SlamEvent, SlamResult,
 };
 use rgbid::synth::{
     CameraModel, RenderBackend, Scene, Sequence, SequenceConfig, Trajectory, TrajectoryKind,
@@ -751,4 +751,71 @@ fn keyframes_without_colour_hold_four_bytes_per_pixel() {
             "{held} keyframe bytes for {n} keyframes, {bytes} bytes per pixel"
         );
     }
+}
+
+/// The thesis' schedule (one buffered frame fused with each incoming frame, the rest when the
+/// keyframe ends) takes the same frames into each keyframe as fusing them all at its start:
+/// same keyframes, and the keyframes' fusion weights (one per consistent fusion) add up to
+/// the same within the order's effect on the consistency test. A frame left unfused would
+/// remove its whole weight.
+#[test]
+fn buffered_frames_fused_one_per_frame_reach_the_same_keyframes() {
+    let cam = camera(160);
+    let mut seq = sequence(
+        Scene::preset("office", 3).unwrap(),
+        TrajectoryKind::Handheld,
+        60,
+        5,
+        cam,
+    );
+    let frames: Vec<RgbdFrame> = (0..seq.len())
+        .map(|i| {
+            let f = seq.render_frame(i).unwrap();
+            f.frame.to_rgbd_frame(f.timestamp)
+        })
+        .collect();
+    let mut runs = Vec::new();
+    for buffered_fusion in [BufferedFusion::AtStart, BufferedFusion::OnePerFrame] {
+        let config = SlamConfig {
+            buffered_fusion,
+            ..SlamConfig::default()
+        };
+        let vocabulary = Vocabulary::embedded_default().unwrap();
+        let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, vocabulary, None).unwrap();
+        for f in &frames {
+            slam.process(f).unwrap();
+        }
+        runs.push(slam.finish().unwrap());
+    }
+    let weights = |r: &SlamResult| -> Vec<u64> {
+        r.keyframes()
+            .iter()
+            .map(|k| k.weight.iter().map(|&w| u64::from(w)).sum())
+            .collect()
+    };
+    let (at_start, per_frame) = (weights(&runs[0]), weights(&runs[1]));
+    let n = at_start.len();
+    assert!(
+        n >= 3 && per_frame.len() == n,
+        "{n} / {} keyframes",
+        per_frame.len()
+    );
+    // Weight beyond each keyframe's own frame (one per pixel with depth).
+    let own = |r: &SlamResult| -> Vec<u64> {
+        r.keyframes()
+            .iter()
+            .map(|k| k.weight.iter().filter(|&&w| w > 0).count() as u64)
+            .collect()
+    };
+    let fused = |w: &[u64], o: &[u64]| -> u64 { w.iter().zip(o).map(|(a, b)| a - b).sum() };
+    let (a, b) = (
+        fused(&at_start, &own(&runs[0])),
+        fused(&per_frame, &own(&runs[1])),
+    );
+    assert!(a > 0, "no fused weight");
+    let ratio = b as f64 / a as f64;
+    assert!(
+        (ratio - 1.0).abs() < 0.03,
+        "fused weight one per frame {b} against {a} at the keyframe start"
+    );
 }

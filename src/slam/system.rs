@@ -14,7 +14,7 @@ use super::fusion::KeyframeFuser;
 use super::keyframe::{Keyframe, KeyframeLink};
 use super::map::Map;
 use super::memory::{vec_bytes, MemoryBreakdown, MemoryReport};
-use super::{information_from, FrameEdges, SlamConfig, SlamError};
+use super::{information_from, BufferedFusion, FrameEdges, SlamConfig, SlamError};
 use crate::camera::PinholeCamera;
 use crate::geometry::{Covariance6, Se3};
 use crate::gpu::ComputeBackend;
@@ -163,6 +163,9 @@ pub struct Slam {
     /// Frames since the keyframe: inverse depth, `frontworld_from_camera`, the odometry's
     /// geometric scale sigma_W (1/m).
     buffer: std::collections::VecDeque<(ImageF32, Se3, f64)>,
+    /// Buffered frames not yet fused into the current keyframe
+    /// ([`BufferedFusion::OnePerFrame`]), oldest first, as in `buffer`.
+    pending: std::collections::VecDeque<(ImageF32, Se3, f64)>,
     /// Covariance of the current keyframe relative to the chain's anchor (the newest odometry
     /// reference since the keyframe started), as a right perturbation in the anchor's frame
     /// (`[v; w]`, m and rad).
@@ -236,6 +239,7 @@ impl Slam {
             current: None,
             next_keyframe_id: map_keyframes,
             buffer: std::collections::VecDeque::new(),
+            pending: std::collections::VecDeque::new(),
             chain_covariance: Covariance6::ZERO,
             frontworld_from_anchor: Se3::IDENTITY,
             lost: map_keyframes > 0,
@@ -294,10 +298,12 @@ impl Slam {
     fn frontend_memory(&self, loop_records: usize) -> MemoryBreakdown {
         let (odometry, odometry_gpu) = self.odometry.memory_bytes();
         let (fusion, fusion_gpu) = self.fuser.memory_bytes();
-        let buffered = self.buffer.capacity() * std::mem::size_of::<(ImageF32, Se3, f64)>()
+        let entry = std::mem::size_of::<(ImageF32, Se3, f64)>();
+        let buffered = (self.buffer.capacity() + self.pending.capacity()) * entry
             + self
                 .buffer
                 .iter()
+                .chain(&self.pending)
                 .map(|(rho, _, _)| vec_bytes(&rho.data))
                 .sum::<usize>();
         MemoryBreakdown {
@@ -343,6 +349,9 @@ impl Slam {
     }
 
     fn finish_keyframe(&mut self) -> Result<(), SlamError> {
+        // Frames still waiting are fused now, so the keyframe takes in the same frames
+        // whatever the schedule.
+        while self.fuse_one_pending()? {}
         let Some(cur) = self.current.take() else {
             return Ok(());
         };
@@ -380,9 +389,14 @@ impl Slam {
         self.next_keyframe_id += 1;
         self.fuser.start(&frame.inverse_depth)?;
         let buffered = std::mem::take(&mut self.buffer);
-        for (rho, frontworld_from_b, sigma_geo) in &buffered {
-            let b_from_kf = frontworld_from_b.inverse() * frontworld_from_camera;
-            self.fuser.fuse(rho, &b_from_kf, *sigma_geo)?;
+        match self.config.buffered_fusion {
+            BufferedFusion::AtStart => {
+                for (rho, frontworld_from_b, sigma_geo) in &buffered {
+                    let b_from_kf = frontworld_from_b.inverse() * frontworld_from_camera;
+                    self.fuser.fuse(rho, &b_from_kf, *sigma_geo)?;
+                }
+            }
+            BufferedFusion::OnePerFrame => self.pending = buffered,
         }
         self.current = Some(CurrentKeyframe {
             id,
@@ -409,6 +423,22 @@ impl Slam {
         self.chain_covariance = Covariance6::ZERO;
         self.frontworld_from_anchor = frontworld_from_camera;
         Ok(id)
+    }
+
+    /// Fuses the newest buffered frame still waiting into the current keyframe; false when
+    /// none waits (or no keyframe is open).
+    fn fuse_one_pending(&mut self) -> Result<bool, SlamError> {
+        let Some(frontworld_from_kf) = self.current.as_ref().map(|c| c.frontworld_from_keyframe)
+        else {
+            self.pending.clear();
+            return Ok(false);
+        };
+        let Some((rho, frontworld_from_b, sigma_geo)) = self.pending.pop_back() else {
+            return Ok(false);
+        };
+        let b_from_kf = frontworld_from_b.inverse() * frontworld_from_kf;
+        self.fuser.fuse(&rho, &b_from_kf, sigma_geo)?;
+        Ok(true)
     }
 
     fn check_frame(&self, index: usize, frame: &RgbdFrame) -> Result<(), SlamError> {
@@ -524,6 +554,7 @@ impl Slam {
         // The first tracked frame builds the odometry reference.
         self.odometry.track(frame)?;
         self.buffer.clear();
+        self.pending.clear();
         let link = KeyframeLink::Relocalised {
             from: r.keyframe,
             from_from_this: r.keyframe_from_frame,
@@ -608,6 +639,7 @@ impl Slam {
             }
             self.finish_keyframe()?;
             self.buffer.clear();
+            self.pending.clear();
             self.lost = true;
             self.last_pose = None;
             record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -654,6 +686,7 @@ impl Slam {
         let counts = self
             .fuser
             .fuse(&frame.inverse_depth, &kf_from_camera.inverse(), sigma_geo)?;
+        self.fuse_one_pending()?;
         record.fusion_ms = tf.elapsed().as_secs_f64() * 1e3;
         record.keyframe_covisibility = counts.covisibility();
         record.keyframe = Some((kf_id, kf_from_camera));
