@@ -137,6 +137,15 @@ pub struct OdometryConfig {
     pub geometric: GeometricParam,
     /// Convergence threshold on the norm of the update twist (m and rad).
     pub convergence: f64,
+    /// Convergence threshold in pixels of the level being optimised: a level also stops when
+    /// the update twist's norm times the level's focal length (pixels) is below this, i.e.
+    /// the update moves image points by about that much (a rotation of `|w|` rad moves them
+    /// by `f |w|` pixels, a translation of `|v|` m at 1 m by `f |v|`). On a coarse level a
+    /// step that [`Self::convergence`] still counts as motion is a small fraction of a pixel.
+    /// 0 turns it off (only [`Self::convergence`] applies). Default 0.01: on the real
+    /// sequences it gave the best mean ATE against OpenCV of 0 / 0.01 / 0.02 / 0.05 with
+    /// fewer iterations (docs/notes.md).
+    pub convergence_pixels: f64,
     /// Initial guess from the previous inter-frame motion (constant velocity).
     pub constant_velocity: bool,
     /// Switch the reference frame when covisibility drops below this ratio; `None` aligns
@@ -172,6 +181,7 @@ impl Default for OdometryConfig {
             terms: Terms::Both,
             geometric: GeometricParam::InverseDepth,
             convergence: 1e-5,
+            convergence_pixels: 0.01,
             constant_velocity: true,
             reference_switch: Some(0.9),
             covisibility_level: 2,
@@ -216,6 +226,9 @@ impl OdometryConfig {
         }
         if self.iterations.is_empty() {
             return bad("iterations must list at least one count");
+        }
+        if !(self.convergence_pixels >= 0.0 && self.convergence_pixels.is_finite()) {
+            return bad("convergence_pixels must be finite and >= 0");
         }
         if self.max_samples < 64 {
             return bad("max_samples must be at least 64");

@@ -672,7 +672,8 @@ impl<K: Kernels> Tracker<K> {
                 params: p,
                 equations: ne,
             });
-            if norm < self.config.convergence {
+            let focal = f64::from(p.fx.max(p.fy));
+            if norm < self.config.convergence || norm * focal < self.config.convergence_pixels {
                 break;
             }
         }
