@@ -30,6 +30,7 @@ pub(crate) mod fast;
 pub(crate) mod filter;
 pub(crate) mod input;
 pub(crate) mod landmark;
+pub(crate) mod loops;
 pub(crate) mod metric;
 pub(crate) mod patch;
 pub(crate) mod state;
@@ -39,6 +40,10 @@ use std::path::PathBuf;
 pub use filter::{FrameReport, MonoSlam, MonoStats, StageTimes};
 pub use input::{load_camera, load_grey, unified_from_model, ImageSequence};
 pub use landmark::InverseDepthLandmark;
+pub use loops::{
+    CandidateCheck, KeyframePolicy, KeyframeQuery, KeyframeSelector, LoopingMono, LoopingReport,
+    MonoKeyframe, MonoLoopDetector, MonoLoopParams,
+};
 pub use metric::{MetricMono, MetricReport, MetricRun};
 pub use patch::PatchMode;
 pub use state::CameraState;
