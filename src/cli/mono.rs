@@ -740,7 +740,11 @@ fn loops_on_sequence(
     let kfs = sys.detector().keyframes();
     let mut found = Vec::new();
     for q in &queries {
-        if let Some(c) = q.best(params.min_normalised_score, params.min_inliers, params.min_inlier_ratio) {
+        if let Some(c) = q.best(
+            params.min_normalised_score,
+            params.min_inliers,
+            params.min_inlier_ratio,
+        ) {
             let (a, b) = (&kfs[q.keyframe], &kfs[c.keyframe]);
             println!(
                 "loop: keyframe {} (frame {}, {:.2} s) -> keyframe {} (frame {}, {:.2} s): normalised score {:.2}, {} of {} matches inliers, parallax {:.1} deg",
@@ -772,7 +776,13 @@ fn loops_synthetic(
     let params = loop_params(args)?;
     let truth = LoopTruth::default();
     let t0 = Instant::now();
-    let e = synthetic_loops(frames, cfg, Vocabulary::embedded_default()?, &params, &truth)?;
+    let e = synthetic_loops(
+        frames,
+        cfg,
+        Vocabulary::embedded_default()?,
+        &params,
+        &truth,
+    )?;
     let secs = t0.elapsed().as_secs_f64();
     for l in &e.loops {
         println!(
@@ -792,11 +802,21 @@ fn loops_synthetic(
         s.min_normalised_score, s.min_inliers, s.min_inlier_ratio, e.filter_ms, e.keyframe_ms,
         e.ate_rmse, secs
     );
-    println!("sweep (normalised score, inliers: detected / true -> precision, recall):");
+    println!(
+        "{} checked candidates are not true loops; the most inliers among them: {}",
+        e.false_candidates, e.false_candidate_max_inliers
+    );
+    println!("sweep (normalised score, inliers, inlier ratio: loops / true -> precision, recall):");
     for w in &e.sweep {
         println!(
-            "  {:>4.2} {:>3}: {:>3} / {:>3} -> {:.3}, {:.3}",
-            w.min_normalised_score, w.min_inliers, w.detected, w.true_positives, w.precision, w.recall
+            "  {:>4.2} {:>3} {:>4.2}: {:>3} / {:>3} -> {:.3}, {:.3}",
+            w.min_normalised_score,
+            w.min_inliers,
+            w.min_inlier_ratio,
+            w.detected,
+            w.true_positives,
+            w.precision,
+            w.recall
         );
     }
     if let Some(path) = &args.loops_json {

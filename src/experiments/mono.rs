@@ -224,7 +224,7 @@ pub struct ScoredLoop {
     pub query: usize,
     /// Matched (older) keyframe.
     pub candidate: usize,
-    /// Their frame indices.
+    /// Frame index of the query.
     pub query_frame: usize,
     /// Frame index of the candidate.
     pub candidate_frame: usize,
@@ -282,9 +282,14 @@ pub struct LoopEvaluation {
     pub loops: Vec<ScoredLoop>,
     /// Precision and recall at the parameters' thresholds.
     pub score: LoopScore,
-    /// Precision and recall over a grid of normalised-score and inlier thresholds (the
-    /// recorded candidates re-judged; same result as rerunning with those thresholds).
+    /// Precision and recall over a grid of normalised-score, inlier and inlier-ratio
+    /// thresholds (the recorded candidates re-judged; the same loops as a run with those
+    /// thresholds would accept).
     pub sweep: Vec<LoopScore>,
+    /// Candidates checked geometrically that are not true loops (whatever their score).
+    pub false_candidates: usize,
+    /// Most essential-matrix inliers of any of them: the margin below the inlier threshold.
+    pub false_candidate_max_inliers: usize,
     /// Length of the ground-truth path, metres.
     pub path_length: f64,
     /// The EKF's ATE after a Sim(3) alignment, metres.
@@ -361,8 +366,17 @@ pub fn loops(
     params: &MonoLoopParams,
     truth: &LoopTruth,
 ) -> Result<LoopEvaluation, MonoError> {
+    params.validate()?;
     let slam = MonoSlam::new(frames.camera, config.clone())?;
-    let mut sys = LoopingMono::new(slam, vocabulary, params.clone())?;
+    // Every candidate outside the temporal window among the best `max_candidates` is checked,
+    // whatever its score, so that the sweep can judge lower score thresholds than the
+    // parameters'; with a threshold the checked ones are the best `max_candidates` above it,
+    // as the detector itself would check.
+    let recording = MonoLoopParams {
+        min_normalised_score: 0.0,
+        ..params.clone()
+    };
+    let mut sys = LoopingMono::new(slam, vocabulary, recording)?;
     let mut estimate = Vec::with_capacity(frames.images.len());
     let mut filter_ms = Vec::with_capacity(frames.images.len());
     let mut keyframe_ms = Vec::new();
@@ -406,14 +420,23 @@ pub fn loops(
         l.candidate_frame = keyframe_frames[l.candidate];
     }
     let mut sweep = Vec::new();
-    for s in [0.3, 0.5, 0.7, 1.0] {
-        for n in [15, 30, 50, 80] {
-            if s >= params.min_normalised_score {
-                let t = (s, n.max(8), params.min_inlier_ratio);
-                sweep.push(score_loops(&queries, &kf_truth, &has_true, truth, t).0);
+    for s in [0.0, 0.3, 0.5, 0.7, 1.0] {
+        for n in [8, 15, 30, 50, 80] {
+            for r in [0.0, params.min_inlier_ratio] {
+                sweep.push(score_loops(&queries, &kf_truth, &has_true, truth, (s, n, r)).0);
             }
         }
     }
+    let false_inliers: Vec<usize> = queries
+        .iter()
+        .flat_map(|q| {
+            let kf_truth = &kf_truth;
+            q.candidates.iter().filter_map(move |c| {
+                let ok = truth.judge(&kf_truth[q.keyframe], &kf_truth[c.keyframe]).2;
+                (!ok).then_some(c.inliers)
+            })
+        })
+        .collect();
     let a = ate(&frames.ground_truth, &estimate, true)?;
     Ok(LoopEvaluation {
         params: params.clone(),
@@ -424,6 +447,8 @@ pub fn loops(
         loops: found,
         score,
         sweep,
+        false_candidates: false_inliers.len(),
+        false_candidate_max_inliers: false_inliers.iter().copied().max().unwrap_or(0),
         path_length: path_length(&frames.ground_truth),
         ate_rmse: a.translation.rmse,
         filter_ms: median(filter_ms),

@@ -28,8 +28,8 @@ use crate::camera::UnifiedCamera;
 use crate::geometry::Se3;
 use crate::image::ImageF32;
 use crate::place::{
-    extract_orb, match_descriptors, BowVector, Descriptor, KeyPoint, KeyframeDatabase,
-    MatchParams, OrbParams, PlaceError, QueryParams, Vocabulary,
+    extract_orb, match_descriptors, BowVector, Descriptor, KeyPoint, KeyframeDatabase, MatchParams,
+    OrbParams, PlaceError, QueryParams, Vocabulary,
 };
 
 /// When a frame of the EKF stream becomes a keyframe.
@@ -190,7 +190,11 @@ impl MonoLoopParams {
                 self.min_time_separation >= 0.0 && self.min_time_separation.is_finite(),
                 "must be finite and >= 0 s",
             ),
-            ("loops.max_candidates", self.max_candidates >= 1, "must be >= 1"),
+            (
+                "loops.max_candidates",
+                self.max_candidates >= 1,
+                "must be >= 1",
+            ),
             (
                 "loops.min_normalised_score",
                 self.min_normalised_score >= 0.0,
@@ -421,9 +425,9 @@ impl MonoLoopDetector {
                 .query(id, bows, reference.max(1e-12), &all)
                 .into_iter()
                 .filter(|c| {
-                    self.keyframes.get(c.keyframe_id).is_some_and(|k| {
-                        timestamp - k.timestamp >= self.params.min_time_separation
-                    })
+                    self.keyframes
+                        .get(c.keyframe_id)
+                        .is_some_and(|k| timestamp - k.timestamp >= self.params.min_time_separation)
                 })
                 .take(self.params.max_candidates)
                 .collect();
@@ -494,7 +498,11 @@ impl LoopingMono {
     }
 
     /// Processes the next frame (time stamp in seconds, intensity in [0, 255]).
-    pub fn process(&mut self, timestamp: f64, image: &ImageF32) -> Result<LoopingReport, MonoError> {
+    pub fn process(
+        &mut self,
+        timestamp: f64,
+        image: &ImageF32,
+    ) -> Result<LoopingReport, MonoError> {
         let filter = self.slam.process(timestamp, image)?;
         let t0 = std::time::Instant::now();
         let keyframe = if self.selector.update(timestamp, &self.slam) {
@@ -816,7 +824,10 @@ mod tests {
         let dt = pose
             .translation
             .angle_between(truth.translation.normalize());
-        assert!(dr < 1e-3 && dt < 1e-2, "rotation {dr} rad, direction {dt} rad");
+        assert!(
+            dr < 1e-3 && dt < 1e-2,
+            "rotation {dr} rad, direction {dt} rad"
+        );
     }
 
     #[test]

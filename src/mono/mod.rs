@@ -21,7 +21,9 @@
 //! model and Jacobians, initialisation with covariance), FAST-9 corners, ZNCC and catadioptric
 //! patch warping ([`PatchMode`]), [`MonoSlam`] (the SLAM loop: prediction, active search,
 //! 1-point RANSAC, update, map management, statistics), [`MetricMono`] (the filter with the
-//! metric scale from walking beside it, thesis 3.4), [`ImageSequence`] and [`load_camera`]
+//! metric scale from walking beside it, thesis 3.4), [`LoopingMono`] (the filter with loop
+//! detection from images beside it, thesis 3.3.2: [`KeyframeSelector`], [`MonoLoopDetector`]),
+//! [`ImageSequence`] and [`load_camera`]
 //! (image-only sequences and camera files). Runs on generated sequences with ground truth are in
 //! `rgbid::experiments::mono` (feature `experiments`).
 
