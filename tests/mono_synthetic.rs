@@ -132,6 +132,7 @@ fn catadioptric_walk_lapping_a_room_closes_true_loops_only() {
     );
     assert!(s.loop_queries > 0, "the walk must revisit places");
     assert!(s.true_positives >= 1, "no loop found");
+    let mut errors = Vec::new();
     for l in &e.loops {
         assert!(
             l.correct,
@@ -149,14 +150,24 @@ fn catadioptric_walk_lapping_a_room_closes_true_loops_only() {
             frames.ground_truth[l.candidate_frame].world_from_camera,
         );
         let truth = q.inverse() * c;
-        let error = (estimated.rotation * truth.rotation.inverse())
-            .angle()
+        let error = estimated
+            .rotation
+            .angle_between(truth.rotation)
             .to_degrees();
-        assert!(
-            error < 3.0,
-            "loop {} -> {}: rotation off by {error:.2} deg",
-            l.query_frame,
-            l.candidate_frame
+        eprintln!(
+            "loop {} -> {}: {:.2} m, {} of {} inliers, parallax {:.1} deg, rotation error {error:.2} deg",
+            l.query_frame, l.candidate_frame, l.true_distance_m, l.inliers, l.matches, l.parallax_deg
         );
+        errors.push(error);
     }
+    // At 240x240 a pixel is about a degree of the mirror's view: the relative rotation of a
+    // verified loop is typically good to a degree, and a wrong decomposition of the essential
+    // matrix (a twisted pair, a flipped baseline) would be off by tens of degrees.
+    errors.sort_by(f64::total_cmp);
+    let median = errors[errors.len() / 2];
+    let worst = errors[errors.len() - 1];
+    assert!(
+        median < 1.5 && worst < 5.0,
+        "rotation error median {median:.2} deg, worst {worst:.2} deg"
+    );
 }
