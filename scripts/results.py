@@ -368,24 +368,30 @@ def render_mono_loops(doc):
     for r in rows:
         e = r.get("evaluation", {})
         sc = e.get("score", {})
-        out += ["", f"Sweep on {r.get('sequence', '?')}: precision / recall (loops) by normalised score "
-                "(rows) and inliers (columns); inlier ratio >= 0 | >= "
-                f"{sc.get('min_inlier_ratio', '?')}.", ""]
         sweep = e.get("sweep", [])
         scores = sorted({w["min_normalised_score"] for w in sweep})
         inl = sorted({w["min_inliers"] for w in sweep})
         ratios = sorted({w["min_inlier_ratio"] for w in sweep})
         cell = {(w["min_normalised_score"], w["min_inliers"], w["min_inlier_ratio"]): w for w in sweep}
+        key = lambda w: (w["detected"], w["true_positives"])
+        shown = [q for q in ratios if q == sc.get("min_inlier_ratio")] or ratios[-1:]
+        same = all(key(cell[(a, n, q)]) == key(cell[(a, n, shown[0])])
+                   for a in scores for n in inl for q in ratios if (a, n, q) in cell and shown)
+        note = ("the same at every inlier ratio swept (" + ", ".join(f"{q:g}" for q in ratios) + ")"
+                if same else "other inlier ratios in the JSON")
+        out += ["", f"Sweep on {r.get('sequence', '?')}: precision / recall (loops accepted) by "
+                f"normalised score (rows) and inliers (columns), inlier ratio >= {shown[0] if shown else '?'}; "
+                f"{note}. {e.get('false_candidates', '?')} checked candidates were not true loops; the most "
+                f"inliers among them: {e.get('false_candidate_max_inliers', '?')}"
+                + (" (true positions {:.2} m apart, optical axes {:.0} degrees)".format(*e["false_candidate_max_truth"])
+                   if e.get("false_candidate_max_truth") else "") + ".", ""]
         sbody = []
-        for s in scores:
-            line = [f"{s:.2f}"]
+        for a in scores:
+            line = [f"{a:.2f}"]
             for n in inl:
-                parts = []
-                for q in ratios:
-                    w = cell.get((s, n, q))
-                    parts.append("-" if w is None else
-                                 f"{w['precision']:.2f}/{w['recall']:.2f} ({w['detected']})")
-                line.append(" \\| ".join(parts))
+                w = cell.get((a, n, shown[0])) if shown else None
+                line.append("-" if w is None else
+                            f"{w['precision']:.3f} / {w['recall']:.3f} ({w['detected']})")
             sbody.append(line)
         out += table(["score \\ inliers"] + [str(n) for n in inl], sbody)
         false = [l for l in e.get("loops", []) if not l.get("correct")]

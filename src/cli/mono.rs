@@ -803,8 +803,13 @@ fn loops_synthetic(
         e.ate_rmse, secs
     );
     println!(
-        "{} checked candidates are not true loops; the most inliers among them: {}",
-        e.false_candidates, e.false_candidate_max_inliers
+        "{} checked candidates are not true loops; the most inliers among them: {}{}",
+        e.false_candidates,
+        e.false_candidate_max_inliers,
+        e.false_candidate_max_truth
+            .map_or(String::new(), |(d, a)| format!(
+                " (true positions {d:.2} m apart, optical axes {a:.0} deg)"
+            ))
     );
     println!("sweep (normalised score, inliers, inlier ratio: loops / true -> precision, recall):");
     for w in &e.sweep {

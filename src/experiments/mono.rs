@@ -290,6 +290,8 @@ pub struct LoopEvaluation {
     pub false_candidates: usize,
     /// Most essential-matrix inliers of any of them: the margin below the inlier threshold.
     pub false_candidate_max_inliers: usize,
+    /// That candidate's `(true distance m, true optical-axis angle degrees)` to its query.
+    pub false_candidate_max_truth: Option<(f64, f64)>,
     /// Length of the ground-truth path, metres.
     pub path_length: f64,
     /// The EKF's ATE after a Sim(3) alignment, metres.
@@ -427,16 +429,17 @@ pub fn loops(
             }
         }
     }
-    let false_inliers: Vec<usize> = queries
+    let false_checks: Vec<(usize, f64, f64)> = queries
         .iter()
         .flat_map(|q| {
             let kf_truth = &kf_truth;
             q.candidates.iter().filter_map(move |c| {
-                let ok = truth.judge(&kf_truth[q.keyframe], &kf_truth[c.keyframe]).2;
-                (!ok).then_some(c.inliers)
+                let (d, a, ok) = truth.judge(&kf_truth[q.keyframe], &kf_truth[c.keyframe]);
+                (!ok).then_some((c.inliers, d, a))
             })
         })
         .collect();
+    let worst_false = false_checks.iter().max_by_key(|c| c.0);
     let a = ate(&frames.ground_truth, &estimate, true)?;
     Ok(LoopEvaluation {
         params: params.clone(),
@@ -447,8 +450,9 @@ pub fn loops(
         loops: found,
         score,
         sweep,
-        false_candidates: false_inliers.len(),
-        false_candidate_max_inliers: false_inliers.iter().copied().max().unwrap_or(0),
+        false_candidates: false_checks.len(),
+        false_candidate_max_inliers: worst_false.map_or(0, |c| c.0),
+        false_candidate_max_truth: worst_false.map(|c| (c.1, c.2)),
         path_length: path_length(&frames.ground_truth),
         ate_rmse: a.translation.rmse,
         filter_ms: median(filter_ms),

@@ -372,7 +372,6 @@ impl MonoLoopDetector {
         world_from_camera: Se3,
         image: &ImageF32,
     ) -> Result<KeyframeQuery, MonoError> {
-        let place = |e: PlaceError| MonoError::Camera(format!("place recognition: {e}"));
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         if image.width != w || image.height != h {
             return Err(MonoError::ImageSize {
@@ -383,7 +382,7 @@ impl MonoLoopDetector {
                 expected_height: h,
             });
         }
-        let orb = extract_orb(image, Some(&self.mask), &self.params.orb).map_err(place)?;
+        let orb = extract_orb(image, Some(&self.mask), &self.params.orb)?;
         let mut keypoints = Vec::with_capacity(orb.len());
         let mut descriptors = Vec::with_capacity(orb.len());
         let mut bearings = Vec::with_capacity(orb.len());
@@ -412,7 +411,7 @@ impl MonoLoopDetector {
             candidates: Vec::new(),
         };
         if id > 0 {
-            let reference = self.database.score_against(bows, id - 1).map_err(place)?;
+            let reference = self.database.score_against(bows, id - 1)?;
             result.reference_score = reference;
             let all = QueryParams {
                 max_results: usize::MAX,
@@ -441,9 +440,7 @@ impl MonoLoopDetector {
                 result.candidates.push(check);
             }
         }
-        self.database
-            .add(id, vec![query.bow.clone()])
-            .map_err(place)?;
+        self.database.add(id, vec![query.bow.clone()])?;
         self.keyframes.push(query);
         Ok(result)
     }

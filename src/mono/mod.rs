@@ -130,6 +130,9 @@ pub enum MonoError {
     /// Trajectory evaluation failed.
     #[error(transparent)]
     Eval(#[from] crate::eval::EvalError),
+    /// Place recognition on a keyframe failed ([`MonoLoopDetector`]).
+    #[error("place recognition: {0}")]
+    Place(#[from] crate::place::PlaceError),
     /// The metric scale estimation beside the filter failed ([`MetricMono`]).
     #[error("scale: {0}")]
     Scale(#[from] crate::scale::ScaleError),
