@@ -29,7 +29,7 @@ use crate::geometry::Se3;
 use crate::image::ImageF32;
 use crate::place::{
     extract_orb, match_descriptors, BowVector, Descriptor, KeyPoint, KeyframeDatabase, MatchParams,
-    OrbParams, PlaceError, QueryParams, Vocabulary,
+    OrbParams, QueryParams, Vocabulary,
 };
 
 /// When a frame of the EKF stream becomes a keyframe.
