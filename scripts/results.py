@@ -335,6 +335,71 @@ def render_mono_walks(doc):
                   "end %", "length", "final mean %", "end %", "length", "filter ms/frame",
                   "scale ms/frame", "EKF Sim(3) ATE %"], body)
     return out
+def render_mono_loops(doc):
+    """Monocular loop detection from images on generated walks: precision / recall and a sweep."""
+    rows = [r for r in doc.get("rows", []) if not r.get("missing")]
+    first = (rows[0].get("evaluation", {}) if rows else {})
+    p, t = first.get("params", {}), first.get("truth", {})
+    out = ["`rgbid mono --synthetic omni --loops` on generated catadioptric walks (30 Hz, the default "
+           "pace schedule with stops): keyframes from the EKF stream, ORB + bag of words inside the "
+           f"mirror, candidates at least {p.get('min_time_separation', '?')} s older than the query "
+           f"(best {p.get('max_candidates', '?')} verified), essential-matrix RANSAC on the bearings "
+           f"({p.get('angular_threshold', '?')} rad). A true loop: true camera positions within "
+           f"{t.get('max_distance', '?')} m and optical axes within {t.get('max_axis_angle_deg', '?')} "
+           "degrees (ground truth only scores). Precision: true / accepted loops (at most one per "
+           "query keyframe); recall: query keyframes with a true accepted loop / query keyframes that "
+           "have a true partner outside the temporal window. Defaults: normalised score >= "
+           f"{p.get('min_normalised_score', '?')}, inliers >= {p.get('min_inliers', '?')}, inlier ratio "
+           f">= {p.get('min_inlier_ratio', '?')}.", ""]
+    body = []
+    for r in doc.get("rows", []):
+        if r.get("missing"):
+            body.append([r["sequence"], "(failed)"] + ["-"] * 8)
+            continue
+        e = r.get("evaluation", {})
+        sc = e.get("score", {})
+        body.append([r.get("sequence", "?"), f"{r.get('width', '?')}x{r.get('height', '?')}",
+                     num(e.get("path_length"), ".1f"), len(e.get("keyframe_frames", [])),
+                     sc.get("loop_queries", "-"), f"{sc.get('true_positives', '-')}/{sc.get('detected', '-')}",
+                     num(sc.get("precision"), ".3f"), num(sc.get("recall"), ".3f"),
+                     num(e.get("keyframe_ms"), ".1f"), num(e.get("ate_rmse"), ".3f")])
+    out += table(["walk", "image", "path m", "keyframes", "with a true partner", "true/loops",
+                  "precision", "recall", "loop ms/keyframe", "EKF Sim(3) ATE m"], body)
+    for r in rows:
+        e = r.get("evaluation", {})
+        sc = e.get("score", {})
+        sweep = e.get("sweep", [])
+        scores = sorted({w["min_normalised_score"] for w in sweep})
+        inl = sorted({w["min_inliers"] for w in sweep})
+        ratios = sorted({w["min_inlier_ratio"] for w in sweep})
+        cell = {(w["min_normalised_score"], w["min_inliers"], w["min_inlier_ratio"]): w for w in sweep}
+        key = lambda w: (w["detected"], w["true_positives"])
+        shown = [q for q in ratios if q == sc.get("min_inlier_ratio")] or ratios[-1:]
+        same = all(key(cell[(a, n, q)]) == key(cell[(a, n, shown[0])])
+                   for a in scores for n in inl for q in ratios if (a, n, q) in cell and shown)
+        note = ("the same at every inlier ratio swept (" + ", ".join(f"{q:g}" for q in ratios) + ")"
+                if same else "other inlier ratios in the JSON")
+        out += ["", f"Sweep on {r.get('sequence', '?')}: precision / recall (loops accepted) by "
+                f"normalised score (rows) and inliers (columns), inlier ratio >= {shown[0] if shown else '?'}; "
+                f"{note}. {e.get('false_candidates', '?')} checked candidates were not true loops; the most "
+                f"inliers among them: {e.get('false_candidate_max_inliers', '?')}"
+                + (" (true positions {:.2} m apart, optical axes {:.0} degrees)".format(*e["false_candidate_max_truth"])
+                   if e.get("false_candidate_max_truth") else "") + ".", ""]
+        sbody = []
+        for a in scores:
+            line = [f"{a:.2f}"]
+            for n in inl:
+                w = cell.get((a, n, shown[0])) if shown else None
+                line.append("-" if w is None else
+                            f"{w['precision']:.3f} / {w['recall']:.3f} ({w['detected']})")
+            sbody.append(line)
+        out += table(["score \\ inliers"] + [str(n) for n in inl], sbody)
+        false = [l for l in e.get("loops", []) if not l.get("correct")]
+        if false:
+            out += ["", "False loops at the defaults (frames, true distance m, axis angle deg, inliers): "
+                    + "; ".join(f"{l['query_frame']}->{l['candidate_frame']} ({l['true_distance_m']:.2f}, "
+                                f"{l['true_axis_angle_deg']:.0f}, {l['inliers']})" for l in false)]
+    return out
 def render_layouts(doc):
     out = [f"`rgbid slam DIR` on one generated sequence ({doc.get('scene', '?')} "
            f"{doc.get('trajectory', '?')}, {doc.get('frames', '?')} frames at {doc.get('width', '?')}x"
@@ -424,7 +489,7 @@ def render_thesis_tables(doc):
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
              "load": render_load, "thesis-tables": render_thesis_tables,
-             "scale-sweep": render_scale_sweep, "mono-walks": render_mono_walks,
+             "scale-sweep": render_scale_sweep, "mono-walks": render_mono_walks, "mono-loops": render_mono_loops,
              "layouts": render_layouts, "camera-rate": render_camera_rate}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
@@ -433,6 +498,7 @@ TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odomet
           "thesis-tables": "Thesis tables 4.1-4.3 and 6.1 on real data",
           "load": "SLAM under load", "scale-sweep": "Walking scale: t_DFT / t_upd (table 3.1)",
           "mono-walks": "Metric monocular SLAM on generated walks",
+          "mono-loops": "Monocular loop detection from images",
           "layouts": "`rgbid slam` on every dataset layout",
           "camera-rate": "Camera rate on real data (`scripts/camera_rate.py`)"}
 

@@ -9,13 +9,18 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::camera::UnifiedCamera;
 use rgbid::eval::ate::ate;
-use rgbid::experiments::mono::{render, run as run_synthetic, SyntheticCamera, SyntheticSpec};
+use rgbid::experiments::mono::{
+    loops as synthetic_loops, render, run as run_synthetic, LoopTruth, SyntheticCamera,
+    SyntheticSpec,
+};
 use rgbid::gpu::ComputeBackend;
 use rgbid::image::ImageF32;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::mono::{
-    load_camera, FrameReport, ImageSequence, MetricMono, MonoConfig, MonoSlam, PatchMode,
+    load_camera, FrameReport, ImageSequence, LoopingMono, MetricMono, MonoConfig, MonoLoopParams,
+    MonoSlam, PatchMode,
 };
+use rgbid::place::Vocabulary;
 use rgbid::scale::{arc_length_error_from_start, DynScaleConfig, WalkingModel};
 use rgbid::trajectory::TimedPose;
 
@@ -113,6 +118,26 @@ pub struct Args {
     /// Print the median ms/frame and per-stage medians.
     #[arg(long)]
     bench: bool,
+    /// Detect loops from the images (thesis 3.3.2): keyframes from the filter stream (when
+    /// fewer than half of the landmarks tracked at the last keyframe are still tracked, at most
+    /// 2 s and at least 0.25 s apart), ORB + bag of words (the embedded vocabulary) with the
+    /// mirror's blind areas masked, candidates at least 10 s older than the query, and an
+    /// essential matrix fitted by RANSAC to the matched bearings (0.01 rad). Prints the loops;
+    /// with --synthetic also precision and recall against the ground truth (a true loop: true
+    /// camera positions within 1.5 m, optical axes within 90 degrees).
+    #[arg(long, conflicts_with_all = ["walker_height", "table21"])]
+    loops: bool,
+    /// With --loops: a JSON report (loops, every keyframe's candidates and checks, and with
+    /// --synthetic precision / recall over a grid of thresholds).
+    #[arg(long, requires = "loops")]
+    loops_json: Option<PathBuf>,
+    /// With --loops: smallest normalised bag-of-words score (score against the candidate over
+    /// score against the previous keyframe) of a candidate that is verified, >= 0 [default: 0.3].
+    #[arg(long, requires = "loops", value_parser = crate::cli::options::range::non_negative)]
+    loop_score: Option<f64>,
+    /// With --loops: fewest essential-matrix inliers of a verified loop, >= 8 [default: 30].
+    #[arg(long, requires = "loops", value_parser = crate::cli::options::range::at_least_eight)]
+    loop_inliers: Option<usize>,
     /// Print the thesis' table 2.1 (FI, Rm, Rf, ATE) for warped vs plain patches at ZNCC
     /// thresholds 0.8 / 0.9 / 0.95 on a synthetic catadioptric sequence.
     #[arg(long)]
@@ -188,6 +213,10 @@ pub fn run(args: Args) -> Result<()> {
         let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
         super::outputs::output_file(json, "--json", &inputs)?;
     }
+    if let Some(json) = &args.loops_json {
+        let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
+        super::outputs::output_file(json, "--loops-json", &inputs)?;
+    }
     if let Some(out) = &args.out {
         let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
         super::outputs::output_file(out, "--out", &inputs)?;
@@ -241,6 +270,10 @@ pub fn run(args: Args) -> Result<()> {
             frames,
             gt.as_deref(),
         );
+    }
+    if args.loops {
+        let frames = (0..seq.len()).map_while(|i| seq.load(i));
+        return loops_on_sequence(&args, camera, &cfg, seq.len(), frames);
     }
     let mut slam = MonoSlam::new(camera, cfg.clone())?;
     let bar = progress(seq.len(), "mono");
@@ -371,6 +404,9 @@ fn synthetic(args: &Args, kind: SynthArg) -> Result<()> {
             images,
             Some(&frames.ground_truth),
         );
+    }
+    if args.loops {
+        return loops_synthetic(args, &spec, &frames, &cfg);
     }
     let r = run_synthetic(&frames, &cfg)?;
     if let Some(out) = &args.out {
@@ -656,4 +692,146 @@ fn path_length(p: &[TimedPose]) -> f64 {
     p.windows(2)
         .map(|w| (w[1].world_from_camera.translation - w[0].world_from_camera.translation).length())
         .sum()
+}
+
+/// Loop-detection parameters: defaults and the `--loop-*` flags.
+fn loop_params(args: &Args) -> Result<MonoLoopParams> {
+    let mut p = MonoLoopParams::default();
+    if let Some(v) = args.loop_score {
+        p.min_normalised_score = v;
+    }
+    if let Some(v) = args.loop_inliers {
+        p.min_inliers = v;
+    }
+    p.validate()?;
+    Ok(p)
+}
+
+/// `--loops` on a sequence folder: prints the verified loops.
+fn loops_on_sequence(
+    args: &Args,
+    camera: UnifiedCamera,
+    cfg: &MonoConfig,
+    len: usize,
+    frames: impl Iterator<Item = Result<(f64, ImageF32), rgbid::mono::MonoError>>,
+) -> Result<()> {
+    let params = loop_params(args)?;
+    let slam = MonoSlam::new(camera, cfg.clone())?;
+    let mut sys = LoopingMono::new(slam, Vocabulary::embedded_default()?, params.clone())?;
+    let bar = progress(len, "mono --loops");
+    let mut queries = Vec::new();
+    let mut estimate = Vec::with_capacity(len);
+    for frame in frames {
+        let (t, img) = frame?;
+        let r = sys.process(t, &img)?;
+        estimate.push(TimedPose {
+            timestamp: t,
+            world_from_camera: r.filter.world_from_camera,
+        });
+        queries.extend(r.keyframe);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    if let Some(out) = &args.out {
+        write_tum(out, &estimate)?;
+        write_sidecar(out, cfg, &ComputeBackend::Cpu)?;
+        println!("wrote {} poses to {}", estimate.len(), out.display());
+    }
+    let kfs = sys.detector().keyframes();
+    let mut found = Vec::new();
+    for q in &queries {
+        if let Some(c) = q.best(
+            params.min_normalised_score,
+            params.min_inliers,
+            params.min_inlier_ratio,
+        ) {
+            let (a, b) = (&kfs[q.keyframe], &kfs[c.keyframe]);
+            println!(
+                "loop: keyframe {} (frame {}, {:.2} s) -> keyframe {} (frame {}, {:.2} s): normalised score {:.2}, {} of {} matches inliers, parallax {:.1} deg",
+                q.keyframe, a.frame, a.timestamp, c.keyframe, b.frame, b.timestamp,
+                c.normalised_score, c.inliers, c.matches, c.parallax_deg
+            );
+            found.push(*c);
+        }
+    }
+    println!("{} keyframes, {} loops verified", kfs.len(), found.len());
+    if let Some(path) = &args.loops_json {
+        let doc = serde_json::json!({
+            "params": params,
+            "keyframe_frames": kfs.iter().map(|k| k.frame).collect::<Vec<_>>(),
+            "queries": queries,
+        });
+        super::report::write(path, "mono-loops", &super::report::meta(Vec::new()), &doc)?;
+    }
+    Ok(())
+}
+
+/// `--loops --synthetic`: loops scored against the ground truth.
+fn loops_synthetic(
+    args: &Args,
+    spec: &SyntheticSpec,
+    frames: &rgbid::experiments::mono::SyntheticFrames,
+    cfg: &MonoConfig,
+) -> Result<()> {
+    let params = loop_params(args)?;
+    let truth = LoopTruth::default();
+    let t0 = Instant::now();
+    let e = synthetic_loops(
+        frames,
+        cfg,
+        Vocabulary::embedded_default()?,
+        &params,
+        &truth,
+    )?;
+    let secs = t0.elapsed().as_secs_f64();
+    for l in &e.loops {
+        println!(
+            "loop: keyframe {} (frame {}) -> keyframe {} (frame {}): normalised score {:.2}, {} of {} matches inliers, parallax {:.1} deg; truth {:.2} m apart, axes {:.0} deg -> {}",
+            l.query, l.query_frame, l.candidate, l.candidate_frame, l.normalised_score,
+            l.inliers, l.matches, l.parallax_deg, l.true_distance_m, l.true_axis_angle_deg,
+            if l.correct { "true" } else { "FALSE" }
+        );
+    }
+    let s = &e.score;
+    println!(
+        "{} frames ({:.1} m), {} keyframes: {} loops, {} true; {} keyframes have a true loop \
+         partner >= {} s older -> precision {:.3}, recall {:.3} (score >= {}, inliers >= {}, ratio >= {}); \
+         filter {:.2} ms/frame, loops {:.1} ms/keyframe (median); EKF Sim(3) ATE {:.3} m; {:.1} s",
+        e.frames, e.path_length, e.keyframe_frames.len(), s.detected, s.true_positives,
+        s.loop_queries, params.min_time_separation, s.precision, s.recall,
+        s.min_normalised_score, s.min_inliers, s.min_inlier_ratio, e.filter_ms, e.keyframe_ms,
+        e.ate_rmse, secs
+    );
+    println!(
+        "{} checked candidates are not true loops; the most inliers among them: {}{}",
+        e.false_candidates,
+        e.false_candidate_max_inliers,
+        e.false_candidate_max_truth
+            .map_or(String::new(), |(d, a)| format!(
+                " (true positions {d:.2} m apart, optical axes {a:.0} deg)"
+            ))
+    );
+    println!("sweep (normalised score, inliers, inlier ratio: loops / true -> precision, recall):");
+    for w in &e.sweep {
+        println!(
+            "  {:>4.2} {:>3} {:>4.2}: {:>3} / {:>3} -> {:.3}, {:.3}",
+            w.min_normalised_score,
+            w.min_inliers,
+            w.min_inlier_ratio,
+            w.detected,
+            w.true_positives,
+            w.precision,
+            w.recall
+        );
+    }
+    if let Some(path) = &args.loops_json {
+        let doc = serde_json::json!({
+            "sequence": format!("{} / {} ({} frames, seed {})", spec.scene, spec.trajectory, spec.frames, spec.seed),
+            "width": spec.width,
+            "height": spec.height,
+            "evaluation": e,
+        });
+        super::report::write(path, "mono-loops", &super::report::meta(Vec::new()), &doc)?;
+    }
+    Ok(())
 }

@@ -358,6 +358,11 @@ pub mod range {
         integer(s, 2, usize::MAX)
     }
 
+    /// A whole number >= 8 (an 8-point essential-matrix sample).
+    pub fn at_least_eight(s: &str) -> Result<usize, String> {
+        integer(s, 8, usize::MAX)
+    }
+
     /// Pyramid levels: 1 to 8.
     pub fn pyramid_levels(s: &str) -> Result<usize, String> {
         integer(s, 1, 8)

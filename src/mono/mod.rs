@@ -21,7 +21,9 @@
 //! model and Jacobians, initialisation with covariance), FAST-9 corners, ZNCC and catadioptric
 //! patch warping ([`PatchMode`]), [`MonoSlam`] (the SLAM loop: prediction, active search,
 //! 1-point RANSAC, update, map management, statistics), [`MetricMono`] (the filter with the
-//! metric scale from walking beside it, thesis 3.4), [`ImageSequence`] and [`load_camera`]
+//! metric scale from walking beside it, thesis 3.4), [`LoopingMono`] (the filter with loop
+//! detection from images beside it, thesis 3.3.2: [`KeyframeSelector`], [`MonoLoopDetector`]),
+//! [`ImageSequence`] and [`load_camera`]
 //! (image-only sequences and camera files). Runs on generated sequences with ground truth are in
 //! `rgbid::experiments::mono` (feature `experiments`).
 
@@ -30,6 +32,7 @@ pub(crate) mod fast;
 pub(crate) mod filter;
 pub(crate) mod input;
 pub(crate) mod landmark;
+pub(crate) mod loops;
 pub(crate) mod metric;
 pub(crate) mod patch;
 pub(crate) mod state;
@@ -39,6 +42,10 @@ use std::path::PathBuf;
 pub use filter::{FrameReport, MonoSlam, MonoStats, StageTimes};
 pub use input::{load_camera, load_grey, unified_from_model, ImageSequence};
 pub use landmark::InverseDepthLandmark;
+pub use loops::{
+    CandidateCheck, KeyframePolicy, KeyframeQuery, KeyframeSelector, LoopingMono, LoopingReport,
+    MonoKeyframe, MonoLoopDetector, MonoLoopParams,
+};
 pub use metric::{MetricMono, MetricReport, MetricRun};
 pub use patch::PatchMode;
 pub use state::CameraState;
@@ -123,6 +130,9 @@ pub enum MonoError {
     /// Trajectory evaluation failed.
     #[error(transparent)]
     Eval(#[from] crate::eval::EvalError),
+    /// Place recognition on a keyframe failed ([`MonoLoopDetector`]).
+    #[error("place recognition: {0}")]
+    Place(#[from] crate::place::PlaceError),
     /// The metric scale estimation beside the filter failed ([`MetricMono`]).
     #[error("scale: {0}")]
     Scale(#[from] crate::scale::ScaleError),
