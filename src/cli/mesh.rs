@@ -110,7 +110,16 @@ pub fn run(args: Args) -> Result<()> {
             let Some(path) = &args.volume else {
                 bail!("give a sequence with --poses, or --volume");
             };
-            TsdfVolume::load(path, None, &backend)?
+            let t = Instant::now();
+            let v = TsdfVolume::load(path, None, &backend)?;
+            log::info!(
+                "loaded {} ({} frames, {} blocks) in {:.2} s",
+                path.display(),
+                v.frames(),
+                v.block_count(),
+                t.elapsed().as_secs_f64()
+            );
+            v
         }
     };
     let t = Instant::now();
