@@ -174,7 +174,8 @@ impl TsdfVolume {
     /// What the volume shows from ``world_from_camera`` (``float64[4, 4]``) through
     /// ``camera`` (default: the volume's): a dict of ``depth`` (``float32[H, W]``, metres
     /// along the optical axis, 0 where no surface), ``normals`` (``float32[H, W, 3]``, unit,
-    /// camera frame, facing the camera; 0 where no surface) and ``colour``
+    /// camera frame, facing the camera; 0 where no surface, or where a neighbouring voxel is
+    /// unobserved) and ``colour``
     /// (``uint8[H, W, 3]`` RGB).
     #[pyo3(signature = (world_from_camera, camera = None))]
     fn ray_cast<'py>(
@@ -215,10 +216,10 @@ impl TsdfVolume {
     fn extract_mesh<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
         let inner = &self.inner;
         let m = py.detach(|| -> PyResult<_> { locked(inner)?.extract_mesh().map_err(runtime) })?;
-        fn rows<T: Copy + numpy::Element, const K: usize>(
-            py: Python<'_>,
+        fn rows<'py, T: Copy + numpy::Element, const K: usize>(
+            py: Python<'py>,
             v: &[[T; K]],
-        ) -> PyResult<Bound<'_, PyArray2<T>>> {
+        ) -> PyResult<Bound<'py, PyArray2<T>>> {
             let flat: Vec<T> = v.iter().flatten().copied().collect();
             Ok(Array2::from_shape_vec((v.len(), K), flat)
                 .map_err(value)?
