@@ -187,9 +187,8 @@ impl TsdfVolume {
         let pose = pose_from_matrix(world_from_camera)?;
         let cam = camera.unwrap_or_else(|| self.camera.clone()).undistorted();
         let inner = &self.inner;
-        let r = py.detach(|| -> PyResult<_> {
-            locked(inner)?.ray_cast(&cam, &pose).map_err(tsdf_err)
-        })?;
+        let r = py
+            .detach(|| -> PyResult<_> { locked(inner)?.ray_cast(&cam, &pose).map_err(tsdf_err) })?;
         let (w, h) = (cam.width as usize, cam.height as usize);
         let depth = Array2::from_shape_vec((h, w), r.depth.data().to_vec()).map_err(value)?;
         let normals = Array3::from_shape_vec(
