@@ -174,10 +174,13 @@ impl Fields<'_> {
     }
 }
 
+/// A file's content: header, block coordinates per slot, voxels slot after slot.
+pub(crate) type Contents = (Header, Vec<[i32; 3]>, Vec<Voxel>);
+
 /// Reads and checks a whole file: header, block coordinates (within the key range, no block
 /// twice) and voxels (finite distance, finite non-negative weight, 24-bit colour), and the
 /// CRC. Errors name `path` and the cause.
-pub(crate) fn read(path: &Path) -> Result<(Header, Vec<[i32; 3]>, Vec<Voxel>), TsdfError> {
+pub(crate) fn read(path: &Path) -> Result<Contents, TsdfError> {
     let file = std::fs::File::open(path).map_err(|e| IoError::file(path, e))?;
     let len = file.metadata().map_err(|e| IoError::file(path, e))?.len();
     let mut r = CrcReader {
