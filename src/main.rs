@@ -46,7 +46,8 @@ enum Command {
     /// Superjut segmentation: segment images, neg-entropy images, masks and a feature CSV.
     Segment(cli::segment::Args),
     /// Dense TSDF reconstruction: integrates every frame of a TUM sequence at the poses of a
-    /// trajectory and writes a coloured mesh (PLY).
+    /// trajectory (into a new volume, or a saved one with --volume) and writes a coloured
+    /// mesh (PLY); --save-volume keeps the volume.
     Mesh(cli::mesh::Args),
     /// Pose-graph and curve-graph optimisation.
     #[command(subcommand)]

@@ -127,6 +127,55 @@ class Slam:
     @property
     def backend(self) -> str: ...
 
+class TsdfVolume:
+    """Sparse TSDF volume in the world frame (blocks of 8^3 voxels): integrate frames at known
+    poses, ray cast, extract a coloured mesh, save and load."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        voxel: float = 0.01,
+        min_depth: float = 0.3,
+        max_depth: float = 4.0,
+        backend: str = "auto",
+    ) -> None: ...
+    @staticmethod
+    def load(path: _Path, camera: Optional[Camera] = None, backend: str = "auto") -> "TsdfVolume": ...
+    def save(self, path: _Path) -> None: ...
+    def integrate(
+        self,
+        depth: Union[npt.NDArray[np.uint16], npt.NDArray[np.float32]],
+        depth_factor: Optional[float],
+        world_from_camera: npt.NDArray[np.float64],
+        image: Optional[npt.NDArray[np.uint8]] = None,
+    ) -> int:
+        """Blocks the frame touched."""
+    def ray_cast(
+        self, world_from_camera: npt.NDArray[np.float64], camera: Optional[Camera] = None
+    ) -> Dict[str, Any]:
+        """``depth`` ``float32[H, W]`` metres (0 = no surface), ``normals``
+        ``float32[H, W, 3]`` (camera frame), ``colour`` ``uint8[H, W, 3]``."""
+    def extract_mesh(
+        self,
+    ) -> Tuple[
+        npt.NDArray[np.float32],
+        npt.NDArray[np.uint32],
+        npt.NDArray[np.float32],
+        npt.NDArray[np.uint8],
+    ]:
+        """``(vertices float32[N, 3] metres world frame, triangles uint32[M, 3], normals
+        float32[N, 3], colours uint8[N, 3])``."""
+    @property
+    def params(self) -> Dict[str, Any]: ...
+    @property
+    def block_count(self) -> int: ...
+    @property
+    def frames(self) -> int: ...
+    @property
+    def backend(self) -> str: ...
+    @property
+    def camera(self) -> Camera: ...
+
 _Frame = Tuple[float, npt.NDArray[np.uint8], npt.NDArray[np.uint16], float]
 
 class Sequence:

@@ -16,6 +16,7 @@ mod frames;
 mod sequence;
 mod systems;
 mod tools;
+mod volume;
 
 pyo3::create_exception!(
     _rgbid,
@@ -34,6 +35,7 @@ fn _rgbid(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<systems::SlamResult>()?;
     m.add_class::<systems::EventStream>()?;
     m.add_class::<sequence::Sequence>()?;
+    m.add_class::<volume::TsdfVolume>()?;
     m.add_function(wrap_pyfunction!(sequence::read_sequence, m)?)?;
     m.add_function(wrap_pyfunction!(sequence::synth_render, m)?)?;
     m.add_function(wrap_pyfunction!(tools::read_trajectory, m)?)?;

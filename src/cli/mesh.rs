@@ -26,15 +26,28 @@ use super::bench::median;
 
 /// Arguments of `rgbid mesh`.
 #[derive(clap::Args)]
+#[command(group(clap::ArgGroup::new("input").required(true).multiple(true).args(["sequence", "volume"])))]
 pub struct Args {
-    /// TUM-layout sequence folder (rgb/, depth/, associations or rgb.txt + depth.txt).
-    pub sequence: PathBuf,
+    /// TUM-layout sequence folder (rgb/, depth/, associations or rgb.txt + depth.txt). May be
+    /// left out with --volume (a mesh of the saved volume alone).
+    #[arg(requires = "poses")]
+    pub sequence: Option<PathBuf>,
     /// Trajectory (TUM format, `world_from_camera`); frames are matched to poses by time
-    /// stamp within `--max-diff` seconds, unmatched frames are skipped.
-    #[arg(long)]
-    pub poses: PathBuf,
-    /// Voxel edge, metres (blocks are 8 voxels along each side) (> 0).
-    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.01)]
+    /// stamp within `--max-diff` seconds, unmatched frames are skipped. Needed with a
+    /// sequence.
+    #[arg(long, requires = "sequence")]
+    pub poses: Option<PathBuf>,
+    /// Start from this saved volume (`--save-volume`, `rgbid slam --mesh`'s volume.tsdf)
+    /// instead of an empty one: its voxel size and depth range apply, and the sequence's
+    /// frames, if any, are integrated into it.
+    #[arg(long, value_name = "FILE")]
+    pub volume: Option<PathBuf>,
+    /// Also save the volume after integration (rgbid's binary .tsdf format, for --volume and
+    /// `rgbid.TsdfVolume.load`).
+    #[arg(long, value_name = "FILE")]
+    pub save_volume: Option<PathBuf>,
+    /// Voxel edge, metres (blocks are 8 voxels along each side) (> 0). Not with --volume.
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.01, conflicts_with = "volume")]
     pub voxel: f64,
     /// Output mesh, binary PLY with normals, colours and faces.
     #[arg(long, default_value = "mesh.ply")]
@@ -42,8 +55,8 @@ pub struct Args {
     /// Largest pose/frame time-stamp difference, seconds (> 0).
     #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 0.02)]
     pub max_diff: f64,
-    /// Farthest depth integrated, metres (> 0).
-    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 4.0)]
+    /// Farthest depth integrated, metres (> 0). Not with --volume.
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = 4.0, conflicts_with = "volume")]
     pub max_depth: f64,
     /// Camera: a preset (default, tum_fr1, tum_fr2, tum_fr3, icl_nuim, 7scenes, replica) or a
     /// camera file (calib.txt, OpenCV / ORB-SLAM .yaml, or `key = value` lines). Default:
@@ -78,13 +91,101 @@ fn progress(n: usize) -> ProgressBar {
 
 /// Runs `rgbid mesh`.
 pub fn run(args: Args) -> Result<()> {
+    let inputs: Vec<&std::path::Path> = [&args.sequence, &args.poses, &args.volume]
+        .into_iter()
+        .flatten()
+        .map(|p| p.as_path())
+        .collect();
+    super::outputs::output_file(&args.out, "--out", &inputs)?;
+    if let Some(p) = &args.save_volume {
+        super::outputs::output_file(p, "--save-volume", &inputs)?;
+        if p == &args.out {
+            bail!("--save-volume and --out are the same file {}", p.display());
+        }
+    }
+    let backend = select_backend(args.backend, None)?;
+    let vol = match (&args.sequence, &args.poses) {
+        (Some(sequence), Some(poses)) => integrate_sequence(&args, sequence, poses, &backend)?,
+        _ => {
+            let Some(path) = &args.volume else {
+                bail!("give a sequence with --poses, or --volume");
+            };
+            let t = Instant::now();
+            let v = TsdfVolume::load(path, None, &backend)?;
+            log::info!(
+                "loaded {} ({} frames, {} blocks) in {:.2} s",
+                path.display(),
+                v.frames(),
+                v.block_count(),
+                t.elapsed().as_secs_f64()
+            );
+            v
+        }
+    };
+    let t = Instant::now();
+    let mesh = vol.extract_mesh()?;
+    mesh.write_ply(&args.out)?;
+    let extract_s = t.elapsed().as_secs_f64();
+    // Surface area of the mesh, for the memory per square metre.
+    let area: f64 = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            let p = t.map(|i| {
+                let v = mesh.vertices[i as usize];
+                DVec3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]))
+            });
+            0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length()
+        })
+        .sum();
+    let voxel_bytes = vol.block_count() * rgbid::tsdf::BLOCK_VOXELS * 12;
+    println!(
+        "{} frames, {} blocks ({:.1} MB of voxels, {:.2} MB per square metre of surface), {} \
+         vertices, {} triangles, {:.1} m^2, extracted in {:.2} s -> {}",
+        vol.frames(),
+        vol.block_count(),
+        voxel_bytes as f64 / 1e6,
+        if area > 0.0 {
+            voxel_bytes as f64 / 1e6 / area
+        } else {
+            0.0
+        },
+        mesh.vertices.len(),
+        mesh.triangles.len(),
+        area,
+        extract_s,
+        args.out.display()
+    );
+    if let Some(p) = &args.save_volume {
+        let t = Instant::now();
+        vol.save(p)?;
+        let bytes = std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
+        println!(
+            "volume: {:.1} MB saved in {:.2} s -> {}",
+            bytes as f64 / 1e6,
+            t.elapsed().as_secs_f64(),
+            p.display()
+        );
+    }
+    Ok(())
+}
+
+/// Integrates the frames of `sequence` that have a pose in `poses` into a new volume, or
+/// into the one of `--volume`.
+fn integrate_sequence(
+    args: &Args,
+    sequence: &std::path::Path,
+    poses: &std::path::Path,
+    backend: &ComputeBackend,
+) -> Result<TsdfVolume> {
     let mut opts = OpenOptions {
         max_frames: args.max_frames,
         ..Default::default()
     };
     super::options::set_camera(&mut opts, args.camera.as_deref(), args.calib_format)?;
-    let seq = TumSequence::open(&args.sequence, &opts)?;
-    let poses = read_tum(&args.poses).context("reading --poses")?;
+    let seq = TumSequence::open(sequence, &opts)?;
+    let poses_path = poses;
+    let poses = read_tum(poses_path).context("reading --poses")?;
     let stamps: Vec<TimedPose> = seq
         .entries
         .iter()
@@ -97,18 +198,33 @@ pub fn run(args: Args) -> Result<()> {
     if pairs.is_empty() {
         bail!(
             "no frame of {} has a pose within {} s in {}",
-            args.sequence.display(),
+            sequence.display(),
             args.max_diff,
-            args.poses.display()
+            poses_path.display()
         );
     }
-    let backend = select_backend(args.backend, None)?;
-    let params = TsdfParams {
-        voxel_size: args.voxel,
-        max_depth: args.max_depth,
-        ..Default::default()
+    let mut vol = match &args.volume {
+        Some(path) => {
+            let t = Instant::now();
+            let v = TsdfVolume::load(path, Some(seq.undistorted_camera()), backend)?;
+            log::info!(
+                "loaded {} ({} frames, {} blocks) in {:.2} s",
+                path.display(),
+                v.frames(),
+                v.block_count(),
+                t.elapsed().as_secs_f64()
+            );
+            v
+        }
+        None => {
+            let params = TsdfParams {
+                voxel_size: args.voxel,
+                max_depth: args.max_depth,
+                ..Default::default()
+            };
+            TsdfVolume::new(params, seq.undistorted_camera(), backend)?
+        }
     };
-    let mut vol = TsdfVolume::new(params, seq.undistorted_camera(), &backend)?;
     log::info!(
         "integrating {} of {} frames on {}",
         pairs.len(),
@@ -122,17 +238,7 @@ pub fn run(args: Args) -> Result<()> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let mesh = vol.extract_mesh()?;
-    mesh.write_ply(&args.out)?;
-    println!(
-        "{} frames, {} blocks, {} vertices, {} triangles -> {}",
-        vol.frames(),
-        vol.block_count(),
-        mesh.vertices.len(),
-        mesh.triangles.len(),
-        args.out.display()
-    );
-    Ok(())
+    Ok(vol)
 }
 
 /// Arguments of `rgbid bench tsdf`.

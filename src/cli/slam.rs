@@ -37,7 +37,7 @@ pub struct Args {
     #[arg(long, value_parser = crate::cli::options::range::session, default_value_t = 0)]
     pub session: u32,
     /// Output folder: trajectory.txt (every frame), keyframes.txt, odometry.txt, loops.csv,
-    /// model.ply, mesh.ply (with --mesh), timing.csv, keyframe_timing.csv, summary.json
+    /// model.ply, mesh.ply and volume.tsdf (with --mesh), timing.csv, keyframe_timing.csv, summary.json
     /// (figures, and the configuration, version, backend and command line under
     /// `provenance`).
     #[arg(long, default_value = "slam-out")]
@@ -766,22 +766,28 @@ fn write_outputs(
     let mut mesh_summary = None;
     if a.mesh {
         let t = Instant::now();
-        let mesh = r.mesh(camera, a.voxel, backend)?;
-        let path = out.join("mesh.ply");
+        let volume = r.volume(camera, a.voxel, backend)?;
+        let mesh = volume.extract_mesh()?;
+        let path = out.join(rgbid::io::run_folder::files::MESH);
         mesh.write_ply(&path)?;
+        let seconds = t.elapsed().as_secs_f64();
+        let volume_path = out.join(rgbid::io::run_folder::files::VOLUME);
+        volume.save(&volume_path)?;
         mesh_summary = Some(serde_json::json!({
-            "seconds": t.elapsed().as_secs_f64(),
+            "seconds": seconds,
             "vertices": mesh.vertices.len(),
             "triangles": mesh.triangles.len(),
+            "blocks": volume.block_count(),
         }));
         println!(
             "mesh: {} keyframes integrated at their optimised poses, {} vertices, {} \
-             triangles, {:.2} s -> {}",
+             triangles, {:.2} s -> {} (volume: {})",
             r.keyframes().len(),
             mesh.vertices.len(),
             mesh.triangles.len(),
-            t.elapsed().as_secs_f64(),
-            path.display()
+            seconds,
+            path.display(),
+            volume_path.display()
         );
     }
     if let Some(p) = &a.map_out {

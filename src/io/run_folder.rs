@@ -12,6 +12,8 @@
 //! | `keyframes.txt` | optimised keyframe poses (TUM) | at checkpoints and at the end |
 //! | `groundtruth.txt` | ground truth (TUM), when the source has it | at the end |
 //! | `model.ply` | voxel-filtered model (see [`super::ply`]) | at the end |
+//! | `mesh.ply` | TSDF mesh of the keyframes (`rgbid slam --mesh`) | at the end, by the caller |
+//! | `volume.tsdf` | the TSDF volume of that mesh (`crate::tsdf::TsdfVolume::save`) | at the end, by the caller |
 //!
 //! Rows are written as they come and flushed, so an interrupted run leaves a readable folder
 //! with the frames processed so far; whole files are replaced atomically (a temporary file
@@ -68,6 +70,10 @@ pub mod files {
     pub const GROUNDTRUTH: &str = "groundtruth.txt";
     /// Model point cloud (PLY).
     pub const MODEL: &str = "model.ply";
+    /// TSDF mesh of the keyframes (PLY).
+    pub const MESH: &str = "mesh.ply";
+    /// TSDF volume of the keyframes (rgbid's binary volume format).
+    pub const VOLUME: &str = "volume.tsdf";
     /// Lock file of an open writer (holds its process id).
     pub const LOCK: &str = ".rgbid-lock";
 }
@@ -311,7 +317,8 @@ pub struct RunFolderWriter {
 impl RunFolderWriter {
     /// Creates `dir` (and its parents) and the per-frame files, with their headers, and an
     /// incomplete `summary.json`. Files that are only written at the end
-    /// (`trajectory.txt`, `keyframes.txt`, `groundtruth.txt`, `model.ply`) are removed, so
+    /// (`trajectory.txt`, `keyframes.txt`, `groundtruth.txt`, `model.ply`, `mesh.ply`,
+    /// `volume.tsdf`) are removed, so
     /// that an interrupted run does not leave a previous run's results beside its own.
     ///
     /// A folder another live writer holds (its lock file names a running process) is
@@ -325,6 +332,8 @@ impl RunFolderWriter {
             files::KEYFRAMES,
             files::GROUNDTRUTH,
             files::MODEL,
+            files::MESH,
+            files::VOLUME,
         ] {
             let p = dir.join(stale);
             match std::fs::remove_file(&p) {

@@ -41,7 +41,9 @@ pub use fusion::{FusionCounts, FusionParams};
 pub use keyframe::{Keyframe, KeyframeLink};
 pub use map::{Map, MapError, MAP_VERSION};
 pub use memory::{MemoryBreakdown, MemoryReport};
-pub use model::{build_coloured_model, build_mesh, build_model, voxel_filter, ModelParams};
+pub use model::{
+    build_coloured_model, build_mesh, build_model, build_volume, voxel_filter, ModelParams,
+};
 pub use system::{FrameRecord, FrameReport, FrameStatus, OdometryDiagnostics, Slam, SlamResult};
 
 use crate::odometry::OdometryConfig;

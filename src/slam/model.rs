@@ -38,7 +38,28 @@ impl Default for ModelParams {
     }
 }
 
-/// A TSDF mesh of the keyframes (world frame, metres): every keyframe's fused inverse depth
+/// A TSDF mesh of the keyframes (world frame, metres): the zero level set of
+/// [`build_volume`] with the same arguments.
+pub fn build_mesh(
+    keyframes: &[Keyframe],
+    world_from_keyframe: &[Se3],
+    camera: &PinholeCamera,
+    params: &TsdfParams,
+    min_weight: u8,
+    backend: &ComputeBackend,
+) -> Result<Mesh, TsdfError> {
+    build_volume(
+        keyframes,
+        world_from_keyframe,
+        camera,
+        params,
+        min_weight,
+        backend,
+    )?
+    .extract_mesh()
+}
+
+/// A TSDF volume of the keyframes (world frame, metres): every keyframe's fused inverse depth
 /// integrated at its pose in `world_from_keyframe` (one per keyframe, e.g. the optimised
 /// poses of [`crate::slam::SlamResult::keyframe_poses`]), coloured by the keyframe's colour,
 /// or grey from its intensity when it has none.
@@ -48,14 +69,14 @@ impl Default for ModelParams {
 /// about as much to integrate as a second of frames, and nothing of the surface keeps the old
 /// poses, so a closed loop gives one wall. Pixels with fusion weight below `min_weight` are
 /// left out.
-pub fn build_mesh(
+pub fn build_volume(
     keyframes: &[Keyframe],
     world_from_keyframe: &[Se3],
     camera: &PinholeCamera,
     params: &TsdfParams,
     min_weight: u8,
     backend: &ComputeBackend,
-) -> Result<Mesh, TsdfError> {
+) -> Result<TsdfVolume, TsdfError> {
     let mut volume = TsdfVolume::new(*params, *camera, backend)?;
     for (kf, pose) in keyframes.iter().zip(world_from_keyframe.iter()) {
         let mut frame = kf.frame();
@@ -77,7 +98,7 @@ pub fn build_mesh(
         };
         volume.integrate(&frame, pose)?;
     }
-    volume.extract_mesh()
+    Ok(volume)
 }
 
 /// Points of the model in the world frame (metres) with their intensity: every keyframe's

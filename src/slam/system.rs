@@ -810,20 +810,31 @@ impl SlamResult {
             .collect()
     }
 
-    /// The keyframes' surface as a mesh: their fused inverse depth (and colour) integrated
-    /// into a TSDF of `voxel` metres at their optimised poses, with the default truncation and
-    /// the model's minimum fusion weight ([`super::build_mesh`] with those settings).
+    /// The keyframes' surface as a mesh: the zero level set of [`SlamResult::volume`].
     pub fn mesh(
         &self,
         camera: &PinholeCamera,
         voxel: f64,
         backend: &ComputeBackend,
     ) -> Result<crate::tsdf::Mesh, crate::tsdf::TsdfError> {
+        self.volume(camera, voxel, backend)?.extract_mesh()
+    }
+
+    /// The keyframes' TSDF volume (world frame): their fused inverse depth (and colour)
+    /// integrated into a TSDF of `voxel` metres at their optimised poses, with the default
+    /// truncation and the model's minimum fusion weight ([`super::build_volume`] with those
+    /// settings); `camera` is the keyframes' (undistorted pinhole, pixels).
+    pub fn volume(
+        &self,
+        camera: &PinholeCamera,
+        voxel: f64,
+        backend: &ComputeBackend,
+    ) -> Result<crate::tsdf::TsdfVolume, crate::tsdf::TsdfError> {
         let params = crate::tsdf::TsdfParams {
             voxel_size: voxel,
             ..Default::default()
         };
-        super::build_mesh(
+        super::build_volume(
             self.keyframes(),
             &self.keyframe_poses,
             camera,

@@ -188,6 +188,43 @@ impl TsdfKernels for GpuTsdf {
         Ok(Cow::Owned(v))
     }
 
+    fn set_voxels(&mut self, blocks: usize, voxels: &[Voxel]) -> Result<(), TsdfError> {
+        // The frame buffers keep their size (a small placeholder before the first frame;
+        // the first integration resizes them and keeps the voxels).
+        let pixels = self.resident.as_ref().map_or(64, |r| r.pixels);
+        self.ensure(pixels, 1, blocks)?;
+        self.blocks = blocks;
+        let Some(r) = &self.resident else {
+            return Err(GpuError::Validation("tsdf buffers missing".into()).into());
+        };
+        let n = voxels.len().min(blocks * BLOCK_VOXELS);
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf load"),
+            });
+        // Slots past the loaded ones start unobserved, as after growing.
+        enc.clear_buffer(&r.voxels, 0, None);
+        self.ctx.submit(enc.finish());
+        if n > 0 {
+            self.ctx
+                .queue
+                .write_buffer(&r.voxels, 0, bytemuck::cast_slice(&voxels[..n]));
+        }
+        // Staged writes reach the buffer with the next submission.
+        let enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf load flush"),
+            });
+        self.ctx.submit(enc.finish());
+        self.ctx.wait()?;
+        self.ctx.check()?;
+        Ok(())
+    }
+
     fn memory_bytes(&self) -> (usize, usize) {
         let resident = self.resident.as_ref().map_or(0, |r| {
             r.rho.size() + r.rgb.size() + r.active.size() + r.voxels.size()

@@ -181,6 +181,9 @@ pub(crate) trait TsdfKernels: Send {
     ) -> Result<(), TsdfError>;
     /// All voxels, slot after slot ([`BLOCK_VOXELS`] each).
     fn voxels(&self) -> Result<Cow<'_, [Voxel]>, TsdfError>;
+    /// Replaces all voxels by `voxels` (`blocks` slots of [`BLOCK_VOXELS`]), as a loaded file
+    /// holds them.
+    fn set_voxels(&mut self, blocks: usize, voxels: &[Voxel]) -> Result<(), TsdfError>;
     /// Bytes held, `(host, device)`.
     fn memory_bytes(&self) -> (usize, usize);
 }
@@ -235,6 +238,15 @@ impl TsdfKernels for CpuTsdf {
 
     fn voxels(&self) -> Result<Cow<'_, [Voxel]>, TsdfError> {
         Ok(Cow::Borrowed(&self.voxels))
+    }
+
+    fn set_voxels(&mut self, blocks: usize, voxels: &[Voxel]) -> Result<(), TsdfError> {
+        self.voxels.clear();
+        self.voxels.extend_from_slice(voxels);
+        self.voxels.resize(blocks * BLOCK_VOXELS, Voxel::default());
+        self.mark.clear();
+        self.mark.resize(blocks, 0);
+        Ok(())
     }
 
     fn memory_bytes(&self) -> (usize, usize) {

@@ -26,6 +26,7 @@ mod accuracy;
 mod gpu;
 mod integrate;
 mod mesh;
+mod persist;
 mod raycast;
 mod volume;
 

@@ -16,7 +16,8 @@ pub struct RayCastImages {
     /// Depth along the optical axis, metres; 0 where no surface was found.
     pub depth: ImageF32,
     /// Unit surface normals in the camera frame, facing the camera (`[0; 3]` where no
-    /// surface was found), row-major.
+    /// surface was found, or where the TSDF gradient needs a voxel that is unobserved),
+    /// row-major.
     pub normals: Vec<[f32; 3]>,
     /// 8-bit RGB of the surface, trilinear in the voxels' colours (`[0; 3]` where no surface
     /// was found), row-major.

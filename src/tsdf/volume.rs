@@ -2,6 +2,7 @@
 
 use std::collections::HashMap;
 use std::hash::BuildHasherDefault;
+use std::path::Path;
 
 use rayon::prelude::*;
 use rustc_hash::FxHasher;
@@ -9,6 +10,7 @@ use rustc_hash::FxHasher;
 use super::gpu::GpuTsdf;
 use super::integrate::{truncation, CpuTsdf, IntegrateUniform, TsdfKernels, Voxel};
 use super::mesh::{self, Mesh};
+use super::persist;
 use super::raycast::{self, RayCastImages};
 use super::{TsdfError, BLOCK_SIDE, BLOCK_VOXELS};
 use crate::camera::PinholeCamera;
@@ -146,6 +148,54 @@ impl TsdfVolume {
     /// The parameters.
     pub fn params(&self) -> &TsdfParams {
         &self.params
+    }
+
+    /// The camera of the integrated frames (undistorted pinhole, pixels).
+    pub fn camera(&self) -> &PinholeCamera {
+        &self.camera
+    }
+
+    /// Saves the volume (parameters, camera, frame count, blocks and voxels) to `path` in
+    /// rgbid's versioned binary format (`.tsdf`, little-endian, with a CRC-32), replacing the
+    /// file atomically; the GPU backend reads the voxels back from the device first.
+    pub fn save(&self, path: &Path) -> Result<(), TsdfError> {
+        let voxels = self.kernels.voxels()?;
+        let header = persist::Header {
+            params: self.params,
+            camera: self.camera,
+            frames: self.frames as u64,
+        };
+        crate::io::write_atomic(path, |w| persist::write(w, &header, &self.coords, &voxels))?;
+        Ok(())
+    }
+
+    /// Loads a volume saved by [`TsdfVolume::save`], its voxels placed on `backend`. Frames
+    /// integrated later are of `camera` (undistorted pinhole, pixels) when given, else of the
+    /// saved camera. The loaded volume extracts the same mesh, ray casts the same images and
+    /// integrates further frames exactly as the saved one. A missing, truncated, corrupt or
+    /// other-version file is an error naming the file and the cause.
+    pub fn load(
+        path: &Path,
+        camera: Option<PinholeCamera>,
+        backend: &ComputeBackend,
+    ) -> Result<Self, TsdfError> {
+        let (header, coords, voxels) = persist::read(path)?;
+        let mut volume = TsdfVolume::new(header.params, camera.unwrap_or(header.camera), backend)?;
+        let mut map = BlockMap::default();
+        map.reserve(coords.len());
+        for (slot, c) in coords.iter().enumerate() {
+            if map.insert(*c, slot as u32).is_some() {
+                return Err(TsdfError::Io(crate::io::IoError::Malformed {
+                    path: path.to_path_buf(),
+                    message: format!("block {c:?} appears twice"),
+                }));
+            }
+        }
+        volume.kernels.set_voxels(coords.len(), &voxels)?;
+        volume.map = map;
+        volume.coords = coords;
+        volume.frames = usize::try_from(header.frames).unwrap_or(usize::MAX);
+        Ok(volume)
     }
 
     /// Allocated blocks.
@@ -367,6 +417,15 @@ impl TsdfVolume {
             kernel_s: t1.elapsed().as_secs_f64(),
             active_blocks: active.len(),
         })
+    }
+
+    /// All voxels, slot after slot (read back from the device on the GPU backend).
+    #[cfg(test)]
+    pub(crate) fn kernels_voxels(&self) -> Vec<super::integrate::Voxel> {
+        self.kernels
+            .voxels()
+            .unwrap_or_else(|e| panic!("{e}"))
+            .into_owned()
     }
 
     /// A copy of the voxels with the block map (the GPU backend reads them back).
