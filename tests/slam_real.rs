@@ -49,7 +49,10 @@ fn real_data_fr1_rpy_slam_halves_the_peer_odometry_error() {
     let (slam, odometry) = fr1_rpy_slam();
     println!("fr1/rpy 200 frames: SLAM ATE {slam:.4} m, odometry {odometry:.4} m");
     assert!(slam <= 0.0200, "SLAM ATE {slam} m above 0.0200 m");
-    assert!(slam < odometry, "SLAM {slam} m not below odometry {odometry} m");
+    assert!(
+        slam < odometry,
+        "SLAM {slam} m not below odometry {odometry} m"
+    );
 }
 
 /// The thesis-fidelity issue's bar: SLAM ATE at most 0.012 m on fr1/rpy 0-199 (0.0140 m today:
