@@ -123,6 +123,31 @@ fn run_observed(
     (r, reports, got)
 }
 
+/// SLAM over the same rendered frames of `seq` once per configuration (CPU backend).
+fn finish_each<const N: usize>(
+    seq: &mut Sequence,
+    cam: PinholeCamera,
+    configs: [SlamConfig; N],
+) -> Vec<SlamResult> {
+    let frames: Vec<RgbdFrame> = (0..seq.len())
+        .map(|i| {
+            let f = seq.render_frame(i).unwrap();
+            f.frame.to_rgbd_frame(f.timestamp)
+        })
+        .collect();
+    configs
+        .into_iter()
+        .map(|config| {
+            let vocabulary = Vocabulary::embedded_default().unwrap();
+            let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, vocabulary, None).unwrap();
+            for f in &frames {
+                slam.process(f).unwrap();
+            }
+            slam.finish().unwrap()
+        })
+        .collect()
+}
+
 /// One keyframe-created and one keyframe-described event per keyframe, in id order, that
 /// agree with the keyframes of the result.
 fn check_keyframe_events(r: &SlamResult, events: &[SlamEvent], thresholds: usize) {
@@ -710,25 +735,14 @@ fn keyframes_without_colour_hold_four_bytes_per_pixel() {
         3,
         cam,
     );
-    let frames: Vec<RgbdFrame> = (0..seq.len())
-        .map(|i| {
-            let f = seq.render_frame(i).unwrap();
-            f.frame.to_rgbd_frame(f.timestamp)
-        })
-        .collect();
-    let mut runs = Vec::new();
-    for keyframe_colour in [true, false] {
-        let config = SlamConfig {
+    let runs = finish_each(
+        &mut seq,
+        cam,
+        [true, false].map(|keyframe_colour| SlamConfig {
             keyframe_colour,
             ..SlamConfig::default()
-        };
-        let vocabulary = Vocabulary::embedded_default().unwrap();
-        let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, vocabulary, None).unwrap();
-        for f in &frames {
-            slam.process(f).unwrap();
-        }
-        runs.push(slam.finish().unwrap());
-    }
+        }),
+    );
     let (on, off) = (&runs[0], &runs[1]);
     let n = on.keyframes().len();
     assert!(
@@ -768,25 +782,14 @@ fn buffered_frames_fused_one_per_frame_reach_the_same_keyframes() {
         5,
         cam,
     );
-    let frames: Vec<RgbdFrame> = (0..seq.len())
-        .map(|i| {
-            let f = seq.render_frame(i).unwrap();
-            f.frame.to_rgbd_frame(f.timestamp)
-        })
-        .collect();
-    let mut runs = Vec::new();
-    for buffered_fusion in [BufferedFusion::AtStart, BufferedFusion::OnePerFrame] {
-        let config = SlamConfig {
+    let runs = finish_each(
+        &mut seq,
+        cam,
+        [BufferedFusion::AtStart, BufferedFusion::OnePerFrame].map(|buffered_fusion| SlamConfig {
             buffered_fusion,
             ..SlamConfig::default()
-        };
-        let vocabulary = Vocabulary::embedded_default().unwrap();
-        let mut slam = Slam::new(config, cam, &ComputeBackend::Cpu, vocabulary, None).unwrap();
-        for f in &frames {
-            slam.process(f).unwrap();
-        }
-        runs.push(slam.finish().unwrap());
-    }
+        }),
+    );
     let weights = |r: &SlamResult| -> Vec<u64> {
         r.keyframes()
             .iter()

@@ -110,16 +110,7 @@ pub fn run(args: Args) -> Result<()> {
             let Some(path) = &args.volume else {
                 bail!("give a sequence with --poses, or --volume");
             };
-            let t = Instant::now();
-            let v = TsdfVolume::load(path, None, &backend)?;
-            log::info!(
-                "loaded {} ({} frames, {} blocks) in {:.2} s",
-                path.display(),
-                v.frames(),
-                v.block_count(),
-                t.elapsed().as_secs_f64()
-            );
-            v
+            load_volume(path, None, &backend)?
         }
     };
     let t = Instant::now();
@@ -204,18 +195,7 @@ fn integrate_sequence(
         );
     }
     let mut vol = match &args.volume {
-        Some(path) => {
-            let t = Instant::now();
-            let v = TsdfVolume::load(path, Some(seq.undistorted_camera()), backend)?;
-            log::info!(
-                "loaded {} ({} frames, {} blocks) in {:.2} s",
-                path.display(),
-                v.frames(),
-                v.block_count(),
-                t.elapsed().as_secs_f64()
-            );
-            v
-        }
+        Some(path) => load_volume(path, Some(seq.undistorted_camera()), backend)?,
         None => {
             let params = TsdfParams {
                 voxel_size: args.voxel,
@@ -538,4 +518,22 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
         super::report::write(path, "tsdf", &super::report::meta(adapters), &body)?;
     }
     Ok(())
+}
+
+/// A saved volume (see [`TsdfVolume::load`]), its size and load time logged.
+fn load_volume(
+    path: &std::path::Path,
+    camera: Option<PinholeCamera>,
+    backend: &ComputeBackend,
+) -> Result<TsdfVolume> {
+    let t = Instant::now();
+    let v = TsdfVolume::load(path, camera, backend)?;
+    log::info!(
+        "loaded {} ({} frames, {} blocks) in {:.2} s",
+        path.display(),
+        v.frames(),
+        v.block_count(),
+        t.elapsed().as_secs_f64()
+    );
+    Ok(v)
 }
