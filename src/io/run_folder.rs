@@ -13,7 +13,7 @@
 //! | `groundtruth.txt` | ground truth (TUM), when the source has it | at the end |
 //! | `model.ply` | voxel-filtered model (see [`super::ply`]) | at the end |
 //! | `mesh.ply` | TSDF mesh of the keyframes (`rgbid slam --mesh`) | at the end, by the caller |
-//! | `volume.tsdf` | the TSDF volume of that mesh (`crate::tsdf::TsdfVolume::save`) | at the end, by the caller |
+//! | `volume.tsdf` | the TSDF volume of that mesh (`TsdfVolume::save` of the tsdf module) | at the end, by the caller |
 //!
 //! Rows are written as they come and flushed, so an interrupted run leaves a readable folder
 //! with the frames processed so far; whole files are replaced atomically (a temporary file
