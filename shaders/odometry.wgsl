@@ -26,9 +26,9 @@ struct WarpParams {
     geometric: u32,    // GeometricParam: 0 inverse depth, 1 depth
     sampling: u32,     // GeometricSampling: 0 nearest, 1 first-order
     occlusion: f32,    // covisibility's occlusion tolerance (geometric residual units; 0: none)
+    mu_photo: f32,     // residual locations (eq. 4.26-4.27): weights and sums use r - mu
+    mu_geo: f32,
     _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
 }
 
 // One reduction partial (host mirror: `Partial` in src/odometry/kernel.rs).
@@ -239,14 +239,16 @@ fn accumulate_pixels(first: u32, stride: u32) -> Acc {
         }
         if (t.photo_ok) {
             let s = P.sigma_photo;
-            let wt = robust_weight(est, t.r_photo / s, P.nu_photo) / (s * s);
-            accumulate(&acc, t.j_photo_t, t.j_photo_r, t.r_photo, wt);
+            let r = t.r_photo - P.mu_photo;
+            let wt = robust_weight(est, r / s, P.nu_photo) / (s * s);
+            accumulate(&acc, t.j_photo_t, t.j_photo_r, r, wt);
             acc.a7.x += 1.0;
         }
         if (t.geo_ok) {
             let s = P.sigma_geo;
-            let wt = robust_weight(est, t.r_geo / s, P.nu_geo) / (s * s);
-            accumulate(&acc, t.j_geo_t, t.j_geo_r, t.r_geo, wt);
+            let r = t.r_geo - P.mu_geo;
+            let wt = robust_weight(est, r / s, P.nu_geo) / (s * s);
+            accumulate(&acc, t.j_geo_t, t.j_geo_r, r, wt);
             acc.a7.y += 1.0;
         }
     }

@@ -6,7 +6,7 @@ use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
 use rgbid::image::RgbdFrame;
 use rgbid::odometry::{
-    CovarianceGradients, Estimator, GeometricSampling, Odometry, OdometryConfig,
+    CovarianceGradients, Estimator, GeometricSampling, Location, Odometry, OdometryConfig, Terms,
 };
 use rgbid::synth::trajectory::camera_pose;
 use rgbid::synth::{render_pinhole, Scene, SensorModel};
@@ -96,6 +96,39 @@ fn add_moving_object(f: &mut RgbdFrame) {
             f.inverse_depth_mut().data_mut()[dy * w + dx] = 1.0 / 0.9;
         }
     }
+}
+
+/// A global brightness change between the views (an exposure step of 25 levels): with the
+/// photometric term alone, the estimated location (eq. 4.26-4.27) absorbs it and the motion is
+/// recovered; at zero location the offset pulls the pose.
+#[test]
+fn estimated_location_absorbs_a_brightness_change() {
+    let (a, mut b, truth) = views(&MOTION, true);
+    for v in b.intensity_mut().data_mut() {
+        *v = (*v + 25.0).min(255.0);
+    }
+    let mut res = Vec::new();
+    for location in [Location::Estimated, Location::Zero] {
+        let cfg = OdometryConfig {
+            terms: Terms::Photometric,
+            location,
+            ..Default::default()
+        };
+        let mut odo = Odometry::new(cfg, camera(), &ComputeBackend::Cpu).expect("odometry");
+        let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
+        let e = errors(&al.cur_from_ref, &truth);
+        println!(
+            "location {location:?}, intensity + 25: {:.3} mm {:.4} deg",
+            e.0, e.1
+        );
+        res.push(e);
+    }
+    let (located, zero) = (res[0], res[1]);
+    assert!(located.0 < 1.0 && located.1 < 0.05, "located: {located:?}");
+    assert!(
+        zero.0 > 3.0 * located.0.max(0.2) || zero.1 > 3.0 * located.1.max(0.01),
+        "the offset did not hurt the zero location: {zero:?} vs {located:?}"
+    );
 }
 
 #[test]

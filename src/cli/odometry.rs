@@ -146,7 +146,7 @@ pub fn run(args: Args) -> Result<()> {
             let mut f = std::io::BufWriter::new(
                 std::fs::File::create(p).with_context(|| format!("{}", p.display()))?,
             );
-            writeln!(f, "index,timestamp,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,covariance_ms,total_ms,iterations,sigma_photo,sigma_geo,nu,covisibility,condition_number,new_reference,status,level_iterations")?;
+            writeln!(f, "index,timestamp,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,covariance_ms,total_ms,iterations,sigma_photo,sigma_geo,nu,covisibility,condition_number,new_reference,status,level_iterations,mu_photo,mu_geo")?;
             Some(f)
         }
         None => None,
@@ -199,12 +199,13 @@ pub fn run(args: Args) -> Result<()> {
                     let t = &s.times;
                     writeln!(
                         f,
-                        "{},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.7},{:.3},{:.4},{:.3e},{},ok,{}",
+                        "{},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.7},{:.3},{:.4},{:.3e},{},ok,{},{:.4},{:.7}",
                         s.index, s.timestamp, t.pyramid_ms, t.scale_ms, t.reduce_ms, t.solve_ms, t.covisibility_ms,
                         t.covariance_ms, t.total_ms, s.iterations, s.sigma_photo, s.sigma_geo, s.nu, s.covisibility,
                         s.condition_number, u8::from(s.new_reference),
                         // Coarsest level first, e.g. `10 8 6`.
-                        s.level_iterations.iter().map(|n| n.to_string()).collect::<Vec<_>>().join(" ")
+                        s.level_iterations.iter().map(|n| n.to_string()).collect::<Vec<_>>().join(" "),
+                        s.mu_photo, s.mu_geo
                     )?;
                 }
             }
@@ -223,7 +224,7 @@ pub fn run(args: Args) -> Result<()> {
                 if let Some(f) = csv.as_mut() {
                     writeln!(
                         f,
-                        "{i},{:.6},,,,,,,,,,,,,,,tracking_failed,",
+                        "{i},{:.6},,,,,,,,,,,,,,,tracking_failed,,,",
                         frame.timestamp()
                     )?;
                 }

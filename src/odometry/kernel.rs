@@ -114,8 +114,13 @@ pub struct WarpParams {
     /// as covisible only where the current frame's value at its nearest pixel differs from the
     /// warped point's by less than this. `0` disables the test (any pixel with depth counts).
     pub occlusion: f32,
+    /// Location mu_I of the photometric residuals (thesis eq. 4.26-4.27), intensity levels:
+    /// the weights and the normal equations use `r - mu`; the residual sample stays `r`.
+    pub mu_photo: f32,
+    /// Location mu_W of the geometric residuals, in their units.
+    pub mu_geo: f32,
     /// Padding to the 16-byte size multiple of the WGSL uniform.
-    pub _pad: [u32; 3],
+    pub _pad: [u32; 1],
 }
 
 impl WarpParams {
@@ -462,9 +467,9 @@ mod tests {
                     geometric,
                     sampling,
                     occlusion,
+                    mu_photo,
+                    mu_geo,
                     _pad0 = _pad[0] stride 4,
-                    _pad1 = _pad[1] stride 4,
-                    _pad2 = _pad[2] stride 4,
                 }),
                 size_of::<WarpParams>(),
             ),

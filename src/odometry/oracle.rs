@@ -149,6 +149,7 @@ pub(crate) fn accumulate_pixel(
     let t = pixel_terms(p, ref_photo, ref_geo, cur_photo, cur_geo, i, true);
     let est = p.estimator;
     if let Some(r) = t.r_photo {
+        let r = r - p.mu_photo;
         let s = p.sigma_photo;
         let z = r / s;
         let w = weight(est, z, p.nu_photo) / (s * s);
@@ -157,6 +158,7 @@ pub(crate) fn accumulate_pixel(
         acc.n_photo += 1.0;
     }
     if let Some(r) = t.r_geo {
+        let r = r - p.mu_geo;
         let s = p.sigma_geo;
         let z = r / s;
         let w = weight(est, z, p.nu_geo) / (s * s);

@@ -37,7 +37,10 @@ fn params(
         geometric: param & 1,
         sampling: (param >> 1) & 1,
         occlusion: 0.0,
-        _pad: [0; 3],
+        // Non-zero locations, so the kernels' centring is compared too.
+        mu_photo: 1.5,
+        mu_geo: if param & 1 == 1 { 0.004 } else { 0.0008 },
+        _pad: [0; 1],
     };
     p.set_pose(pose);
     p

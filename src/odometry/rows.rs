@@ -43,6 +43,8 @@ pub(crate) struct Warp {
     pub(crate) est: u32,
     pub(crate) sigma: [f32; 2],
     pub(crate) nu: [f32; 2],
+    /// Residual locations `[mu_photo, mu_geo]` subtracted before weighting and summing.
+    pub(crate) mu: [f32; 2],
     /// `(x - cx) / fx` per column and `(y - cy) / fy` per row (the same f32 operations as the
     /// per-pixel mirror, computed once).
     rx: Vec<f32>,
@@ -68,6 +70,7 @@ impl Warp {
             est: p.estimator,
             sigma: [p.sigma_photo, p.sigma_geo],
             nu: [p.nu_photo, p.nu_geo],
+            mu: [p.mu_photo, p.mu_geo],
             rx: (0..p.width).map(|x| (x as f32 - p.cx) / p.fx).collect(),
             ry: (0..p.height).map(|y| (y as f32 - p.cy) / p.fy).collect(),
         }
@@ -402,6 +405,7 @@ struct Consumer<'a> {
     isg2: f32,
     est: u32,
     nu: [f32; 2],
+    mu: [f32; 2],
     buf: TermBlock,
     n_photo: u64,
     n_geo: u64,
@@ -426,6 +430,7 @@ impl<'a> Consumer<'a> {
             isg2: 1.0 / (sg * sg),
             est: k.est,
             nu: k.nu,
+            mu: k.mu,
             buf: TermBlock::new(),
             n_photo: 0,
             n_geo: 0,
@@ -466,11 +471,13 @@ impl<'a> Consumer<'a> {
             self.record([r_p, r_g]);
         }
         if r_p != INVALID_RESIDUAL {
+            let r_p = r_p - self.mu[0];
             let wt = weight(self.est, r_p / self.sp, self.nu[0]) * self.isp2;
             self.buf.push(j_p, r_p, wt, out);
             self.n_photo += 1;
         }
         if r_g != INVALID_RESIDUAL {
+            let r_g = r_g - self.mu[1];
             let wt = weight(self.est, r_g / self.sg, self.nu[1]) * self.isg2;
             self.buf.push(j_g, r_g, wt, out);
             self.n_geo += 1;
@@ -554,9 +561,10 @@ mod lanes {
             self.n = 0;
         }
 
-        /// Residuals `res` where `valid`, with their weights (estimator `est`, scale
-        /// `sigma`, `isig2 = 1 / sigma^2`, degrees of freedom `nu`) and the Jacobians of
-        /// [`jacobian8`] from the image gradient `(gu, gv)` and depth term `dz`.
+        /// Residuals `res` where `valid` (kept as they are for the sample), with `res - mu`
+        /// and its weights (estimator `est`, scale `sigma`, `isig2 = 1 / sigma^2`, degrees
+        /// of freedom `nu`, location `mu`) for the sums, and the Jacobians of [`jacobian8`]
+        /// from the image gradient `(gu, gv)` and depth term `dz`.
         #[target_feature(enable = "avx2,fma")]
         #[inline]
         #[allow(clippy::too_many_arguments)]
@@ -564,7 +572,7 @@ mod lanes {
             &mut self,
             res: __m256,
             valid: __m256,
-            (est, sigma, isig2, nu): (u32, f32, f32, f32),
+            (est, sigma, isig2, nu, mu): (u32, f32, f32, f32, f32),
             (fx, fy): (__m256, __m256),
             (gu, gv, dz): (__m256, __m256, __m256),
             q: [__m256; 3],
@@ -573,8 +581,9 @@ mod lanes {
             unsafe {
                 let invalid = _mm256_set1_ps(INVALID_RESIDUAL);
                 _mm256_storeu_ps(self.r.as_mut_ptr(), _mm256_blendv_ps(invalid, res, valid));
-                _mm256_storeu_ps(self.rz.as_mut_ptr(), _mm256_and_ps(res, valid));
-                let wt = weights8(est, res, valid, sigma, isig2, nu);
+                let centred = _mm256_sub_ps(res, _mm256_set1_ps(mu));
+                _mm256_storeu_ps(self.rz.as_mut_ptr(), _mm256_and_ps(centred, valid));
+                let wt = weights8(est, centred, valid, sigma, isig2, nu);
                 _mm256_storeu_ps(self.w.as_mut_ptr(), wt);
                 self.n = _mm256_movemask_ps(valid).count_ones();
                 jacobian8(fx, fy, gu, gv, dz, q, iz, valid, &mut self.j);
@@ -833,7 +842,7 @@ mod lanes {
                 let c1 = bilinear(base, corners, weights, 1, valid);
                 let c2 = bilinear(base, corners, weights, 2, valid);
                 let rp = _mm256_sub_ps(c0, ref_i);
-                let robust = (c.est, c.sp, c.isp2, c.nu[0]);
+                let robust = (c.est, c.sp, c.isp2, c.nu[0], c.mu[0]);
                 e.photo
                     .set(rp, valid, robust, (fx, fy), (c1, c2, zero), q, iz);
             } else {
@@ -879,7 +888,7 @@ mod lanes {
                 } else {
                     (_mm256_sub_ps(rho, iz), g1, g2, _mm256_mul_ps(iz, iz))
                 };
-                let robust = (c.est, c.sg, c.isg2, c.nu[1]);
+                let robust = (c.est, c.sg, c.isg2, c.nu[1], c.mu[1]);
                 e.geo
                     .set(res, gvalid, robust, (fx, fy), (gu, gv, dz), q, iz);
             } else {
@@ -1014,7 +1023,10 @@ mod tests {
             geometric: param & 1,
             sampling: (param >> 1) & 1,
             occlusion: 0.0,
-            _pad: [0; 3],
+            // Non-zero locations, so the loops' centring is compared too.
+            mu_photo: 0.75,
+            mu_geo: if param & 1 == 1 { 0.002 } else { 0.0006 },
+            _pad: [0; 1],
         };
         p.set_pose(pose);
         p

@@ -4,7 +4,8 @@ use std::time::Instant;
 
 use super::backend::{CpuKernels, Kernels};
 use super::config::{
-    CovarianceGradients, CovisibilityTest, GeometricParam, OdometryConfig, OCCLUSION_SIGMAS,
+    CovarianceGradients, CovisibilityTest, GeometricParam, Location, OdometryConfig,
+    OCCLUSION_SIGMAS,
 };
 use super::gpu::GpuKernels;
 use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
@@ -50,6 +51,12 @@ pub struct LevelStats {
     pub nu_photo: f64,
     /// Final Student-t degrees of freedom (geometric).
     pub nu_geo: f64,
+    /// Final photometric location mu_I, intensity levels (0 unless
+    /// [`OdometryConfig::location`] estimates it).
+    pub mu_photo: f64,
+    /// Final geometric location mu_W (1/m, or m for depth parametrisation; 0 unless
+    /// estimated).
+    pub mu_geo: f64,
     /// Valid photometric residuals in the last iteration.
     pub n_photo: u64,
     /// Valid geometric residuals in the last iteration.
@@ -94,6 +101,12 @@ pub struct FrameStats {
     pub sigma_geo: f64,
     /// Final Student-t degrees of freedom (finest level).
     pub nu: f64,
+    /// Final photometric location mu_I (finest level, intensity levels; 0 unless
+    /// [`OdometryConfig::location`] estimates it).
+    pub mu_photo: f64,
+    /// Final geometric location mu_W (finest level, units of the geometric residual; 0
+    /// unless estimated).
+    pub mu_geo: f64,
     /// Covisibility ratio with the reference (min of both directions); 1 for the first frame.
     pub covisibility: f64,
     /// Condition number of the final Hessian.
@@ -382,6 +395,8 @@ impl<K: Kernels> Tracker<K> {
                 sigma_photo: fin.sigma_photo,
                 sigma_geo: fin.sigma_geo,
                 nu: fin.nu_photo,
+                mu_photo: fin.mu_photo,
+                mu_geo: fin.mu_geo,
                 covisibility,
                 condition_number: alignment.condition_number,
                 new_reference: switch,
@@ -548,14 +563,17 @@ impl<K: Kernels> Tracker<K> {
                 photo: ScaleEstimate {
                     sigma: cfg.fixed_sigma_photo,
                     nu: cfg.fixed_nu,
+                    mu: 0.0,
                 },
                 geo: ScaleEstimate {
                     sigma: cfg.fixed_sigma_geo,
                     nu: cfg.fixed_nu,
+                    mu: 0.0,
                 },
             });
         }
         let (est, method) = (cfg.estimator, cfg.scale);
+        let located = cfg.location == Location::Estimated;
         let s = match pending {
             Some(s) => s,
             None => self.kernels.sample_residuals(p, r, c, level)?,
@@ -569,12 +587,12 @@ impl<K: Kernels> Tracker<K> {
         // The two populations are independent: estimate them on two threads.
         let (photo, geo) = match previous {
             None => rayon::join(
-                || estimate_scale(&population(0), est, method),
-                || estimate_scale(&population(1), est, method),
+                || estimate_scale(&population(0), est, method, located),
+                || estimate_scale(&population(1), est, method, located),
             ),
             Some(prev) => rayon::join(
-                || update_scale(&population(0), est, method, prev.photo),
-                || update_scale(&population(1), est, method, prev.geo),
+                || update_scale(&population(0), est, method, located, prev.photo),
+                || update_scale(&population(1), est, method, located, prev.geo),
             ),
         };
         Ok(Scales { photo, geo })
@@ -625,10 +643,14 @@ impl<K: Kernels> Tracker<K> {
             p.sigma_geo = sigma_geo as f32;
             p.nu_photo = nu_photo as f32;
             p.nu_geo = scales.geo.nu as f32;
+            p.mu_photo = scales.photo.mu as f32;
+            p.mu_geo = scales.geo.mu as f32;
             st.sigma_photo = sigma_photo;
             st.sigma_geo = sigma_geo;
             st.nu_photo = nu_photo;
             st.nu_geo = scales.geo.nu;
+            st.mu_photo = scales.photo.mu;
+            st.mu_geo = scales.geo.mu;
             if !fixed {
                 previous = Some(scales);
             }
@@ -779,7 +801,9 @@ pub(crate) fn warp_params(
             .geometric_sampling
             .kernel_code(level, config.finest_level(camera.width as usize)),
         occlusion: 0.0,
-        _pad: [0; 3],
+        mu_photo: 0.0,
+        mu_geo: 0.0,
+        _pad: [0; 1],
     };
     p.set_pose(cur_from_ref);
     p
