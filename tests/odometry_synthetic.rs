@@ -108,7 +108,7 @@ fn estimated_location_absorbs_a_brightness_change() {
         *v = (*v + 25.0).min(255.0);
     }
     let mut res = Vec::new();
-    for location in [Location::Estimated, Location::Zero] {
+    for location in [Location::Photometric, Location::Zero] {
         let cfg = OdometryConfig {
             terms: Terms::Photometric,
             location,

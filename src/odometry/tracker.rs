@@ -4,8 +4,7 @@ use std::time::Instant;
 
 use super::backend::{CpuKernels, Kernels};
 use super::config::{
-    CovarianceGradients, CovisibilityTest, GeometricParam, Location, OdometryConfig,
-    OCCLUSION_SIGMAS,
+    CovarianceGradients, CovisibilityTest, GeometricParam, OdometryConfig, OCCLUSION_SIGMAS,
 };
 use super::gpu::GpuKernels;
 use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
@@ -573,7 +572,12 @@ impl<K: Kernels> Tracker<K> {
             });
         }
         let (est, method) = (cfg.estimator, cfg.scale);
-        let located = cfg.location == Location::Estimated;
+        // The geometric location only on the finest level optimised: on the coarser ones the
+        // pose is still far off, and an inverse-depth offset would absorb the error of the
+        // guess along the optical axis (the two are nearly confounded), see `Location::Both`.
+        let finest = cfg.finest_level(self.camera.width as usize);
+        let loc_photo = cfg.location.estimates(false);
+        let loc_geo = cfg.location.estimates(true) && level == finest;
         let s = match pending {
             Some(s) => s,
             None => self.kernels.sample_residuals(p, r, c, level)?,
@@ -587,12 +591,12 @@ impl<K: Kernels> Tracker<K> {
         // The two populations are independent: estimate them on two threads.
         let (photo, geo) = match previous {
             None => rayon::join(
-                || estimate_scale(&population(0), est, method, located),
-                || estimate_scale(&population(1), est, method, located),
+                || estimate_scale(&population(0), est, method, loc_photo),
+                || estimate_scale(&population(1), est, method, loc_geo),
             ),
             Some(prev) => rayon::join(
-                || update_scale(&population(0), est, method, located, prev.photo),
-                || update_scale(&population(1), est, method, located, prev.geo),
+                || update_scale(&population(0), est, method, loc_photo, prev.photo),
+                || update_scale(&population(1), est, method, loc_geo, prev.geo),
             ),
         };
         Ok(Scales { photo, geo })
