@@ -682,6 +682,133 @@ mod tests {
         }
     }
 
+    /// Frames of a generated office at 160x120 with their poses.
+    fn office_frames(frames: usize, seed: u64) -> Vec<(crate::image::RgbdFrame, crate::geometry::Se3)> {
+        let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
+        let scene = Arc::new(Scene::preset("office", seed).unwrap_or_else(|e| panic!("{e}")));
+        let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, 1.0, seed)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let config = SequenceConfig {
+            frames,
+            seed,
+            ..Default::default()
+        };
+        Sequence::new(
+            scene,
+            CameraModel::Pinhole(cam),
+            traj,
+            config,
+            &RenderBackend::Cpu,
+        )
+        .unwrap_or_else(|e| panic!("{e}"))
+        .map(|f| {
+            let f = f.unwrap_or_else(|e| panic!("{e}"));
+            (f.frame.to_rgbd_frame(f.timestamp), f.world_from_camera)
+        })
+        .collect()
+    }
+
+    /// A volume whose device holds a tenth of the blocks (the GPU's, or the CPU mirror's
+    /// storage standing in for a device) gives the same voxels, mesh, ray cast and file as
+    /// an unbounded one, after many blocks moved out and back; the device never holds more
+    /// than the budget.
+    fn paged_volume_matches_an_unbounded_one(backend: &ComputeBackend) {
+        let frames = office_frames(24, 3);
+        let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
+        let params = TsdfParams {
+            voxel_size: 0.02,
+            ..Default::default()
+        };
+        let mut full =
+            TsdfVolume::new(params, cam, backend).unwrap_or_else(|e| panic!("{e}"));
+        let mut most_active = 0;
+        for (f, p) in &frames {
+            let t = full.integrate(f, p).unwrap_or_else(|e| panic!("{e}"));
+            most_active = most_active.max(t.active_blocks);
+        }
+        let budget = full.block_count() / 10;
+        let mut paged = TsdfVolume::new(
+            TsdfParams {
+                device_blocks: Some(budget),
+                ..params
+            },
+            cam,
+            backend,
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        if matches!(backend, ComputeBackend::Cpu) {
+            paged.on_device = true;
+            paged.residency = super::Residency::new(Some(budget));
+            paged
+                .kernels
+                .set_slot_limit(Some(budget))
+                .unwrap_or_else(|e| panic!("{e}"));
+        }
+        for (f, p) in &frames {
+            paged.integrate(f, p).unwrap_or_else(|e| panic!("{e}"));
+            let st = paged.paging();
+            assert!(st.resident_blocks <= budget);
+            assert!(
+                paged.kernels.slot_capacity() <= budget,
+                "{} slots of storage, budget {budget}",
+                paged.kernels.slot_capacity()
+            );
+        }
+        let st = paged.paging();
+        assert_eq!(st.resident_blocks + st.host_blocks, full.block_count());
+        assert!(st.peak_resident_blocks <= budget);
+        // Frames needing more than the budget were integrated in chunks, and blocks moved
+        // both ways many times.
+        assert!(most_active > budget, "{most_active} active, budget {budget}");
+        assert!(st.page_outs > 2 * full.block_count() as u64, "{st:?}");
+        assert!(st.page_ins > full.block_count() as u64, "{st:?}");
+        assert_eq!(paged.block_count(), full.block_count());
+        assert!(
+            paged.kernels_voxels() == full.kernels_voxels(),
+            "paged voxels differ"
+        );
+        let mesh = full.extract_mesh().unwrap_or_else(|e| panic!("{e}"));
+        assert!(mesh.triangles.len() > 1000, "{}", mesh.triangles.len());
+        let pm = paged.extract_mesh().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(pm.vertices, mesh.vertices);
+        assert_eq!(pm.triangles, mesh.triangles);
+        assert!(pm == mesh);
+        let pose = &frames[5].1;
+        let a = full.ray_cast(&cam, pose).unwrap_or_else(|e| panic!("{e}"));
+        let b = paged.ray_cast(&cam, pose).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(a.depth.data(), b.depth.data());
+        assert_eq!(a.colours, b.colours);
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let (fa, fb) = (dir.path().join("full.tsdf"), dir.path().join("paged.tsdf"));
+        full.save(&fa).unwrap_or_else(|e| panic!("{e}"));
+        paged.save(&fb).unwrap_or_else(|e| panic!("{e}"));
+        assert!(std::fs::read(&fa).ok() == std::fs::read(&fb).ok(), "saved files differ");
+        // A budget set later (a loaded volume) pages out at once and stays exact.
+        let small = budget / 2;
+        full.set_device_blocks(Some(small))
+            .unwrap_or_else(|e| panic!("{e}"));
+        if matches!(backend, ComputeBackend::Gpu(_)) {
+            assert!(full.paging().resident_blocks <= small);
+            assert!(full.device_block_capacity() <= small);
+        }
+        assert!(full.extract_mesh().unwrap_or_else(|e| panic!("{e}")) == mesh);
+        assert!(full.set_device_blocks(Some(0)).is_err());
+    }
+
+    #[test]
+    fn tsdf_paged_volume_matches_an_unbounded_one() {
+        paged_volume_matches_an_unbounded_one(&ComputeBackend::Cpu);
+    }
+
+    #[test]
+    #[ignore = "needs a GPU adapter"]
+    fn gpu_tsdf_paged_volume_matches_an_unbounded_one() {
+        let Some(ctx) = test_gpu("gpu_tsdf_paged_volume_matches_an_unbounded_one") else {
+            return;
+        };
+        paged_volume_matches_an_unbounded_one(&ComputeBackend::Gpu(ctx));
+    }
+
     #[test]
     #[ignore = "needs a GPU adapter"]
     fn gpu_tsdf_integration_matches_the_cpu_mirror() {
