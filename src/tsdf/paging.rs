@@ -93,6 +93,7 @@ impl Residency {
     }
 
     /// Device slots in use or free (the storage the kernels need).
+    #[cfg(test)]
     pub(crate) fn slots(&self) -> usize {
         self.slot_block.len()
     }
