@@ -240,7 +240,9 @@ impl TsdfKernels for GpuTsdf {
             return Ok(Vec::new());
         }
         let block = voxel_bytes(1);
-        let staging = self.ctx.staging("tsdf page-out", block * slots.len() as u64);
+        let staging = self
+            .ctx
+            .staging("tsdf page-out", block * slots.len() as u64);
         let mut enc = self
             .ctx
             .device
@@ -255,7 +257,13 @@ impl TsdfKernels for GpuTsdf {
                 ))
                 .into());
             }
-            enc.copy_buffer_to_buffer(&r.voxels, u64::from(s) * block, &staging, i as u64 * block, block);
+            enc.copy_buffer_to_buffer(
+                &r.voxels,
+                u64::from(s) * block,
+                &staging,
+                i as u64 * block,
+                block,
+            );
         }
         self.ctx.submit(enc.finish());
         let v = self

@@ -300,7 +300,10 @@ impl TsdfKernels for CpuTsdf {
             .chain(zeroed.iter().map(|s| (*s, &zero[..])));
         for (s, v) in writes {
             let s = s as usize;
-            if let Some(dst) = self.voxels.get_mut(s * BLOCK_VOXELS..(s + 1) * BLOCK_VOXELS) {
+            if let Some(dst) = self
+                .voxels
+                .get_mut(s * BLOCK_VOXELS..(s + 1) * BLOCK_VOXELS)
+            {
                 let n = v.len().min(BLOCK_VOXELS);
                 dst[..n].copy_from_slice(&v[..n]);
             }

@@ -221,8 +221,7 @@ impl Residency {
             return Ok(());
         }
         let budget = self.budget.unwrap_or(usize::MAX);
-        let available =
-            self.free_slots.len() + budget.saturating_sub(self.slot_block.len());
+        let available = self.free_slots.len() + budget.saturating_sub(self.slot_block.len());
         if missing.len() > available {
             self.evict(missing.len() - available, camera, coords, kernels)?;
         }
@@ -292,17 +291,11 @@ impl Residency {
         if candidates.len() < n {
             return Err(TsdfError::InvalidParameter {
                 name: "device_blocks",
-                why: format!(
-                    "{} blocks to evict, only {} evictable",
-                    n,
-                    candidates.len()
-                ),
+                why: format!("{} blocks to evict, only {} evictable", n, candidates.len()),
             });
         }
         let order = |a: &(u8, f64, u32), b: &(u8, f64, u32)| {
-            a.0.cmp(&b.0)
-                .then(b.1.total_cmp(&a.1))
-                .then(a.2.cmp(&b.2))
+            a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)).then(a.2.cmp(&b.2))
         };
         if n < candidates.len() {
             candidates.select_nth_unstable_by(n, order);
@@ -315,11 +308,16 @@ impl Residency {
             .filter_map(|&id| self.slot(id as usize))
             .collect();
         let voxels = kernels.read_slots(&slots)?;
-        for ((&id, &slot), v) in ids.iter().zip(&slots).zip(voxels.chunks_exact(BLOCK_VOXELS)) {
+        for ((&id, &slot), v) in ids
+            .iter()
+            .zip(&slots)
+            .zip(voxels.chunks_exact(BLOCK_VOXELS))
+        {
             let h = match self.free_host.pop() {
                 Some(h) => h as usize,
                 None => {
-                    self.host.resize(self.host.len() + BLOCK_VOXELS, Voxel::default());
+                    self.host
+                        .resize(self.host.len() + BLOCK_VOXELS, Voxel::default());
                     self.host.len() / BLOCK_VOXELS - 1
                 }
             };
@@ -449,7 +447,9 @@ mod tests {
         }
         // Block 0 comes back from the host with its voxels.
         frame(&mut res, &mut k, &[0], 0.0);
-        let s = res.slot(0).unwrap_or_else(|| panic!("block 0 not resident")) as usize;
+        let s = res
+            .slot(0)
+            .unwrap_or_else(|| panic!("block 0 not resident")) as usize;
         let v = k.voxels().unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(v[s * BLOCK_VOXELS].weight, 2.0);
         assert_eq!(v[s * BLOCK_VOXELS].tsdf, 0.0);

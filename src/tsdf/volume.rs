@@ -683,7 +683,10 @@ mod tests {
     }
 
     /// Frames of a generated office at 160x120 with their poses.
-    fn office_frames(frames: usize, seed: u64) -> Vec<(crate::image::RgbdFrame, crate::geometry::Se3)> {
+    fn office_frames(
+        frames: usize,
+        seed: u64,
+    ) -> Vec<(crate::image::RgbdFrame, crate::geometry::Se3)> {
         let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
         let scene = Arc::new(Scene::preset("office", seed).unwrap_or_else(|e| panic!("{e}")));
         let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, 1.0, seed)
@@ -719,8 +722,7 @@ mod tests {
             voxel_size: 0.02,
             ..Default::default()
         };
-        let mut full =
-            TsdfVolume::new(params, cam, backend).unwrap_or_else(|e| panic!("{e}"));
+        let mut full = TsdfVolume::new(params, cam, backend).unwrap_or_else(|e| panic!("{e}"));
         let mut most_active = 0;
         for (f, p) in &frames {
             let t = full.integrate(f, p).unwrap_or_else(|e| panic!("{e}"));
@@ -759,7 +761,10 @@ mod tests {
         assert!(st.peak_resident_blocks <= budget);
         // Frames needing more than the budget were integrated in chunks, and blocks moved
         // both ways many times.
-        assert!(most_active > budget, "{most_active} active, budget {budget}");
+        assert!(
+            most_active > budget,
+            "{most_active} active, budget {budget}"
+        );
         assert!(st.page_outs > 2 * full.block_count() as u64, "{st:?}");
         assert!(st.page_ins > full.block_count() as u64, "{st:?}");
         assert_eq!(paged.block_count(), full.block_count());
@@ -782,7 +787,10 @@ mod tests {
         let (fa, fb) = (dir.path().join("full.tsdf"), dir.path().join("paged.tsdf"));
         full.save(&fa).unwrap_or_else(|e| panic!("{e}"));
         paged.save(&fb).unwrap_or_else(|e| panic!("{e}"));
-        assert!(std::fs::read(&fa).ok() == std::fs::read(&fb).ok(), "saved files differ");
+        assert!(
+            std::fs::read(&fa).ok() == std::fs::read(&fb).ok(),
+            "saved files differ"
+        );
         // A budget set later (a loaded volume) pages out at once and stays exact.
         let small = budget / 2;
         full.set_device_blocks(Some(small))
