@@ -146,13 +146,11 @@ impl Residency {
         }
     }
 
-    /// Makes the blocks of `active` (`[bx, by, bz, block id]`, `blocks` allocated in all)
-    /// resident and returns the frame's chunks, each a list `[bx, by, bz, slot]` of at most
-    /// the budget's blocks, to be integrated one after another. `camera` is the camera centre
-    /// in block edges (world frame); evictions take the resident blocks farthest from it.
-    ///
-    /// Each chunk is made resident when `run` is called on it, in order: `run` receives the
-    /// kernels and the chunk's slot list.
+    /// Integrates the frame's blocks `active` (`[bx, by, bz, block id]`, `blocks` allocated
+    /// in all) in chunks of at most the budget's blocks, in order: each chunk is made
+    /// resident, then `run` receives the kernels, the number of slots and the chunk as
+    /// `[bx, by, bz, slot]`. `camera` is the camera centre in block edges (world frame);
+    /// evictions take the resident blocks farthest from it.
     pub(crate) fn integrate_chunks(
         &mut self,
         blocks: usize,
