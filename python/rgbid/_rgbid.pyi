@@ -138,6 +138,7 @@ class TsdfVolume:
         min_depth: float = 0.3,
         max_depth: float = 4.0,
         backend: str = "auto",
+        device_blocks: Optional[int] = None,
     ) -> None: ...
     @staticmethod
     def load(path: _Path, camera: Optional[Camera] = None, backend: str = "auto") -> "TsdfVolume": ...
@@ -167,6 +168,10 @@ class TsdfVolume:
         float32[N, 3], colours uint8[N, 3])``."""
     @property
     def params(self) -> Dict[str, Any]: ...
+    @property
+    def paging(self) -> Dict[str, int]:
+        """``resident_blocks``, ``host_blocks``, ``peak_resident_blocks``, ``page_outs``,
+        ``page_ins``."""
     @property
     def block_count(self) -> int: ...
     @property

@@ -36,11 +36,14 @@ fn tsdf_err(e: TsdfError) -> PyErr {
 /// RGB-D frames at known poses, ray cast depth / normals / colour from any pose, extract a
 /// coloured triangle mesh, save and load.
 ///
-/// ``TsdfVolume(camera, voxel=0.01, min_depth=0.3, max_depth=4.0, backend="auto")``:
-/// ``voxel`` is the voxel edge in metres, depths outside ``[min_depth, max_depth]`` metres are
-/// not integrated; ``backend`` is ``"auto"`` (a hardware GPU, else the CPU), ``"gpu"`` (any
-/// adapter, lavapipe included) or ``"cpu"``. Frames of a camera with distortion are
-/// undistorted first.
+/// ``TsdfVolume(camera, voxel=0.01, min_depth=0.3, max_depth=4.0, backend="auto",
+/// device_blocks=None)``: ``voxel`` is the voxel edge in metres, depths outside
+/// ``[min_depth, max_depth]`` metres are not integrated; ``backend`` is ``"auto"`` (a hardware
+/// GPU, else the CPU), ``"gpu"`` (any adapter, lavapipe included) or ``"cpu"``;
+/// ``device_blocks`` (>= 1, ``None`` = unbounded) is the most voxel blocks (6144 bytes each)
+/// kept on the GPU, the blocks farthest from the camera moving to host memory and back (same
+/// mesh; the CPU backend ignores it). Frames of a camera with distortion are undistorted
+/// first.
 #[pyclass(module = "rgbid")]
 pub struct TsdfVolume {
     inner: Mutex<rgbid::tsdf::TsdfVolume>,
@@ -52,7 +55,7 @@ pub struct TsdfVolume {
 #[pymethods]
 impl TsdfVolume {
     #[new]
-    #[pyo3(signature = (camera, voxel = 0.01, min_depth = 0.3, max_depth = 4.0, backend = "auto"))]
+    #[pyo3(signature = (camera, voxel = 0.01, min_depth = 0.3, max_depth = 4.0, backend = "auto", device_blocks = None))]
     fn py_new(
         py: Python<'_>,
         camera: Camera,
@@ -60,11 +63,13 @@ impl TsdfVolume {
         min_depth: f64,
         max_depth: f64,
         backend: &str,
+        device_blocks: Option<usize>,
     ) -> PyResult<Self> {
         let params = TsdfParams {
             voxel_size: voxel,
             min_depth,
             max_depth,
+            device_blocks,
             ..Default::default()
         };
         params.validate().map_err(value)?;
@@ -242,6 +247,21 @@ impl TsdfVolume {
     }
 
     /// Allocated blocks (8^3 voxels each).
+    /// Where the blocks are: ``resident_blocks`` (device slots; every block on the CPU
+    /// backend), ``host_blocks`` (paged out to host memory), ``peak_resident_blocks``,
+    /// ``page_outs`` and ``page_ins`` (blocks moved so far).
+    #[getter]
+    fn paging<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
+        let st = locked(&self.inner)?.paging();
+        let d = pyo3::types::PyDict::new(py);
+        d.set_item("resident_blocks", st.resident_blocks)?;
+        d.set_item("host_blocks", st.host_blocks)?;
+        d.set_item("peak_resident_blocks", st.peak_resident_blocks)?;
+        d.set_item("page_outs", st.page_outs)?;
+        d.set_item("page_ins", st.page_ins)?;
+        Ok(d)
+    }
+
     #[getter]
     fn block_count(&self) -> PyResult<usize> {
         Ok(locked(&self.inner)?.block_count())

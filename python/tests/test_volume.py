@@ -45,6 +45,9 @@ def test_ray_cast_sees_the_integrated_depth(seq):
     integrate(vol, frames, poses)
     assert vol.frames == FRAMES and vol.block_count > 100
     assert vol.params["voxel_size"] == 0.02
+    # The CPU backend keeps every block in its (host) storage: nothing is paged.
+    assert vol.paging["resident_blocks"] == vol.block_count
+    assert vol.paging["host_blocks"] == 0 and vol.paging["page_outs"] == 0
     _, _, depth, factor = frames[3]
     r = vol.ray_cast(poses[3])
     assert r["depth"].shape == depth.shape and r["depth"].dtype == np.float32
@@ -120,6 +123,8 @@ def test_bad_input(seq, tmp_path):
         rgbid.TsdfVolume(camera, min_depth=5.0, max_depth=4.0, backend="cpu")
     with pytest.raises(ValueError, match="backend"):
         rgbid.TsdfVolume(camera, backend="tpu")
+    with pytest.raises(ValueError, match="device_blocks"):
+        rgbid.TsdfVolume(camera, backend="cpu", device_blocks=0)
     vol = rgbid.TsdfVolume(camera, voxel=0.04, backend="cpu")
     with pytest.raises(ValueError, match="dtype"):
         vol.integrate(depth.astype(np.int32), factor, poses[0])

@@ -78,6 +78,12 @@ pub struct Args {
     /// included), cpu (rayon).
     #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
     pub backend: BackendChoice,
+    /// Most voxel blocks kept on the GPU (>= 1; a block is 8^3 voxels, 6144 bytes): beyond
+    /// it, the blocks farthest from the camera that a frame does not touch move to host
+    /// memory and back when needed; the mesh and the saved volume are the same as without
+    /// it. Default: unbounded. The CPU backend ignores it.
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, value_name = "BLOCKS")]
+    pub device_blocks: Option<usize>,
 }
 
 fn progress(n: usize) -> ProgressBar {
@@ -104,13 +110,21 @@ pub fn run(args: Args) -> Result<()> {
         }
     }
     let backend = select_backend(args.backend, None)?;
+    let mut integrated = None;
     let vol = match (&args.sequence, &args.poses) {
-        (Some(sequence), Some(poses)) => integrate_sequence(&args, sequence, poses, &backend)?,
+        (Some(sequence), Some(poses)) => {
+            let t = Instant::now();
+            let (vol, stats) = integrate_sequence(&args, sequence, poses, &backend)?;
+            integrated = Some((t.elapsed().as_secs_f64(), stats));
+            vol
+        }
         _ => {
             let Some(path) = &args.volume else {
                 bail!("give a sequence with --poses, or --volume");
             };
-            load_volume(path, None, &backend)?
+            let mut vol = load_volume(path, None, &backend)?;
+            vol.set_device_blocks(args.device_blocks)?;
+            vol
         }
     };
     let t = Instant::now();
@@ -147,6 +161,51 @@ pub fn run(args: Args) -> Result<()> {
         extract_s,
         args.out.display()
     );
+    // Where the voxels are: device slots and host-held (paged-out) blocks on the GPU backend,
+    // host memory on the CPU backend.
+    let block_mb = (rgbid::tsdf::BLOCK_VOXELS * 12) as f64 / 1e6;
+    let st = vol.paging();
+    let per_m2 = |mb: f64| if area > 0.0 { mb / area } else { 0.0 };
+    let mut peak_device = None;
+    if let Some((seconds, s)) = integrated {
+        let n = s.frames.max(1) as f64;
+        println!(
+            "integration: {:.1} ms per frame (allocation {:.1} ms, kernel and paging {:.1} ms; \
+             {:.1} ms with reading the frames), {} blocks per frame at most",
+            1e3 * (s.allocate_s + s.kernel_s) / n,
+            1e3 * s.allocate_s / n,
+            1e3 * s.kernel_s / n,
+            1e3 * seconds / n,
+            s.most_active
+        );
+        peak_device = Some((s.peak_device_blocks, s.peak_device_bytes));
+    }
+    if matches!(backend, ComputeBackend::Gpu(_)) {
+        let resident = st.resident_blocks as f64 * block_mb;
+        let host = st.host_blocks as f64 * block_mb;
+        println!(
+            "device: {:.1} MB of voxels resident ({} blocks, {:.2} MB per square metre of \
+             surface); host: {:.1} MB of paged-out voxels ({} blocks, {:.2} MB per square \
+             metre); {} page-outs, {} page-ins",
+            resident,
+            st.resident_blocks,
+            per_m2(resident),
+            host,
+            st.host_blocks,
+            per_m2(host),
+            st.page_outs,
+            st.page_ins
+        );
+        if let Some((blocks, bytes)) = peak_device {
+            println!(
+                "device peak while integrating: {:.1} MB of voxel storage ({} blocks), {:.1} MB \
+                 in all (frame buffers included)",
+                blocks as f64 * block_mb,
+                blocks,
+                bytes as f64 / 1e6
+            );
+        }
+    }
     if let Some(p) = &args.save_volume {
         let t = Instant::now();
         vol.save(p)?;
@@ -161,6 +220,21 @@ pub fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
+/// Totals of the integration of a sequence.
+#[derive(Default)]
+struct IntegrationStats {
+    /// Frames integrated.
+    frames: usize,
+    /// Seconds of block allocation and of the kernel (with paging), summed over frames.
+    allocate_s: f64,
+    kernel_s: f64,
+    /// Most blocks one frame touched.
+    most_active: usize,
+    /// Peak voxel storage on the device (blocks) and peak device bytes in all.
+    peak_device_blocks: usize,
+    peak_device_bytes: usize,
+}
+
 /// Integrates the frames of `sequence` that have a pose in `poses` into a new volume, or
 /// into the one of `--volume`.
 fn integrate_sequence(
@@ -168,7 +242,7 @@ fn integrate_sequence(
     sequence: &std::path::Path,
     poses: &std::path::Path,
     backend: &ComputeBackend,
-) -> Result<TsdfVolume> {
+) -> Result<(TsdfVolume, IntegrationStats)> {
     let mut opts = OpenOptions {
         max_frames: args.max_frames,
         ..Default::default()
@@ -195,15 +269,25 @@ fn integrate_sequence(
         );
     }
     let mut vol = match &args.volume {
-        Some(path) => load_volume(path, Some(seq.undistorted_camera()), backend)?,
+        Some(path) => {
+            let mut vol = load_volume(path, Some(seq.undistorted_camera()), backend)?;
+            vol.set_device_blocks(args.device_blocks)?;
+            vol
+        }
         None => {
             let params = TsdfParams {
                 voxel_size: args.voxel,
                 max_depth: args.max_depth,
+                device_blocks: args.device_blocks,
                 ..Default::default()
             };
             TsdfVolume::new(params, seq.undistorted_camera(), backend)?
         }
+    };
+    let mut stats = IntegrationStats {
+        peak_device_blocks: vol.device_block_capacity(),
+        peak_device_bytes: vol.memory_bytes().1,
+        ..Default::default()
     };
     log::info!(
         "integrating {} of {} frames on {}",
@@ -214,11 +298,17 @@ fn integrate_sequence(
     let bar = progress(pairs.len());
     for (i, j) in &pairs {
         let frame = seq.load(*i)?;
-        vol.integrate(&frame, &poses[*j].world_from_camera)?;
+        let t = vol.integrate(&frame, &poses[*j].world_from_camera)?;
+        stats.frames += 1;
+        stats.allocate_s += t.allocate_s;
+        stats.kernel_s += t.kernel_s;
+        stats.most_active = stats.most_active.max(t.active_blocks);
+        stats.peak_device_blocks = stats.peak_device_blocks.max(vol.device_block_capacity());
+        stats.peak_device_bytes = stats.peak_device_bytes.max(vol.memory_bytes().1);
         bar.inc(1);
     }
     bar.finish_and_clear();
-    Ok(vol)
+    Ok((vol, stats))
 }
 
 /// Arguments of `rgbid bench tsdf`.

@@ -18,7 +18,7 @@ use rgbid::io::Layout;
 use rgbid::live::{LiveInput, LiveOptions, LiveSpec};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
-    build_coloured_model, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
+    build_coloured_model, build_volume, FrameStatus, Map, ModelParams, Slam, SlamConfig, SlamResult,
 };
 use rgbid::source::{FrameSource, RgbdStream, SourceError, SourceSpec, SynthOptions};
 use rgbid::trajectory::TimedPose;
@@ -117,6 +117,12 @@ pub struct Args {
     /// intensity when the input has no colour).
     #[arg(long)]
     pub mesh: bool,
+    /// With --mesh: most voxel blocks kept on the GPU while integrating (>= 1; a block is
+    /// 8^3 voxels, 6144 bytes); the blocks farthest from the keyframe being integrated move
+    /// to host memory and back, the mesh is the same. Default: unbounded. The CPU backend
+    /// ignores it.
+    #[arg(long, value_parser = range::at_least_one, value_name = "BLOCKS", requires = "mesh")]
+    pub mesh_device_blocks: Option<usize>,
     /// Vocabulary file (default: the embedded one).
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
@@ -161,6 +167,7 @@ impl Args {
             no_model: false,
             voxel: ModelParams::default().voxel,
             mesh: false,
+            mesh_device_blocks: None,
             vocabulary: None,
             rerun: None,
             config: ConfigArgs::default(),
@@ -335,12 +342,13 @@ impl Inputs {
 /// Runs the subcommand.
 pub fn run(a: Args) -> Result<()> {
     let config = a.slam_config()?;
+    let mesh_params = TsdfParams {
+        voxel_size: a.voxel,
+        device_blocks: a.mesh_device_blocks,
+        ..Default::default()
+    };
     if a.mesh {
-        TsdfParams {
-            voxel_size: a.voxel,
-            ..Default::default()
-        }
-        .validate()?;
+        mesh_params.validate()?;
     }
     // Every output location is checked (and the folder locked) before any work.
     super::outputs::output_folder(&a.out, a.sequence.as_deref())?;
@@ -766,7 +774,21 @@ fn write_outputs(
     let mut mesh_summary = None;
     if a.mesh {
         let t = Instant::now();
-        let volume = r.volume(camera, a.voxel, backend)?;
+        // The keyframes at their optimised poses, as `SlamResult::volume` integrates them,
+        // with the device budget.
+        let mesh_params = TsdfParams {
+            voxel_size: a.voxel,
+            device_blocks: a.mesh_device_blocks,
+            ..Default::default()
+        };
+        let volume = build_volume(
+            r.keyframes(),
+            &r.keyframe_poses,
+            camera,
+            &mesh_params,
+            ModelParams::default().min_weight,
+            backend,
+        )?;
         let mesh = volume.extract_mesh()?;
         let path = out.join(rgbid::io::run_folder::files::MESH);
         mesh.write_ply(&path)?;

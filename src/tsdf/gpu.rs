@@ -30,6 +30,8 @@ pub(crate) struct GpuTsdf {
     uniform: wgpu::Buffer,
     resident: Option<Resident>,
     blocks: usize,
+    /// Most slots of the voxel buffer (`None` = unbounded).
+    slot_limit: Option<usize>,
 }
 
 fn voxel_bytes(blocks: usize) -> u64 {
@@ -61,6 +63,7 @@ impl GpuTsdf {
             uniform,
             resident: None,
             blocks: 0,
+            slot_limit: None,
         })
     }
 
@@ -75,11 +78,14 @@ impl GpuTsdf {
             return Ok(());
         }
         let old = self.resident.take();
+        // Room to grow, within the slot limit (the paging budget) when there is one.
         let block_capacity = old
             .as_ref()
             .map_or(0, |r| r.block_capacity)
             .max(blocks + blocks / 2)
-            .max(64);
+            .max(64)
+            .min(self.slot_limit.unwrap_or(usize::MAX))
+            .max(blocks);
         let limit = ctx
             .limits
             .max_storage_buffer_binding_size
@@ -109,7 +115,8 @@ impl GpuTsdf {
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("tsdf grow"),
                 });
-            enc.copy_buffer_to_buffer(&o.voxels, 0, &voxels, 0, voxel_bytes(o.block_capacity));
+            let keep = o.block_capacity.min(block_capacity);
+            enc.copy_buffer_to_buffer(&o.voxels, 0, &voxels, 0, voxel_bytes(keep));
             ctx.submit(enc.finish());
         }
         let bind = ctx.bind_buffers(
@@ -223,6 +230,108 @@ impl TsdfKernels for GpuTsdf {
         self.ctx.wait()?;
         self.ctx.check()?;
         Ok(())
+    }
+
+    fn read_slots(&self, slots: &[u32]) -> Result<Vec<Voxel>, TsdfError> {
+        let Some(r) = &self.resident else {
+            return Ok(vec![Voxel::default(); slots.len() * BLOCK_VOXELS]);
+        };
+        if slots.is_empty() {
+            return Ok(Vec::new());
+        }
+        let block = voxel_bytes(1);
+        let staging = self
+            .ctx
+            .staging("tsdf page-out", block * slots.len() as u64);
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf page-out"),
+            });
+        for (i, &s) in slots.iter().enumerate() {
+            if s as usize >= r.block_capacity {
+                return Err(GpuError::Validation(format!(
+                    "tsdf slot {s} beyond the {} slots",
+                    r.block_capacity
+                ))
+                .into());
+            }
+            enc.copy_buffer_to_buffer(
+                &r.voxels,
+                u64::from(s) * block,
+                &staging,
+                i as u64 * block,
+                block,
+            );
+        }
+        self.ctx.submit(enc.finish());
+        let v = self
+            .ctx
+            .read_staging(&staging, slots.len() * BLOCK_VOXELS)?;
+        self.ctx.check()?;
+        Ok(v)
+    }
+
+    fn write_slots(
+        &mut self,
+        blocks: usize,
+        uploads: &[(u32, Vec<Voxel>)],
+        zeroed: &[u32],
+    ) -> Result<(), TsdfError> {
+        let pixels = self.resident.as_ref().map_or(64, |r| r.pixels);
+        self.ensure(pixels, 1, blocks)?;
+        self.blocks = self.blocks.max(blocks);
+        let Some(r) = &self.resident else {
+            return Err(GpuError::Validation("tsdf buffers missing".into()).into());
+        };
+        let block = voxel_bytes(1);
+        let zero = vec![Voxel::default(); BLOCK_VOXELS];
+        let writes = uploads
+            .iter()
+            .map(|(s, v)| (*s, v.as_slice()))
+            .chain(zeroed.iter().map(|s| (*s, zero.as_slice())));
+        for (s, v) in writes {
+            if s as usize >= r.block_capacity || v.len() != BLOCK_VOXELS {
+                return Err(GpuError::Validation(format!(
+                    "tsdf slot {s} beyond the {} slots",
+                    r.block_capacity
+                ))
+                .into());
+            }
+            // Staged: applied before the next submission (the integration's).
+            self.ctx
+                .queue
+                .write_buffer(&r.voxels, u64::from(s) * block, bytemuck::cast_slice(v));
+        }
+        Ok(())
+    }
+
+    fn set_slot_limit(&mut self, limit: Option<usize>) -> Result<(), TsdfError> {
+        self.slot_limit = limit;
+        let Some(b) = limit else {
+            return Ok(());
+        };
+        self.blocks = self.blocks.min(b);
+        let over = self.resident.as_ref().is_some_and(|r| r.block_capacity > b);
+        if over {
+            // Reallocate at the limit, keeping the slots below it.
+            let (pixels, active) = self
+                .resident
+                .as_ref()
+                .map_or((64, 1), |r| (r.pixels, r.active_capacity));
+            if let Some(r) = self.resident.as_mut() {
+                r.pixels = usize::MAX;
+            }
+            self.ensure(pixels, active, b)?;
+            self.ctx.wait()?;
+            self.ctx.check()?;
+        }
+        Ok(())
+    }
+
+    fn slot_capacity(&self) -> usize {
+        self.resident.as_ref().map_or(0, |r| r.block_capacity)
     }
 
     fn memory_bytes(&self) -> (usize, usize) {

@@ -186,6 +186,21 @@ pub(crate) trait TsdfKernels: Send {
     fn set_voxels(&mut self, blocks: usize, voxels: &[Voxel]) -> Result<(), TsdfError>;
     /// Bytes held, `(host, device)`.
     fn memory_bytes(&self) -> (usize, usize);
+    /// The voxels of `slots`, one block after another (paging out).
+    fn read_slots(&self, slots: &[u32]) -> Result<Vec<Voxel>, TsdfError>;
+    /// Makes room for `blocks` slots, writes each `(slot, voxels)` of `uploads` (paging in,
+    /// [`BLOCK_VOXELS`] voxels each) and clears the slots of `zeroed` to unobserved.
+    fn write_slots(
+        &mut self,
+        blocks: usize,
+        uploads: &[(u32, Vec<Voxel>)],
+        zeroed: &[u32],
+    ) -> Result<(), TsdfError>;
+    /// Most slots the storage may hold (`None` = unbounded); storage beyond it is released
+    /// (the slots there must be unused).
+    fn set_slot_limit(&mut self, limit: Option<usize>) -> Result<(), TsdfError>;
+    /// Slots the storage holds now (its capacity in blocks).
+    fn slot_capacity(&self) -> usize;
 }
 
 /// The CPU mirror: voxels in host memory, blocks in parallel.
@@ -254,6 +269,58 @@ impl TsdfKernels for CpuTsdf {
             self.voxels.capacity() * std::mem::size_of::<Voxel>() + self.mark.capacity() * 4,
             0,
         )
+    }
+
+    fn read_slots(&self, slots: &[u32]) -> Result<Vec<Voxel>, TsdfError> {
+        let mut out = Vec::with_capacity(slots.len() * BLOCK_VOXELS);
+        for &s in slots {
+            let s = s as usize;
+            match self.voxels.get(s * BLOCK_VOXELS..(s + 1) * BLOCK_VOXELS) {
+                Some(v) => out.extend_from_slice(v),
+                None => out.resize(out.len() + BLOCK_VOXELS, Voxel::default()),
+            }
+        }
+        Ok(out)
+    }
+
+    fn write_slots(
+        &mut self,
+        blocks: usize,
+        uploads: &[(u32, Vec<Voxel>)],
+        zeroed: &[u32],
+    ) -> Result<(), TsdfError> {
+        if self.voxels.len() < blocks * BLOCK_VOXELS {
+            self.voxels.resize(blocks * BLOCK_VOXELS, Voxel::default());
+            self.mark.resize(blocks, 0);
+        }
+        let zero = [Voxel::default(); BLOCK_VOXELS];
+        let writes = uploads
+            .iter()
+            .map(|(s, v)| (*s, v.as_slice()))
+            .chain(zeroed.iter().map(|s| (*s, &zero[..])));
+        for (s, v) in writes {
+            let s = s as usize;
+            if let Some(dst) = self
+                .voxels
+                .get_mut(s * BLOCK_VOXELS..(s + 1) * BLOCK_VOXELS)
+            {
+                let n = v.len().min(BLOCK_VOXELS);
+                dst[..n].copy_from_slice(&v[..n]);
+            }
+        }
+        Ok(())
+    }
+
+    fn set_slot_limit(&mut self, limit: Option<usize>) -> Result<(), TsdfError> {
+        if let Some(b) = limit {
+            self.voxels.truncate(b * BLOCK_VOXELS);
+            self.mark.truncate(b);
+        }
+        Ok(())
+    }
+
+    fn slot_capacity(&self) -> usize {
+        self.voxels.len() / BLOCK_VOXELS
     }
 }
 

@@ -26,12 +26,14 @@ mod accuracy;
 mod gpu;
 mod integrate;
 mod mesh;
+mod paging;
 mod persist;
 mod raycast;
 mod volume;
 
 pub use accuracy::{mesh_accuracy, thin_points, MeshAccuracy};
 pub use mesh::Mesh;
+pub use paging::PagingStats;
 pub use raycast::RayCastImages;
 pub use volume::{IntegrateTimes, TsdfParams, TsdfVolume};
 

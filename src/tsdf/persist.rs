@@ -219,6 +219,8 @@ pub(crate) fn read(path: &Path) -> Result<Contents, TsdfError> {
         max_weight: f.f32(),
         min_depth: f.f64(),
         max_depth: f.f64(),
+        // A property of the run that loads the file (`TsdfVolume::set_device_blocks`).
+        device_blocks: None,
     };
     let (fx, fy, cx, cy) = (f.f64(), f.f64(), f.f64(), f.f64());
     let (width, height) = (f.u32(), f.u32());

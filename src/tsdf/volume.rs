@@ -10,6 +10,7 @@ use rustc_hash::FxHasher;
 use super::gpu::GpuTsdf;
 use super::integrate::{truncation, CpuTsdf, IntegrateUniform, TsdfKernels, Voxel};
 use super::mesh::{self, Mesh};
+use super::paging::{PagingStats, Residency};
 use super::persist;
 use super::raycast::{self, RayCastImages};
 use super::{TsdfError, BLOCK_SIDE, BLOCK_VOXELS};
@@ -41,6 +42,13 @@ pub struct TsdfParams {
     pub min_depth: f64,
     /// Farthest depth integrated, metres.
     pub max_depth: f64,
+    /// Most voxel blocks resident on the GPU at once (each 8^3 voxels of 12 bytes, 6144
+    /// bytes), >= 1; `None` = unbounded. Beyond it, the blocks farthest from the camera that
+    /// a frame does not touch are moved to host memory and back when a frame needs them
+    /// again; a frame touching more blocks is integrated in chunks. Meshes, ray casts and
+    /// saved files are the same as without a budget. The CPU backend ignores it (its voxels
+    /// are host memory). A property of the run, not of the volume: files do not store it.
+    pub device_blocks: Option<usize>,
 }
 
 impl Default for TsdfParams {
@@ -53,6 +61,7 @@ impl Default for TsdfParams {
             max_weight: 100.0,
             min_depth: 0.3,
             max_depth: 4.0,
+            device_blocks: None,
         }
     }
 }
@@ -82,6 +91,12 @@ impl TsdfParams {
                 why: format!("{} must be finite and >= 0", self.trunc_sigmas),
             });
         }
+        if self.device_blocks == Some(0) {
+            return Err(TsdfError::InvalidParameter {
+                name: "device_blocks",
+                why: "0 must be >= 1 (or unbounded)".into(),
+            });
+        }
         if self.min_depth >= self.max_depth {
             return Err(TsdfError::InvalidParameter {
                 name: "min_depth",
@@ -100,7 +115,8 @@ impl TsdfParams {
 pub struct IntegrateTimes {
     /// Host block allocation from the frame's depth.
     pub allocate_s: f64,
-    /// The integration kernel (GPU: uploads, dispatch and wait).
+    /// The integration kernel (GPU: uploads, dispatch and wait, with any paging of blocks
+    /// between device and host).
     pub kernel_s: f64,
     /// Blocks the frame touched.
     pub active_blocks: usize,
@@ -114,8 +130,14 @@ pub struct TsdfVolume {
     /// Block coordinates per slot.
     coords: Vec<[i32; 3]>,
     kernels: Box<dyn TsdfKernels>,
+    /// Device slot or host copy of every block.
+    residency: Residency,
+    /// The kernels keep voxels on a device (a budget applies).
+    on_device: bool,
     frames: usize,
     rgb: Vec<u32>,
+    /// Camera centre of the last integrated frame, world frame, metres.
+    last_camera: [f64; 3],
 }
 
 impl TsdfVolume {
@@ -130,18 +152,23 @@ impl TsdfVolume {
             name: "camera",
             why: e.to_string(),
         })?;
-        let kernels: Box<dyn TsdfKernels> = match backend {
-            ComputeBackend::Cpu => Box::new(CpuTsdf::default()),
-            ComputeBackend::Gpu(ctx) => Box::new(GpuTsdf::new(ctx.clone())?),
+        let (mut kernels, on_device): (Box<dyn TsdfKernels>, bool) = match backend {
+            ComputeBackend::Cpu => (Box::new(CpuTsdf::default()), false),
+            ComputeBackend::Gpu(ctx) => (Box::new(GpuTsdf::new(ctx.clone())?), true),
         };
+        let budget = params.device_blocks.filter(|_| on_device);
+        kernels.set_slot_limit(budget)?;
         Ok(TsdfVolume {
             params,
             camera,
             map: BlockMap::default(),
             coords: Vec::new(),
             kernels,
+            residency: Residency::new(budget),
+            on_device,
             frames: 0,
             rgb: Vec::new(),
+            last_camera: [0.0; 3],
         })
     }
 
@@ -159,7 +186,7 @@ impl TsdfVolume {
     /// rgbid's versioned binary format (`.tsdf`, little-endian, with a CRC-32), replacing the
     /// file atomically; the GPU backend reads the voxels back from the device first.
     pub fn save(&self, path: &Path) -> Result<(), TsdfError> {
-        let voxels = self.kernels.voxels()?;
+        let voxels = self.voxels_by_block()?;
         let header = persist::Header {
             params: self.params,
             camera: self.camera,
@@ -192,6 +219,7 @@ impl TsdfVolume {
             }
         }
         volume.kernels.set_voxels(coords.len(), &voxels)?;
+        volume.residency.reset_resident(coords.len());
         volume.map = map;
         volume.coords = coords;
         volume.frames = usize::try_from(header.frames).unwrap_or(usize::MAX);
@@ -208,14 +236,81 @@ impl TsdfVolume {
         self.frames
     }
 
-    /// Bytes held, `(host, device)`: voxels, the block map and the frame buffers.
+    /// Bytes held, `(host, device)`: voxels (on the GPU backend, the device's slots and the
+    /// host's paged-out blocks), the block map and the frame buffers.
     pub fn memory_bytes(&self) -> (usize, usize) {
         let (h, d) = self.kernels.memory_bytes();
         let map = self.map.capacity() * (std::mem::size_of::<[i32; 3]>() + 4 + 1);
         (
-            h + map + self.coords.capacity() * 12 + self.rgb.capacity() * 4,
+            h + map
+                + self.coords.capacity() * 12
+                + self.rgb.capacity() * 4
+                + self.residency.host_bytes(),
             d,
         )
+    }
+
+    /// Where the blocks are and how many moved: on the GPU backend, blocks in device slots
+    /// and blocks paged out to host memory; on the CPU backend every block counts as
+    /// resident (its storage is host memory) and nothing is paged.
+    pub fn paging(&self) -> PagingStats {
+        self.residency.stats()
+    }
+
+    /// Blocks the device's voxel storage holds now (its capacity; 0 on the CPU backend).
+    pub fn device_block_capacity(&self) -> usize {
+        if self.on_device {
+            self.kernels.slot_capacity()
+        } else {
+            0
+        }
+    }
+
+    /// Sets the device budget (see [`TsdfParams::device_blocks`], >= 1 or `None`), e.g. of a
+    /// loaded volume: when fewer blocks may stay than are resident, those farthest from the
+    /// last integrated camera (else the world origin) move to host memory now.
+    pub fn set_device_blocks(&mut self, budget: Option<usize>) -> Result<(), TsdfError> {
+        let params = TsdfParams {
+            device_blocks: budget,
+            ..self.params
+        };
+        params.validate()?;
+        self.params = params;
+        if !self.on_device {
+            return Ok(());
+        }
+        let camera = self.camera_in_blocks(self.last_camera);
+        self.residency
+            .set_budget(budget, camera, &self.coords, self.kernels.as_mut())?;
+        self.kernels.set_slot_limit(budget)
+    }
+
+    fn camera_in_blocks(&self, centre: [f64; 3]) -> [f64; 3] {
+        let block = self.params.voxel_size * BLOCK_SIDE as f64;
+        centre.map(|c| c / block)
+    }
+
+    /// All voxels in block order ([`BLOCK_VOXELS`] per block, as saved files hold them):
+    /// the device's slots read back and the host's paged-out blocks.
+    fn voxels_by_block(&self) -> Result<std::borrow::Cow<'_, [Voxel]>, TsdfError> {
+        let stored = self.kernels.voxels()?;
+        if self.residency.is_identity() {
+            return Ok(stored);
+        }
+        let mut out = vec![Voxel::default(); self.coords.len() * BLOCK_VOXELS];
+        for (id, dst) in out.chunks_exact_mut(BLOCK_VOXELS).enumerate() {
+            let src = match self.residency.slot(id) {
+                Some(s) => {
+                    let s = s as usize;
+                    stored.get(s * BLOCK_VOXELS..(s + 1) * BLOCK_VOXELS)
+                }
+                None => self.residency.host_voxels(id),
+            };
+            if let Some(src) = src {
+                dst.copy_from_slice(src);
+            }
+        }
+        Ok(std::borrow::Cow::Owned(out))
     }
 
     fn uniform(&self, camera_from_world: &Se3, active: usize, colour: bool) -> IntegrateUniform {
@@ -409,8 +504,23 @@ impl TsdfVolume {
             ..u0
         };
         let rgb = colour.map(|_| self.rgb.as_slice());
-        self.kernels
-            .integrate(self.coords.len(), &active, rho, rgb, &u)?;
+        let t = world_from_camera.translation;
+        self.last_camera = [t.x, t.y, t.z];
+        let camera = self.camera_in_blocks(self.last_camera);
+        self.residency.integrate_chunks(
+            self.coords.len(),
+            &active,
+            camera,
+            &self.coords,
+            self.kernels.as_mut(),
+            |kernels, slots, part| {
+                let u = IntegrateUniform {
+                    active_count: part.len() as u32,
+                    ..u
+                };
+                kernels.integrate(slots, part, rho, rgb, &u)
+            },
+        )?;
         self.frames += 1;
         Ok(IntegrateTimes {
             allocate_s: (t1 - t0).as_secs_f64(),
@@ -419,11 +529,10 @@ impl TsdfVolume {
         })
     }
 
-    /// All voxels, slot after slot (read back from the device on the GPU backend).
+    /// All voxels, block after block (read back from the device on the GPU backend).
     #[cfg(test)]
     pub(crate) fn kernels_voxels(&self) -> Vec<super::integrate::Voxel> {
-        self.kernels
-            .voxels()
+        self.voxels_by_block()
             .unwrap_or_else(|e| panic!("{e}"))
             .into_owned()
     }
@@ -431,7 +540,7 @@ impl TsdfVolume {
     /// A copy of the voxels with the block map (the GPU backend reads them back).
     fn snapshot(&self) -> Result<VolumeView<'_>, TsdfError> {
         Ok(VolumeView {
-            voxels: self.kernels.voxels()?,
+            voxels: self.voxels_by_block()?,
             map: &self.map,
             coords: &self.coords,
             voxel_size: self.params.voxel_size,
@@ -571,6 +680,141 @@ mod tests {
         ] {
             assert!(pack_key(b).is_none(), "{b:?}");
         }
+    }
+
+    /// Frames of a generated office at 160x120 with their poses.
+    fn office_frames(
+        frames: usize,
+        seed: u64,
+    ) -> Vec<(crate::image::RgbdFrame, crate::geometry::Se3)> {
+        let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
+        let scene = Arc::new(Scene::preset("office", seed).unwrap_or_else(|e| panic!("{e}")));
+        let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, 1.0, seed)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let config = SequenceConfig {
+            frames,
+            seed,
+            ..Default::default()
+        };
+        Sequence::new(
+            scene,
+            CameraModel::Pinhole(cam),
+            traj,
+            config,
+            &RenderBackend::Cpu,
+        )
+        .unwrap_or_else(|e| panic!("{e}"))
+        .map(|f| {
+            let f = f.unwrap_or_else(|e| panic!("{e}"));
+            (f.frame.to_rgbd_frame(f.timestamp), f.world_from_camera)
+        })
+        .collect()
+    }
+
+    /// A volume whose device holds a tenth of the blocks (the GPU's, or the CPU mirror's
+    /// storage standing in for a device) gives the same voxels, mesh, ray cast and file as
+    /// an unbounded one, after many blocks moved out and back; the device never holds more
+    /// than the budget.
+    fn paged_volume_matches_an_unbounded_one(backend: &ComputeBackend) {
+        let frames = office_frames(24, 3);
+        let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
+        let params = TsdfParams {
+            voxel_size: 0.02,
+            ..Default::default()
+        };
+        let mut full = TsdfVolume::new(params, cam, backend).unwrap_or_else(|e| panic!("{e}"));
+        let mut most_active = 0;
+        for (f, p) in &frames {
+            let t = full.integrate(f, p).unwrap_or_else(|e| panic!("{e}"));
+            most_active = most_active.max(t.active_blocks);
+        }
+        let budget = full.block_count() / 10;
+        let mut paged = TsdfVolume::new(
+            TsdfParams {
+                device_blocks: Some(budget),
+                ..params
+            },
+            cam,
+            backend,
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        if matches!(backend, ComputeBackend::Cpu) {
+            paged.on_device = true;
+            paged.residency = super::Residency::new(Some(budget));
+            paged
+                .kernels
+                .set_slot_limit(Some(budget))
+                .unwrap_or_else(|e| panic!("{e}"));
+        }
+        for (f, p) in &frames {
+            paged.integrate(f, p).unwrap_or_else(|e| panic!("{e}"));
+            let st = paged.paging();
+            assert!(st.resident_blocks <= budget);
+            assert!(
+                paged.kernels.slot_capacity() <= budget,
+                "{} slots of storage, budget {budget}",
+                paged.kernels.slot_capacity()
+            );
+        }
+        let st = paged.paging();
+        assert_eq!(st.resident_blocks + st.host_blocks, full.block_count());
+        assert!(st.peak_resident_blocks <= budget);
+        // Frames needing more than the budget were integrated in chunks, and blocks moved
+        // both ways many times.
+        assert!(
+            most_active > budget,
+            "{most_active} active, budget {budget}"
+        );
+        assert!(st.page_outs > 2 * full.block_count() as u64, "{st:?}");
+        assert!(st.page_ins > full.block_count() as u64, "{st:?}");
+        assert_eq!(paged.block_count(), full.block_count());
+        assert!(
+            paged.kernels_voxels() == full.kernels_voxels(),
+            "paged voxels differ"
+        );
+        let mesh = full.extract_mesh().unwrap_or_else(|e| panic!("{e}"));
+        assert!(mesh.triangles.len() > 1000, "{}", mesh.triangles.len());
+        let pm = paged.extract_mesh().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(pm.vertices, mesh.vertices);
+        assert_eq!(pm.triangles, mesh.triangles);
+        assert!(pm == mesh);
+        let pose = &frames[5].1;
+        let a = full.ray_cast(&cam, pose).unwrap_or_else(|e| panic!("{e}"));
+        let b = paged.ray_cast(&cam, pose).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(a.depth.data(), b.depth.data());
+        assert_eq!(a.colours, b.colours);
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let (fa, fb) = (dir.path().join("full.tsdf"), dir.path().join("paged.tsdf"));
+        full.save(&fa).unwrap_or_else(|e| panic!("{e}"));
+        paged.save(&fb).unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            std::fs::read(&fa).ok() == std::fs::read(&fb).ok(),
+            "saved files differ"
+        );
+        // A budget set later (a loaded volume) pages out at once and stays exact.
+        let small = budget / 2;
+        full.set_device_blocks(Some(small))
+            .unwrap_or_else(|e| panic!("{e}"));
+        if matches!(backend, ComputeBackend::Gpu(_)) {
+            assert!(full.paging().resident_blocks <= small);
+            assert!(full.device_block_capacity() <= small);
+        }
+        assert!(full.extract_mesh().unwrap_or_else(|e| panic!("{e}")) == mesh);
+        assert!(full.set_device_blocks(Some(0)).is_err());
+    }
+
+    #[test]
+    fn tsdf_paged_volume_matches_an_unbounded_one() {
+        paged_volume_matches_an_unbounded_one(&ComputeBackend::Cpu);
+    }
+
+    #[test]
+    #[ignore = "needs a GPU adapter"]
+    fn gpu_tsdf_paged_volume_matches_an_unbounded_one() {
+        let Some(ctx) = test_gpu("gpu_tsdf_paged_volume_matches_an_unbounded_one") else {
+            return;
+        };
+        paged_volume_matches_an_unbounded_one(&ComputeBackend::Gpu(ctx));
     }
 
     #[test]
