@@ -521,6 +521,219 @@ impl LoopingMono {
     }
 }
 
+/// Settings of the loop similarity ([`MonoLoopDetector::loop_similarity`], eq. 3.10).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LoopScaleParams {
+    /// Largest angle, radians, between a bearing and the epipolar plane of its match in the
+    /// neighbouring keyframe, the plane given by the filter's relative pose, for the match to
+    /// be triangulated (> 0). Looser than the loop's own threshold: the filter's pose carries
+    /// its own error.
+    pub local_threshold: f64,
+    /// Smallest angle, radians, between the two rays of a locally triangulated point (> 0):
+    /// below it the depth is too uncertain to measure a scale.
+    pub min_parallax: f64,
+    /// Fewest loop inliers with a local point in both keyframes for a similarity (>= 3).
+    pub min_points: usize,
+}
+
+impl Default for LoopScaleParams {
+    fn default() -> Self {
+        LoopScaleParams {
+            local_threshold: 0.02,
+            min_parallax: 0.03,
+            min_points: 8,
+        }
+    }
+}
+
+impl LoopScaleParams {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<(), MonoError> {
+        let bad = |name, why: &str| {
+            Err(MonoError::InvalidConfig {
+                name,
+                why: why.into(),
+            })
+        };
+        if !(self.local_threshold > 0.0 && self.local_threshold < 1.0) {
+            return bad("loop_scale.local_threshold", "must be in (0, 1) rad");
+        }
+        if !(self.min_parallax > 0.0 && self.min_parallax < 1.0) {
+            return bad("loop_scale.min_parallax", "must be in (0, 1) rad");
+        }
+        if self.min_points < 3 {
+            return bad("loop_scale.min_points", "must be >= 3");
+        }
+        Ok(())
+    }
+}
+
+/// The relative similarity of a verified loop (thesis 3.3.2, eq. 3.8-3.10) in the filter's
+/// own units around each keyframe.
+///
+/// Each keyframe's ORB features are triangulated against its previous keyframe (the next one
+/// for the first keyframe) with the filter's relative pose between the two: points in the
+/// keyframe's camera frame in the filter's units at that time. The loop's inlier matches that
+/// have a point in both keyframes give two reconstructions of the same structure; the ratio of
+/// their scales (the median of the ratios of distances between point pairs, eq. 3.10) is the
+/// similarity's scale, the rotation is the essential matrix's, and the translation the median
+/// offset of the points once scaled and rotated.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoopSimilarity {
+    /// The query (newer) keyframe, index into [`MonoLoopDetector::keyframes`].
+    pub query: usize,
+    /// The candidate (older) keyframe.
+    pub candidate: usize,
+    /// `candidate_from_query`: `p_candidate = scale R p_query + t`, points in each keyframe's
+    /// camera frame in the filter's units at that keyframe (its scale: the filter's units at the
+    /// query over those at the candidate).
+    pub candidate_from_query: crate::graph::Sim3,
+    /// Points with a local depth in both keyframes used for the fit.
+    pub points: usize,
+    /// Robust standard deviation of the log of the scale (from the spread of the distance
+    /// ratios).
+    pub log_scale_std: f64,
+    /// Robust standard deviation of each translation component, the candidate's units.
+    pub translation_std: f64,
+    /// Standard deviation of each rotation component, radians.
+    pub rotation_std: f64,
+}
+
+/// Median of `v` (reordered); NaN when empty.
+fn median_of(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+impl MonoLoopDetector {
+    /// Points of keyframe `k`'s ORB features in its camera frame, filter units (one entry per
+    /// keypoint; `None` where no depth was triangulated), from the features matched with its
+    /// neighbouring keyframe and the filter's relative pose between the two.
+    fn local_points(&self, k: usize, p: &LoopScaleParams) -> Vec<Option<DVec3>> {
+        let Some(kf) = self.keyframes.get(k) else {
+            return Vec::new();
+        };
+        let mut out = vec![None; kf.bearings.len()];
+        let nb = if k > 0 { k - 1 } else { k + 1 };
+        let Some(nb) = self.keyframes.get(nb) else {
+            return out;
+        };
+        let k_from_nb = kf.world_from_camera.inverse() * nb.world_from_camera;
+        let t = k_from_nb.translation;
+        if !(t.length() > 1e-12) {
+            return out;
+        }
+        let r = k_from_nb.rotation_matrix();
+        let e = essential_of(&k_from_nb);
+        let sin_t = p.local_threshold.sin();
+        for m in match_descriptors(&kf.descriptors, &nb.descriptors, &self.params.matching) {
+            let (a, b) = (nb.bearings[m.train], kf.bearings[m.query]);
+            if epipolar_angle(&e, a, b) >= sin_t || (r * a).angle_between(b) < p.min_parallax {
+                continue;
+            }
+            if let Some((da, db)) = triangulate_depths(&r, t, a, b) {
+                if da > 0.0 && db > 0.0 && db.is_finite() {
+                    out[m.query] = Some(db * b);
+                }
+            }
+        }
+        out
+    }
+
+    /// The relative similarity of the verified loop `check` of query keyframe `query` (see
+    /// [`LoopSimilarity`]); `None` when the check has no relative pose or fewer than
+    /// `p.min_points` inliers have a local point in both keyframes.
+    pub fn loop_similarity(
+        &self,
+        query: usize,
+        check: &CandidateCheck,
+        p: &LoopScaleParams,
+    ) -> Option<LoopSimilarity> {
+        let query_from_candidate = check.query_from_candidate?;
+        let (q, c) = (
+            self.keyframes.get(query)?,
+            self.keyframes.get(check.keyframe)?,
+        );
+        let (local_q, local_c) = (
+            self.local_points(query, p),
+            self.local_points(check.keyframe, p),
+        );
+        let e = essential_of(&query_from_candidate);
+        let sin_t = self.params.angular_threshold.sin();
+        // The loop's inliers, as `verify` selects them after refinement.
+        let mut pts: Vec<(DVec3, DVec3)> = Vec::new();
+        for m in match_descriptors(&q.descriptors, &c.descriptors, &self.params.matching) {
+            if epipolar_angle(&e, c.bearings[m.train], q.bearings[m.query]) >= sin_t {
+                continue;
+            }
+            if let (Some(Some(pc)), Some(Some(pq))) = (local_c.get(m.train), local_q.get(m.query)) {
+                pts.push((*pc, *pq));
+            }
+        }
+        let rot = query_from_candidate.rotation.inverse();
+        let fit = |pts: &[(DVec3, DVec3)]| -> Option<(f64, f64, DVec3, Vec<f64>)> {
+            if pts.len() < p.min_points {
+                return None;
+            }
+            let mut logs = Vec::with_capacity(pts.len() * (pts.len() - 1) / 2);
+            for a in 0..pts.len() {
+                for b in a + 1..pts.len() {
+                    let (dc, dq) = (
+                        (pts[a].0 - pts[b].0).length(),
+                        (pts[a].1 - pts[b].1).length(),
+                    );
+                    if dc > 0.0 && dq > 0.0 {
+                        logs.push((dc / dq).ln());
+                    }
+                }
+            }
+            let log_s = median_of(&mut logs.clone());
+            let mut dev: Vec<f64> = logs.iter().map(|l| (l - log_s).abs()).collect();
+            // Pairs share points: the spread of the ratios over the square root of the number
+            // of points, not of pairs.
+            let log_std = 1.4826 * median_of(&mut dev) / (pts.len() as f64).sqrt();
+            let s = log_s.exp();
+            let offsets: Vec<DVec3> = pts.iter().map(|(pc, pq)| *pc - s * (rot * *pq)).collect();
+            let comp =
+                |f: fn(&DVec3) -> f64| median_of(&mut offsets.iter().map(f).collect::<Vec<_>>());
+            let t = DVec3::new(comp(|v| v.x), comp(|v| v.y), comp(|v| v.z));
+            let res: Vec<f64> = offsets.iter().map(|o| (*o - t).length()).collect();
+            (s.is_finite() && t.is_finite() && log_std.is_finite()).then_some((s, log_std, t, res))
+        };
+        let (_, _, _, res) = fit(&pts)?;
+        // Points whose local depth is wrong (a match along the epipolar line of the
+        // neighbour) sit far off the fit: drop them and fit again.
+        let cut = 3.0 * 1.4826 * median_of(&mut res.clone());
+        let kept: Vec<(DVec3, DVec3)> = pts
+            .iter()
+            .zip(&res)
+            .filter(|(_, r)| **r <= cut)
+            .map(|(x, _)| *x)
+            .collect();
+        if kept.len() < p.min_points {
+            return None;
+        }
+        let (s, log_std, t, res) = fit(&kept)?;
+        let n = res.len() as f64;
+        // Per component: the residual vectors' median length spread over three axes.
+        let translation_std = 1.4826 * median_of(&mut res.clone()) / (3.0 * n).sqrt();
+        let depth = median_of(&mut kept.iter().map(|x| x.0.length()).collect::<Vec<_>>());
+        Some(LoopSimilarity {
+            query,
+            candidate: check.keyframe,
+            candidate_from_query: crate::graph::Sim3::new(rot, t, s),
+            points: kept.len(),
+            log_scale_std: log_std.max(0.01),
+            translation_std: translation_std.max(0.01 * depth),
+            rotation_std: self.params.angular_threshold,
+        })
+    }
+}
+
 /// The camera's valid region shrunk by `margin` pixels: 1 inside, 0 outside.
 fn valid_mask(camera: &UnifiedCamera, margin: f64) -> ImageF32 {
     let (w, h) = (camera.width as usize, camera.height as usize);
