@@ -611,37 +611,82 @@ fn median_of(v: &mut [f64]) -> f64 {
 
 impl MonoLoopDetector {
     /// Points of keyframe `k`'s ORB features in its camera frame, filter units (one entry per
-    /// keypoint; `None` where no depth was triangulated), from the features matched with its
-    /// neighbouring keyframe and the filter's relative pose between the two.
+    /// keypoint; `None` where no depth was triangulated), triangulated against the keyframes
+    /// before and after it with the filter's relative poses (where a feature has a point from
+    /// both, the one of wider parallax is kept).
     fn local_points(&self, k: usize, p: &LoopScaleParams) -> Vec<Option<DVec3>> {
         let Some(kf) = self.keyframes.get(k) else {
             return Vec::new();
         };
-        let mut out = vec![None; kf.bearings.len()];
-        let nb = if k > 0 { k - 1 } else { k + 1 };
-        let Some(nb) = self.keyframes.get(nb) else {
-            return out;
-        };
-        let k_from_nb = kf.world_from_camera.inverse() * nb.world_from_camera;
-        let t = k_from_nb.translation;
-        if !(t.length() > 1e-12) {
-            return out;
+        let mut out: Vec<Option<(DVec3, f64)>> = vec![None; kf.bearings.len()];
+        for nb in [k.checked_sub(1), Some(k + 1)].into_iter().flatten() {
+            if let Some(nb) = self.keyframes.get(nb) {
+                self.triangulate_against(kf, nb, p, &mut out);
+            }
         }
-        let r = k_from_nb.rotation_matrix();
-        let e = essential_of(&k_from_nb);
+        out.into_iter().map(|x| x.map(|(pt, _)| pt)).collect()
+    }
+
+    /// Guided matching of `kf`'s features with `nb`'s along the epipolar planes of the
+    /// filter's relative pose (the ratio test among the candidates near the plane only, which
+    /// finds far more matches than an unguided ratio test between distant views), and their
+    /// triangulation; fills `out` (point in `kf`'s frame, parallax in radians).
+    fn triangulate_against(
+        &self,
+        kf: &MonoKeyframe,
+        nb: &MonoKeyframe,
+        p: &LoopScaleParams,
+        out: &mut [Option<(DVec3, f64)>],
+    ) {
+        let kf_from_nb = kf.world_from_camera.inverse() * nb.world_from_camera;
+        let t = kf_from_nb.translation;
+        if !(t.length() > 1e-12) {
+            return;
+        }
+        let r = kf_from_nb.rotation_matrix();
+        let e = essential_of(&kf_from_nb);
         let sin_t = p.local_threshold.sin();
-        for m in match_descriptors(&kf.descriptors, &nb.descriptors, &self.params.matching) {
-            let (a, b) = (nb.bearings[m.train], kf.bearings[m.query]);
-            if epipolar_angle(&e, a, b) >= sin_t || (r * a).angle_between(b) < p.min_parallax {
+        // Epipolar plane normals: `E a` in kf's frame for nb's bearings, `E^T b` in nb's frame
+        // for kf's, so that each pair costs two dot products.
+        let unit = |v: DVec3| {
+            let l = v.length();
+            (l > 1e-12).then(|| v / l)
+        };
+        let planes_nb: Vec<Option<DVec3>> = nb.bearings.iter().map(|a| unit(e * *a)).collect();
+        let m = &self.params.matching;
+        for (qi, (dq, b)) in kf.descriptors.iter().zip(&kf.bearings).enumerate() {
+            let Some(plane_kf) = unit(e.transpose() * *b) else {
+                continue;
+            };
+            let (mut best, mut second, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
+            for (ti, (dt, a)) in nb.descriptors.iter().zip(&nb.bearings).enumerate() {
+                let Some(n2) = planes_nb[ti] else { continue };
+                if b.dot(n2).abs() >= sin_t || a.dot(plane_kf).abs() >= sin_t {
+                    continue;
+                }
+                let d = dq.distance(dt);
+                if d < best {
+                    (second, best, best_i) = (best, d, ti);
+                } else if d < second {
+                    second = d;
+                }
+            }
+            if best > m.max_distance
+                || (m.ratio < 1.0 && second != u32::MAX && best as f32 >= m.ratio * second as f32)
+            {
                 continue;
             }
-            if let Some((da, db)) = triangulate_depths(&r, t, a, b) {
+            let a = nb.bearings[best_i];
+            let parallax = (r * a).angle_between(*b);
+            if parallax < p.min_parallax || out[qi].is_some_and(|(_, par)| par >= parallax) {
+                continue;
+            }
+            if let Some((da, db)) = triangulate_depths(&r, t, a, *b) {
                 if da > 0.0 && db > 0.0 && db.is_finite() {
-                    out[m.query] = Some(db * b);
+                    out[qi] = Some((db * *b, parallax));
                 }
             }
         }
-        out
     }
 
     /// The relative similarity of the verified loop `check` of query keyframe `query` (see
