@@ -1,16 +1,20 @@
 //! Sim(3) loop closure (`optimSim3`, Strasdat et al. 2010) on a (possibly rescaled) monocular
 //! trajectory, through [`crate::graph::PoseGraphSim3`].
 //!
-//! Vertices are the estimated keyframe poses as similarities of scale 1 (vertex 0 fixed, the
-//! gauge); odometry edges join consecutive keyframes with their estimated relative motion
-//! (scale 1, translation std 5 % of the step, rotation 0.002 rad, log-scale 0.02). Loop
-//! closures are emulated from ground truth (the place-recognition front end is not part of
-//! this experiment): keyframes `i < j` at least `min_separation` seconds apart whose true
-//! positions are within `max_distance` and viewing directions within `max_angle` are
-//! linked, at most one closure per `min_gap` seconds. The closure measures the similarity
-//! `i_from_j` a monocular relocaliser would: with `s_k` the true local scale (metres per
-//! estimate unit) at keyframe `k` and `(R, t)` the true relative motion,
-//! `z = (R, t / s_i, s_j / s_i)`, perturbed by the closure noise.
+//! [`optim_sim3_with`] is the graph: vertices are the keyframe poses as similarities of scale 1,
+//! odometry edges join consecutive keyframes with their estimated relative motion (scale 1,
+//! translation std 5 % of the step, rotation 0.002 rad, log-scale 0.02), loops are relative
+//! similarities ([`SimilarityConstraint`]), and either keyframe 0 is fixed (the result in its
+//! units) or, for an input already in metres, each keyframe's scale has a prior around 1 (the
+//! walking scale of its section). The monocular system measures the loops from images
+//! (`crate::mono`'s loop similarity); [`optim_sim3`] emulates them from ground truth for the
+//! scale experiment (the place-recognition front end is not part of it): keyframes `i < j` at
+//! least `min_separation` seconds apart whose true positions are within `max_distance` and
+//! viewing directions within `max_angle` are linked, at most one closure per `min_gap`
+//! seconds. The emulated closure measures the similarity `i_from_j` a monocular relocaliser
+//! would: with `s_k` the true local scale (metres per estimate unit) at keyframe `k` and
+//! `(R, t)` the true relative motion, `z = (R, t / s_i, s_j / s_i)`, perturbed by the closure
+//! noise.
 
 use glam::DVec3;
 use rand::SeedableRng;
