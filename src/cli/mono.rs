@@ -133,8 +133,9 @@ pub struct Args {
     #[arg(long, conflicts_with = "table21")]
     loops: bool,
     /// With --loops: a JSON report (loops, every keyframe's candidates and checks, and with
-    /// --synthetic precision / recall over a grid of thresholds).
-    #[arg(long, requires = "loops")]
+    /// --synthetic precision / recall over a grid of thresholds). Not with --walker-height,
+    /// whose --json report has the loops' figures.
+    #[arg(long, requires = "loops", conflicts_with = "walker_height")]
     loops_json: Option<PathBuf>,
     /// With --loops: smallest normalised bag-of-words score (score against the candidate over
     /// score against the previous keyframe) of a candidate that is verified, >= 0 [default: 0.3].
