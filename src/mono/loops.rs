@@ -1218,6 +1218,103 @@ mod tests {
         );
     }
 
+    /// Two stretches of a walk seen by keyframes whose filter poses are in different units
+    /// (the later stretch at half the scale of the earlier one): the loop similarity between
+    /// them must have the ratio of the units as its scale (eq. 3.10), the true rotation and the
+    /// translation in the candidate's units.
+    #[test]
+    fn loop_similarity_measures_the_ratio_of_the_keyframes_units() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let points: Vec<DVec3> = (0..150)
+            .map(|_| {
+                DVec3::new(
+                    rng.random_range(-5.0..5.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(-5.0..5.0),
+                )
+            })
+            .collect();
+        let descriptors: Vec<Descriptor> = (0..points.len())
+            .map(|_| Descriptor([rng.random(), rng.random(), rng.random(), rng.random()]))
+            .collect();
+        let yaw = |a: f64| glam::DQuat::from_rotation_y(a);
+        // True world_from_camera of six keyframes: three on the first pass, three on the
+        // second pass near the same place (turned and shifted).
+        let truth: Vec<Se3> = [
+            (0.0, -1.0, 0.0),
+            (0.1, -0.5, 0.05),
+            (0.2, 0.0, 0.1),
+            (0.3, -0.8, 0.4),
+            (0.35, -0.3, 0.45),
+            (0.4, 0.2, 0.5),
+        ]
+        .iter()
+        .map(|&(a, x, z)| Se3::new(yaw(a), DVec3::new(x, 0.1, z)))
+        .collect();
+        // The filter: the first pass in metres, the second at half that (units of 2 m), in a
+        // world shifted and turned by drift.
+        let drift = Se3::new(yaw(0.05), DVec3::new(0.3, 0.0, -0.2));
+        let filter: Vec<Se3> = truth
+            .iter()
+            .enumerate()
+            .map(|(k, t)| {
+                if k < 3 {
+                    *t
+                } else {
+                    let d = drift * *t;
+                    Se3::new(d.rotation, d.translation * 0.5)
+                }
+            })
+            .collect();
+        let camera = UnifiedCamera::catadioptric(200, 200);
+        let vocabulary = Vocabulary::embedded_default().expect("vocabulary");
+        let mut det =
+            MonoLoopDetector::new(camera, vocabulary, MonoLoopParams::default()).expect("detector");
+        for (k, (t, f)) in truth.iter().zip(&filter).enumerate() {
+            let camera_from_world = t.inverse();
+            let bearings: Vec<DVec3> = points
+                .iter()
+                .map(|p| camera_from_world.transform_point(*p).normalize())
+                .collect();
+            det.keyframes.push(MonoKeyframe {
+                frame: k,
+                timestamp: k as f64,
+                world_from_camera: *f,
+                keypoints: Vec::new(),
+                descriptors: descriptors.clone(),
+                bearings,
+                bow: BowVector::default(),
+            });
+        }
+        let (query, candidate) = (4, 1);
+        let rel = truth[query].inverse() * truth[candidate];
+        let check = CandidateCheck {
+            keyframe: candidate,
+            score: 1.0,
+            normalised_score: 1.0,
+            matches: points.len(),
+            inliers: points.len(),
+            query_from_candidate: Some(Se3::new(rel.rotation, rel.translation.normalize())),
+            parallax_deg: 0.0,
+        };
+        let sim = det
+            .loop_similarity(query, &check, &LoopScaleParams::default())
+            .expect("a similarity");
+        let truth_cq = truth[candidate].inverse() * truth[query];
+        let z = sim.candidate_from_query;
+        assert!((z.scale - 2.0).abs() < 1e-6, "scale {}", z.scale);
+        // acos near 1 resolves angles to about 1e-8 rad.
+        let dr = z.rotation.angle_between(truth_cq.rotation);
+        assert!(dr < 1e-6, "rotation off by {dr} rad");
+        assert!(
+            (z.translation - truth_cq.translation).length() < 1e-6,
+            "translation {} vs {}",
+            z.translation,
+            truth_cq.translation
+        );
+        assert!(sim.points >= 100, "{} points", sim.points);
+    }
+
     #[test]
     fn keyframe_policy_is_validated() {
         let bad = KeyframePolicy {
