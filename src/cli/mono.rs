@@ -17,8 +17,8 @@ use rgbid::gpu::ComputeBackend;
 use rgbid::image::ImageF32;
 use rgbid::io::trajectory::{read_tum, write_tum};
 use rgbid::mono::{
-    load_camera, FrameReport, ImageSequence, LoopingMono, MetricMono, MonoConfig, MonoLoopParams,
-    MonoSlam, PatchMode,
+    load_camera, FrameReport, ImageSequence, LoopScaleParams, LoopingMono, MetricMono, MonoConfig,
+    MonoLoopParams, MonoSlam, PatchMode,
 };
 use rgbid::place::Vocabulary;
 use rgbid::scale::{arc_length_error_from_start, DynScaleConfig, WalkingModel};
@@ -60,7 +60,9 @@ pub struct Args {
     /// Output trajectory (TUM format, world_from_camera, filter world = first camera). Scale
     /// unknown, or metres with --walker-height (then the EKF's own trajectory goes to
     /// NAME_unscaled.txt and each frame's causal metric pose to NAME_causal.txt beside it;
-    /// with --synthetic also the ground truth, to NAME_groundtruth.txt).
+    /// with --synthetic also the ground truth, to NAME_groundtruth.txt). With --walker-height
+    /// and --loops: the loop-corrected metric trajectory, and the one without loops (dynScale
+    /// alone) to NAME_dynscale.txt.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Height of the person wearing the camera, metres, in (0, 3]: runs the metric scale
@@ -124,12 +126,16 @@ pub struct Args {
     /// mirror's blind areas masked, candidates at least 10 s older than the query, and an
     /// essential matrix fitted by RANSAC to the matched bearings (0.01 rad). Prints the loops;
     /// with --synthetic also precision and recall against the ground truth (a true loop: true
-    /// camera positions within 1.5 m, optical axes within 90 degrees).
-    #[arg(long, conflicts_with_all = ["walker_height", "table21"])]
+    /// camera positions within 1.5 m, optical axes within 90 degrees). With --walker-height:
+    /// each loop's relative similarity (the scale ratio of eq. 3.10 from the keyframes' local
+    /// triangulations) corrects the metric trajectory through optimSim3 with the walking scale
+    /// of each section as a prior, and the eq. 3.36 errors are reported with and without it.
+    #[arg(long, conflicts_with = "table21")]
     loops: bool,
     /// With --loops: a JSON report (loops, every keyframe's candidates and checks, and with
-    /// --synthetic precision / recall over a grid of thresholds).
-    #[arg(long, requires = "loops")]
+    /// --synthetic precision / recall over a grid of thresholds). Not with --walker-height,
+    /// whose --json report has the loops' figures.
+    #[arg(long, requires = "loops", conflicts_with = "walker_height")]
     loops_json: Option<PathBuf>,
     /// With --loops: smallest normalised bag-of-words score (score against the candidate over
     /// score against the previous keyframe) of a candidate that is verified, >= 0 [default: 0.3].
@@ -221,7 +227,7 @@ pub fn run(args: Args) -> Result<()> {
         let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
         super::outputs::output_file(out, "--out", &inputs)?;
         if args.walker_height.is_some() {
-            for suffix in ["unscaled", "causal", "groundtruth"] {
+            for suffix in ["unscaled", "causal", "groundtruth", "dynscale"] {
                 super::outputs::output_file(&beside(out, suffix), "--out", &inputs)?;
             }
         }
@@ -536,15 +542,34 @@ where
         },
         ..super::scale::defaults()
     };
-    let mut system = MetricMono::new(camera, cfg.clone(), scale_cfg.clone())?;
+    let loop_params = if args.loops {
+        Some(loop_params(args)?)
+    } else {
+        None
+    };
+    let mut system = match &loop_params {
+        Some(p) => MetricMono::with_loops(
+            camera,
+            cfg.clone(),
+            scale_cfg.clone(),
+            Vocabulary::embedded_default()?,
+            p.clone(),
+            LoopScaleParams::default(),
+        )?,
+        None => MetricMono::new(camera, cfg.clone(), scale_cfg.clone())?,
+    };
     let bar = progress(len, "mono + scale");
     let (mut ekf_ms, mut scale_ms) = (Vec::with_capacity(len), Vec::with_capacity(len));
+    let mut keyframe_ms = Vec::new();
     let mut first_scaled = None;
     for frame in frames {
         let (t, img) = frame?;
         let r = system.process(t, &img)?;
         ekf_ms.push(r.report.times.total());
         scale_ms.push(r.scale_ms);
+        if r.keyframe.is_some() {
+            keyframe_ms.push(r.loop_ms);
+        }
         if first_scaled.is_none() && r.metric.is_some() {
             first_scaled = Some(t);
         }
@@ -596,9 +621,69 @@ where
             "no metric trajectory: {e}; the filter's own trajectory is kept (unscaled)"
         )),
     }
+    let looped = match &run.looped {
+        Some(Ok(l)) => Some(l),
+        Some(Err(e)) => {
+            warnings.push(format!("no loop-corrected trajectory: {e}"));
+            None
+        }
+        None => None,
+    };
+    if let Some(l) = looped {
+        let used = l.loops.iter().filter(|x| x.similarity.is_some()).count();
+        println!(
+            "{} keyframes ({:.1} ms per keyframe, median), {} loops verified, {} with a similarity \
+             used by optimSim3",
+            l.keyframe_frames.len(),
+            median(&mut keyframe_ms),
+            l.loops.len(),
+            used
+        );
+        report["keyframes"] = l.keyframe_frames.len().into();
+        report["loops_verified"] = l.loops.len().into();
+        report["loops_used"] = used.into();
+        if let Some(gt) = gt {
+            let truth = LoopTruth::default();
+            let (mut correct, mut t_err, mut s_err) = (0, Vec::new(), Vec::new());
+            for lp in &l.loops {
+                let (a, b) = (l.keyframe_frames[lp.candidate], l.keyframe_frames[lp.query]);
+                let (Some(ga), Some(gb)) = (gt.get(a), gt.get(b)) else {
+                    continue;
+                };
+                correct += usize::from(truth.judge(ga, gb).2);
+                if let (Some(sim), Ok(r)) = (&lp.similarity, &run.scaled) {
+                    // The similarity carried into metres by the section scales, against the
+                    // true relative translation.
+                    let true_t =
+                        (ga.world_from_camera.inverse() * gb.world_from_camera).translation;
+                    let ci = r.scale_at(ga.timestamp);
+                    let cj = r.scale_at(gb.timestamp);
+                    t_err.push((ci * sim.candidate_from_query.translation - true_t).length());
+                    // Metric scale ratio of the constraint: 1 when the two sections' scales
+                    // and the measurement agree.
+                    s_err.push((sim.candidate_from_query.scale * ci / cj).ln().abs());
+                }
+            }
+            let (mt, ms) = (median(&mut t_err), median(&mut s_err));
+            println!(
+                "loops true by the ground truth: {correct} of {}; used loops' translation error \
+                 median {mt:.3} m, |ln metric scale ratio| median {ms:.3}",
+                l.loops.len()
+            );
+            report["loops_true"] = correct.into();
+            report["loop_translation_error_m"] = mt.into();
+            report["loop_log_scale_ratio"] = ms.into();
+        }
+    }
     if let Some(out) = &args.out {
         if let Ok(r) = &run.scaled {
-            write_tum(out, &r.scaled)?;
+            match looped {
+                Some(l) => {
+                    write_tum(out, &l.trajectory)?;
+                    write_tum(&beside(out, "dynscale"), &r.scaled)?;
+                }
+                None => write_tum(out, &r.scaled)?,
+            }
         }
         write_tum(&beside(out, "unscaled"), &run.unscaled)?;
         write_tum(&beside(out, "causal"), &run.causal)?;
@@ -633,6 +718,9 @@ where
         if let Ok(r) = &run.scaled {
             rows.push(("final metric", &r.scaled));
         }
+        if let Some(l) = looped {
+            rows.push(("loops + final metric", &l.trajectory));
+        }
         for (name, est) in rows {
             let pairs = rgbid::eval::associate(est, gt, 0.02);
             let e: Vec<TimedPose> = pairs.iter().map(|p| est[p.0]).collect();
@@ -650,7 +738,7 @@ where
             }
             match result {
                 Ok(a) => println!(
-                    "  {name:<15} mean {:.3} m ({:.2} % of {:.1} m), end {:.3} m ({:.2} %), \
+                    "  {name:<20} mean {:.3} m ({:.2} % of {:.1} m), end {:.3} m ({:.2} %), \
                      length ratio {:.3} over {} poses",
                     a.mean,
                     100.0 * a.relative,
@@ -660,7 +748,7 @@ where
                     a.est_length / a.gt_length,
                     pairs.len()
                 ),
-                Err(err) => println!("  {name:<15} not computed: {err}"),
+                Err(err) => println!("  {name:<20} not computed: {err}"),
             }
         }
         let pairs = rgbid::eval::associate(&run.unscaled, gt, 0.02);

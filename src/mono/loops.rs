@@ -521,6 +521,264 @@ impl LoopingMono {
     }
 }
 
+/// Settings of the loop similarity ([`MonoLoopDetector::loop_similarity`], eq. 3.10).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LoopScaleParams {
+    /// Largest angle, radians, between a bearing and the epipolar plane of its match in the
+    /// neighbouring keyframe, the plane given by the filter's relative pose, for the match to
+    /// be triangulated (> 0). Looser than the loop's own threshold: the filter's pose carries
+    /// its own error.
+    pub local_threshold: f64,
+    /// Smallest angle, radians, between the two rays of a locally triangulated point (> 0):
+    /// below it the depth is too uncertain to measure a scale.
+    pub min_parallax: f64,
+    /// Fewest loop inliers with a local point in both keyframes for a similarity (>= 3).
+    pub min_points: usize,
+}
+
+impl Default for LoopScaleParams {
+    fn default() -> Self {
+        LoopScaleParams {
+            local_threshold: 0.02,
+            min_parallax: 0.03,
+            min_points: 8,
+        }
+    }
+}
+
+impl LoopScaleParams {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<(), MonoError> {
+        let bad = |name, why: &str| {
+            Err(MonoError::InvalidConfig {
+                name,
+                why: why.into(),
+            })
+        };
+        if !(self.local_threshold > 0.0 && self.local_threshold < 1.0) {
+            return bad("loop_scale.local_threshold", "must be in (0, 1) rad");
+        }
+        if !(self.min_parallax > 0.0 && self.min_parallax < 1.0) {
+            return bad("loop_scale.min_parallax", "must be in (0, 1) rad");
+        }
+        if self.min_points < 3 {
+            return bad("loop_scale.min_points", "must be >= 3");
+        }
+        Ok(())
+    }
+}
+
+/// The relative similarity of a verified loop (thesis 3.3.2, eq. 3.8-3.10) in the filter's
+/// own units around each keyframe.
+///
+/// Each keyframe's ORB features are triangulated against its previous keyframe (the next one
+/// for the first keyframe) with the filter's relative pose between the two: points in the
+/// keyframe's camera frame in the filter's units at that time. The loop's inlier matches that
+/// have a point in both keyframes give two reconstructions of the same structure; the ratio of
+/// their scales (the median of the ratios of distances between point pairs, eq. 3.10) is the
+/// similarity's scale, the rotation is the essential matrix's, and the translation the median
+/// offset of the points once scaled and rotated.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoopSimilarity {
+    /// The query (newer) keyframe, index into [`MonoLoopDetector::keyframes`].
+    pub query: usize,
+    /// The candidate (older) keyframe.
+    pub candidate: usize,
+    /// `candidate_from_query`: `p_candidate = scale R p_query + t`, points in each keyframe's
+    /// camera frame in the filter's units at that keyframe (its scale: the filter's units at the
+    /// query over those at the candidate).
+    pub candidate_from_query: crate::graph::Sim3,
+    /// Points with a local depth in both keyframes used for the fit.
+    pub points: usize,
+    /// Robust standard deviation of the log of the scale (from the spread of the distance
+    /// ratios).
+    pub log_scale_std: f64,
+    /// Robust standard deviation of each translation component, the candidate's units.
+    pub translation_std: f64,
+    /// Standard deviation of each rotation component, radians.
+    pub rotation_std: f64,
+}
+
+/// Median of `v` (reordered); NaN when empty.
+fn median_of(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+impl MonoLoopDetector {
+    /// Points of keyframe `k`'s ORB features in its camera frame, filter units (one entry per
+    /// keypoint; `None` where no depth was triangulated), triangulated against the keyframes
+    /// before and after it with the filter's relative poses (where a feature has a point from
+    /// both, the one of wider parallax is kept).
+    fn local_points(&self, k: usize, p: &LoopScaleParams) -> Vec<Option<DVec3>> {
+        let Some(kf) = self.keyframes.get(k) else {
+            return Vec::new();
+        };
+        let mut out: Vec<Option<(DVec3, f64)>> = vec![None; kf.bearings.len()];
+        for nb in [k.checked_sub(1), Some(k + 1)].into_iter().flatten() {
+            if let Some(nb) = self.keyframes.get(nb) {
+                self.triangulate_against(kf, nb, p, &mut out);
+            }
+        }
+        out.into_iter().map(|x| x.map(|(pt, _)| pt)).collect()
+    }
+
+    /// Guided matching of `kf`'s features with `nb`'s along the epipolar planes of the
+    /// filter's relative pose (the ratio test among the candidates near the plane only, which
+    /// finds far more matches than an unguided ratio test between distant views), and their
+    /// triangulation; fills `out` (point in `kf`'s frame, parallax in radians).
+    fn triangulate_against(
+        &self,
+        kf: &MonoKeyframe,
+        nb: &MonoKeyframe,
+        p: &LoopScaleParams,
+        out: &mut [Option<(DVec3, f64)>],
+    ) {
+        let kf_from_nb = kf.world_from_camera.inverse() * nb.world_from_camera;
+        let t = kf_from_nb.translation;
+        if !(t.length() > 1e-12) {
+            return;
+        }
+        let r = kf_from_nb.rotation_matrix();
+        let e = essential_of(&kf_from_nb);
+        let sin_t = p.local_threshold.sin();
+        // Epipolar plane normals: `E a` in kf's frame for nb's bearings, `E^T b` in nb's frame
+        // for kf's, so that each pair costs two dot products.
+        let unit = |v: DVec3| {
+            let l = v.length();
+            (l > 1e-12).then(|| v / l)
+        };
+        let planes_nb: Vec<Option<DVec3>> = nb.bearings.iter().map(|a| unit(e * *a)).collect();
+        let m = &self.params.matching;
+        for (qi, (dq, b)) in kf.descriptors.iter().zip(&kf.bearings).enumerate() {
+            let Some(plane_kf) = unit(e.transpose() * *b) else {
+                continue;
+            };
+            let (mut best, mut second, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
+            for (ti, (dt, a)) in nb.descriptors.iter().zip(&nb.bearings).enumerate() {
+                let Some(n2) = planes_nb[ti] else { continue };
+                if b.dot(n2).abs() >= sin_t || a.dot(plane_kf).abs() >= sin_t {
+                    continue;
+                }
+                let d = dq.distance(dt);
+                if d < best {
+                    (second, best, best_i) = (best, d, ti);
+                } else if d < second {
+                    second = d;
+                }
+            }
+            if best > m.max_distance
+                || (m.ratio < 1.0 && second != u32::MAX && best as f32 >= m.ratio * second as f32)
+            {
+                continue;
+            }
+            let a = nb.bearings[best_i];
+            let parallax = (r * a).angle_between(*b);
+            if parallax < p.min_parallax || out[qi].is_some_and(|(_, par)| par >= parallax) {
+                continue;
+            }
+            if let Some((da, db)) = triangulate_depths(&r, t, a, *b) {
+                if da > 0.0 && db > 0.0 && db.is_finite() {
+                    out[qi] = Some((db * *b, parallax));
+                }
+            }
+        }
+    }
+
+    /// The relative similarity of the verified loop `check` of query keyframe `query` (see
+    /// [`LoopSimilarity`]); `None` when the check has no relative pose or fewer than
+    /// `p.min_points` inliers have a local point in both keyframes.
+    pub fn loop_similarity(
+        &self,
+        query: usize,
+        check: &CandidateCheck,
+        p: &LoopScaleParams,
+    ) -> Option<LoopSimilarity> {
+        let query_from_candidate = check.query_from_candidate?;
+        let (q, c) = (
+            self.keyframes.get(query)?,
+            self.keyframes.get(check.keyframe)?,
+        );
+        let (local_q, local_c) = (
+            self.local_points(query, p),
+            self.local_points(check.keyframe, p),
+        );
+        let e = essential_of(&query_from_candidate);
+        let sin_t = self.params.angular_threshold.sin();
+        // The loop's inliers, as `verify` selects them after refinement.
+        let mut pts: Vec<(DVec3, DVec3)> = Vec::new();
+        for m in match_descriptors(&q.descriptors, &c.descriptors, &self.params.matching) {
+            if epipolar_angle(&e, c.bearings[m.train], q.bearings[m.query]) >= sin_t {
+                continue;
+            }
+            if let (Some(Some(pc)), Some(Some(pq))) = (local_c.get(m.train), local_q.get(m.query)) {
+                pts.push((*pc, *pq));
+            }
+        }
+        let rot = query_from_candidate.rotation.inverse();
+        let fit = |pts: &[(DVec3, DVec3)]| -> Option<(f64, f64, DVec3, Vec<f64>)> {
+            if pts.len() < p.min_points {
+                return None;
+            }
+            let mut logs = Vec::with_capacity(pts.len() * (pts.len() - 1) / 2);
+            for a in 0..pts.len() {
+                for b in a + 1..pts.len() {
+                    let (dc, dq) = (
+                        (pts[a].0 - pts[b].0).length(),
+                        (pts[a].1 - pts[b].1).length(),
+                    );
+                    if dc > 0.0 && dq > 0.0 {
+                        logs.push((dc / dq).ln());
+                    }
+                }
+            }
+            let log_s = median_of(&mut logs.clone());
+            let mut dev: Vec<f64> = logs.iter().map(|l| (l - log_s).abs()).collect();
+            // Pairs share points: the spread of the ratios over the square root of the number
+            // of points, not of pairs.
+            let log_std = 1.4826 * median_of(&mut dev) / (pts.len() as f64).sqrt();
+            let s = log_s.exp();
+            let offsets: Vec<DVec3> = pts.iter().map(|(pc, pq)| *pc - s * (rot * *pq)).collect();
+            let comp =
+                |f: fn(&DVec3) -> f64| median_of(&mut offsets.iter().map(f).collect::<Vec<_>>());
+            let t = DVec3::new(comp(|v| v.x), comp(|v| v.y), comp(|v| v.z));
+            let res: Vec<f64> = offsets.iter().map(|o| (*o - t).length()).collect();
+            (s.is_finite() && t.is_finite() && log_std.is_finite()).then_some((s, log_std, t, res))
+        };
+        let (_, _, _, res) = fit(&pts)?;
+        // Points whose local depth is wrong (a match along the epipolar line of the
+        // neighbour) sit far off the fit: drop them and fit again.
+        let cut = 3.0 * 1.4826 * median_of(&mut res.clone());
+        let kept: Vec<(DVec3, DVec3)> = pts
+            .iter()
+            .zip(&res)
+            .filter(|(_, r)| **r <= cut)
+            .map(|(x, _)| *x)
+            .collect();
+        if kept.len() < p.min_points {
+            return None;
+        }
+        let (s, log_std, t, res) = fit(&kept)?;
+        let n = res.len() as f64;
+        // Per component: the residual vectors' median length spread over three axes.
+        let translation_std = 1.4826 * median_of(&mut res.clone()) / (3.0 * n).sqrt();
+        let depth = median_of(&mut kept.iter().map(|x| x.0.length()).collect::<Vec<_>>());
+        Some(LoopSimilarity {
+            query,
+            candidate: check.keyframe,
+            candidate_from_query: crate::graph::Sim3::new(rot, t, s),
+            points: kept.len(),
+            log_scale_std: log_std.max(0.01),
+            translation_std: translation_std.max(0.01 * depth),
+            rotation_std: self.params.angular_threshold,
+        })
+    }
+}
+
 /// The camera's valid region shrunk by `margin` pixels: 1 inside, 0 outside.
 fn valid_mask(camera: &UnifiedCamera, margin: f64) -> ImageF32 {
     let (w, h) = (camera.width as usize, camera.height as usize);
@@ -958,6 +1216,103 @@ mod tests {
             "{} inliers of random pairs",
             fit.inliers.len()
         );
+    }
+
+    /// Two stretches of a walk seen by keyframes whose filter poses are in different units
+    /// (the later stretch at half the scale of the earlier one): the loop similarity between
+    /// them must have the ratio of the units as its scale (eq. 3.10), the true rotation and the
+    /// translation in the candidate's units.
+    #[test]
+    fn loop_similarity_measures_the_ratio_of_the_keyframes_units() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let points: Vec<DVec3> = (0..150)
+            .map(|_| {
+                DVec3::new(
+                    rng.random_range(-5.0..5.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(-5.0..5.0),
+                )
+            })
+            .collect();
+        let descriptors: Vec<Descriptor> = (0..points.len())
+            .map(|_| Descriptor([rng.random(), rng.random(), rng.random(), rng.random()]))
+            .collect();
+        let yaw = |a: f64| glam::DQuat::from_rotation_y(a);
+        // True world_from_camera of six keyframes: three on the first pass, three on the
+        // second pass near the same place (turned and shifted).
+        let truth: Vec<Se3> = [
+            (0.0, -1.0, 0.0),
+            (0.1, -0.5, 0.05),
+            (0.2, 0.0, 0.1),
+            (0.3, -0.8, 0.4),
+            (0.35, -0.3, 0.45),
+            (0.4, 0.2, 0.5),
+        ]
+        .iter()
+        .map(|&(a, x, z)| Se3::new(yaw(a), DVec3::new(x, 0.1, z)))
+        .collect();
+        // The filter: the first pass in metres, the second at half that (units of 2 m), in a
+        // world shifted and turned by drift.
+        let drift = Se3::new(yaw(0.05), DVec3::new(0.3, 0.0, -0.2));
+        let filter: Vec<Se3> = truth
+            .iter()
+            .enumerate()
+            .map(|(k, t)| {
+                if k < 3 {
+                    *t
+                } else {
+                    let d = drift * *t;
+                    Se3::new(d.rotation, d.translation * 0.5)
+                }
+            })
+            .collect();
+        let camera = UnifiedCamera::catadioptric(200, 200);
+        let vocabulary = Vocabulary::embedded_default().expect("vocabulary");
+        let mut det =
+            MonoLoopDetector::new(camera, vocabulary, MonoLoopParams::default()).expect("detector");
+        for (k, (t, f)) in truth.iter().zip(&filter).enumerate() {
+            let camera_from_world = t.inverse();
+            let bearings: Vec<DVec3> = points
+                .iter()
+                .map(|p| camera_from_world.transform_point(*p).normalize())
+                .collect();
+            det.keyframes.push(MonoKeyframe {
+                frame: k,
+                timestamp: k as f64,
+                world_from_camera: *f,
+                keypoints: Vec::new(),
+                descriptors: descriptors.clone(),
+                bearings,
+                bow: BowVector::default(),
+            });
+        }
+        let (query, candidate) = (4, 1);
+        let rel = truth[query].inverse() * truth[candidate];
+        let check = CandidateCheck {
+            keyframe: candidate,
+            score: 1.0,
+            normalised_score: 1.0,
+            matches: points.len(),
+            inliers: points.len(),
+            query_from_candidate: Some(Se3::new(rel.rotation, rel.translation.normalize())),
+            parallax_deg: 0.0,
+        };
+        let sim = det
+            .loop_similarity(query, &check, &LoopScaleParams::default())
+            .expect("a similarity");
+        let truth_cq = truth[candidate].inverse() * truth[query];
+        let z = sim.candidate_from_query;
+        assert!((z.scale - 2.0).abs() < 1e-6, "scale {}", z.scale);
+        // acos near 1 resolves angles to about 1e-8 rad.
+        let dr = z.rotation.angle_between(truth_cq.rotation);
+        assert!(dr < 1e-6, "rotation off by {dr} rad");
+        assert!(
+            (z.translation - truth_cq.translation).length() < 1e-6,
+            "translation {} vs {}",
+            z.translation,
+            truth_cq.translation
+        );
+        assert!(sim.points >= 100, "{} points", sim.points);
     }
 
     #[test]

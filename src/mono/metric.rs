@@ -8,14 +8,42 @@
 //! The scale estimation runs on the EKF's thread: its work per pose and per update does not
 //! grow with the trajectory ([`LiveDynScale`]), and [`MetricReport::scale_ms`] reports it so
 //! the share it adds to a frame can be measured.
+//!
+//! With loop detection ([`MetricMono::with_loops`], thesis 3.3.2) keyframes are chosen from the
+//! EKF stream and checked for loops as [`super::LoopingMono`] does. At the end each verified
+//! loop gives a relative similarity in the filter's units ([`LoopSimilarity`], eq. 3.10),
+//! which is carried into the units of the metric output (each keyframe's section scale), and
+//! `optimSim3` ([`optim_sim3_with`]) corrects the metric keyframes: the keyframes are the
+//! Sim(3) vertices, the walking scale of each one's section is a prior on its scale (the
+//! particle filter's standard deviation), consecutive keyframes are joined by the metric
+//! trajectory's relative motion, and the loops add their similarities. Every frame then takes
+//! the correction of the keyframes around it, blended by time.
 
 use std::time::Instant;
 
+use super::loops::{
+    CandidateCheck, KeyframeQuery, KeyframeSelector, LoopScaleParams, LoopSimilarity,
+    MonoLoopDetector, MonoLoopParams,
+};
 use super::{FrameReport, MonoConfig, MonoError, MonoSlam};
 use crate::camera::UnifiedCamera;
+use crate::geometry::Se3;
+use crate::graph::Sim3;
 use crate::image::ImageF32;
-use crate::scale::{DynScaleConfig, DynScaleResult, LiveDynScale, ScaleError, Section};
+use crate::place::Vocabulary;
+use crate::scale::{
+    optim_sim3_with, DynScaleConfig, DynScaleResult, LiveDynScale, ScaleError, Section,
+    SimilarityConstraint,
+};
 use crate::trajectory::TimedPose;
+
+/// Log-scale prior of a keyframe whose section has no standard deviation from the particle
+/// filter (the sections before the first estimate, which take the first one): loose, as
+/// nothing was measured there.
+const UNMEASURED_LOG_SCALE_STD: f64 = 0.1;
+/// Smallest log-scale prior: the particle filter's spread can collapse on a steady walk, and a
+/// prior tighter than the scale's true drift within a section would make loops powerless.
+const MIN_LOG_SCALE_STD: f64 = 0.01;
 
 /// One processed frame of [`MetricMono`].
 #[derive(Clone, Debug)]
@@ -31,6 +59,48 @@ pub struct MetricReport {
     pub closed: Vec<Section>,
     /// Milliseconds spent in the scale estimation for this frame.
     pub scale_ms: f64,
+    /// With loop detection: the keyframe query when the frame became a keyframe.
+    pub keyframe: Option<KeyframeQuery>,
+    /// Milliseconds spent on keyframe selection, ORB, database query and verification (0
+    /// without loop detection).
+    pub loop_ms: f64,
+}
+
+/// A verified loop of a [`MetricMono`] run with loop detection.
+#[derive(Clone, Debug)]
+pub struct MetricLoop {
+    /// The query (newer) keyframe, index into [`LoopedRun::keyframe_frames`].
+    pub query: usize,
+    /// The candidate (older) keyframe.
+    pub candidate: usize,
+    /// The verification that accepted it.
+    pub check: CandidateCheck,
+    /// Its relative similarity in the filter's units; `None` when too few of its inliers had
+    /// a local depth in both keyframes (the loop is then not used).
+    pub similarity: Option<LoopSimilarity>,
+}
+
+/// The loop-corrected output of a [`MetricMono`] run with loop detection.
+#[derive(Clone, Debug)]
+pub struct LoopedRun {
+    /// Frame index (0-based) of each keyframe.
+    pub keyframe_frames: Vec<usize>,
+    /// The verified loops, in the order found.
+    pub loops: Vec<MetricLoop>,
+    /// Loops with a similarity, used as `optimSim3` constraints.
+    pub constraints: usize,
+    /// The metric trajectory corrected by `optimSim3` (`world_from_camera`, metres, one pose
+    /// per frame; the dynScale output unchanged when no loop could be used).
+    pub trajectory: Vec<TimedPose>,
+}
+
+/// Loop detection beside the filter.
+struct LoopState {
+    selector: KeyframeSelector,
+    detector: MonoLoopDetector,
+    scale_params: LoopScaleParams,
+    found: Vec<(usize, CandidateCheck)>,
+    frame: usize,
 }
 
 /// The trajectories of a finished [`MetricMono`] run (`world_from_camera`, filter world =
@@ -46,6 +116,9 @@ pub struct MetricRun {
     /// An error when the scale was unobservable (no section detected as walking); the
     /// trajectories above are kept either way.
     pub scaled: Result<DynScaleResult, ScaleError>,
+    /// With loop detection and a metric trajectory: the loops and the loop-corrected metric
+    /// trajectory (an error when the Sim(3) graph failed).
+    pub looped: Option<Result<LoopedRun, ScaleError>>,
 }
 
 /// Monocular EKF SLAM with metric scale from walking.
@@ -54,6 +127,7 @@ pub struct MetricMono {
     scale: LiveDynScale,
     unscaled: Vec<TimedPose>,
     causal: Vec<TimedPose>,
+    loops: Option<LoopState>,
 }
 
 impl MetricMono {
@@ -70,7 +144,36 @@ impl MetricMono {
             scale: LiveDynScale::new(scale)?,
             unscaled: Vec::new(),
             causal: Vec::new(),
+            loops: None,
         })
+    }
+
+    /// [`MetricMono::new`] with loop detection from the images (keyframes, ORB + bag of words
+    /// with `vocabulary`, essential-matrix verification by `params`) and `optimSim3` on the
+    /// metric output at the end, each loop's similarity measured with `scale_params`.
+    pub fn with_loops(
+        camera: UnifiedCamera,
+        mono: MonoConfig,
+        scale: DynScaleConfig,
+        vocabulary: Vocabulary,
+        params: MonoLoopParams,
+        scale_params: LoopScaleParams,
+    ) -> Result<MetricMono, MonoError> {
+        scale_params.validate()?;
+        let mut m = MetricMono::new(camera, mono, scale)?;
+        m.loops = Some(LoopState {
+            selector: KeyframeSelector::new(params.keyframes)?,
+            detector: MonoLoopDetector::new(camera, vocabulary, params)?,
+            scale_params,
+            found: Vec::new(),
+            frame: 0,
+        });
+        Ok(m)
+    }
+
+    /// The loop detector, with loop detection on.
+    pub fn detector(&self) -> Option<&MonoLoopDetector> {
+        self.loops.as_ref().map(|l| &l.detector)
     }
 
     /// The EKF.
@@ -99,24 +202,168 @@ impl MetricMono {
         if let Some(m) = metric {
             self.causal.push(m);
         }
+        let t1 = Instant::now();
+        let mut keyframe = None;
+        if let Some(l) = &mut self.loops {
+            if l.selector.update(timestamp, &self.slam) {
+                let q =
+                    l.detector
+                        .add_keyframe(l.frame, timestamp, report.world_from_camera, image)?;
+                let p = l.detector.params();
+                if let Some(c) = q.best(p.min_normalised_score, p.min_inliers, p.min_inlier_ratio) {
+                    l.found.push((q.keyframe, *c));
+                }
+                keyframe = Some(q);
+            }
+            l.frame += 1;
+        }
+        let loop_ms = if self.loops.is_some() {
+            t1.elapsed().as_secs_f64() * 1e3
+        } else {
+            0.0
+        };
         Ok(MetricReport {
             report,
             metric,
             scale: self.scale.scale(),
             closed,
             scale_ms,
+            keyframe,
+            loop_ms,
         })
     }
 
     /// Ends the run: closes the last sections and scales the whole trajectory.
+    /// With loop detection, the loop-corrected metric trajectory too.
     pub fn finish(mut self) -> MetricRun {
         let scaled = self.scale.finish(&self.unscaled);
+        let looped = match (&self.loops, &scaled) {
+            (Some(l), Ok(r)) => Some(close_loops(l, r)),
+            _ => None,
+        };
         MetricRun {
             unscaled: self.unscaled,
             causal: self.causal,
             scaled,
+            looped,
         }
     }
+}
+
+/// `optimSim3` on the metric keyframes with the loops' similarities (see the module docs).
+fn close_loops(l: &LoopState, metric: &DynScaleResult) -> Result<LoopedRun, ScaleError> {
+    let kfs = l.detector.keyframes();
+    let keyframe_frames: Vec<usize> = kfs.iter().map(|k| k.frame).collect();
+    let loops: Vec<MetricLoop> = l
+        .found
+        .iter()
+        .map(|(q, c)| MetricLoop {
+            query: *q,
+            candidate: c.keyframe,
+            check: *c,
+            similarity: l.detector.loop_similarity(*q, c, &l.scale_params),
+        })
+        .collect();
+    let traj = &metric.scaled;
+    let mut kf_poses = Vec::with_capacity(kfs.len());
+    for k in kfs {
+        kf_poses.push(
+            *traj
+                .get(k.frame)
+                .ok_or_else(|| ScaleError::InvalidParameter {
+                    name: "keyframes",
+                    why: format!(
+                        "keyframe at frame {} beyond the {} metric poses",
+                        k.frame,
+                        traj.len()
+                    ),
+                })?,
+        );
+    }
+    // Each keyframe's section scale (metres per filter unit) carries a similarity measured in
+    // the filter's units into the metric output's: a point `x` of keyframe k's camera frame in
+    // filter units is `c_k x` in the metric camera frame.
+    let section_scale: Vec<f64> = kfs.iter().map(|k| metric.scale_at(k.timestamp)).collect();
+    let constraints: Vec<SimilarityConstraint> = loops
+        .iter()
+        .filter_map(|lp| {
+            let sim = lp.similarity?;
+            let (ci, cj) = (section_scale[lp.candidate], section_scale[lp.query]);
+            let z = sim.candidate_from_query;
+            let c = SimilarityConstraint {
+                i: lp.candidate,
+                j: lp.query,
+                i_from_j: Sim3::new(z.rotation, ci * z.translation, z.scale * ci / cj),
+                translation_std: ci * sim.translation_std,
+                rotation_std: sim.rotation_std,
+                log_scale_std: sim.log_scale_std,
+            };
+            let z = c.i_from_j;
+            (z.translation.is_finite() && z.scale.is_finite() && c.translation_std.is_finite())
+                .then_some(c)
+        })
+        .collect();
+    if constraints.is_empty() || kf_poses.len() < 2 {
+        return Ok(LoopedRun {
+            keyframe_frames,
+            loops,
+            constraints: 0,
+            trajectory: traj.clone(),
+        });
+    }
+    let priors: Vec<f64> = kfs
+        .iter()
+        .map(|k| {
+            let sd = metric.section_at(k.timestamp).log10_std * std::f64::consts::LN_10;
+            if sd.is_finite() && sd > 0.0 {
+                sd.max(MIN_LOG_SCALE_STD)
+            } else {
+                UNMEASURED_LOG_SCALE_STD
+            }
+        })
+        .collect();
+    let corrected = optim_sim3_with(&kf_poses, &constraints, Some(&priors))?;
+    // World correction of each keyframe: new world from old world.
+    let corrections: Vec<Sim3> = corrected
+        .iter()
+        .zip(&kf_poses)
+        .map(|(new, old)| *new * Sim3::from_se3(&old.world_from_camera).inverse())
+        .collect();
+    let trajectory = traj
+        .iter()
+        .enumerate()
+        .map(|(f, pose)| {
+            let k = keyframe_frames
+                .partition_point(|&kf| kf <= f)
+                .saturating_sub(1);
+            let ck = &corrections[k];
+            let p = pose.world_from_camera.translation;
+            let (rotation, translation) = match (corrections.get(k + 1), kfs.get(k + 1)) {
+                (Some(cn), Some(next)) => {
+                    let (t0, t1) = (kfs[k].timestamp, next.timestamp);
+                    let u = ((pose.timestamp - t0) / (t1 - t0)).clamp(0.0, 1.0);
+                    (
+                        ck.rotation.slerp(cn.rotation, u),
+                        ck.transform_point(p).lerp(cn.transform_point(p), u),
+                    )
+                }
+                _ => (ck.rotation, ck.transform_point(p)),
+            };
+            TimedPose {
+                timestamp: pose.timestamp,
+                world_from_camera: Se3::new(
+                    (rotation * pose.world_from_camera.rotation).normalize(),
+                    translation,
+                ),
+            }
+        })
+        .collect();
+    Ok(LoopedRun {
+        keyframe_frames,
+        loops,
+        constraints: constraints.len(),
+        trajectory,
+    })
 }
 
 #[cfg(test)]

@@ -43,10 +43,10 @@ pub use filter::{FrameReport, MonoSlam, MonoStats, StageTimes};
 pub use input::{load_camera, load_grey, unified_from_model, ImageSequence};
 pub use landmark::InverseDepthLandmark;
 pub use loops::{
-    CandidateCheck, KeyframePolicy, KeyframeQuery, KeyframeSelector, LoopingMono, LoopingReport,
-    MonoKeyframe, MonoLoopDetector, MonoLoopParams,
+    CandidateCheck, KeyframePolicy, KeyframeQuery, KeyframeSelector, LoopScaleParams,
+    LoopSimilarity, LoopingMono, LoopingReport, MonoKeyframe, MonoLoopDetector, MonoLoopParams,
 };
-pub use metric::{MetricMono, MetricReport, MetricRun};
+pub use metric::{LoopedRun, MetricLoop, MetricMono, MetricReport, MetricRun};
 pub use patch::PatchMode;
 pub use state::CameraState;
 

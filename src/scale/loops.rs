@@ -1,16 +1,20 @@
 //! Sim(3) loop closure (`optimSim3`, Strasdat et al. 2010) on a (possibly rescaled) monocular
 //! trajectory, through [`crate::graph::PoseGraphSim3`].
 //!
-//! Vertices are the estimated keyframe poses as similarities of scale 1 (vertex 0 fixed, the
-//! gauge); odometry edges join consecutive keyframes with their estimated relative motion
-//! (scale 1, translation std 5 % of the step, rotation 0.002 rad, log-scale 0.02). Loop
-//! closures are emulated from ground truth (the place-recognition front end is not part of
-//! this experiment): keyframes `i < j` at least `min_separation` seconds apart whose true
-//! positions are within `max_distance` and viewing directions within `max_angle` are
-//! linked, at most one closure per `min_gap` seconds. The closure measures the similarity
-//! `i_from_j` a monocular relocaliser would: with `s_k` the true local scale (metres per
-//! estimate unit) at keyframe `k` and `(R, t)` the true relative motion,
-//! `z = (R, t / s_i, s_j / s_i)`, perturbed by the closure noise.
+//! [`optim_sim3_with`] is the graph: vertices are the keyframe poses as similarities of scale 1,
+//! odometry edges join consecutive keyframes with their estimated relative motion (scale 1,
+//! translation std 5 % of the step, rotation 0.002 rad, log-scale 0.02), loops are relative
+//! similarities ([`SimilarityConstraint`]), and either keyframe 0 is fixed (the result in its
+//! units) or, for an input already in metres, each keyframe's scale has a prior around 1 (the
+//! walking scale of its section). The monocular system measures the loops from images
+//! (`crate::mono`'s loop similarity); [`optim_sim3`] emulates them from ground truth for the
+//! scale experiment (the place-recognition front end is not part of it): keyframes `i < j` at
+//! least `min_separation` seconds apart whose true positions are within `max_distance` and
+//! viewing directions within `max_angle` are linked, at most one closure per `min_gap`
+//! seconds. The emulated closure measures the similarity `i_from_j` a monocular relocaliser
+//! would: with `s_k` the true local scale (metres per estimate unit) at keyframe `k` and
+//! `(R, t)` the true relative motion, `z = (R, t / s_i, s_j / s_i)`, perturbed by the closure
+//! noise.
 
 use glam::DVec3;
 use rand::SeedableRng;
@@ -98,15 +102,34 @@ fn diag(v: &[f64]) -> Vec<f64> {
     m
 }
 
+/// A relative similarity between two keyframes of a Sim(3) graph (a loop closure): `i_from_j`
+/// maps points of keyframe `j`'s camera frame, in `j`'s units, into keyframe `i`'s camera
+/// frame in `i`'s units (`p_i = scale R p_j + t`; its scale is the ratio of the two keyframes'
+/// local scales, eq. 3.10), with the standard deviations of its parts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SimilarityConstraint {
+    /// The older keyframe (index into the keyframes of [`optim_sim3_with`]).
+    pub i: usize,
+    /// The newer keyframe.
+    pub j: usize,
+    /// `i_from_j`, translation in keyframe `i`'s units.
+    pub i_from_j: Sim3,
+    /// Standard deviation of each translation component, keyframe `i`'s units (> 0).
+    pub translation_std: f64,
+    /// Standard deviation of each rotation component, radians (> 0).
+    pub rotation_std: f64,
+    /// Standard deviation of the log of the scale (> 0).
+    pub log_scale_std: f64,
+}
+
 /// `optimSim3`: corrects `est` (keyframes, estimate units) with the loop closures `loops`
 /// (indices into `est`), measured from `gt` with the estimate's true local scale `local_scale`
 /// (metres per estimate unit, one per keyframe). Returns the corrected keyframes.
 ///
 /// Without `metric_prior`, keyframe 0 is fixed (pose and scale: the result is in its units, as
 /// plain monocular `optimSim3`). With `Some(sigma)` (for an already metric, dynScale'd input)
-/// a fixed anchor vertex holds the metric frame: every keyframe about one second apart gets a
-/// prior `ln s_k = 0 +- sigma` (keep dynScale's scale), the rotation and translation parts of
-/// those priors being negligible (1e-8) except for keyframe 0, which they pin in place.
+/// every keyframe about one second apart gets the prior `ln s_k = 0 +- sigma` of
+/// [`optim_sim3_with`].
 pub fn optim_sim3(
     est: &[TimedPose],
     gt: &[TimedPose],
@@ -126,14 +149,74 @@ pub fn optim_sim3(
             ),
         });
     }
+    let mut rng = Pcg64::seed_from_u64(cfg.seed ^ 0x100b);
+    let mut constraints = Vec::with_capacity(loops.len());
+    for &(i, j) in loops {
+        if i >= n || j >= n || i == j {
+            continue;
+        }
+        let rel: Se3 = gt[i].world_from_camera.inverse() * gt[j].world_from_camera;
+        let mut nz = || standard_normal(&mut rng);
+        let dr = so3_exp(DVec3::new(nz(), nz(), nz()) * cfg.rotation_noise);
+        let dt = DVec3::new(nz(), nz(), nz()) * cfg.translation_noise;
+        let ds = (nz() * cfg.log_scale_noise).exp();
+        let (si, sj) = (local_scale[i], local_scale[j]);
+        constraints.push(SimilarityConstraint {
+            i,
+            j,
+            i_from_j: Sim3::new(dr * rel.rotation, (rel.translation + dt) / si, sj / si * ds),
+            translation_std: cfg.translation_noise / si,
+            rotation_std: cfg.rotation_noise,
+            log_scale_std: cfg.log_scale_noise.max(1e-4),
+        });
+    }
+    let priors = metric_prior.map(|sigma| vec![sigma; n]);
+    let poses = optim_sim3_with(est, &constraints, priors.as_deref())?;
+    Ok(est
+        .iter()
+        .zip(&poses)
+        .map(|(p, v)| TimedPose {
+            timestamp: p.timestamp,
+            world_from_camera: v.to_se3(),
+        })
+        .collect())
+}
+
+/// The Sim(3) graph of `optimSim3` on keyframes `est` (`world_from_camera`, time order) with
+/// the relative similarities `loops`; returns each keyframe's corrected `world_from_camera`
+/// as a similarity (its scale: the keyframe's units over the world's).
+///
+/// Vertices are the keyframe poses as similarities of scale 1; odometry edges join
+/// consecutive keyframes with their relative motion (scale 1, translation std 5 % of the step,
+/// rotation 0.002 rad, log-scale 0.02). Without `scale_priors`, keyframe 0 is fixed (pose and
+/// scale: the result is in its units). With `Some(sigmas)` (one log-scale standard deviation
+/// per keyframe, for an input already in metres, e.g. dynScale's output) a fixed anchor
+/// vertex holds the metric frame: every keyframe about one second apart gets the prior
+/// `ln s_k = 0 +- sigmas[k]` (keep the metric scale it has), the rotation and translation
+/// parts of those priors being negligible (1e-8) except for keyframe 0, which they pin in
+/// place.
+pub fn optim_sim3_with(
+    est: &[TimedPose],
+    loops: &[SimilarityConstraint],
+    scale_priors: Option<&[f64]>,
+) -> Result<Vec<Sim3>, ScaleError> {
+    let n = est.len();
+    if n < 2 || scale_priors.is_some_and(|p| p.len() != n) {
+        return Err(ScaleError::InvalidParameter {
+            name: "keyframes",
+            why: format!(
+                "need >= 2 keyframes and one scale prior per keyframe (keyframes {n}, priors {})",
+                scale_priors.map_or(0, <[f64]>::len)
+            ),
+        });
+    }
     let mut g = PoseGraphSim3::new();
     for (k, p) in est.iter().enumerate() {
         g.add_vertex(k as i64, Sim3::from_se3(&p.world_from_camera))?;
     }
-    if let Some(sigma) = metric_prior {
+    if let Some(sigmas) = scale_priors {
         let anchor = g.add_vertex(-1, Sim3::IDENTITY)?;
         g.fixed[anchor] = true;
-        let sigma = sigma.max(1e-6);
         let mut last = f64::NEG_INFINITY;
         for (k, p) in est.iter().enumerate() {
             if k > 0 && p.timestamp - last < 1.0 {
@@ -141,6 +224,13 @@ pub fn optim_sim3(
             }
             last = p.timestamp;
             let w = if k == 0 { 1e-4 } else { 1e4 };
+            let sigma = if sigmas[k].is_finite() {
+                sigmas[k].max(1e-6)
+            } else {
+                return Err(ScaleError::NonFinite(format!(
+                    "scale prior of keyframe {k}"
+                )));
+            };
             g.add_edge_by_index(
                 anchor,
                 k,
@@ -161,44 +251,20 @@ pub fn optim_sim3(
             diag(&[st, st, st, 0.002, 0.002, 0.002, 0.02]),
         )?;
     }
-    let mut rng = Pcg64::seed_from_u64(cfg.seed ^ 0x100b);
-    for &(i, j) in loops {
-        if i >= n || j >= n || i == j {
+    for c in loops {
+        if c.i >= n || c.j >= n || c.i == c.j {
             continue;
         }
-        let rel: Se3 = gt[i].world_from_camera.inverse() * gt[j].world_from_camera;
-        let mut nz = || standard_normal(&mut rng);
-        let dr = so3_exp(DVec3::new(nz(), nz(), nz()) * cfg.rotation_noise);
-        let dt = DVec3::new(nz(), nz(), nz()) * cfg.translation_noise;
-        let ds = (nz() * cfg.log_scale_noise).exp();
-        let (si, sj) = (local_scale[i], local_scale[j]);
-        let z = Sim3::new(dr * rel.rotation, (rel.translation + dt) / si, sj / si * ds);
-        let st = cfg.translation_noise / si;
-        g.add_edge_by_index(
-            i,
-            j,
-            z,
-            diag(&[
-                st,
-                st,
-                st,
-                cfg.rotation_noise,
-                cfg.rotation_noise,
-                cfg.rotation_noise,
-                cfg.log_scale_noise.max(1e-4),
-            ]),
-        )?;
+        let (st, sr, ss) = (
+            c.translation_std.max(1e-9),
+            c.rotation_std.max(1e-9),
+            c.log_scale_std.max(1e-4),
+        );
+        g.add_edge_by_index(c.i, c.j, c.i_from_j, diag(&[st, st, st, sr, sr, sr, ss]))?;
     }
     g.optimize(&SolverOptions {
         max_iterations: 50,
         ..SolverOptions::default()
     })?;
-    Ok(est
-        .iter()
-        .zip(&g.poses)
-        .map(|(p, v)| TimedPose {
-            timestamp: p.timestamp,
-            world_from_camera: v.to_se3(),
-        })
-        .collect())
+    Ok(g.poses[..n].to_vec())
 }

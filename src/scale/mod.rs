@@ -20,7 +20,8 @@
 //!   axis found online.
 //! - [`emulate_monocular`]: an emulator of monocular SLAM output (pose noise + drifting scale)
 //!   from a ground-truth trajectory, for experiments.
-//! - [`optim_sim3`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`].
+//! - [`optim_sim3`]: Sim(3) loop closure (`optimSim3`) through [`crate::graph::PoseGraphSim3`],
+//!   on emulated loops; [`optim_sim3_with`]: the same graph on measured relative similarities.
 //! - [`arc_length_error`]: position error against ground truth by normalised arc length (3.36).
 //! - [`arc_length_error_from_start`]: the same, placed on the ground truth at the first pose and
 //!   never rescaled (how the thesis scores a walk).
@@ -45,7 +46,9 @@ pub use dynscale::{
     UpAxis,
 };
 pub use live::{LiveDynScale, SectionTransform};
-pub use loops::{detect_loops_from_ground_truth, optim_sim3, LoopConfig};
+pub use loops::{
+    detect_loops_from_ground_truth, optim_sim3, optim_sim3_with, LoopConfig, SimilarityConstraint,
+};
 pub use metric::{arc_length_error, arc_length_error_from_start, ArcLengthError};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
 pub use spectrum::{HighPass, SpectrumConfig, StepAnalysis};
