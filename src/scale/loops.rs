@@ -6,8 +6,8 @@
 //! translation std 5 % of the step, rotation 0.002 rad, log-scale 0.02), loops are relative
 //! similarities ([`SimilarityConstraint`]), and either keyframe 0 is fixed (the result in its
 //! units) or, for an input already in metres, each keyframe's scale has a prior around 1 (the
-//! walking scale of its section). The monocular system measures the loops from images
-//! (the loop similarity of the monocular system, a layer above); [`optim_sim3`] emulates them from ground truth for the
+//! walking scale of its section). The monocular system, a layer above, measures the loops
+//! from images; [`optim_sim3`] emulates them from ground truth for the
 //! scale experiment (the place-recognition front end is not part of it): keyframes `i < j` at
 //! least `min_separation` seconds apart whose true positions are within `max_distance` and
 //! viewing directions within `max_angle` are linked, at most one closure per `min_gap`
