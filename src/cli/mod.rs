@@ -1,5 +1,6 @@
 //! Subcommand implementations of the `rgbid` binary (one file each).
 
+mod ahead;
 pub mod bench;
 pub mod config;
 pub mod demo;

@@ -163,12 +163,23 @@ pub fn run(args: Args) -> Result<()> {
     let mut interrupted = false;
     let mut skips = super::outputs::Skips::default();
     let mut checkpoints = super::outputs::Checkpoints::new(args.checkpoint_every);
+    let mut frames = super::ahead::ReadAhead::spawn(seq.len(), {
+        let seq = seq.clone();
+        move |i| seq.load(i)
+    })?;
     for i in 0..seq.len() {
         if stop.requested() {
             interrupted = true;
             break;
         }
-        let frame = match seq.load(i) {
+        let loaded = match frames.get(i) {
+            Ok((loaded, _ms)) => loaded,
+            Err(e) => {
+                outcome = Err(e);
+                break;
+            }
+        };
+        let frame = match loaded {
             Ok(f) => f,
             Err(e) if super::outputs::frame_content_error(&e) => {
                 if let Some(stop) = skips.skip(i, anyhow::Error::new(e)) {
@@ -257,6 +268,7 @@ pub fn run(args: Args) -> Result<()> {
             }
         }
     }
+    drop(frames);
     bar.finish_and_clear();
     // Whatever happened, keep what was computed.
     if let Err(e) = write_trajectory(&args.out, &poses, format) {

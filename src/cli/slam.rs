@@ -24,6 +24,7 @@ use rgbid::source::{FrameSource, RgbdStream, SourceError, SourceSpec, SynthOptio
 use rgbid::trajectory::TimedPose;
 use rgbid::tsdf::TsdfParams;
 
+use super::ahead::ReadAhead;
 use super::options::{range, BackendArgs, ConfigArgs, OdometryOptions};
 
 /// Arguments of `rgbid slam`.
@@ -232,8 +233,12 @@ fn median(v: &mut [f64]) -> f64 {
 
 /// Where a run's frames come from.
 enum Input {
-    /// A folder or generated sequence, read by index.
-    Source(FrameSource),
+    /// A folder or generated sequence, read by index; a folder's frames are decoded on a
+    /// reader thread ahead of the tracking unless frames are dropped to keep a real-time pace.
+    Source(
+        FrameSource,
+        Option<ReadAhead<Result<RgbdFrame, SourceError>>>,
+    ),
     /// A live camera (or a replayed folder) on its own thread.
     Live(LiveInput),
 }
@@ -241,7 +246,7 @@ enum Input {
 impl Input {
     fn camera(&self) -> PinholeCamera {
         match self {
-            Input::Source(s) => s.camera(),
+            Input::Source(s, _) => s.camera(),
             Input::Live(l) => l.camera(),
         }
     }
@@ -249,29 +254,34 @@ impl Input {
     /// Frames to come, when known.
     fn len(&self) -> Option<usize> {
         match self {
-            Input::Source(s) => Some(s.len()),
+            Input::Source(s, _) => Some(s.len()),
             Input::Live(_) => None,
         }
     }
 
     fn input_warning(&self) -> Option<&str> {
         match self {
-            Input::Source(s) => s.input_warning(),
+            Input::Source(s, _) => s.input_warning(),
             Input::Live(_) => None,
         }
     }
 
-    /// Frame `i` of a source; the next frame of a live input (`i` counts them).
-    fn frame(&mut self, i: usize) -> Option<Result<RgbdFrame, SourceError>> {
+    /// Frame `i` of a source; the next frame of a live input (`i` counts them). With the
+    /// frame, the time its decoding took (ms) when a reader thread decoded it.
+    fn frame(&mut self, i: usize) -> Option<Result<(RgbdFrame, Option<f64>), SourceError>> {
         match self {
-            Input::Source(s) => (i < s.len()).then(|| s.load(i)),
-            Input::Live(l) => l.next_frame(),
+            Input::Source(s, None) => (i < s.len()).then(|| s.load(i).map(|f| (f, None))),
+            Input::Source(s, Some(ahead)) => (i < s.len()).then(|| match ahead.get(i) {
+                Ok((loaded, ms)) => loaded.map(|f| (f, Some(ms))),
+                Err(e) => Err(SourceError::Invalid(e.to_string())),
+            }),
+            Input::Live(l) => l.next_frame().map(|r| r.map(|f| (f, None))),
         }
     }
 
     fn groundtruth(&self) -> Option<Vec<TimedPose>> {
         match self {
-            Input::Source(s) => s.groundtruth(),
+            Input::Source(s, _) => s.groundtruth(),
             Input::Live(l) => l.groundtruth(),
         }
     }
@@ -312,7 +322,16 @@ impl Inputs {
                 if source.is_empty() {
                     bail!("the sequence has no frames");
                 }
-                Input::Source(source)
+                // Only a folder is decoded ahead: a generated sequence renders on the
+                // backend the tracking uses.
+                let ahead = match (&source, a.realtime) {
+                    (FrameSource::Tum(seq), None) => Some(ReadAhead::spawn(source.len(), {
+                        let seq = seq.clone();
+                        move |i| seq.load(i).map_err(SourceError::from)
+                    })?),
+                    _ => None,
+                };
+                Input::Source(source, ahead)
             }
         };
         let vocabulary = match &a.vocabulary {
@@ -498,7 +517,10 @@ fn run_slam(
         let frame = match source.frame(i) {
             // The end of a live stream.
             None => break,
-            Some(Ok(f)) => f,
+            Some(Ok((f, decode_ms))) => {
+                load_ms.push(decode_ms.unwrap_or_else(|| tl.elapsed().as_secs_f64() * 1e3));
+                f
+            }
             Some(Err(e)) if frame_content_error(&e) => {
                 if let Some(stop) = skips.skip(i, anyhow::Error::new(e)) {
                     error = Some(stop);
@@ -513,7 +535,6 @@ fn run_slam(
                 break;
             }
         };
-        load_ms.push(tl.elapsed().as_secs_f64() * 1e3);
         match slam.process(&frame) {
             Ok(r) => {
                 if let Some(rr) = rerun.as_mut() {
