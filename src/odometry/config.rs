@@ -138,7 +138,9 @@ pub enum Linearisation {
     /// point (bilinear) and the projection Jacobian there, for a left twist of `T`; the
     /// geometric residual is compared in the current frame, `W_B(w(p)) - 1/z_B`. The default:
     /// over the two real sequences (redkitchen 0-299, fr1/rpy 0-199) it gave the better mean
-    /// odometry ATE against OpenCV's (docs/notes.md).
+    /// odometry ATE against OpenCV's, and the better mean SLAM ATE, though the reference form
+    /// is better on fr1/rpy and the odometry's margin is far below what two short sequences
+    /// resolve (docs/notes.md).
     Current = 0,
     /// The thesis' form, inverse compositional: the Jacobians take the reference frame's
     /// stored gradients `nabla I_A(p)`, `nabla W_A(p)` and the projection Jacobian at the
