@@ -27,6 +27,7 @@ VARIANTS = [
     ("covisibility_test=depth (the previous default), geometric_sampling=nearest", "base", "nearest"),
     ("covisibility_test=consistent (eq. 4.33)", "covis", None),
     ("geometric_sampling=coarselinear", "coarse", "coarse"),
+    ("covisibility_test=consistent, linearisation=reference (eq. 4.16-4.17, 6.12-6.13)", "reflin", None),
 ]
 
 # `rgbid slam` variants (scripts/thesis_options.sh), ATE after rigid alignment.
@@ -36,6 +37,7 @@ SLAM_VARIANTS = [
     ("covis", "slam: covisibility_test=consistent, fusion tolerance 0.004 + 0.03 rho, keyframe side only"),
     ("both", "slam: covisibility_test=consistent, fusion 3 sigma_W + occlusion + both directions"),
     ("nocap", "slam: as `both`, fusion weight not capped (max_weight 1e9 instead of 30)"),
+    ("reflin", "slam: as `covis`, odometry linearised in the reference frame (linearisation=reference)"),
 ]
 
 

@@ -13,28 +13,32 @@ O=${1:-/tmp/thesis-runs}
 mkdir -p "$O"
 uptime > "$O/load_start.txt"
 odo_variant() {
+  local cur="--set linearisation=current"
   case $1 in
-    base) echo "--set covisibility_test=depth --set geometric_sampling=nearest" ;;
-    covis) echo "--set covisibility_test=consistent --set geometric_sampling=nearest" ;;
-    coarse) echo "--set covisibility_test=depth --set geometric_sampling=coarselinear" ;;
+    base) echo "--set covisibility_test=depth --set geometric_sampling=nearest $cur" ;;
+    covis) echo "--set covisibility_test=consistent --set geometric_sampling=nearest $cur" ;;
+    coarse) echo "--set covisibility_test=depth --set geometric_sampling=coarselinear $cur" ;;
+    reflin) echo "--set covisibility_test=consistent --set geometric_sampling=nearest --set linearisation=reference" ;;
   esac
 }
 slam_variant() {
   local fixed="--set fusion.tol_sigmas=0 --set fusion.occlusion=false --set fusion.both_directions=false"
   local thesis="--set fusion.tol_sigmas=3 --set fusion.occlusion=true --set fusion.both_directions=true"
+  local cur="--set odometry.linearisation=current"
   case $1 in
-    default) echo "--set odometry.covisibility_test=depth $fixed" ;;
-    fusion) echo "--set odometry.covisibility_test=depth $thesis" ;;
-    covis) echo "--set odometry.covisibility_test=consistent $fixed" ;;
-    both) echo "--set odometry.covisibility_test=consistent $thesis" ;;
-    nocap) echo "--set odometry.covisibility_test=consistent $thesis --set fusion.max_weight=1e9" ;;
+    default) echo "--set odometry.covisibility_test=depth $fixed $cur" ;;
+    fusion) echo "--set odometry.covisibility_test=depth $thesis $cur" ;;
+    covis) echo "--set odometry.covisibility_test=consistent $fixed $cur" ;;
+    both) echo "--set odometry.covisibility_test=consistent $thesis $cur" ;;
+    nocap) echo "--set odometry.covisibility_test=consistent $thesis --set fusion.max_weight=1e9 $cur" ;;
+    reflin) echo "--set odometry.covisibility_test=consistent $fixed --set odometry.linearisation=reference" ;;
   esac
 }
 for seq in tum_fr1_rpy_0_199 redkitchen_0_299; do
   cam=""
   [ "$seq" = tum_fr1_rpy_0_199 ] && cam="--camera tum_fr1"
   peers=cv_rgbd # OpenCV once per sequence, in the base run
-  for v in base covis coarse; do
+  for v in base covis coarse reflin; do
     # shellcheck disable=SC2046,SC2086
     "$B" bench odometry "$D/$seq" $cam --backends cpu --peers "$peers" --python "$PY" \
       $(odo_variant $v) --out "$O/$seq-$v" --json "$O/$seq-$v.json" > "$O/$seq-$v.log" 2>&1
@@ -45,7 +49,7 @@ for seq in tum_fr1_rpy_0_199 redkitchen_0_299; do
     "$B" odometry "$D/$seq" $cam --backend cpu $(odo_variant $v) --csv "$O/$seq-$v.csv" \
       -o "$O/$seq-$v.txt" > "$O/$seq-$v-odo.log" 2>&1
   done
-  for v in default fusion covis both nocap; do
+  for v in default fusion covis both nocap reflin; do
     # shellcheck disable=SC2046,SC2086
     /usr/bin/time -f "%e s wall" "$B" slam "$D/$seq" $cam --backend cpu \
       --out "$O/slam-$seq-$v" $(slam_variant $v) > "$O/slam-$seq-$v.log" 2>&1

@@ -1,6 +1,7 @@
 //! include: common.wgsl
 // Dense RGB-ID odometry kernels (thesis 6.3): reverse warping of reference pixels into the
-// current frame, photometric and inverse-depth residuals with their Jacobians, IRLS normal
+// current frame, photometric and inverse-depth residuals with their Jacobians (linearised in
+// the current or the reference frame), IRLS normal
 // equations reduced per workgroup, residual samples for scale estimation, covisibility.
 // CPU mirror: src/odometry/kernel.rs (same formulas, same order).
 
@@ -28,7 +29,7 @@ struct WarpParams {
     occlusion: f32,    // covisibility's occlusion tolerance (geometric residual units; 0: none)
     mu_photo: f32,     // residual locations (eq. 4.26-4.27): weights and sums use r - mu
     mu_geo: f32,
-    _pad0: u32,
+    linearisation: u32, // Linearisation: 0 current frame (forward), 1 reference frame (inverse)
 }
 
 // One reduction partial (host mirror: `Partial` in src/odometry/kernel.rs).
@@ -81,17 +82,21 @@ fn robust_weight(est: u32, z: f32, nu: f32) -> f32 {
     return 1.0;
 }
 
-// Reference pixel i back-projected with its inverse depth and moved by cur_from_ref;
-// .w = 0 where it has no depth. Mirror of `warp_point` in kernel.rs.
-fn warp_point(i: u32) -> vec4<f32> {
+// Reference pixel i back-projected with inverse depth rho (> 0): the point X_A, metres.
+fn ref_point(i: u32, rho: f32) -> vec3<f32> {
     let w = P.width;
-    let rho = ref_geo[P.offset + i].x;
-    if (rho <= 0.0) { return vec4<f32>(0.0); }
-    let fx = P.fx; let fy = P.fy; let cx = P.cx; let cy = P.cy;
     let x = f32(i % w);
     let y = f32(i / w);
     let z = 1.0 / rho;
-    let pr = vec3<f32>((x - cx) / fx * z, (y - cy) / fy * z, z);
+    return vec3<f32>((x - P.cx) / P.fx * z, (y - P.cy) / P.fy * z, z);
+}
+
+// Reference pixel i back-projected with its inverse depth and moved by cur_from_ref;
+// .w = 0 where it has no depth. Mirror of `warp_point` in kernel.rs.
+fn warp_point(i: u32) -> vec4<f32> {
+    let rho = ref_geo[P.offset + i].x;
+    if (rho <= 0.0) { return vec4<f32>(0.0); }
+    let pr = ref_point(i, rho);
     return vec4<f32>(
         P.rot0.x * pr.x + P.rot0.y * pr.y + P.rot0.z * pr.z + P.rot0.w,
         P.rot1.x * pr.x + P.rot1.y * pr.y + P.rot1.z * pr.z + P.rot1.w,
@@ -127,42 +132,70 @@ fn pixel_terms(i: u32, want_j: bool) -> Terms {
     let b01 = (1.0 - ax) * ay;
     let b11 = ax * ay;
     let c = b00 * p00.xyz + b10 * p10.xyz + b01 * p01.xyz + b11 * p11.xyz;
+    // The linearisation point: the warped point (current frame), or the reference point
+    // X_A with the reference pixel's gradients (reference frame, P.linearisation == 1).
+    let reference = P.linearisation == 1u;
+    let ga = ref_geo[o + i];
+    var jq = q;
+    var jiz = iz;
+    if (reference) {
+        jq = ref_point(i, ga.x);
+        jiz = ga.x;
+    }
     if ((P.terms & 1u) != 0u) {
         t.photo_ok = true;
-        t.r_photo = c.x - ref_photo[o + i].x;
+        let rp = ref_photo[o + i];
+        t.r_photo = c.x - rp.x;
         if (want_j) {
-            let a = c.y * fx * iz;
-            let b = c.z * fy * iz;
-            let jt = vec3<f32>(a, b, -(a * q.x + b * q.y) * iz);
+            var gx = c.y;
+            var gy = c.z;
+            if (reference) { gx = rp.y; gy = rp.z; }
+            let a = gx * fx * jiz;
+            let b = gy * fy * jiz;
+            let jt = vec3<f32>(a, b, -(a * jq.x + b * jq.y) * jiz);
             t.j_photo_t = jt;
-            t.j_photo_r = cross(q, jt);
+            t.j_photo_r = cross(jq, jt);
         }
     }
     if ((P.terms & 2u) != 0u) {
         let xn = u32(floor(u + 0.5));
         let yn = u32(floor(v + 0.5));
         let g = cur_geo[o + yn * w + xn];
-        if (g.x > 0.0 && g.y != INVALID_GRAD) {
+        if (g.x > 0.0 && g.y != INVALID_GRAD && (!reference || ga.y != INVALID_GRAD)) {
             var res: f32; var gu: f32; var gv: f32; var dz: f32;
+            var ok = true;
             // Nearest sample, or its first-order extension to (u, v).
             var rho = g.x;
             if (P.sampling == 1u) {
                 rho = g.x + g.y * (u - f32(xn)) + g.z * (v - f32(yn));
             }
-            if (P.geometric == 1u) {
+            if (reference) {
+                // W_B*(p): the sample as the point q / (rho q_z) of B, moved into A by T^-1;
+                // its depth there is R's third column dotted with (point - t).
+                let s = 1.0 / (rho * q.z);
+                let d = vec3<f32>(q.x * s - P.rot0.w, q.y * s - P.rot1.w, q.z * s - P.rot2.w);
+                let za = P.rot0.z * d.x + P.rot1.z * d.y + P.rot2.z * d.z;
+                ok = za >= MIN_DEPTH;
+                if (P.geometric == 1u) {
+                    let ig2 = 1.0 / (ga.x * ga.x);
+                    res = za - jq.z; gu = -ga.y * ig2; gv = -ga.z * ig2; dz = -1.0;
+                } else {
+                    res = 1.0 / za - ga.x; gu = ga.y; gv = ga.z; dz = ga.x * ga.x;
+                }
+            } else if (P.geometric == 1u) {
                 let ig2 = 1.0 / (rho * rho);
                 res = 1.0 / rho - q.z; gu = -g.y * ig2; gv = -g.z * ig2; dz = -1.0;
             } else {
                 res = rho - iz; gu = g.y; gv = g.z; dz = iz * iz;
             }
-            t.geo_ok = true;
+            t.geo_ok = ok;
             t.r_geo = res;
             if (want_j) {
-                let a = gu * fx * iz;
-                let b = gv * fy * iz;
-                let jt = vec3<f32>(a, b, -(a * q.x + b * q.y) * iz + dz);
+                let a = gu * fx * jiz;
+                let b = gv * fy * jiz;
+                let jt = vec3<f32>(a, b, -(a * jq.x + b * jq.y) * jiz + dz);
                 t.j_geo_t = jt;
-                t.j_geo_r = cross(q, jt);
+                t.j_geo_r = cross(jq, jt);
             }
         }
     }

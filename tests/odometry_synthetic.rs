@@ -6,7 +6,8 @@ use rgbid::geometry::Se3;
 use rgbid::gpu::ComputeBackend;
 use rgbid::image::RgbdFrame;
 use rgbid::odometry::{
-    CovarianceGradients, Estimator, GeometricSampling, Location, Odometry, OdometryConfig, Terms,
+    CovarianceGradients, Estimator, GeometricSampling, Linearisation, Location, Odometry,
+    OdometryConfig, Terms,
 };
 use rgbid::synth::trajectory::camera_pose;
 use rgbid::synth::{render_pinhole, Scene, SensorModel};
@@ -40,13 +41,21 @@ fn errors(est: &Se3, truth: &Se3) -> (f64, f64) {
 
 const MOTION: [f64; 6] = [0.02, -0.01, 0.015, 0.01, -0.015, 0.008];
 
-/// Aligns two noisy views `MOTION` apart on `backend` and checks the error.
-fn known_motion_is_recovered(backend: &ComputeBackend) {
+/// Aligns two noisy views `MOTION` apart on `backend`, linearised as `linearisation`, and
+/// checks the error.
+fn known_motion_is_recovered(backend: &ComputeBackend, linearisation: Linearisation) {
     let (a, b, truth) = views(&MOTION, true);
-    let mut odo = Odometry::new(OdometryConfig::default(), camera(), backend).expect("odometry");
+    let cfg = OdometryConfig {
+        linearisation,
+        ..Default::default()
+    };
+    let mut odo = Odometry::new(cfg, camera(), backend).expect("odometry");
     let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
     let (mm, deg) = errors(&al.cur_from_ref, &truth);
-    println!("{}: error {mm:.3} mm {deg:.4} deg", backend.name());
+    println!(
+        "{} {linearisation:?}: error {mm:.3} mm {deg:.4} deg",
+        backend.name()
+    );
     assert!(
         mm < 1.0 && deg < 0.05,
         "{}: {mm} mm {deg} deg",
@@ -57,7 +66,12 @@ fn known_motion_is_recovered(backend: &ComputeBackend) {
 
 #[test]
 fn known_motion_is_recovered_on_the_cpu_backend() {
-    known_motion_is_recovered(&ComputeBackend::Cpu);
+    known_motion_is_recovered(&ComputeBackend::Cpu, Linearisation::Current);
+}
+
+#[test]
+fn reference_linearisation_recovers_known_motion() {
+    known_motion_is_recovered(&ComputeBackend::Cpu, Linearisation::Reference);
 }
 
 #[test]
@@ -66,7 +80,7 @@ fn gpu_known_motion_is_recovered_on_the_gpu_backend() {
     let Some(g) = rgbid::gpu::test_gpu("gpu_known_motion_is_recovered_on_the_gpu_backend") else {
         return;
     };
-    known_motion_is_recovered(&ComputeBackend::Gpu(g));
+    known_motion_is_recovered(&ComputeBackend::Gpu(g), Linearisation::Current);
 }
 
 #[test]
@@ -184,13 +198,15 @@ fn tracking_a_rendered_sequence_switches_references_and_stays_accurate() {
     assert!(mm < 15.0 && deg < 0.5, "{mm} mm {deg} deg");
 }
 
-/// The bilateral covariance pass on `backend`: same pose, larger covariance.
-fn bilateral_covariance_pass(backend: &ComputeBackend) {
+/// The bilateral covariance pass on `backend` (filtering the frame that `linearisation`
+/// differentiates): same pose, larger covariance.
+fn bilateral_covariance_pass(backend: &ComputeBackend, linearisation: Linearisation) {
     let (a, b, truth) = views(&MOTION, true);
     let mut out = Vec::new();
     for covariance in [CovarianceGradients::Raw, CovarianceGradients::Bilateral] {
         let cfg = OdometryConfig {
             covariance,
+            linearisation,
             ..Default::default()
         };
         let mut odo = Odometry::new(cfg, camera(), backend).expect("odometry");
@@ -198,7 +214,7 @@ fn bilateral_covariance_pass(backend: &ComputeBackend) {
         let c = al.covariance.expect("covariance");
         let trace = (0..6).map(|i| c.rows()[i][i]).sum::<f64>();
         println!(
-            "{} {covariance:?}: trace {trace:.3e}, condition {:.3e}, covariance pass {:.2} ms",
+            "{} {linearisation:?} {covariance:?}: trace {trace:.3e}, condition {:.3e}, covariance pass {:.2} ms",
             backend.name(),
             al.condition_number,
             al.times.covariance_ms
@@ -216,7 +232,12 @@ fn bilateral_covariance_pass(backend: &ComputeBackend) {
 
 #[test]
 fn bilateral_covariance_pass_changes_the_covariance_not_the_pose() {
-    bilateral_covariance_pass(&ComputeBackend::Cpu);
+    bilateral_covariance_pass(&ComputeBackend::Cpu, Linearisation::Current);
+}
+
+#[test]
+fn reference_bilateral_covariance_pass_changes_the_covariance_not_the_pose() {
+    bilateral_covariance_pass(&ComputeBackend::Cpu, Linearisation::Reference);
 }
 
 #[test]
@@ -226,23 +247,25 @@ fn gpu_bilateral_covariance_pass_changes_the_covariance_not_the_pose() {
     let Some(g) = rgbid::gpu::test_gpu(test) else {
         return;
     };
-    bilateral_covariance_pass(&ComputeBackend::Gpu(g));
+    bilateral_covariance_pass(&ComputeBackend::Gpu(g), Linearisation::Current);
 }
 
-/// First-order inverse-depth sampling on `backend`: noiseless views give the exact motion.
-fn first_order_sampling(backend: &ComputeBackend) {
+/// First-order inverse-depth sampling on `backend`, linearised as `linearisation`:
+/// noiseless views give the exact motion.
+fn first_order_sampling(backend: &ComputeBackend, linearisation: Linearisation) {
     // The nearest-pixel geometric residual leaves a bias on noiseless views (the known gap
     // above); extending the nearest sample along its gradient removes it.
     let (a, b, truth) = views(&MOTION, false);
     let cfg = OdometryConfig {
         geometric_sampling: GeometricSampling::Linear,
+        linearisation,
         ..Default::default()
     };
     let mut odo = Odometry::new(cfg, camera(), backend).expect("odometry");
     let al = odo.align(&a, &b, Se3::IDENTITY).expect("align");
     let (mm, deg) = errors(&al.cur_from_ref, &truth);
     println!(
-        "{} linear sampling, noiseless: {mm:.4} mm {deg:.5} deg",
+        "{} {linearisation:?}, linear sampling, noiseless: {mm:.4} mm {deg:.5} deg",
         backend.name()
     );
     assert!(
@@ -254,7 +277,12 @@ fn first_order_sampling(backend: &ComputeBackend) {
 
 #[test]
 fn first_order_inverse_depth_sampling_recovers_noiseless_motion() {
-    first_order_sampling(&ComputeBackend::Cpu);
+    first_order_sampling(&ComputeBackend::Cpu, Linearisation::Current);
+}
+
+#[test]
+fn reference_linearisation_recovers_noiseless_motion() {
+    first_order_sampling(&ComputeBackend::Cpu, Linearisation::Reference);
 }
 
 #[test]
@@ -264,5 +292,7 @@ fn gpu_first_order_inverse_depth_sampling_recovers_noiseless_motion() {
     let Some(g) = rgbid::gpu::test_gpu(test) else {
         return;
     };
-    first_order_sampling(&ComputeBackend::Gpu(g));
+    for lin in [Linearisation::Current, Linearisation::Reference] {
+        first_order_sampling(&ComputeBackend::Gpu(g.clone()), lin);
+    }
 }

@@ -125,6 +125,34 @@ impl Location {
     }
 }
 
+/// Where the odometry's residuals are linearised (thesis eq. 4.16-4.17, 6.9, 6.12-6.13).
+///
+/// Both forms minimise the same photometric residual `I_B(w(p, T)) - I_A(p)` over the
+/// reference pixels `p` (A the reference frame, B the current one, `T = cur_from_ref`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+#[repr(u32)]
+pub enum Linearisation {
+    /// Forward compositional: the Jacobians take the current frame's gradients at the warped
+    /// point (bilinear) and the projection Jacobian there, for a left twist of `T`; the
+    /// geometric residual is compared in the current frame, `W_B(w(p)) - 1/z_B`. The default:
+    /// over the two real sequences (redkitchen 0-299, fr1/rpy 0-199) it gave the better mean
+    /// odometry ATE against OpenCV's, and the better mean SLAM ATE, though the reference form
+    /// is better on fr1/rpy and the odometry's margin is far below what two short sequences
+    /// resolve (docs/notes.md).
+    Current = 0,
+    /// The thesis' form, inverse compositional: the Jacobians take the reference frame's
+    /// stored gradients `nabla I_A(p)`, `nabla W_A(p)` and the projection Jacobian at the
+    /// reference point `X_A(p)`, so they do not change over a level's iterations; the
+    /// geometric residual is compared in the reference frame, `W_B*(p) - W_A(p)`, with
+    /// `W_B*(p)` the current frame's inverse depth sampled at `w(p)`, moved into A by
+    /// `T^-1` and taken as `1/z` there. The solved increment is applied on the reference
+    /// side, `T <- T exp(delta)` (the reference-side twist's sign folded in, see
+    /// `Tracker::solve_level`), and the covariance pass filters the reference level.
+    Reference = 1,
+}
+
 /// Gradients used for the covariance of an alignment (thesis 6.20, 6.21).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
@@ -136,8 +164,9 @@ pub enum CovarianceGradients {
     /// (`examples/odo_covariance.rs`, docs/notes.md).
     Raw,
     /// The thesis' method (6.20, 6.21): an extra normal-equation pass at the final pose on
-    /// the finest level used, with the gradients of the bilateral-filtered current intensity
-    /// and inverse depth (5x5 window, Cauchy range kernel scaled by [`OdometryConfig::bilateral_range`]).
+    /// the finest level used, with the gradients of the bilateral-filtered intensity and
+    /// inverse depth of the frame the Jacobians differentiate (the current frame with
+    /// [`Linearisation::Current`], the reference frame with [`Linearisation::Reference`]) (5x5 window, Cauchy range kernel scaled by [`OdometryConfig::bilateral_range`]).
     Bilateral,
 }
 
@@ -197,6 +226,9 @@ pub struct OdometryConfig {
     pub covisibility_test: CovisibilityTest,
     /// How inverse depth is sampled for the geometric residual.
     pub geometric_sampling: GeometricSampling,
+    /// Where the residuals are linearised (`"current"`, the default, or `"reference"`, the
+    /// thesis' inverse-compositional form).
+    pub linearisation: Linearisation,
     /// How the covariance (and the reported condition number) is computed.
     pub covariance: CovarianceGradients,
     /// Range scales of the bilateral filter as multiples of the final residual scales
@@ -228,6 +260,7 @@ impl Default for OdometryConfig {
             covisibility_level: 2,
             covisibility_test: CovisibilityTest::Consistent,
             geometric_sampling: GeometricSampling::Nearest,
+            linearisation: Linearisation::Current,
             covariance: CovarianceGradients::Raw,
             bilateral_range: 3.0,
         }

@@ -122,10 +122,14 @@ impl CpuPyramid {
     /// and inverse depth (`f` gives the level's size and offset and the filter's scales), for
     /// the covariance pass of the odometry (thesis 6.20, 6.21). The result has this pyramid's
     /// layout; within `level` each pixel holds `(I, dIf/du, dIf/dv, If)` and
-    /// `(rho, drhof/du, drhof/dv, rhof)`, with `If`, `rhof` the filtered values (the raw values
-    /// stay in `.x`, so residuals and IRLS weights are unchanged). Other levels are
-    /// unspecified; use it only as the *current* pyramid of a normal-equation pass. Reuses
-    /// `recycle`'s buffers when the layout matches. Mirror of `GpuKernels::filtered_level`.
+    /// `(rho, drhof/du, drhof/dv, z)`, with `If` the filtered intensity, `drhof` the gradient
+    /// of the filtered inverse depth and `z = 1 / rho` cached as in a pyramid build (the raw
+    /// values stay in `.x`, so residuals and IRLS weights are unchanged; the cache lets the
+    /// level serve as the reference of a normal-equation pass, which the reference-frame
+    /// linearisation's covariance pass needs). Other levels are unspecified: use it only at
+    /// `level`. Reuses `recycle`'s buffers when the layout matches. Mirror of
+    /// `GpuKernels::filtered_level`, except `geo.w`, which holds the filtered inverse depth
+    /// there (the WGSL warp computes `z` from `.x`).
     pub fn filtered_level(
         &self,
         level: usize,
@@ -158,6 +162,9 @@ impl CpuPyramid {
                 }
             });
         write_gradients(&mut photo, &mut geo, &l, 3);
+        for g in &mut geo[range] {
+            g[3] = if g[0] > 0.0 { 1.0 / g[0] } else { 0.0 };
+        }
         CpuPyramid {
             levels: self.levels.clone(),
             photo,

@@ -119,8 +119,10 @@ pub struct WarpParams {
     pub mu_photo: f32,
     /// Location mu_W of the geometric residuals, in their units.
     pub mu_geo: f32,
-    /// Padding to the 16-byte size multiple of the WGSL uniform.
-    pub _pad: [u32; 1],
+    /// [`super::Linearisation`] as `u32`: 0 the current frame's gradients at the warped point
+    /// (left twist of `cur_from_ref`), 1 the reference frame's at the reference pixel (right
+    /// twist, geometric residual in the reference frame).
+    pub linearisation: u32,
 }
 
 impl WarpParams {
@@ -469,7 +471,7 @@ mod tests {
                     occlusion,
                     mu_photo,
                     mu_geo,
-                    _pad0 = _pad[0] stride 4,
+                    linearisation,
                 }),
                 size_of::<WarpParams>(),
             ),

@@ -36,8 +36,8 @@ mod solver;
 mod tracker;
 
 pub use config::{
-    CovarianceGradients, CovisibilityTest, GeometricParam, GeometricSampling, Location,
-    OdometryConfig, Terms, OCCLUSION_SIGMAS,
+    CovarianceGradients, CovisibilityTest, GeometricParam, GeometricSampling, Linearisation,
+    Location, OdometryConfig, Terms, OCCLUSION_SIGMAS,
 };
 pub use inspect::{residual_images, ResidualImages, RobustScales};
 pub use robust::{Estimator, ScaleMethod};

@@ -4,7 +4,7 @@
 //! transcription keeps that restructuring checked on machines without a GPU adapter, where the
 //! WGSL parity tests cannot run.
 
-use super::config::{GeometricParam, GeometricSampling};
+use super::config::{GeometricParam, GeometricSampling, Linearisation};
 use super::kernel::{warp_point, Partial, WarpParams, INVALID_GRAD, MIN_DEPTH};
 use super::robust::weight;
 
@@ -13,7 +13,10 @@ use super::robust::weight;
 pub(crate) struct PixelTerms {
     /// Photometric residual `I_cur(w(x)) - I_ref(x)` (intensity levels), if valid.
     pub r_photo: Option<f32>,
-    /// Its Jacobian with respect to the left twist of `cur_from_ref`, `[v; w]`.
+    /// Its Jacobian, `[v; w]`: with respect to the left twist of `cur_from_ref`
+    /// (`exp(d) cur_from_ref`, current-frame linearisation), or the reference frame's
+    /// approximation of the one with respect to its right twist (`cur_from_ref exp(d)`,
+    /// [`Linearisation::Reference`]).
     pub j_photo: [f32; 6],
     /// Geometric residual (inverse depth 1/m, or depth m), if valid.
     pub r_geo: Option<f32>,
@@ -31,7 +34,8 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
 }
 
 /// Warps reference pixel `i` of the level into the current frame and evaluates the residuals
-/// and Jacobians (thesis eq. 6.5-6.13; bilinear intensity, nearest inverse depth).
+/// and Jacobians (thesis eq. 6.5-6.13; bilinear intensity, nearest inverse depth), linearised
+/// in the current or the reference frame ([`WarpParams::linearisation`]).
 /// Mirror of `pixel_terms` in `odometry.wgsl`.
 #[inline]
 pub(crate) fn pixel_terms(
@@ -53,6 +57,15 @@ pub(crate) fn pixel_terms(
     if q[2] < MIN_DEPTH {
         return out;
     }
+    let reference = p.linearisation == Linearisation::Reference as u32;
+    // The reference point X_A and its inverse depth, as `warp_point` computes them.
+    let rho_a = ref_geo[i][0];
+    let z_a = 1.0 / rho_a;
+    let x_a = [
+        ((i % w) as f32 - cx) / fx * z_a,
+        ((i / w) as f32 - cy) / fy * z_a,
+        z_a,
+    ];
     let iz = 1.0 / q[2];
     let u = fx * q[0] * iz + cx;
     let v = fy * q[1] * iz + cy;
@@ -81,10 +94,17 @@ pub(crate) fn pixel_terms(
     if p.photometric() {
         out.r_photo = Some(c[0] - ref_photo[i][0]);
         if want_jacobians {
-            let a = c[1] * fx * iz;
-            let b = c[2] * fy * iz;
-            let jt = [a, b, -(a * q[0] + b * q[1]) * iz];
-            let jr = cross(q, jt);
+            // The gradient and point of the linearisation: the current frame's (bilinear)
+            // at the warped point, or the reference pixel's at the reference point.
+            let (gx, gy, jq, jiz) = if reference {
+                (ref_photo[i][1], ref_photo[i][2], x_a, rho_a)
+            } else {
+                (c[1], c[2], q, iz)
+            };
+            let a = gx * fx * jiz;
+            let b = gy * fy * jiz;
+            let jt = [a, b, -(a * jq[0] + b * jq[1]) * jiz];
+            let jr = cross(jq, jt);
             out.j_photo = [jt[0], jt[1], jt[2], jr[0], jr[1], jr[2]];
         }
     }
@@ -92,26 +112,45 @@ pub(crate) fn pixel_terms(
         let xn = (u + 0.5).floor() as usize;
         let yn = (v + 0.5).floor() as usize;
         let g = cur_geo[yn * w + xn];
-        if g[0] > 0.0 && g[1] != INVALID_GRAD {
+        let ga = ref_geo[i];
+        if g[0] > 0.0 && g[1] != INVALID_GRAD && (!reference || ga[1] != INVALID_GRAD) {
             let depth_param = p.geometric == GeometricParam::Depth as u32;
             let rho = if p.sampling == GeometricSampling::Linear as u32 {
                 g[0] + g[1] * (u - xn as f32) + g[2] * (v - yn as f32)
             } else {
                 g[0]
             };
-            let (res, gu, gv, dz) = if depth_param {
+            // `(residual, gradient u, gradient v, optical-axis term, point, inverse depth)`.
+            let terms = if reference {
+                // W_B*(p): the sample as the point `q / (rho q_z)` of B (on the ray through
+                // w(p)), moved into A by `T^-1 = (R^T, -R^T t)`, as inverse depth (or depth).
+                let s = 1.0 / (rho * q[2]);
+                let r = &p.rot;
+                let d = [q[0] * s - r[0][3], q[1] * s - r[1][3], q[2] * s - r[2][3]];
+                let za = r[0][2] * d[0] + r[1][2] * d[1] + r[2][2] * d[2];
+                (za >= MIN_DEPTH).then(|| {
+                    if depth_param {
+                        let ig2 = 1.0 / (rho_a * rho_a);
+                        (za - z_a, -ga[1] * ig2, -ga[2] * ig2, -1.0, x_a, rho_a)
+                    } else {
+                        (1.0 / za - rho_a, ga[1], ga[2], rho_a * rho_a, x_a, rho_a)
+                    }
+                })
+            } else if depth_param {
                 let ig2 = 1.0 / (rho * rho);
-                (1.0 / rho - q[2], -g[1] * ig2, -g[2] * ig2, -1.0)
+                Some((1.0 / rho - q[2], -g[1] * ig2, -g[2] * ig2, -1.0, q, iz))
             } else {
-                (rho - iz, g[1], g[2], iz * iz)
+                Some((rho - iz, g[1], g[2], iz * iz, q, iz))
             };
-            out.r_geo = Some(res);
-            if want_jacobians {
-                let a = gu * fx * iz;
-                let b = gv * fy * iz;
-                let jt = [a, b, -(a * q[0] + b * q[1]) * iz + dz];
-                let jr = cross(q, jt);
-                out.j_geo = [jt[0], jt[1], jt[2], jr[0], jr[1], jr[2]];
+            if let Some((res, gu, gv, dz, jq, jiz)) = terms {
+                out.r_geo = Some(res);
+                if want_jacobians {
+                    let a = gu * fx * jiz;
+                    let b = gv * fy * jiz;
+                    let jt = [a, b, -(a * jq[0] + b * jq[1]) * jiz + dz];
+                    let jr = cross(jq, jt);
+                    out.j_geo = [jt[0], jt[1], jt[2], jr[0], jr[1], jr[2]];
+                }
             }
         }
     }

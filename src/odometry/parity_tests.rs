@@ -40,7 +40,7 @@ fn params(
         // Non-zero locations, so the kernels' centring is compared too.
         mu_photo: 1.5,
         mu_geo: if param & 1 == 1 { 0.004 } else { 0.0008 },
-        _pad: [0; 1],
+        linearisation: (param >> 2) & 1,
     };
     p.set_pose(pose);
     p
@@ -155,7 +155,9 @@ fn gpu_matches_cpu_mirror() {
         assert!(worst < 1e-5, "pyramid differs by {worst}");
 
         // The covariance pass's bilateral-filtered level (all four lanes: raw value, filtered
-        // gradients, filtered value), on levels 0 and 1.
+        // gradients, filtered value; the CPU caches z = 1 / rho in geo.w instead, so the
+        // GPU's filtered inverse depth is compared with the mirror's filter), on levels 0
+        // and 1.
         for level in 0..2 {
             let l = ca.levels[level];
             let f = PyrParams::filter(l.width, l.height, l.offset, 4.0, 0.004);
@@ -164,12 +166,19 @@ fn gpu_matches_cpu_mirror() {
             let (photo, geo) = g.read_pyramid(&gf).expect("read back");
             let mut worst = 0.0f32;
             let mut smoothed = 0usize;
-            for k in l.offset..l.offset + l.width * l.height {
+            let range = l.offset..l.offset + l.width * l.height;
+            let (lp, lg) = (&ca.photo[range.clone()], &ca.geo[range.clone()]);
+            for k in range {
+                let (x, y) = ((k - l.offset) % l.width, (k - l.offset) / l.width);
+                let rhof = crate::odometry::kernel::bilateral(&f, lp, lg, x, y).1;
+                let cpu_geo = [cf.geo[k][0], cf.geo[k][1], cf.geo[k][2], rhof];
+                let rho = cf.geo[k][0];
+                let z = if rho > 0.0 { 1.0 / rho } else { 0.0 };
+                assert_eq!(cf.geo[k][3], z, "the CPU's z cache at {k}");
                 for c in 0..4 {
                     worst = worst
                         .max((photo[k][c] - cf.photo[k][c]).abs() / (1.0 + cf.photo[k][c].abs()));
-                    worst =
-                        worst.max((geo[k][c] - cf.geo[k][c]).abs() / (1.0 + cf.geo[k][c].abs()));
+                    worst = worst.max((geo[k][c] - cpu_geo[c]).abs() / (1.0 + cpu_geo[c].abs()));
                 }
                 smoothed += usize::from(cf.photo[k][3] != cf.photo[k][0]);
             }
@@ -183,8 +192,20 @@ fn gpu_matches_cpu_mirror() {
         let pose = Se3::exp(&[0.02, -0.01, 0.03, 0.01, -0.02, 0.005]);
         for level in 0..3 {
             let l = ca.levels[level];
-            // param: bit 0 depth parametrisation, bit 1 first-order inverse-depth sampling.
-            for (est, param) in [(3u32, 0u32), (1, 1), (2, 0), (0, 0), (3, 2), (2, 3)] {
+            // param: bit 0 depth parametrisation, bit 1 first-order inverse-depth sampling,
+            // bit 2 the reference-frame linearisation.
+            for (est, param) in [
+                (3u32, 0u32),
+                (1, 1),
+                (2, 0),
+                (0, 0),
+                (3, 2),
+                (2, 3),
+                (3, 4),
+                (1, 5),
+                (0, 6),
+                (2, 7),
+            ] {
                 let p = params(&l, level, &pose, est, param);
                 let c = run_warp(&mut cpu, &ca, &cb, &p, level);
                 let o = run_warp(&mut g, &ga, &gb, &p, level);
@@ -280,7 +301,8 @@ fn gpu_matches_cpu_mirror() {
 }
 
 /// The same frames tracked by the two monomorphised trackers give the same poses (to the
-/// kernels' f32 summation order).
+/// kernels' f32 summation order), with either linearisation (the reference one with the
+/// bilateral covariance pass, which then filters the reference level).
 #[test]
 #[ignore = "needs a GPU adapter"]
 fn gpu_tracker_matches_cpu_tracker() {
@@ -288,31 +310,55 @@ fn gpu_tracker_matches_cpu_tracker() {
         return;
     };
     let camera = crate::camera::PinholeCamera::new(262.5, 262.5, 159.75, 119.75, 320, 240);
-    let config = super::OdometryConfig::default();
-    let mut cpu = super::tracker::Tracker::new_cpu(config.clone(), camera).expect("cpu tracker");
-    let mut gpu = super::tracker::Tracker::new_gpu(config, camera, ctx).expect("gpu tracker");
-    let (a, b) = (test_pattern(320, 240, 1), test_pattern(320, 240, 2));
-    let pc = cpu.prepare(&a).expect("prepare");
-    let qc = cpu.prepare(&b).expect("prepare");
-    let pg = gpu.prepare(&a).expect("prepare");
-    let qg = gpu.prepare(&b).expect("prepare");
-    let ac = cpu
-        .align_prepared(&pc, &qc, Se3::IDENTITY)
-        .expect("cpu align");
-    let ag = gpu
-        .align_prepared(&pg, &qg, Se3::IDENTITY)
-        .expect("gpu align");
-    let d = (ac.cur_from_ref.inverse() * ag.cur_from_ref).log();
-    let norm = d.iter().map(|x| x * x).sum::<f64>().sqrt();
-    assert!(
-        norm < 1e-4,
-        "cpu and gpu alignments differ by {norm}: {d:?}"
-    );
-    let vc = cpu
-        .covisibility_prepared(&pc, &qc, &ac.cur_from_ref)
-        .expect("cpu");
-    let vg = gpu
-        .covisibility_prepared(&pg, &qg, &ag.cur_from_ref)
-        .expect("gpu");
-    assert!((vc - vg).abs() < 1e-3, "covisibility {vc} vs {vg}");
+    let variants = [
+        super::OdometryConfig::default(),
+        super::OdometryConfig {
+            linearisation: super::Linearisation::Reference,
+            covariance: super::CovarianceGradients::Bilateral,
+            ..Default::default()
+        },
+    ];
+    for config in variants {
+        let lin = config.linearisation;
+        let mut cpu =
+            super::tracker::Tracker::new_cpu(config.clone(), camera).expect("cpu tracker");
+        let mut gpu =
+            super::tracker::Tracker::new_gpu(config, camera, ctx.clone()).expect("gpu tracker");
+        let (a, b) = (test_pattern(320, 240, 1), test_pattern(320, 240, 2));
+        let pc = cpu.prepare(&a).expect("prepare");
+        let qc = cpu.prepare(&b).expect("prepare");
+        let pg = gpu.prepare(&a).expect("prepare");
+        let qg = gpu.prepare(&b).expect("prepare");
+        let ac = cpu
+            .align_prepared(&pc, &qc, Se3::IDENTITY)
+            .expect("cpu align");
+        let ag = gpu
+            .align_prepared(&pg, &qg, Se3::IDENTITY)
+            .expect("gpu align");
+        let d = (ac.cur_from_ref.inverse() * ag.cur_from_ref).log();
+        let norm = d.iter().map(|x| x * x).sum::<f64>().sqrt();
+        assert!(
+            norm < 1e-4,
+            "{lin:?}: cpu and gpu alignments differ by {norm}: {d:?}"
+        );
+        // The covariances (the reference form's through the filtered reference level).
+        let (cc, cg) = (
+            ac.covariance.expect("cpu covariance"),
+            ag.covariance.expect("gpu covariance"),
+        );
+        for i in 0..6 {
+            let (x, y) = (cc.rows()[i][i], cg.rows()[i][i]);
+            assert!(
+                (x - y).abs() <= 1e-2 * x.abs(),
+                "{lin:?}: covariance {i}: cpu {x} gpu {y}"
+            );
+        }
+        let vc = cpu
+            .covisibility_prepared(&pc, &qc, &ac.cur_from_ref)
+            .expect("cpu");
+        let vg = gpu
+            .covisibility_prepared(&pg, &qg, &ag.cur_from_ref)
+            .expect("gpu");
+        assert!((vc - vg).abs() < 1e-3, "{lin:?}: covisibility {vc} vs {vg}");
+    }
 }

@@ -9,7 +9,7 @@
 //! unit tests below the lanes with the scalar loop and both with the literal transcription of
 //! the WGSL in `oracle.rs`.
 
-use super::config::{GeometricParam, GeometricSampling};
+use super::config::{GeometricParam, GeometricSampling, Linearisation};
 use super::kernel::{PartialSums, WarpParams, INVALID_GRAD, INVALID_RESIDUAL, MIN_DEPTH};
 use super::robust::weight;
 
@@ -40,6 +40,9 @@ pub(crate) struct Warp {
     geo: bool,
     depth_param: bool,
     linear_geo: bool,
+    /// [`super::Linearisation::Reference`]: Jacobians from the reference pixel's gradients
+    /// at the reference point, geometric residual in the reference frame.
+    reference: bool,
     pub(crate) est: u32,
     pub(crate) sigma: [f32; 2],
     pub(crate) nu: [f32; 2],
@@ -67,6 +70,7 @@ impl Warp {
             geo: p.geometric_term(),
             depth_param: p.geometric == GeometricParam::Depth as u32,
             linear_geo: p.sampling == GeometricSampling::Linear as u32,
+            reference: p.linearisation == Linearisation::Reference as u32,
             est: p.estimator,
             sigma: [p.sigma_photo, p.sigma_geo],
             nu: [p.nu_photo, p.nu_geo],
@@ -77,18 +81,19 @@ impl Warp {
     }
 }
 
-/// Residuals (and optionally Jacobians) of the reference pixel with intensity `ref_i`, depth
-/// `z = 1 / rho` (rho > 0) and normalised coordinates `rx = (x - cx) / fx`,
-/// `ry = (y - cy) / fy`. `INVALID_RESIDUAL` marks an invalid residual.
+/// Residuals (and optionally Jacobians) of the reference pixel with `rp = (I, dI/du, dI/dv, _)`
+/// and `rg = (rho, drho/du, drho/dv, z = 1 / rho)` (rho > 0) at normalised coordinates
+/// `rx = (x - cx) / fx`, `ry = (y - cy) / fy`. `INVALID_RESIDUAL` marks an invalid residual.
 #[inline(always)]
 fn terms<const JAC: bool>(
     k: &Warp,
-    ref_i: f32,
-    z: f32,
+    rp: [f32; 4],
+    rg: [f32; 4],
     rx: f32,
     ry: f32,
     bufs: &Buffers,
 ) -> (f32, [f32; 6], f32, [f32; 6]) {
+    let (ref_i, z) = (rp[0], rg[3]);
     let invalid = (INVALID_RESIDUAL, [0.0; 6], INVALID_RESIDUAL, [0.0; 6]);
     let px = rx * z;
     let py = ry * z;
@@ -105,7 +110,7 @@ fn terms<const JAC: bool>(
     if !(u >= 0.0 && v >= 0.0 && u < k.wm1 && v < k.hm1) {
         return invalid;
     }
-    let (mut rp, mut jp, mut rg, mut jg) = invalid;
+    let (mut r_p, mut jp, mut r_g, mut jg) = invalid;
     if k.photo {
         // u, v >= 0: truncation is floor.
         let (xi, yi) = (u as i32 as usize, v as i32 as usize);
@@ -120,17 +125,26 @@ fn terms<const JAC: bool>(
             ax * ay,
         );
         let c0 = b00 * top[0][0] + b10 * top[1][0] + b01 * bot[0][0] + b11 * bot[1][0];
-        rp = c0 - ref_i;
+        r_p = c0 - ref_i;
         if JAC {
-            let c1 = b00 * top[0][1] + b10 * top[1][1] + b01 * bot[0][1] + b11 * bot[1][1];
-            let c2 = b00 * top[0][2] + b10 * top[1][2] + b01 * bot[0][2] + b11 * bot[1][2];
-            jp = jacobian(k, c1, c2, 0.0, qx, qy, qz, iz);
+            jp = if k.reference {
+                // The reference pixel's stored gradient, at the reference point.
+                jacobian(k, rp[1], rp[2], 0.0, px, py, z, rg[0])
+            } else {
+                let c1 = b00 * top[0][1] + b10 * top[1][1] + b01 * bot[0][1] + b11 * bot[1][1];
+                let c2 = b00 * top[0][2] + b10 * top[1][2] + b01 * bot[0][2] + b11 * bot[1][2];
+                jacobian(k, c1, c2, 0.0, qx, qy, qz, iz)
+            };
         }
     }
     if k.geo {
         let (xn, yn) = ((u + 0.5) as i32 as usize, (v + 0.5) as i32 as usize);
         let g = bufs.cur_geo[yn * k.w + xn];
-        if g[0] > 0.0 && g[1] != INVALID_GRAD {
+        // The reference form differentiates the reference's inverse depth: it needs its
+        // gradient. The current sample's gradient must be valid in both forms: a nearest
+        // sample at a depth discontinuity may come from either side of it.
+        let ref_ok = !k.reference || rg[1] != INVALID_GRAD;
+        if g[0] > 0.0 && g[1] != INVALID_GRAD && ref_ok {
             // Nearest sample, or its first-order extension to (u, v) along the stored
             // gradient (`GeometricSampling::Linear`).
             let rho = if k.linear_geo {
@@ -138,19 +152,42 @@ fn terms<const JAC: bool>(
             } else {
                 g[0]
             };
-            let (res, gu, gv, dz) = if k.depth_param {
-                let ig2 = 1.0 / (rho * rho);
-                (1.0 / rho - qz, -g[1] * ig2, -g[2] * ig2, -1.0)
+            if k.reference {
+                // The sample as a point of B on the ray through w(p), `q rho_B^-1 / q_z`,
+                // moved into A by `T^-1 = (R^T, -R^T t)`: only its depth in A is needed, the
+                // third column of R dotted with the point minus t.
+                let s = 1.0 / (rho * qz);
+                let r = &k.r;
+                let (dx, dy, dq) = (qx * s - r[0][3], qy * s - r[1][3], qz * s - r[2][3]);
+                let za = r[0][2] * dx + r[1][2] * dy + r[2][2] * dq;
+                if za >= MIN_DEPTH {
+                    let rho_a = rg[0];
+                    let (res, gu, gv, dz) = if k.depth_param {
+                        let ig2 = 1.0 / (rho_a * rho_a);
+                        (za - z, -rg[1] * ig2, -rg[2] * ig2, -1.0)
+                    } else {
+                        (1.0 / za - rho_a, rg[1], rg[2], rho_a * rho_a)
+                    };
+                    r_g = res;
+                    if JAC {
+                        jg = jacobian(k, gu, gv, dz, px, py, z, rho_a);
+                    }
+                }
             } else {
-                (rho - iz, g[1], g[2], iz * iz)
-            };
-            rg = res;
-            if JAC {
-                jg = jacobian(k, gu, gv, dz, qx, qy, qz, iz);
+                let (res, gu, gv, dz) = if k.depth_param {
+                    let ig2 = 1.0 / (rho * rho);
+                    (1.0 / rho - qz, -g[1] * ig2, -g[2] * ig2, -1.0)
+                } else {
+                    (rho - iz, g[1], g[2], iz * iz)
+                };
+                r_g = res;
+                if JAC {
+                    jg = jacobian(k, gu, gv, dz, qx, qy, qz, iz);
+                }
             }
         }
     }
-    (rp, jp, rg, jg)
+    (r_p, jp, r_g, jg)
 }
 
 /// Residuals (and Jacobians when `JAC`) of reference pixel `i` of the level, as the row loops
@@ -166,18 +203,13 @@ pub(crate) fn pixel_terms<const JAC: bool>(
     if g[0] <= 0.0 {
         return (INVALID_RESIDUAL, [0.0; 6], INVALID_RESIDUAL, [0.0; 6]);
     }
-    terms::<JAC>(
-        k,
-        bufs.ref_photo[i][0],
-        g[3],
-        k.rx[i % k.w],
-        k.ry[i / k.w],
-        bufs,
-    )
+    terms::<JAC>(k, bufs.ref_photo[i], g, k.rx[i % k.w], k.ry[i / k.w], bufs)
 }
 
 /// `[jt; q x jt]` with `jt = (a, b, -(a qx + b qy) / qz + dz)`, `a = gu fx / qz`,
-/// `b = gv fy / qz` (eq. 6.12-6.13).
+/// `b = gv fy / qz` (eq. 6.12-6.13): the image gradient `(gu, gv)` times the projection
+/// Jacobian at `q` (the warped point, or the reference point in the reference form) times
+/// `[I | -q^]`, plus `dz` times the twist's motion of `q` along the optical axis.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn jacobian(k: &Warp, gu: f32, gv: f32, dz: f32, qx: f32, qy: f32, qz: f32, iz: f32) -> [f32; 6] {
@@ -511,7 +543,7 @@ fn scalar_pixels(
             c.skip(i);
             continue;
         }
-        let t = terms::<true>(k, bufs.ref_photo[i][0], gi[3], k.rx[x], ry, bufs);
+        let t = terms::<true>(k, bufs.ref_photo[i], gi, k.rx[x], ry, bufs);
         c.pixel(i, t, out);
     }
 }
@@ -787,12 +819,8 @@ mod lanes {
             let z = gather(rg_base, stride4, 3, all);
             // `!(rho <= 0)`, as the scalar test (NaN counts as depth there too).
             let has_depth = _mm256_cmp_ps::<_CMP_NLE_UQ>(rho_ref, _mm256_setzero_ps());
-            let ref_i = gather(
-                bufs.ref_photo.as_ptr().add(i) as *const f32,
-                stride4,
-                0,
-                all,
-            );
+            let rp_base = bufs.ref_photo.as_ptr().add(i) as *const f32;
+            let ref_i = gather(rp_base, stride4, 0, all);
             let rx = _mm256_loadu_ps(k.rx.as_ptr().add(x));
             let ry = set(k.ry[y]);
             let px = _mm256_mul_ps(rx, z);
@@ -812,6 +840,12 @@ mod lanes {
             valid = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_LT_OQ>(u, set(k.wm1)));
             valid = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_LT_OQ>(v, set(k.hm1)));
             let q = [qx, qy, qz];
+            // The point and inverse depth the Jacobians are taken at.
+            let (jq, jiz) = if k.reference {
+                ([px, py, z], rho_ref)
+            } else {
+                (q, iz)
+            };
             let wv = _mm256_set1_epi32(k.w as i32);
             let mut hd = [0.0f32; 8];
             _mm256_storeu_ps(hd.as_mut_ptr(), has_depth);
@@ -839,12 +873,27 @@ mod lanes {
                 let base = bufs.cur_photo.as_ptr() as *const f32;
                 let (corners, weights) = ([t0, t1, b0, b1], [b00, b10, b01, b11]);
                 let c0 = bilinear(base, corners, weights, 0, valid);
-                let c1 = bilinear(base, corners, weights, 1, valid);
-                let c2 = bilinear(base, corners, weights, 2, valid);
+                let (c1, c2) = if k.reference {
+                    (zero, zero)
+                } else {
+                    (
+                        bilinear(base, corners, weights, 1, valid),
+                        bilinear(base, corners, weights, 2, valid),
+                    )
+                };
                 let rp = _mm256_sub_ps(c0, ref_i);
                 let robust = (c.est, c.sp, c.isp2, c.nu[0], c.mu[0]);
+                let (gu, gv) = if k.reference {
+                    // The reference pixel's stored gradient.
+                    (
+                        gather(rp_base, stride4, 1, all),
+                        gather(rp_base, stride4, 2, all),
+                    )
+                } else {
+                    (c1, c2)
+                };
                 e.photo
-                    .set(rp, valid, robust, (fx, fy), (c1, c2, zero), q, iz);
+                    .set(rp, valid, robust, (fx, fy), (gu, gv, zero), jq, jiz);
             } else {
                 e.photo.none();
             }
@@ -859,7 +908,7 @@ mod lanes {
                 let g0 = gather(base, n4, 0, valid);
                 let g1 = gather(base, n4, 1, valid);
                 let g2 = gather(base, n4, 2, valid);
-                let gvalid = _mm256_and_ps(
+                let mut gvalid = _mm256_and_ps(
                     valid,
                     _mm256_and_ps(
                         _mm256_cmp_ps::<_CMP_GT_OQ>(g0, zero),
@@ -876,9 +925,48 @@ mod lanes {
                 } else {
                     g0
                 };
-                let (res, gu, gv, dz) = if k.depth_param {
+                let neg = set(-0.0);
+                let (res, gu, gv, dz) = if k.reference {
+                    // As the scalar `terms`: the sample's depth in A.
+                    let a1 = gather(rg_base, stride4, 1, all);
+                    let a2 = gather(rg_base, stride4, 2, all);
+                    let s = _mm256_div_ps(set(1.0), _mm256_mul_ps(rho, qz));
+                    let r = &k.r;
+                    let dx = _mm256_sub_ps(_mm256_mul_ps(qx, s), set(r[0][3]));
+                    let dy = _mm256_sub_ps(_mm256_mul_ps(qy, s), set(r[1][3]));
+                    let dq = _mm256_sub_ps(_mm256_mul_ps(qz, s), set(r[2][3]));
+                    let za = _mm256_add_ps(
+                        _mm256_add_ps(
+                            _mm256_mul_ps(set(r[0][2]), dx),
+                            _mm256_mul_ps(set(r[1][2]), dy),
+                        ),
+                        _mm256_mul_ps(set(r[2][2]), dq),
+                    );
+                    gvalid = _mm256_and_ps(
+                        gvalid,
+                        _mm256_and_ps(
+                            _mm256_cmp_ps::<_CMP_NEQ_UQ>(a1, set(INVALID_GRAD)),
+                            _mm256_cmp_ps::<_CMP_GE_OQ>(za, set(MIN_DEPTH)),
+                        ),
+                    );
+                    if k.depth_param {
+                        let ig2 = _mm256_div_ps(set(1.0), _mm256_mul_ps(rho_ref, rho_ref));
+                        (
+                            _mm256_sub_ps(za, z),
+                            _mm256_mul_ps(_mm256_xor_ps(a1, neg), ig2),
+                            _mm256_mul_ps(_mm256_xor_ps(a2, neg), ig2),
+                            set(-1.0),
+                        )
+                    } else {
+                        (
+                            _mm256_sub_ps(_mm256_div_ps(set(1.0), za), rho_ref),
+                            a1,
+                            a2,
+                            _mm256_mul_ps(rho_ref, rho_ref),
+                        )
+                    }
+                } else if k.depth_param {
                     let ig2 = _mm256_div_ps(set(1.0), _mm256_mul_ps(rho, rho));
-                    let neg = set(-0.0);
                     (
                         _mm256_sub_ps(_mm256_div_ps(set(1.0), rho), qz),
                         _mm256_mul_ps(_mm256_xor_ps(g1, neg), ig2),
@@ -890,7 +978,7 @@ mod lanes {
                 };
                 let robust = (c.est, c.sg, c.isg2, c.nu[1], c.mu[1]);
                 e.geo
-                    .set(res, gvalid, robust, (fx, fy), (gu, gv, dz), q, iz);
+                    .set(res, gvalid, robust, (fx, fy), (gu, gv, dz), jq, jiz);
             } else {
                 e.geo.none();
             }
@@ -913,8 +1001,7 @@ pub(crate) fn sample_range(
         let i = walk.i;
         let g = bufs.ref_geo.get(i).copied().unwrap_or_default();
         *o = if g[0] > 0.0 {
-            let (r_p, _, r_g, _) =
-                terms::<false>(k, bufs.ref_photo[i][0], g[3], k.rx[x], k.ry[y], bufs);
+            let (r_p, _, r_g, _) = terms::<false>(k, bufs.ref_photo[i], g, k.rx[x], k.ry[y], bufs);
             [r_p, r_g]
         } else {
             [INVALID_RESIDUAL, INVALID_RESIDUAL]
@@ -984,12 +1071,25 @@ mod tests {
     }
 
     /// Every estimator (0-3) with each term set (bit 0 photometric, bit 1 geometric) and
-    /// geometric option (bit 0 depth parametrisation, bit 1 first-order inverse-depth
-    /// sampling) the tests cover: `(estimator, terms, param)`.
+    /// option (bit 0 depth parametrisation, bit 1 first-order inverse-depth sampling, bit 2
+    /// the reference-frame linearisation) the tests cover: `(estimator, terms, param)`.
     fn variants() -> impl Iterator<Item = (u32, u32, u32)> {
         (0..4u32).flat_map(|est| {
-            [(3u32, 0u32), (1, 0), (2, 0), (3, 1), (3, 2), (2, 3)]
-                .map(|(terms, param)| (est, terms, param))
+            [
+                (3u32, 0u32),
+                (1, 0),
+                (2, 0),
+                (3, 1),
+                (3, 2),
+                (2, 3),
+                (3, 4),
+                (1, 4),
+                (2, 4),
+                (3, 5),
+                (3, 6),
+                (2, 7),
+            ]
+            .map(|(terms, param)| (est, terms, param))
         })
     }
 
@@ -1026,7 +1126,7 @@ mod tests {
             // Non-zero locations, so the loops' centring is compared too.
             mu_photo: 0.75,
             mu_geo: if param & 1 == 1 { 0.002 } else { 0.0006 },
-            _pad: [0; 1],
+            linearisation: (param >> 2) & 1,
         };
         p.set_pose(pose);
         p
@@ -1258,5 +1358,159 @@ mod tests {
             }
             assert!(checked >= 3);
         }
+    }
+
+    /// A textured plane seen from the reference camera (A) and from the current camera at
+    /// `cur_from_ref` (B), `w x h` pixels at focal length 130 and principal point the image
+    /// centre: `(reference, current)`, consistent (the residuals vanish at that pose up to
+    /// interpolation).
+    fn plane_pair(w: usize, h: usize, cur_from_ref: &Se3) -> (RgbdFrame, RgbdFrame) {
+        use glam::DVec3;
+        let (f, cx, cy) = (130.0, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let n = DVec3::new(0.15, -0.2, 1.0).normalize();
+        let d = 1.5;
+        // Texture on the plane as a function of the point in A (m), smooth at pixel scale.
+        let tex = |x: DVec3| 120.0 + 60.0 * (4.0 * x.x).sin() * (3.0 * x.y).cos() + 25.0 * x.x;
+        let r = cur_from_ref.rotation_matrix();
+        let t = cur_from_ref.translation;
+        let (n_b, d_b) = (r * n, d + (r * n).dot(t));
+        let render = |n: DVec3, d: f64, to_a: &dyn Fn(DVec3) -> DVec3| {
+            let (mut i, mut rho) = (Vec::new(), Vec::new());
+            for y in 0..h {
+                for x in 0..w {
+                    let ray = DVec3::new((x as f64 - cx) / f, (y as f64 - cy) / f, 1.0);
+                    let inv = n.dot(ray) / d;
+                    rho.push(inv as f32);
+                    i.push(tex(to_a(ray / inv)) as f32);
+                }
+            }
+            RgbdFrame {
+                timestamp: 0.0,
+                intensity: ImageF32::from_vec(w, h, i).unwrap(),
+                inverse_depth: ImageF32::from_vec(w, h, rho).unwrap(),
+                colour: None,
+            }
+        };
+        let a = render(n, d, &|x| x);
+        let b = render(n_b, d_b, &|x| r.transpose() * (x - t));
+        (a, b)
+    }
+
+    /// The reference-frame Jacobians (nabla I_A, nabla W_A at X_A, eq. 4.16-4.17, 6.12-6.13)
+    /// match central differences of the residuals with respect to a right twist of
+    /// `cur_from_ref` (`T exp(e)`) at the pose that aligns a consistent pair, for both
+    /// geometric parametrisations; and the tracker's left twist `Ad(T) delta` is that right
+    /// twist. The pose rotates by 0.1 rad, so the left-twist derivatives (what the
+    /// current-frame form computes) differ from the right-twist ones by more than the
+    /// tolerance, and a small baseline keeps the parallax the reference form neglects
+    /// (moving X_A off the surface) well inside it.
+    #[test]
+    fn reference_jacobians_match_finite_differences() {
+        let (w, h) = (160usize, 120usize);
+        let cur_from_ref = Se3::exp(&[0.008, -0.004, 0.006, 0.06, -0.07, 0.03]);
+        let (fa, fb) = plane_pair(w, h, &cur_from_ref);
+        let (a, b) = (CpuPyramid::build(&fa, 1), CpuPyramid::build(&fb, 1));
+        let bufs = Buffers {
+            ref_photo: &a.photo,
+            ref_geo: &a.geo,
+            cur_photo: &b.photo,
+            cur_geo: &b.geo,
+        };
+        let (mut worst_left, mut worst_right) = (0.0f32, [0.0f32; 2]);
+        // param: bit 1 first-order sampling (the plane's inverse depth is affine in the
+        // pixel coordinates, so the sample is smooth in the pose), bit 2 reference form;
+        // with and without bit 0 (depth parametrisation).
+        for param in [6u32, 7] {
+            let mut p = params(w, h, [79.5, 59.5], 0, (0, 3, param), &cur_from_ref);
+            p.fx = 130.0;
+            p.fy = 130.0;
+            let at = |p: &WarpParams, i: usize, jac: bool| {
+                let k = Warp::new(p);
+                if jac {
+                    super::pixel_terms::<true>(&k, &bufs, i)
+                } else {
+                    super::pixel_terms::<false>(&k, &bufs, i)
+                }
+            };
+            let mut checked = 0;
+            for i in [
+                60 * w + 80,
+                40 * w + 50,
+                70 * w + 100,
+                30 * w + 110,
+                85 * w + 60,
+            ] {
+                p.set_pose(&cur_from_ref);
+                let (rp, j_photo, rg, j_geo) = at(&p, i, true);
+                assert!(
+                    rp != INVALID_RESIDUAL && rg != INVALID_RESIDUAL,
+                    "pixel {i}"
+                );
+                // Aligned: the residuals are interpolation-sized.
+                assert!(rp.abs() < 0.5, "photometric residual {rp} at {i}");
+                let tol_rg = if param & 1 == 1 { 1e-4 } else { 1e-5 };
+                assert!(rg.abs() < tol_rg, "geometric residual {rg} at {i}");
+                let fd = |p: &mut WarpParams, k: usize, left: bool| {
+                    let eps = 2e-3;
+                    let mut d = [0.0; 6];
+                    let mut eval = |s: f64| {
+                        d[k] = s * eps;
+                        let e = Se3::exp(&d);
+                        p.set_pose(&if left {
+                            e * cur_from_ref
+                        } else {
+                            cur_from_ref * e
+                        });
+                        at(p, i, false)
+                    };
+                    let (x, y) = (eval(1.0), eval(-1.0));
+                    let e = 2.0 * eps as f32;
+                    ((x.0 - y.0) / e, (x.2 - y.2) / e)
+                };
+                let max_p = j_photo.iter().map(|x| x.abs()).fold(0.0, f32::max);
+                let max_g = j_geo.iter().map(|x| x.abs()).fold(0.0, f32::max);
+                for k in 0..6 {
+                    let (num_p, num_g) = fd(&mut p, k, false);
+                    assert!(
+                        (num_p - j_photo[k]).abs() < 0.03 * max_p,
+                        "param {param} pixel {i} photo k={k}: fd {num_p} vs {}",
+                        j_photo[k]
+                    );
+                    assert!(
+                        (num_g - j_geo[k]).abs() < 0.03 * max_g,
+                        "param {param} pixel {i} geo k={k}: fd {num_g} vs {}",
+                        j_geo[k]
+                    );
+                    worst_right[0] = worst_right[0].max((num_p - j_photo[k]).abs() / max_p);
+                    worst_right[1] = worst_right[1].max((num_g - j_geo[k]).abs() / max_g);
+                    let (left_p, _) = fd(&mut p, k, true);
+                    worst_left = worst_left.max((left_p - j_photo[k]).abs() / max_p);
+                }
+                checked += 1;
+            }
+            assert_eq!(checked, 5);
+        }
+        eprintln!(
+            "largest differences over max |J|: photometric {}, geometric {}, left twist {}",
+            worst_right[0], worst_right[1], worst_left
+        );
+        // The right twist and the wrong (left) one are told apart at this pose.
+        assert!(
+            worst_left > 0.06,
+            "left-twist derivatives within {worst_left}"
+        );
+        // The tracker's update: exp(Ad(T) delta) T = T exp(delta).
+        let delta = [0.01, -0.02, 0.005, 0.03, 0.01, -0.02];
+        let lt = crate::odometry::tracker::left_twist(
+            crate::odometry::Linearisation::Reference,
+            &cur_from_ref,
+            &delta,
+        );
+        let diff = (Se3::exp(&lt) * cur_from_ref).inverse() * (cur_from_ref * Se3::exp(&delta));
+        assert!(
+            diff.log().iter().all(|x| x.abs() < 1e-12),
+            "{:?}",
+            diff.log()
+        );
     }
 }

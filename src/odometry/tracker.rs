@@ -4,7 +4,8 @@ use std::time::Instant;
 
 use super::backend::{CpuKernels, Kernels};
 use super::config::{
-    CovarianceGradients, CovisibilityTest, GeometricParam, OdometryConfig, OCCLUSION_SIGMAS,
+    CovarianceGradients, CovisibilityTest, GeometricParam, Linearisation, OdometryConfig,
+    OCCLUSION_SIGMAS,
 };
 use super::gpu::GpuKernels;
 use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
@@ -73,7 +74,9 @@ pub struct Alignment {
     /// which is `ref_from_cur <- ref_from_cur exp(-delta)`: the same matrix. It is the
     /// inverse of the Hessian on the finest level used, from the last Gauss-Newton iteration
     /// ([`CovarianceGradients::Raw`], the default) or from the covariance pass at the final
-    /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`]).
+    /// pose with bilateral-filtered gradients ([`CovarianceGradients::Bilateral`]); with
+    /// [`crate::odometry::Linearisation::Reference`] that Hessian's twist is on the reference
+    /// side and its inverse is carried to this convention by the adjoint of `cur_from_ref`.
     pub covariance: Option<Covariance6>,
     /// Condition number of that Hessian.
     pub condition_number: f64,
@@ -531,6 +534,13 @@ impl<K: Kernels> Tracker<K> {
             times.covariance_ms += tc.elapsed().as_secs_f64() * 1e3;
         }
         let (covariance, condition_number) = match last.equations.covariance() {
+            // The reference form's Hessian is that of a right twist of cur_from_ref,
+            // `cur_from_ref exp(e)`, i.e. `exp(-e) ref_from_cur = ref_from_cur
+            // exp(-Ad(cur_from_ref) e)`: carried to the documented convention by that
+            // adjoint.
+            Some((c, k)) if self.config.linearisation == Linearisation::Reference => {
+                (Some(c.transported(&cur_from_ref.inverse())), k)
+            }
             Some((c, k)) => (Some(c), k),
             None => (None, f64::INFINITY),
         };
@@ -676,9 +686,10 @@ impl<K: Kernels> Tracker<K> {
             if ne.n_photo + ne.n_geo < 12 {
                 break;
             }
-            let Some(delta) = ne.solve() else {
+            let Some(solved_delta) = ne.solve() else {
                 break;
             };
+            let delta = left_twist(self.config.linearisation, cur_from_ref, &solved_delta);
             *cur_from_ref = Se3::exp(&delta) * *cur_from_ref;
             st.iterations += 1;
             times.solve_ms += tsol.elapsed().as_secs_f64() * 1e3;
@@ -707,8 +718,9 @@ impl<K: Kernels> Tracker<K> {
     }
 
     /// The covariance pass (thesis 6.20-6.21): the normal equations once more at the final
-    /// pose on the last solved level, with the gradients of the bilateral-filtered current
-    /// level. `None` when too few residuals remain.
+    /// pose on the last solved level, with the gradients of the bilateral-filtered level of
+    /// the frame the Jacobians differentiate (the current one, or the reference one with
+    /// [`Linearisation::Reference`]). `None` when too few residuals remain.
     fn covariance_pass(
         &mut self,
         r: &K::Pyramid,
@@ -731,11 +743,24 @@ impl<K: Kernels> Tracker<K> {
             self.config.bilateral_range * sigma_rho,
         );
         let recycle = self.filtered.take();
-        let filtered = self.kernels.filtered_level(c, level, &f, recycle)?;
-        let parts = self
-            .kernels
-            .normal_equation_partials(&p, r, &filtered, level);
-        self.filtered = Some(filtered);
+        let parts = match self.config.linearisation {
+            Linearisation::Current => {
+                let filtered = self.kernels.filtered_level(c, level, &f, recycle)?;
+                let parts = self
+                    .kernels
+                    .normal_equation_partials(&p, r, &filtered, level);
+                self.filtered = Some(filtered);
+                parts
+            }
+            Linearisation::Reference => {
+                let filtered = self.kernels.filtered_level(r, level, &f, recycle)?;
+                let parts = self
+                    .kernels
+                    .normal_equation_partials(&p, &filtered, c, level);
+                self.filtered = Some(filtered);
+                parts
+            }
+        };
         let ne = NormalEquations::from_partials(&parts?);
         Ok((ne.n_photo + ne.n_geo >= 12).then_some(ne))
     }
@@ -757,6 +782,30 @@ impl Tracker<GpuKernels> {
     ) -> Result<Self, OdometryError> {
         let kernels = GpuKernels::new(ctx)?;
         Self::with_kernels(config, camera, kernels)
+    }
+}
+
+/// The left twist `d` of the update `cur_from_ref <- exp(d) cur_from_ref` from the solution
+/// `delta` of `H delta = -g` of normal equations linearised as `lin` (m and rad, `[v; w]`).
+///
+/// The current-frame Jacobians differentiate the residuals with respect to that left twist,
+/// so `d = delta`. The reference-frame Jacobians (`nabla I_A`, `nabla W_A` at `X_A`) are,
+/// where the warp aligns the frames (`I_B(w(., T)) ~ I_A`), the derivatives with respect to a
+/// right twist, `T exp(e)`: the twist moves the reference point before `T`, and what `T`
+/// then reads in the current frame is what the reference frame holds at the moved point.
+/// Written as the thesis' inverse composition, the increment `delta_A = -delta` is solved
+/// for the reference warp and undone on the estimate, `T <- T exp(delta_A)^-1 =
+/// T exp(delta)`; as a left twist that is `exp(Ad(T) delta) T`, since
+/// `T exp(e) T^-1 = exp(Ad(T) e)`. Using the left form keeps one update and one
+/// convergence test (on `|d|`, in the current frame's coordinates like the default's) for
+/// both linearisations.
+pub(crate) fn left_twist(lin: Linearisation, cur_from_ref: &Se3, delta: &[f64; 6]) -> [f64; 6] {
+    match lin {
+        Linearisation::Current => *delta,
+        Linearisation::Reference => {
+            let ad = cur_from_ref.adjoint();
+            std::array::from_fn(|i| (0..6).map(|j| ad[i][j] * delta[j]).sum())
+        }
     }
 }
 
@@ -807,7 +856,7 @@ pub(crate) fn warp_params(
         occlusion: 0.0,
         mu_photo: 0.0,
         mu_geo: 0.0,
-        _pad: [0; 1],
+        linearisation: config.linearisation as u32,
     };
     p.set_pose(cur_from_ref);
     p
