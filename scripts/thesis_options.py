@@ -24,20 +24,21 @@ import statistics
 SEQUENCES = ["tum_fr1_rpy_0_199", "redkitchen_0_299"]
 # (variant, odometry option as given to --set, bench file suffix, odometry CSV suffix)
 VARIANTS = [
-    ("covisibility_test=depth (the previous default), geometric_sampling=nearest", "base", "nearest"),
-    ("covisibility_test=consistent (eq. 4.33)", "covis", None),
+    ("defaults (covisibility_test=consistent, geometric_sampling=nearest, location=both, linearisation=current)", "base", "nearest"),
+    ("covisibility_test=depth (no occlusion condition of eq. 4.33)", "depthcovis", None),
     ("geometric_sampling=coarselinear", "coarse", "coarse"),
-    ("covisibility_test=consistent, linearisation=reference (eq. 4.16-4.17, 6.12-6.13)", "reflin", None),
+    ("location=zero (no mu of eq. 4.26-4.27)", "loczero", None),
+    ("location=photometric", "locphoto", None),
+    ("linearisation=reference (eq. 4.16-4.17, 6.12-6.13)", "reflin", None),
 ]
 
 # `rgbid slam` variants (scripts/thesis_options.sh), ATE after rigid alignment.
 SLAM_VARIANTS = [
-    ("default", "slam: covisibility_test=depth, fusion tolerance 0.004 + 0.03 rho, keyframe side only"),
-    ("fusion", "slam: covisibility_test=depth, fusion 3 sigma_W + occlusion + both directions"),
-    ("covis", "slam: covisibility_test=consistent, fusion tolerance 0.004 + 0.03 rho, keyframe side only"),
-    ("both", "slam: covisibility_test=consistent, fusion 3 sigma_W + occlusion + both directions"),
-    ("nocap", "slam: as `both`, fusion weight not capped (max_weight 1e9 instead of 30)"),
-    ("reflin", "slam: as `covis`, odometry linearised in the reference frame (linearisation=reference)"),
+    ("default", "slam: defaults (fusion 3 sigma_W + occlusion + both directions, weight cap 30)"),
+    ("fixedfusion", "slam: fusion tolerance 0.004 + 0.03 rho, keyframe side only"),
+    ("nocap", "slam: fusion weight not capped (max_weight 1e9 instead of 30)"),
+    ("loczero", "slam: odometry location=zero"),
+    ("reflin", "slam: odometry linearisation=reference"),
 ]
 
 

@@ -12,33 +12,35 @@ D=${RGBID_DATA:-../shared/data/rgbd}
 O=${1:-/tmp/thesis-runs}
 mkdir -p "$O"
 uptime > "$O/load_start.txt"
+# Odometry: the defaults spelled out, then one departure (or thesis formulation) at a time.
+DEFAULTS="--set covisibility_test=consistent --set geometric_sampling=nearest --set location=both --set linearisation=current"
 odo_variant() {
-  local cur="--set linearisation=current"
   case $1 in
-    base) echo "--set covisibility_test=depth --set geometric_sampling=nearest $cur" ;;
-    covis) echo "--set covisibility_test=consistent --set geometric_sampling=nearest $cur" ;;
-    coarse) echo "--set covisibility_test=depth --set geometric_sampling=coarselinear $cur" ;;
-    reflin) echo "--set covisibility_test=consistent --set geometric_sampling=nearest --set linearisation=reference" ;;
+    base) echo "$DEFAULTS" ;;
+    depthcovis) echo "$DEFAULTS --set covisibility_test=depth" ;;
+    coarse) echo "$DEFAULTS --set geometric_sampling=coarselinear" ;;
+    loczero) echo "$DEFAULTS --set location=zero" ;;
+    locphoto) echo "$DEFAULTS --set location=photometric" ;;
+    reflin) echo "$DEFAULTS --set linearisation=reference" ;;
   esac
 }
 slam_variant() {
-  local fixed="--set fusion.tol_sigmas=0 --set fusion.occlusion=false --set fusion.both_directions=false"
+  local odo="--set odometry.covisibility_test=consistent --set odometry.location=both --set odometry.linearisation=current"
   local thesis="--set fusion.tol_sigmas=3 --set fusion.occlusion=true --set fusion.both_directions=true"
-  local cur="--set odometry.linearisation=current"
+  local fixed="--set fusion.tol_sigmas=0 --set fusion.occlusion=false --set fusion.both_directions=false"
   case $1 in
-    default) echo "--set odometry.covisibility_test=depth $fixed $cur" ;;
-    fusion) echo "--set odometry.covisibility_test=depth $thesis $cur" ;;
-    covis) echo "--set odometry.covisibility_test=consistent $fixed $cur" ;;
-    both) echo "--set odometry.covisibility_test=consistent $thesis $cur" ;;
-    nocap) echo "--set odometry.covisibility_test=consistent $thesis --set fusion.max_weight=1e9 $cur" ;;
-    reflin) echo "--set odometry.covisibility_test=consistent $fixed --set odometry.linearisation=reference" ;;
+    default) echo "$odo $thesis" ;;
+    fixedfusion) echo "$odo $fixed" ;;
+    nocap) echo "$odo $thesis --set fusion.max_weight=1e9" ;;
+    loczero) echo "$odo $thesis --set odometry.location=zero" ;;
+    reflin) echo "$odo $thesis --set odometry.linearisation=reference" ;;
   esac
 }
 for seq in tum_fr1_rpy_0_199 redkitchen_0_299; do
   cam=""
   [ "$seq" = tum_fr1_rpy_0_199 ] && cam="--camera tum_fr1"
   peers=cv_rgbd # OpenCV once per sequence, in the base run
-  for v in base covis coarse reflin; do
+  for v in base depthcovis coarse loczero locphoto reflin; do
     # shellcheck disable=SC2046,SC2086
     "$B" bench odometry "$D/$seq" $cam --backends cpu --peers "$peers" --python "$PY" \
       $(odo_variant $v) --out "$O/$seq-$v" --json "$O/$seq-$v.json" > "$O/$seq-$v.log" 2>&1
@@ -49,7 +51,7 @@ for seq in tum_fr1_rpy_0_199 redkitchen_0_299; do
     "$B" odometry "$D/$seq" $cam --backend cpu $(odo_variant $v) --csv "$O/$seq-$v.csv" \
       -o "$O/$seq-$v.txt" > "$O/$seq-$v-odo.log" 2>&1
   done
-  for v in default fusion covis both nocap reflin; do
+  for v in default fixedfusion nocap loczero reflin; do
     # shellcheck disable=SC2046,SC2086
     /usr/bin/time -f "%e s wall" "$B" slam "$D/$seq" $cam --backend cpu \
       --out "$O/slam-$seq-$v" $(slam_variant $v) > "$O/slam-$seq-$v.log" 2>&1
