@@ -531,15 +531,21 @@ impl MonoSlam {
     ) -> Option<DVec2> {
         let f = &self.features[i];
         let half = self.config.patch_half;
-        let template = match self.config.patch_mode {
-            PatchMode::Plain => f.patch.plain.clone()?,
-            PatchMode::Warped => {
-                let ratio = 1.0 / f.landmark.ray_in_camera(&self.state).length().max(1e-9);
-                f.patch
-                    .warped(&self.camera, pred.uv, ratio, self.config.k_lim, half)?
-                    .0
+        let mode = self.config.patch_mode;
+        let ratio = match mode {
+            PatchMode::Plain => 1.0,
+            PatchMode::Warped => self.distance_ratio(i),
+            PatchMode::Thesis | PatchMode::Anisotropic => {
+                if self.depth_converged(i) {
+                    self.distance_ratio(i)
+                } else {
+                    1.0
+                }
             }
         };
+        let (template, _) =
+            f.patch
+                .template(&self.camera, pred.uv, mode, ratio, self.config.k_lim, half)?;
         let si = s.try_inverse()?;
         let rx = (CHI2_95_2DOF * s[(0, 0)])
             .sqrt()
@@ -602,6 +608,25 @@ impl MonoSlam {
             (x0 + bx as i64) as f64 + dx,
             (y0 + by as i64) as f64 + dy,
         ))
+    }
+
+    /// `d_init / d_now` of landmark `i` from its estimate: the anchor is the camera centre
+    /// at initialisation, so `d_init = 1 / rho` and `d_now = |h_c| / rho`.
+    fn distance_ratio(&self, i: usize) -> f64 {
+        1.0 / self.features[i]
+            .landmark
+            .ray_in_camera(&self.state)
+            .length()
+            .max(1e-9)
+    }
+
+    /// True when landmark `i`'s inverse depth has converged: `sigma_rho / rho` at most
+    /// [`MonoConfig::depth_converged_ratio`].
+    fn depth_converged(&self, i: usize) -> bool {
+        let rho = self.features[i].landmark.rho;
+        let o = landmark_offset(i) + 5;
+        let var = self.cov[(o, o)];
+        rho > 0.0 && var >= 0.0 && var.sqrt() <= self.config.depth_converged_ratio * rho
     }
 
     /// `P H^T` for one measurement (n x 2), using the sparsity of `H`.
