@@ -39,6 +39,9 @@ pub enum PatchArg {
     Thesis,
     /// As thesis, with separate radial and tangential scales.
     Anisotropic,
+    /// Each pixel carried through the predicted relative pose onto the plane through the
+    /// feature perpendicular to its first ray (at infinity until its depth has converged).
+    Projective,
     /// As seen at initialisation.
     Plain,
 }
@@ -191,6 +194,7 @@ fn config(args: &Args, camera: &UnifiedCamera) -> Result<MonoConfig> {
             Some(PatchArg::Warped) => c.patch_mode = PatchMode::Warped,
             Some(PatchArg::Thesis) => c.patch_mode = PatchMode::Thesis,
             Some(PatchArg::Anisotropic) => c.patch_mode = PatchMode::Anisotropic,
+            Some(PatchArg::Projective) => c.patch_mode = PatchMode::Projective,
             Some(PatchArg::Plain) => c.patch_mode = PatchMode::Plain,
             None => {}
         }

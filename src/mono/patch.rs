@@ -38,6 +38,17 @@
 //!   the rim of the default mirror), which one isotropic factor cannot follow. This departs
 //!   from the thesis, which uses one scale.
 //!
+//! - [`PatchMode::Projective`] (not in the thesis): no scales. Each pixel `uv + o` of the
+//!   correlation patch is lifted to its ray in the current camera, carried into the camera
+//!   that took the big patch by the predicted relative pose ([`ViewChange`]), met with the
+//!   plane through the feature perpendicular to its initial ray, and projected into the
+//!   initial image; the big patch is read at that pixel's offset from where `uv` lands.
+//!   The change of polar angle of the other modes is the image rotation of a turn about the
+//!   mirror's axis only; when the axis is not vertical (a head-worn camera looking ahead) a
+//!   turn of the head rotates patches differently, and only the pose-based map follows it.
+//!   Until the landmark's depth has converged (as for [`PatchMode::Thesis`]) the point is
+//!   taken at infinity, so only the rotation warps the patch.
+//!
 //! Every scale is limited to `[1 / k_lim, k_lim]` (eq. 2.66-2.67). The warp reads the big
 //! patch at offsets up to `sqrt(2) h / k` from its centre, so a shrinking scale needs
 //! `k >= sqrt(2) h / B`: `k_lim <= B / (sqrt(2) h)` keeps every read inside the big patch
@@ -68,15 +79,19 @@ pub enum PatchMode {
     Thesis,
     /// As [`PatchMode::Thesis`], with separate radial and tangential scales.
     Anisotropic,
+    /// Every pixel mapped through the predicted relative camera pose onto the plane through
+    /// the feature perpendicular to its initial ray (see the module docs; not in the thesis).
+    Projective,
 }
 
 impl PatchMode {
     /// Every mode, in the order of the comparisons.
-    pub const ALL: [PatchMode; 4] = [
+    pub const ALL: [PatchMode; 5] = [
         PatchMode::Plain,
         PatchMode::Warped,
         PatchMode::Thesis,
         PatchMode::Anisotropic,
+        PatchMode::Projective,
     ];
 
     /// The mode's name as in configuration files.
@@ -86,6 +101,7 @@ impl PatchMode {
             PatchMode::Warped => "warped",
             PatchMode::Thesis => "thesis",
             PatchMode::Anisotropic => "anisotropic",
+            PatchMode::Projective => "projective",
         }
     }
 }
@@ -506,7 +522,7 @@ impl FeaturePatch {
         distance_ratio: f64,
     ) -> Option<(f64, f64)> {
         match mode {
-            PatchMode::Plain => Some((1.0, 1.0)),
+            PatchMode::Plain | PatchMode::Projective => Some((1.0, 1.0)),
             PatchMode::Warped => {
                 let k = magnification(camera, uv)? / self.mu_init * distance_ratio;
                 Some((k, k))
@@ -528,6 +544,8 @@ impl FeaturePatch {
     /// The correlation template of `mode` for a feature predicted at `uv` with distance ratio
     /// `d_init / d_now` (1 where the depth is not to be used), scales limited to
     /// `[1 / k_lim, k_lim]`; `None` when flat or when a ray has no image.
+    /// [`PatchMode::Projective`] needs the relative pose: here it gives the plain template
+    /// (use [`FeaturePatch::template_projective`]).
     pub fn template(
         &self,
         camera: &UnifiedCamera,
@@ -537,7 +555,7 @@ impl FeaturePatch {
         k_lim: f64,
         half: usize,
     ) -> Option<(Template, WarpScales)> {
-        if mode == PatchMode::Plain {
+        if matches!(mode, PatchMode::Plain | PatchMode::Projective) {
             let scales = WarpScales {
                 radial: 1.0,
                 tangential: 1.0,
@@ -552,22 +570,13 @@ impl FeaturePatch {
         let t_now = u_now.perp();
         let u_init = DVec2::from_angle(self.alpha_init);
         let t_init = u_init.perp();
-        let side = 2 * self.big_half + 1;
         let small = 2 * half + 1;
-        let b = self.big_half as f64;
         let mut out = Vec::with_capacity(small * small);
         for j in 0..small {
             for i in 0..small {
                 let o = DVec2::new(i as f64 - half as f64, j as f64 - half as f64);
                 let p = u_init * (o.dot(u_now) / k_r) + t_init * (o.dot(t_now) / k_t);
-                let x = (p.x + b).clamp(0.0, side as f64 - 1.001);
-                let y = (p.y + b).clamp(0.0, side as f64 - 1.001);
-                let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-                let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
-                let at = |xx: usize, yy: usize| self.big[yy * side + xx];
-                let top = at(x0, y0) * (1.0 - fx) + at(x0 + 1, y0) * fx;
-                let bot = at(x0, y0 + 1) * (1.0 - fx) + at(x0 + 1, y0 + 1) * fx;
-                out.push(top * (1.0 - fy) + bot * fy);
+                out.push(self.sample_big(p));
             }
         }
         let scales = WarpScales {
@@ -577,6 +586,77 @@ impl FeaturePatch {
         };
         Template::new(&out, half).map(|t| (t, scales))
     }
+
+    /// The big patch at offset `p` (pixels) from its centre, bilinear, reads clamped to it.
+    fn sample_big(&self, p: DVec2) -> f32 {
+        let side = 2 * self.big_half + 1;
+        let b = self.big_half as f64;
+        let x = (p.x + b).clamp(0.0, side as f64 - 1.001);
+        let y = (p.y + b).clamp(0.0, side as f64 - 1.001);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+        let at = |xx: usize, yy: usize| self.big[yy * side + xx];
+        let top = at(x0, y0) * (1.0 - fx) + at(x0 + 1, y0) * fx;
+        let bot = at(x0, y0 + 1) * (1.0 - fx) + at(x0 + 1, y0 + 1) * fx;
+        top * (1.0 - fy) + bot * fy
+    }
+
+    /// The [`PatchMode::Projective`] template for a feature predicted at `uv`: each pixel
+    /// `uv + o` is lifted to its ray in the current camera, carried into the initial camera
+    /// by `view`, met with the plane through the feature perpendicular to its initial ray
+    /// (or, without a converged depth, taken at infinity) and projected into the initial
+    /// image; the big patch is read at that pixel's offset from where `uv` itself lands.
+    /// `None` when flat or when a ray has no image.
+    pub fn template_projective(
+        &self,
+        camera: &UnifiedCamera,
+        uv: DVec2,
+        view: &ViewChange,
+        half: usize,
+    ) -> Option<Template> {
+        let to_init = |q: DVec2| -> Option<DVec2> {
+            let r = view.init_from_now * camera.unproject(q)?;
+            let x = match view.point_in_init {
+                Some(p) => {
+                    let n = p.normalize_or_zero();
+                    let den = n.dot(r);
+                    if den.abs() < 1e-9 {
+                        return None;
+                    }
+                    let t = n.dot(p - view.centre_now_in_init) / den;
+                    if !(t > 0.0) {
+                        return None;
+                    }
+                    view.centre_now_in_init + r * t
+                }
+                None => r,
+            };
+            camera.project(x)
+        };
+        let centre = to_init(uv)?;
+        let small = 2 * half + 1;
+        let mut out = Vec::with_capacity(small * small);
+        for j in 0..small {
+            for i in 0..small {
+                let o = DVec2::new(i as f64 - half as f64, j as f64 - half as f64);
+                out.push(self.sample_big(to_init(uv + o)? - centre));
+            }
+        }
+        Template::new(&out, half)
+    }
+}
+
+/// The relative geometry of a [`PatchMode::Projective`] warp, in the initial camera's frame
+/// (the camera that took the big patch).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewChange {
+    /// Rotation `init_from_now`: directions in the current camera frame into the initial one.
+    pub init_from_now: glam::DQuat,
+    /// The current camera centre in the initial camera frame (the map's length unit).
+    pub centre_now_in_init: DVec3,
+    /// The feature's point in the initial camera frame; `None` while its depth has not
+    /// converged (the warp then treats it as at infinity: rotation only).
+    pub point_in_init: Option<DVec3>,
 }
 
 #[cfg(test)]
