@@ -85,7 +85,8 @@ pub struct Args {
     /// `scripts/mono_walks.sh` collects them into docs/results).
     #[arg(long, requires = "walker_height")]
     json: Option<PathBuf>,
-    /// Patch mode (default: warped for xi > 0, plain for pinhole cameras).
+    /// Patch mode (default: projective for xi > 0, plain for pinhole cameras; chosen by
+    /// `scripts/mono_patch_modes.sh`).
     #[arg(long, value_enum)]
     patch: Option<PatchArg>,
     /// ZNCC threshold of a match, in (-1, 1) (`zncc_threshold`) [default: 0.8].
@@ -183,7 +184,7 @@ fn progress(len: usize, what: &str) -> ProgressBar {
 fn config(args: &Args, camera: &UnifiedCamera) -> Result<MonoConfig> {
     let base = MonoConfig {
         patch_mode: if camera.xi > 0.0 {
-            PatchMode::Warped
+            PatchMode::Projective
         } else {
             PatchMode::Plain
         },
