@@ -5,7 +5,8 @@
 //! Kalman filter over a sparse map of anchored inverse-depth landmarks (Civera, Davison and
 //! Montiel 2008), with active search inside the 95 % innovation ellipse, ZNCC patch
 //! correlation, 1-point RANSAC (Civera et al. 2010), map management and, for catadioptric
-//! images, patch warping by the change of polar angle and scale.
+//! images, patch warping ([`PatchMode`]: the change of polar angle with the thesis' scale
+//! rules, or a projective map through the predicted relative pose).
 //!
 //! Frames and units. The filter's world frame `w` is the first camera's frame (x right,
 //! y down, z forward at time 0); the camera state is `world_from_camera` (position in

@@ -790,6 +790,41 @@ mod tests {
         }
     }
 
+    #[test]
+    fn projective_warp_undoes_a_turn_about_the_optical_axis() {
+        // The image turned by +90 degrees about the principal point is what the camera sees
+        // after turning by -90 degrees about its optical axis: a current ray (a, b, c) was
+        // the initial ray (b, -a, c).
+        let n = 81;
+        let img = textured(n, n);
+        let mut rot = ImageF32::filled(n, n, 0.0);
+        for y in 0..n {
+            for x in 0..n {
+                rot.data[y * n + x] = img.at(y, n - 1 - x);
+            }
+        }
+        let cam = UnifiedCamera::new(0.9, 60.0, 40.0, 40.0, n as u32, n as u32);
+        let fp = FeaturePatch::new(&img, &cam, DVec2::new(60.0, 40.0), 10, 4).unwrap();
+        let dst = DVec2::new(40.0, 60.0);
+        for point in [None, Some(DVec3::new(0.9, 0.1, 0.6))] {
+            let view = ViewChange {
+                init_from_now: glam::DQuat::from_rotation_z(-std::f64::consts::FRAC_PI_2),
+                centre_now_in_init: DVec3::ZERO,
+                point_in_init: point,
+            };
+            let t = fp.template_projective(&cam, dst, &view, 4).unwrap();
+            let score = t.correlate_at(&rot, 40, 60).unwrap();
+            assert!(score > 0.99, "{point:?}: {score}");
+        }
+        let plain = fp
+            .plain
+            .clone()
+            .unwrap()
+            .correlate_at(&rot, 40, 60)
+            .unwrap();
+        assert!(plain < 0.8, "plain {plain}");
+    }
+
     /// The rotation `camera_from_world` that takes the world directions `world_ray`,
     /// `world_r`, `world_t` (orthonormal, right-handed) to the unit ray `s` and its radial and
     /// tangential directions `e_r`, `e_t` in the camera frame.
