@@ -372,7 +372,9 @@ def render_mono_patch_modes(doc):
            "Sim(3) ATE*: the filter's own trajectory after a similarity alignment, % of the path "
            "(the drift the scale chain cannot remove); then eq. 3.36 (start-aligned, not rescaled, "
            "mean and end error in % of the path) of the unscaled EKF trajectory, of each frame's "
-           "causal metric pose and of the final dynScale output. Modes: see `mono::PatchMode`.", ""]
+           "causal metric pose and of the final dynScale output (*-*: no walking detected, so no metric "
+           "output). Modes: see `mono::PatchMode`. The runs shared a loaded machine, so the ms per "
+           "frame are not comparable between rows.", ""]
     body = []
     for r in doc.get("rows", []):
         if r.get("missing"):
