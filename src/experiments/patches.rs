@@ -227,9 +227,9 @@ fn visible(
     let uv = camera.project(p)?;
     let margin = (spec.search_half as usize + spec.patch_half + 1) as f64;
     let (w, h) = (f64::from(camera.width), f64::from(camera.height));
-    if !(uv.x >= margin && uv.y >= margin && uv.x <= w - 1.0 - margin && uv.y <= h - 1.0 - margin)
-        || !camera.in_fov(uv)
-    {
+    let inside =
+        uv.x >= margin && uv.y >= margin && uv.x <= w - 1.0 - margin && uv.y <= h - 1.0 - margin;
+    if !(inside && camera.in_fov(uv)) {
         return None;
     }
     let (x, y) = (uv.x.round() as usize, uv.y.round() as usize);
