@@ -365,6 +365,68 @@ def render_mono_walks(doc):
                   "dynScale mean %", "dynScale + loops mean %", "dynScale end %",
                   "dynScale + loops end %", "length (loops)"], body)
     return out
+def render_mono_patch_modes(doc):
+    """The monocular EKF per patch mode on generated walks."""
+    out = ["`rgbid mono --synthetic omni --walker-height 1.75 --patch MODE` on the generated 60 s "
+           "head-worn catadioptric walks (400x400, 30 Hz, seed 7), one run per patch mode. *EKF "
+           "Sim(3) ATE*: the filter's own trajectory after a similarity alignment, % of the path "
+           "(the drift the scale chain cannot remove); then eq. 3.36 (start-aligned, not rescaled, "
+           "mean and end error in % of the path) of the unscaled EKF trajectory, of each frame's "
+           "causal metric pose and of the final dynScale output (*-*: no walking detected, so no metric "
+           "output). Modes: see `mono::PatchMode`. The runs shared a loaded machine, so the ms per "
+           "frame are not comparable between rows.", ""]
+    body = []
+    for r in doc.get("rows", []):
+        if r.get("missing"):
+            body.append([r.get("mode", "?"), r.get("sequence", "?"), "(failed)"] + ["-"] * 8)
+            continue
+        def pair(key):
+            e = r.get(key) or {}
+            return [num(e.get("mean_pct"), ".2f"), num(e.get("end_pct"), ".2f")]
+        body.append([r.get("mode", "?"), r.get("sequence", "?"), num(r.get("ekf_sim3_ate_pct"), ".2f"),
+                     num(r.get("ekf_sim3_scale"), ".3f")]
+                    + pair("unscaled") + pair("causal") + pair("final") + [num(r.get("filter_ms"), ".2f")])
+    out += table(["patch", "walk", "EKF Sim(3) ATE %", "Sim(3) scale", "unscaled mean %", "end %",
+                  "causal mean %", "end %", "final mean %", "end %", "filter ms/frame"], body)
+    return out
+
+
+def render_patch_sweeps(doc):
+    """The decoupled matching experiment (thesis 2.6.1): one row per sweep step, one column per patch mode."""
+    spec = doc.get("spec", {})
+    rows = doc.get("rows", [])
+    modes = []
+    for r in rows:
+        if r["mode"] not in modes:
+            modes.append(r["mode"])
+    out = [f"`rgbid mono --patch-sweeps`: {doc.get('reference_features', '?')} FAST features of a "
+           f"generated {spec.get('width', '?')}x{spec.get('height', '?')} catadioptric image "
+           f"({spec.get('scene', '?')}, seed {spec.get('seed', '?')}, the head-worn walk's pose at "
+           f"{num(spec.get('reference_time'), '.1f')} s: optical axis near horizontal) searched by ZNCC in a "
+           f"{2 * spec.get('search_half', 0) + 1} px window around their true projection after a turn "
+           "about the vertical (degrees), a step along the floor in the heading (metres) and, per "
+           "feature, a move along its ray to distance d_init / factor (scale). The warps get the true "
+           "relative pose and distance (a converged depth). Each cell: % of the visible features whose "
+           "best position is within 2 px of the truth / % also scoring ZNCC >= "
+           f"{num(spec.get('zncc_threshold'), '.2f')} (what the filter accepts). *n*: features visible "
+           "and not occluded.", ""]
+    steps = []
+    for r in rows:
+        key = (r["sweep"], r["step"])
+        if key not in steps:
+            steps.append(key)
+    body = []
+    for sweep, step in steps:
+        cells = {r["mode"]: r for r in rows if r["sweep"] == sweep and r["step"] == step}
+        n = next(iter(cells.values()))["features"]
+        unit = {"rotation": " deg", "translation": " m", "scale": "x"}.get(sweep, "")
+        body.append([sweep, num(step, "g") + unit, n]
+                    + [f"{num(cells[m]['within_2px_pct'], '.0f')} / {num(cells[m]['matched_pct'], '.0f')}"
+                       if m in cells else "-" for m in modes])
+    out += table(["sweep", "step", "n"] + modes, body)
+    return out
+
+
 def render_mono_loops(doc):
     """Monocular loop detection from images on generated walks: precision / recall and a sweep."""
     rows = [r for r in doc.get("rows", []) if not r.get("missing")]
@@ -520,6 +582,7 @@ RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernel
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
              "load": render_load, "thesis-tables": render_thesis_tables,
              "scale-sweep": render_scale_sweep, "mono-walks": render_mono_walks, "mono-loops": render_mono_loops,
+             "patch-sweeps": render_patch_sweeps, "mono-patch-modes": render_mono_patch_modes,
              "layouts": render_layouts, "camera-rate": render_camera_rate}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
@@ -529,6 +592,8 @@ TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odomet
           "load": "SLAM under load", "scale-sweep": "Walking scale: t_DFT / t_upd (table 3.1)",
           "mono-walks": "Metric monocular SLAM on generated walks",
           "mono-loops": "Monocular loop detection from images",
+          "mono-patch-modes": "Monocular EKF per patch mode on generated walks",
+          "patch-sweeps": "Catadioptric patch warping: decoupled matching (thesis 2.6.1)",
           "layouts": "`rgbid slam` on every dataset layout",
           "camera-rate": "Camera rate on real data (`scripts/camera_rate.py`)"}
 

@@ -13,6 +13,7 @@ use rgbid::experiments::mono::{
     loops as synthetic_loops, render, run as run_synthetic, LoopTruth, SyntheticCamera,
     SyntheticSpec,
 };
+use rgbid::experiments::patches::{run_patch_sweeps, PatchSweepSpec};
 use rgbid::gpu::ComputeBackend;
 use rgbid::image::ImageF32;
 use rgbid::io::trajectory::{read_tum, write_tum};
@@ -30,8 +31,17 @@ use super::options::{write_sidecar, ConfigArgs};
 /// Patch modes of `--patch`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum PatchArg {
-    /// Warped for the predicted view (catadioptric cameras).
+    /// Rotated by the change of polar angle, scaled by the ratio of the mirror's local
+    /// magnifications times the estimated distance ratio.
     Warped,
+    /// Rotated, scaled by the ratio of projected image lengths from r_im- (thesis eq.
+    /// 2.63-2.67), the distance ratio only once the depth has converged.
+    Thesis,
+    /// As thesis, with separate radial and tangential scales.
+    Anisotropic,
+    /// Each pixel carried through the predicted relative pose onto the plane through the
+    /// feature perpendicular to its first ray (at infinity until its depth has converged).
+    Projective,
     /// As seen at initialisation.
     Plain,
 }
@@ -75,7 +85,8 @@ pub struct Args {
     /// `scripts/mono_walks.sh` collects them into docs/results).
     #[arg(long, requires = "walker_height")]
     json: Option<PathBuf>,
-    /// Patch mode (default: warped for xi > 0, plain for pinhole cameras).
+    /// Patch mode (default: projective for xi > 0, plain for pinhole cameras; chosen by
+    /// `scripts/mono_patch_modes.sh`).
     #[arg(long, value_enum)]
     patch: Option<PatchArg>,
     /// ZNCC threshold of a match, in (-1, 1) (`zncc_threshold`) [default: 0.8].
@@ -148,6 +159,14 @@ pub struct Args {
     /// thresholds 0.8 / 0.9 / 0.95 on a synthetic catadioptric sequence.
     #[arg(long)]
     table21: bool,
+    /// The decoupled matching experiment of thesis 2.6.1 (figs. 2.8-2.12), written as JSON to
+    /// this file: features of a generated catadioptric image (--scene, --seed, --width,
+    /// --height [default 400 x 400]) found again after a rotation about the vertical (0-180
+    /// degrees), a translation along the floor (0-2 m) and a change of distance (factors
+    /// 0.5-2), by ZNCC in a 13 x 13 pixel window around the true projection, with every patch
+    /// mode; prints the share within 1 / 2 pixels of the truth per step.
+    #[arg(long, conflicts_with_all = ["table21", "loops", "walker_height"])]
+    patch_sweeps: Option<PathBuf>,
 }
 
 fn progress(len: usize, what: &str) -> ProgressBar {
@@ -165,7 +184,7 @@ fn progress(len: usize, what: &str) -> ProgressBar {
 fn config(args: &Args, camera: &UnifiedCamera) -> Result<MonoConfig> {
     let base = MonoConfig {
         patch_mode: if camera.xi > 0.0 {
-            PatchMode::Warped
+            PatchMode::Projective
         } else {
             PatchMode::Plain
         },
@@ -174,6 +193,9 @@ fn config(args: &Args, camera: &UnifiedCamera) -> Result<MonoConfig> {
     let cfg = args.config.resolve(base, |c| {
         match args.patch {
             Some(PatchArg::Warped) => c.patch_mode = PatchMode::Warped,
+            Some(PatchArg::Thesis) => c.patch_mode = PatchMode::Thesis,
+            Some(PatchArg::Anisotropic) => c.patch_mode = PatchMode::Anisotropic,
+            Some(PatchArg::Projective) => c.patch_mode = PatchMode::Projective,
             Some(PatchArg::Plain) => c.patch_mode = PatchMode::Plain,
             None => {}
         }
@@ -234,6 +256,10 @@ pub fn run(args: Args) -> Result<()> {
     }
     if args.table21 {
         return table21(&args);
+    }
+    if let Some(path) = &args.patch_sweeps {
+        super::outputs::output_file(path, "--patch-sweeps", &[])?;
+        return patch_sweeps(&args, path);
     }
     if let Some(kind) = args.synthetic {
         return synthetic(&args, kind);
@@ -443,6 +469,52 @@ fn synthetic(args: &Args, kind: SynthArg) -> Result<()> {
     if args.bench {
         print_bench(&r.reports, None);
     }
+    Ok(())
+}
+
+fn patch_sweeps(args: &Args, path: &Path) -> Result<()> {
+    let spec = PatchSweepSpec {
+        width: args.width.unwrap_or(400),
+        height: args.height.unwrap_or(400),
+        scene: args.scene.clone(),
+        seed: args.seed,
+        ..PatchSweepSpec::default()
+    };
+    let t0 = Instant::now();
+    let report = run_patch_sweeps(&spec)?;
+    println!(
+        "decoupled matching (thesis 2.6.1): {} features of a {}x{} {} image (seed {}), {:.1} s",
+        report.reference_features,
+        spec.width,
+        spec.height,
+        spec.scene,
+        spec.seed,
+        t0.elapsed().as_secs_f64()
+    );
+    println!(
+        "{:<12} {:>7} {:<12} {:>5} {:>7} {:>7} {:>9} {:>7}",
+        "sweep", "step", "patch", "n", "<=1px%", "<=2px%", "matched%", "zncc"
+    );
+    for r in &report.rows {
+        println!(
+            "{:<12} {:>7.3} {:<12} {:>5} {:>7.1} {:>7.1} {:>9.1} {:>7.3}",
+            r.sweep,
+            r.step,
+            r.mode,
+            r.features,
+            r.within_1px_pct,
+            r.within_2px_pct,
+            r.matched_pct,
+            r.mean_score
+        );
+    }
+    super::report::write(
+        path,
+        "patch-sweeps",
+        &super::report::meta(Vec::new()),
+        &report,
+    )?;
+    println!("wrote {}", path.display());
     Ok(())
 }
 

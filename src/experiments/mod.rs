@@ -8,12 +8,15 @@
 //! - [`scale`]: tables 3.1-3.4 analogues (walking scale on emulated drift or on the monocular
 //!   EKF of rendered catadioptric walks).
 //! - [`mono`]: monocular EKF SLAM on rendered sequences with ground truth (table 2.1).
+//! - [`patches`]: the decoupled matching experiment of sec. 2.6.1 (plain against warped
+//!   patches under rotation, translation and scale sweeps).
 //! - [`graph`]: the pose-graph suite of chapter 7 (data sets, the tilted-plane experiment).
 //! - [`peers`]: the peer implementations (OpenCV, Open3D, GTSAM) run through their Python
 //!   scripts, for the benchmarks.
 
 pub mod graph;
 pub mod mono;
+pub mod patches;
 pub mod peers;
 pub mod scale;
 pub mod segment;

@@ -23,7 +23,7 @@ use std::time::Instant;
 use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
 use faer::{Accum, Mat, MatMut, Par, Side};
-use glam::{DVec2, DVec3};
+use glam::{DQuat, DVec2, DVec3};
 use nalgebra::{DMatrix, DVector, SMatrix};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -31,7 +31,7 @@ use rayon::prelude::*;
 
 use super::fast;
 use super::landmark::{initialise, InverseDepthLandmark, Prediction, LANDMARK_DIM};
-use super::patch::{FeaturePatch, PatchMode};
+use super::patch::{FeaturePatch, PatchMode, ViewChange};
 use super::state::{CameraState, CAMERA_DIM};
 use super::{MonoConfig, MonoError};
 use crate::camera::UnifiedCamera;
@@ -50,6 +50,9 @@ pub struct Feature {
     pub landmark: InverseDepthLandmark,
     /// Appearance from the initialisation frame.
     pub patch: FeaturePatch,
+    /// The filter's camera pose estimate when the patch was taken: `world_from_camera`
+    /// rotation and centre (filter world frame, map units).
+    pub camera_init: (DQuat, DVec3),
     /// Consecutive frames without a match.
     pub frames_unmatched: usize,
     /// Searches attempted (predicted inside the image).
@@ -531,14 +534,37 @@ impl MonoSlam {
     ) -> Option<DVec2> {
         let f = &self.features[i];
         let half = self.config.patch_half;
-        let template = match self.config.patch_mode {
-            PatchMode::Plain => f.patch.plain.clone()?,
-            PatchMode::Warped => {
-                let ratio = 1.0 / f.landmark.ray_in_camera(&self.state).length().max(1e-9);
-                f.patch
-                    .warped(&self.camera, pred.uv, ratio, self.config.k_lim, half)?
-                    .0
+        let mode = self.config.patch_mode;
+        let ratio = match mode {
+            PatchMode::Plain | PatchMode::Projective => 1.0,
+            PatchMode::Warped => self.distance_ratio(i),
+            PatchMode::Thesis | PatchMode::Anisotropic => {
+                if self.depth_converged(i) {
+                    self.distance_ratio(i)
+                } else {
+                    1.0
+                }
             }
+        };
+        let template = if mode == PatchMode::Projective {
+            let (rotation, centre) = f.camera_init;
+            let init_from_world = rotation.conjugate();
+            let point = if self.depth_converged(i) {
+                f.landmark.point().map(|p| init_from_world * (p - centre))
+            } else {
+                None
+            };
+            let view = ViewChange {
+                init_from_now: init_from_world * self.state.rotation,
+                centre_now_in_init: init_from_world * (self.state.position - centre),
+                point_in_init: point,
+            };
+            f.patch
+                .template_projective(&self.camera, pred.uv, &view, half)?
+        } else {
+            f.patch
+                .template(&self.camera, pred.uv, mode, ratio, self.config.k_lim, half)?
+                .0
         };
         let si = s.try_inverse()?;
         let rx = (CHI2_95_2DOF * s[(0, 0)])
@@ -602,6 +628,25 @@ impl MonoSlam {
             (x0 + bx as i64) as f64 + dx,
             (y0 + by as i64) as f64 + dy,
         ))
+    }
+
+    /// `d_init / d_now` of landmark `i` from its estimate: the anchor is the camera centre
+    /// at initialisation, so `d_init = 1 / rho` and `d_now = |h_c| / rho`.
+    fn distance_ratio(&self, i: usize) -> f64 {
+        1.0 / self.features[i]
+            .landmark
+            .ray_in_camera(&self.state)
+            .length()
+            .max(1e-9)
+    }
+
+    /// True when landmark `i`'s inverse depth has converged: `sigma_rho / rho` at most
+    /// [`MonoConfig::depth_converged_ratio`].
+    fn depth_converged(&self, i: usize) -> bool {
+        let rho = self.features[i].landmark.rho;
+        let o = landmark_offset(i) + 5;
+        let var = self.cov[(o, o)];
+        rho > 0.0 && var >= 0.0 && var.sqrt() <= self.config.depth_converged_ratio * rho
     }
 
     /// `P H^T` for one measurement (n x 2), using the sparsity of `H`.
@@ -1020,6 +1065,7 @@ impl MonoSlam {
             id: self.next_id,
             landmark: init.landmark,
             patch,
+            camera_init: (self.state.rotation, self.state.position),
             frames_unmatched: 0,
             attempts: 0,
             matches: 0,

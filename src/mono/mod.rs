@@ -5,7 +5,8 @@
 //! Kalman filter over a sparse map of anchored inverse-depth landmarks (Civera, Davison and
 //! Montiel 2008), with active search inside the 95 % innovation ellipse, ZNCC patch
 //! correlation, 1-point RANSAC (Civera et al. 2010), map management and, for catadioptric
-//! images, patch warping by the change of polar angle and scale.
+//! images, patch warping ([`PatchMode`]: the change of polar angle with the thesis' scale
+//! rules, or a projective map through the predicted relative pose).
 //!
 //! Frames and units. The filter's world frame `w` is the first camera's frame (x right,
 //! y down, z forward at time 0); the camera state is `world_from_camera` (position in
@@ -165,10 +166,18 @@ pub struct MonoConfig {
     pub big_patch_half: usize,
     /// ZNCC threshold for a match, in `[-1, 1]`.
     pub zncc_threshold: f64,
-    /// Patch mode: warped (catadioptric) or plain.
+    /// Patch mode: plain, or one of the catadioptric warps (see [`PatchMode`]).
     pub patch_mode: PatchMode,
-    /// Limit of the warp's scale factor `k` (`1 / k_lim <= k <= k_lim`).
+    /// Limit of the warp's scale factors `k` (`1 / k_lim <= k <= k_lim`, eq. 2.67); at most
+    /// `big_patch_half / (sqrt(2) patch_half)` keeps the warped patch inside the big patch.
     pub k_lim: f64,
+    /// [`PatchMode::Thesis`] and [`PatchMode::Anisotropic`] scale a patch by the landmark's
+    /// distance ratio only when its inverse depth has converged: standard deviation over value,
+    /// `sigma_rho / rho`, at most this (> 0). At 0.1 a one-sigma error of the inverse depth
+    /// moves the distance ratio of a landmark approached by half its distance by about 10 %,
+    /// within what an 11 x 11 ZNCC patch tolerates; the ray-like landmarks of a fresh
+    /// initialisation (`sigma_rho / rho = 1` with the defaults) keep their scale.
+    pub depth_converged_ratio: f64,
     /// Largest half-size of a search region, pixels (bigger ellipses are clipped to it).
     pub max_search_half: f64,
     /// FAST intensity threshold, intensity units.
@@ -207,6 +216,7 @@ impl Default for MonoConfig {
             zncc_threshold: 0.8,
             patch_mode: PatchMode::Plain,
             k_lim: 2.0,
+            depth_converged_ratio: 0.1,
             max_search_half: 30.0,
             fast_threshold: 20.0,
             grid: (4, 4),
@@ -245,6 +255,7 @@ impl MonoConfig {
         pos("ransac_threshold", self.ransac_threshold)?;
         pos("min_feature_distance", self.min_feature_distance)?;
         pos("point_sigmas", self.point_sigmas)?;
+        pos("depth_converged_ratio", self.depth_converged_ratio)?;
         if !(self.k_lim.is_finite() && self.k_lim >= 1.0) {
             return Err(MonoError::InvalidConfig {
                 name: "k_lim",

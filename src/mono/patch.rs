@@ -1,21 +1,65 @@
 //! Patches for data association: ZNCC correlation and the catadioptric patch warping of the
-//! thesis (sec. 2.5, eq. 2.64-2.70).
+//! thesis (sec. 2.5, eq. 2.63-2.70).
 //!
 //! At initialisation a big square patch (half size `B`) is sampled around the feature. In
-//! plain mode the correlation patch is the central `(2h+1)^2` part of it, unchanged. In
-//! warped mode it is resampled for the current prediction: rotated by the change of the
-//! feature's polar angle around the image centre, `delta_alpha = alpha_now - alpha_init`
-//! (a catadioptric image turns with the azimuth of the ray), and scaled by
-//! `k = (mu(theta_now) / mu(theta_init)) * (d_init / d_now)`, where `mu(theta)` is the unified
-//! model's local magnification at polar angle `theta` from the optical axis (the geometric
-//! mean of the radial `dr/dtheta = gamma (1 + xi cos theta) / (cos theta + xi)^2` and the
-//! tangential `r / sin theta = gamma / (cos theta + xi)` magnifications) and `d` the distance
-//! from the camera to the feature (their ratio from the inverse-depth estimate). `k` is
-//! limited to `[1 / k_lim, k_lim]` (eq. 2.66-2.67). The warp (eq. 2.68-2.70) maps a pixel
-//! offset `o` of the correlation patch to `Rot(-delta_alpha) o / k` in the big patch,
-//! sampled bilinearly.
+//! plain mode ([`PatchMode::Plain`]) the correlation patch is the central `(2h+1)^2` part of
+//! it, unchanged. The warped modes resample it for the current prediction: a pixel offset `o`
+//! of the correlation patch (current image) maps to
+//! `(o . u_now) / k_r * u_init + (o . t_now) / k_t * t_init` in the big patch, sampled
+//! bilinearly, where `u` is the unit radial direction of the feature's pixel from the
+//! principal point and `t` its tangential direction (`u` turned by +90 degrees). With
+//! `k_r = k_t = k` this is the rotation by the change of polar angle
+//! `delta_alpha = alpha_now - alpha_init` followed by the scaling `1 / k` of eq. 2.68-2.70 (a
+//! catadioptric image turns with the azimuth of the ray). The modes differ in the scales:
+//!
+//! - [`PatchMode::Warped`] (local magnification): isotropic
+//!   `k = (mu(theta_now) / mu(theta_init)) * (d_init / d_now)`, `mu(theta)` the geometric mean
+//!   of the unified model's radial `dr/dtheta = gamma (1 + xi cos theta) / (cos theta + xi)^2`
+//!   and tangential `r / sin theta = gamma / (cos theta + xi)` magnifications at polar angle
+//!   `theta` from the optical axis, and `d` the distance from the camera to the feature (the
+//!   ratio from the inverse-depth estimate, whatever its uncertainty).
+//! - [`PatchMode::Thesis`] (sec. 2.5.2-2.5.3, eq. 2.63-2.67): isotropic `k = l_now / l_init`,
+//!   the ratio of the image lengths of one small scene segment. At initialisation the segment
+//!   runs from the feature to the point whose image is `r_im-`, the pixel `h` (the correlation
+//!   patch's half size) from the feature towards the principal point; it subtends the angle
+//!   `delta_init` at the camera, and `l_init = h`. Now the same segment subtends
+//!   `delta_now = atan(tan(delta_init) d_init / d_now)`, and `l_now` is the distance between the
+//!   projections of the feature's current ray and of that ray turned by `delta_now` towards
+//!   the optical axis, through the unified model itself: the mirror's non-linearity across the
+//!   patch enters exactly, where the magnification is a derivative at one point. The depth
+//!   ratio `d_init / d_now` is used only once the landmark's depth has converged
+//!   (`sigma_rho / rho` at most [`crate::mono::MonoConfig::depth_converged_ratio`]); before,
+//!   it is 1, so a depth that is still a guess cannot shrink or blow up the patch.
+//! - [`PatchMode::Anisotropic`]: as [`PatchMode::Thesis`] along the radial direction
+//!   (`k_r`), and along the tangential direction the same construction with the ray turned by
+//!   `delta` about the optical axis's side (perpendicular to the plane of the ray and the
+//!   axis), `k_t = l_t,now / l_t,init`: the unified model stretches radial and tangential
+//!   lengths differently (their ratio is `(1 + xi cos theta) / (cos theta + xi)`, up to 1.2 at
+//!   the rim of the default mirror), which one isotropic factor cannot follow. This departs
+//!   from the thesis, which uses one scale.
+//!
+//! - [`PatchMode::Projective`] (not in the thesis): no scales. Each pixel `uv + o` of the
+//!   correlation patch is lifted to its ray in the current camera, carried into the camera
+//!   that took the big patch by the predicted relative pose ([`ViewChange`]), met with the
+//!   plane through the feature perpendicular to its initial ray, and projected into the
+//!   initial image; the big patch is read at that pixel's offset from where `uv` lands.
+//!   The change of polar angle of the other modes is the image rotation of a turn about the
+//!   mirror's axis only; when the axis is not vertical (a head-worn camera looking ahead) a
+//!   turn of the head rotates patches differently, and only the pose-based map follows it.
+//!   Until the landmark's depth has converged (as for [`PatchMode::Thesis`]) the point is
+//!   taken at infinity, so only the rotation warps the patch.
+//!
+//! Every scale is limited to `[1 / k_lim, k_lim]` (eq. 2.66-2.67). The warp reads the big
+//! patch at offsets up to `sqrt(2) h / k` from its centre, so a shrinking scale needs
+//! `k >= sqrt(2) h / B`: `k_lim <= B / (sqrt(2) h)` keeps every read inside the big patch
+//! (2.1 for the defaults `B = 15`, `h = 5`; the default `k_lim` is 2). Where a read would still
+//! fall outside, it is clamped to the big patch's border.
+//!
+//! Departures from the thesis: the segment of [`PatchMode::Thesis`] is taken perpendicular to
+//! the ray (its orientation in the scene is unknown), and [`PatchMode::Anisotropic`] is not in
+//! the thesis.
 
-use glam::DVec2;
+use glam::{DVec2, DVec3};
 
 use crate::camera::UnifiedCamera;
 use crate::image::ImageF32;
@@ -27,8 +71,39 @@ pub enum PatchMode {
     /// The patch as seen at initialisation.
     #[default]
     Plain,
-    /// Rotated and scaled for the predicted view (catadioptric cameras).
+    /// Rotated by the change of polar angle and scaled by the ratio of the unified model's
+    /// local magnifications times the estimated depth ratio (see the module docs).
     Warped,
+    /// Rotated and scaled by the ratio of projected image lengths from `r_im-` (thesis
+    /// eq. 2.63-2.67), with the depth ratio only for converged depths (see the module docs).
+    Thesis,
+    /// As [`PatchMode::Thesis`], with separate radial and tangential scales.
+    Anisotropic,
+    /// Every pixel mapped through the predicted relative camera pose onto the plane through
+    /// the feature perpendicular to its initial ray (see the module docs; not in the thesis).
+    Projective,
+}
+
+impl PatchMode {
+    /// Every mode, in the order of the comparisons.
+    pub const ALL: [PatchMode; 5] = [
+        PatchMode::Plain,
+        PatchMode::Warped,
+        PatchMode::Thesis,
+        PatchMode::Anisotropic,
+        PatchMode::Projective,
+    ];
+
+    /// The mode's name as in configuration files.
+    pub fn name(self) -> &'static str {
+        match self {
+            PatchMode::Plain => "plain",
+            PatchMode::Warped => "warped",
+            PatchMode::Thesis => "thesis",
+            PatchMode::Anisotropic => "anisotropic",
+            PatchMode::Projective => "projective",
+        }
+    }
 }
 
 /// Bilinear sample at `(x, y)` (pixel centres at integers); `None` outside the image.
@@ -305,13 +380,45 @@ pub struct FeaturePatch {
     pub alpha_init: f64,
     /// Magnification `mu` of the camera model at the initial pixel, pixels per radian.
     pub mu_init: f64,
+    /// Unit ray of the initial pixel, camera frame at initialisation.
+    pub ray_init: DVec3,
+    /// Angle subtended at the camera by the segment from the feature to the point imaged at
+    /// `r_im-` (the correlation patch's half size towards the principal point), radians.
+    pub delta_init: f64,
+    /// Radial image length of that segment at initialisation, pixels (the half size `h`).
+    pub radial_init: f64,
+    /// Tangential image length of a segment subtending `delta_init` perpendicular to the
+    /// plane of the ray and the optical axis, at initialisation, pixels.
+    pub tangential_init: f64,
     /// The plain correlation template (centre of the big patch); `None` if flat.
     pub plain: Option<Template>,
+}
+
+/// The scales and rotation of one warp (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WarpScales {
+    /// Radial scale `k_r` (current image length over initial), after the `k_lim` limit.
+    pub radial: f64,
+    /// Tangential scale `k_t`, after the `k_lim` limit.
+    pub tangential: f64,
+    /// Change of polar angle around the principal point since initialisation, radians.
+    pub delta_alpha: f64,
 }
 
 /// Polar angle of a pixel around the principal point, radians.
 pub fn polar_angle(camera: &UnifiedCamera, uv: DVec2) -> f64 {
     (uv.y - camera.cy).atan2(uv.x - camera.cx)
+}
+
+/// Unit radial direction of pixel `uv` from the principal point (`+x` at the point itself).
+fn radial_direction(camera: &UnifiedCamera, uv: DVec2) -> DVec2 {
+    let d = uv - DVec2::new(camera.cx, camera.cy);
+    let n = d.length();
+    if n > 1e-9 {
+        d / n
+    } else {
+        DVec2::X
+    }
 }
 
 /// The unified model's isotropic local magnification at pixel `uv` (pixels per radian of
@@ -328,9 +435,39 @@ pub fn magnification(camera: &UnifiedCamera, uv: DVec2) -> Option<f64> {
     Some((radial * tangential).max(0.0).sqrt())
 }
 
+/// The unit vectors at unit ray `s` (camera frame) along which its polar angle from the
+/// optical axis grows (`e_r`) and around the axis (`e_t = z x s`, normalised); on the axis,
+/// `e_t = +y`.
+fn ray_frame(s: DVec3) -> (DVec3, DVec3) {
+    let t = DVec3::new(-s.y, s.x, 0.0);
+    let n = t.length();
+    let e_t = if n > 1e-12 { t / n } else { DVec3::Y };
+    (e_t.cross(s), e_t)
+}
+
+/// Image lengths (pixels) of the segments that subtend `delta` radians at unit ray `s`:
+/// towards the optical axis (radial, the side of `r_im-`) and around it (tangential), each
+/// the distance between the projections of `s` and of `s` turned by `delta`; `None` when a
+/// ray has no image.
+pub fn projected_lengths(camera: &UnifiedCamera, s: DVec3, delta: f64) -> Option<(f64, f64)> {
+    let (e_r, e_t) = ray_frame(s);
+    let (sd, cd) = delta.sin_cos();
+    let centre = camera.project(s)?;
+    let inward = camera.project(s * cd - e_r * sd)?;
+    let around = camera.project(s * cd + e_t * sd)?;
+    Some(((inward - centre).length(), (around - centre).length()))
+}
+
+/// The angle subtended now by a segment that subtended `delta_init` at distance `d_init`,
+/// seen from distance `d_init / distance_ratio` (the segment perpendicular to the ray).
+fn subtended(delta_init: f64, distance_ratio: f64) -> f64 {
+    (delta_init.tan() * distance_ratio).atan()
+}
+
 impl FeaturePatch {
-    /// Samples the big patch around `uv`; `None` when it does not fit in the image or the
-    /// camera has no pre-image there.
+    /// Samples the big patch around `uv` and the geometry of the warps for a correlation
+    /// patch of half size `half`; `None` when it does not fit in the image or the camera has
+    /// no pre-image there.
     pub fn new(
         img: &ImageF32,
         camera: &UnifiedCamera,
@@ -353,50 +490,173 @@ impl FeaturePatch {
         for j in 0..small {
             centre.extend_from_slice(&big[(off + j) * side + off..(off + j) * side + off + small]);
         }
+        let ray_init = camera.unproject(uv)?;
+        // r_im-: the patch's half size towards the principal point.
+        let r_im_minus = uv - radial_direction(camera, uv) * half.max(1) as f64;
+        let delta_init = ray_init.angle_between(camera.unproject(r_im_minus)?);
+        let (radial_init, tangential_init) = projected_lengths(camera, ray_init, delta_init)?;
+        if !(delta_init > 0.0 && radial_init > 1e-9 && tangential_init > 1e-9) {
+            return None;
+        }
         Some(FeaturePatch {
             big_half,
             big,
             alpha_init: polar_angle(camera, uv),
             mu_init: magnification(camera, uv)?,
+            ray_init,
+            delta_init,
+            radial_init,
+            tangential_init,
             plain: Template::new(&centre, half),
         })
     }
 
-    /// The warped correlation template for a feature predicted at `uv` with distance ratio
-    /// `d_init / d_now`; `None` when flat. `k` is limited to `[1/k_lim, k_lim]`.
-    pub fn warped(
+    /// The scales of `mode` for the feature predicted at `uv` with distance ratio
+    /// `d_init / d_now` (pass 1 where the depth is not to be used), before the `k_lim` limit:
+    /// `(k_r, k_t)`; `(1, 1)` for [`PatchMode::Plain`]. `None` when a ray has no image.
+    pub fn raw_scales(
         &self,
         camera: &UnifiedCamera,
         uv: DVec2,
+        mode: PatchMode,
+        distance_ratio: f64,
+    ) -> Option<(f64, f64)> {
+        match mode {
+            PatchMode::Plain | PatchMode::Projective => Some((1.0, 1.0)),
+            PatchMode::Warped => {
+                let k = magnification(camera, uv)? / self.mu_init * distance_ratio;
+                Some((k, k))
+            }
+            PatchMode::Thesis | PatchMode::Anisotropic => {
+                let s = camera.unproject(uv)?;
+                let delta = subtended(self.delta_init, distance_ratio);
+                let (radial, tangential) = projected_lengths(camera, s, delta)?;
+                let k_r = radial / self.radial_init;
+                if mode == PatchMode::Thesis {
+                    Some((k_r, k_r))
+                } else {
+                    Some((k_r, tangential / self.tangential_init))
+                }
+            }
+        }
+    }
+
+    /// The correlation template of `mode` for a feature predicted at `uv` with distance ratio
+    /// `d_init / d_now` (1 where the depth is not to be used), scales limited to
+    /// `[1 / k_lim, k_lim]`; `None` when flat or when a ray has no image.
+    /// [`PatchMode::Projective`] needs the relative pose: here it gives the plain template
+    /// (use [`FeaturePatch::template_projective`]).
+    pub fn template(
+        &self,
+        camera: &UnifiedCamera,
+        uv: DVec2,
+        mode: PatchMode,
         distance_ratio: f64,
         k_lim: f64,
         half: usize,
-    ) -> Option<(Template, f64, f64)> {
-        let mu = magnification(camera, uv)?;
-        let k = (mu / self.mu_init * distance_ratio).clamp(1.0 / k_lim, k_lim);
-        let da = polar_angle(camera, uv) - self.alpha_init;
-        let (s, c) = (-da).sin_cos();
-        let side = 2 * self.big_half + 1;
+    ) -> Option<(Template, WarpScales)> {
+        if matches!(mode, PatchMode::Plain | PatchMode::Projective) {
+            let scales = WarpScales {
+                radial: 1.0,
+                tangential: 1.0,
+                delta_alpha: 0.0,
+            };
+            return self.plain.clone().map(|t| (t, scales));
+        }
+        let (k_r, k_t) = self.raw_scales(camera, uv, mode, distance_ratio)?;
+        let lim = |k: f64| k.clamp(1.0 / k_lim, k_lim);
+        let (k_r, k_t) = (lim(k_r), lim(k_t));
+        let u_now = radial_direction(camera, uv);
+        let t_now = u_now.perp();
+        let u_init = DVec2::from_angle(self.alpha_init);
+        let t_init = u_init.perp();
         let small = 2 * half + 1;
-        let b = self.big_half as f64;
         let mut out = Vec::with_capacity(small * small);
         for j in 0..small {
             for i in 0..small {
                 let o = DVec2::new(i as f64 - half as f64, j as f64 - half as f64);
-                let x = (c * o.x - s * o.y) / k + b;
-                let y = (s * o.x + c * o.y) / k + b;
-                let x = x.clamp(0.0, side as f64 - 1.001);
-                let y = y.clamp(0.0, side as f64 - 1.001);
-                let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-                let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
-                let at = |xx: usize, yy: usize| self.big[yy * side + xx];
-                let top = at(x0, y0) * (1.0 - fx) + at(x0 + 1, y0) * fx;
-                let bot = at(x0, y0 + 1) * (1.0 - fx) + at(x0 + 1, y0 + 1) * fx;
-                out.push(top * (1.0 - fy) + bot * fy);
+                let p = u_init * (o.dot(u_now) / k_r) + t_init * (o.dot(t_now) / k_t);
+                out.push(self.sample_big(p));
             }
         }
-        Template::new(&out, half).map(|t| (t, k, da))
+        let scales = WarpScales {
+            radial: k_r,
+            tangential: k_t,
+            delta_alpha: polar_angle(camera, uv) - self.alpha_init,
+        };
+        Template::new(&out, half).map(|t| (t, scales))
     }
+
+    /// The big patch at offset `p` (pixels) from its centre, bilinear, reads clamped to it.
+    fn sample_big(&self, p: DVec2) -> f32 {
+        let side = 2 * self.big_half + 1;
+        let b = self.big_half as f64;
+        let x = (p.x + b).clamp(0.0, side as f64 - 1.001);
+        let y = (p.y + b).clamp(0.0, side as f64 - 1.001);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+        let at = |xx: usize, yy: usize| self.big[yy * side + xx];
+        let top = at(x0, y0) * (1.0 - fx) + at(x0 + 1, y0) * fx;
+        let bot = at(x0, y0 + 1) * (1.0 - fx) + at(x0 + 1, y0 + 1) * fx;
+        top * (1.0 - fy) + bot * fy
+    }
+
+    /// The [`PatchMode::Projective`] template for a feature predicted at `uv`: each pixel
+    /// `uv + o` is lifted to its ray in the current camera, carried into the initial camera
+    /// by `view`, met with the plane through the feature perpendicular to its initial ray
+    /// (or, without a converged depth, taken at infinity) and projected into the initial
+    /// image; the big patch is read at that pixel's offset from where `uv` itself lands.
+    /// `None` when flat or when a ray has no image.
+    pub fn template_projective(
+        &self,
+        camera: &UnifiedCamera,
+        uv: DVec2,
+        view: &ViewChange,
+        half: usize,
+    ) -> Option<Template> {
+        let to_init = |q: DVec2| -> Option<DVec2> {
+            let r = view.init_from_now * camera.unproject(q)?;
+            let x = match view.point_in_init {
+                Some(p) => {
+                    let n = p.normalize_or_zero();
+                    let den = n.dot(r);
+                    if den.abs() < 1e-9 {
+                        return None;
+                    }
+                    let t = n.dot(p - view.centre_now_in_init) / den;
+                    if !(t > 0.0) {
+                        return None;
+                    }
+                    view.centre_now_in_init + r * t
+                }
+                None => r,
+            };
+            camera.project(x)
+        };
+        let centre = to_init(uv)?;
+        let small = 2 * half + 1;
+        let mut out = Vec::with_capacity(small * small);
+        for j in 0..small {
+            for i in 0..small {
+                let o = DVec2::new(i as f64 - half as f64, j as f64 - half as f64);
+                out.push(self.sample_big(to_init(uv + o)? - centre));
+            }
+        }
+        Template::new(&out, half)
+    }
+}
+
+/// The relative geometry of a [`PatchMode::Projective`] warp, in the initial camera's frame
+/// (the camera that took the big patch).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewChange {
+    /// Rotation `init_from_now`: directions in the current camera frame into the initial one.
+    pub init_from_now: glam::DQuat,
+    /// The current camera centre in the initial camera frame (the map's length unit).
+    pub centre_now_in_init: DVec3,
+    /// The feature's point in the initial camera frame; `None` while its depth has not
+    /// converged (the warp then treats it as at infinity: rotation only).
+    pub point_in_init: Option<DVec3>,
 }
 
 #[cfg(test)]
@@ -477,11 +737,18 @@ mod tests {
         assert!(t.correlate_at(&img, 43, 30).unwrap() < 0.99);
         assert!(t.correlate_at(&img, 2, 2).is_none());
         // Identity warp (same place, same distance) reproduces the plain template.
-        let (w, k, da) = fp
-            .warped(&cam, DVec2::new(40.0, 30.0), 1.0, 2.0, 4)
-            .unwrap();
-        assert!((k - 1.0).abs() < 1e-12 && da.abs() < 1e-12);
-        assert!((w.correlate_at(&img, 40, 30).unwrap() - 1.0).abs() < 1e-6);
+        for mode in PatchMode::ALL {
+            let (w, k) = fp
+                .template(&cam, DVec2::new(40.0, 30.0), mode, 1.0, 2.0, 4)
+                .unwrap();
+            assert!(
+                (k.radial - 1.0).abs() < 1e-9
+                    && (k.tangential - 1.0).abs() < 1e-9
+                    && k.delta_alpha.abs() < 1e-12,
+                "{mode:?}: {k:?}"
+            );
+            assert!((w.correlate_at(&img, 40, 30).unwrap() - 1.0).abs() < 1e-6);
+        }
     }
 
     #[test]
@@ -508,16 +775,145 @@ mod tests {
             .unwrap()
             .correlate_at(&rot, 40, 60)
             .unwrap();
-        let (warped, k, da) = fp.warped(&cam, dst, 1.0, 2.0, 4).unwrap();
-        let warped = warped.correlate_at(&rot, 40, 60).unwrap();
-        assert!((da - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
-        assert!(
-            (k - 1.0).abs() < 1e-9,
-            "same radius, same magnification: {k}"
-        );
-        assert!(warped > 0.99, "warped {warped}");
         assert!(plain < 0.8, "plain {plain}");
-        let (_, k_big, _) = fp.warped(&cam, dst, 10.0, 2.0, 4).unwrap();
-        assert!((k_big - 2.0).abs() < 1e-12);
+        for mode in [PatchMode::Warped, PatchMode::Thesis, PatchMode::Anisotropic] {
+            let (warped, k) = fp.template(&cam, dst, mode, 1.0, 2.0, 4).unwrap();
+            let warped = warped.correlate_at(&rot, 40, 60).unwrap();
+            assert!((k.delta_alpha - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
+            assert!(
+                (k.radial - 1.0).abs() < 1e-9 && (k.tangential - 1.0).abs() < 1e-9,
+                "same radius, same scale: {k:?}"
+            );
+            assert!(warped > 0.99, "{mode:?}: warped {warped}");
+            let (_, k_big) = fp.template(&cam, dst, mode, 10.0, 2.0, 4).unwrap();
+            assert!((k_big.radial - 2.0).abs() < 1e-12, "{mode:?}: {k_big:?}");
+        }
+    }
+
+    #[test]
+    fn projective_warp_undoes_a_turn_about_the_optical_axis() {
+        // The image turned by +90 degrees about the principal point is what the camera sees
+        // after turning by -90 degrees about its optical axis: a current ray (a, b, c) was
+        // the initial ray (b, -a, c).
+        let n = 81;
+        let img = textured(n, n);
+        let mut rot = ImageF32::filled(n, n, 0.0);
+        for y in 0..n {
+            for x in 0..n {
+                rot.data[y * n + x] = img.at(y, n - 1 - x);
+            }
+        }
+        let cam = UnifiedCamera::new(0.9, 60.0, 40.0, 40.0, n as u32, n as u32);
+        let fp = FeaturePatch::new(&img, &cam, DVec2::new(60.0, 40.0), 10, 4).unwrap();
+        let dst = DVec2::new(40.0, 60.0);
+        for point in [None, Some(DVec3::new(0.9, 0.1, 0.6))] {
+            let view = ViewChange {
+                init_from_now: glam::DQuat::from_rotation_z(-std::f64::consts::FRAC_PI_2),
+                centre_now_in_init: DVec3::ZERO,
+                point_in_init: point,
+            };
+            let t = fp.template_projective(&cam, dst, &view, 4).unwrap();
+            let score = t.correlate_at(&rot, 40, 60).unwrap();
+            assert!(score > 0.99, "{point:?}: {score}");
+        }
+        let plain = fp
+            .plain
+            .clone()
+            .unwrap()
+            .correlate_at(&rot, 40, 60)
+            .unwrap();
+        assert!(plain < 0.8, "plain {plain}");
+    }
+
+    /// The rotation `camera_from_world` that takes the world directions `world_ray`,
+    /// `world_r`, `world_t` (orthonormal, right-handed) to the unit ray `s` and its radial and
+    /// tangential directions `e_r`, `e_t` in the camera frame.
+    fn camera_from_world(
+        s: DVec3,
+        world_ray: DVec3,
+        world_r: DVec3,
+        world_t: DVec3,
+    ) -> glam::DMat3 {
+        // Rows: camera-frame coordinates of the world basis chosen so that world_ray -> s,
+        // world_r -> e_r(s), world_t -> e_t(s).
+        let (e_r, e_t) = ray_frame(s);
+        let cam = glam::DMat3::from_cols(s, e_r, e_t);
+        let world = glam::DMat3::from_cols(world_ray, world_r, world_t);
+        cam * world.transpose()
+    }
+
+    #[test]
+    fn thesis_scale_is_the_ratio_of_true_image_lengths() {
+        // Exact geometry: a feature point P with two short scene segments perpendicular to
+        // its ray, one in the plane of the ray and the optical axis (pointing towards the
+        // axis), one across it. At initialisation the radial segment ends where the image
+        // shows r_im-; later the camera sees P from a different distance and polar angle,
+        // with the segments still perpendicular to the ray and in the same relative
+        // orientation. The true image lengths then follow from projecting the segments' end
+        // points, and the warp's scales must equal their ratios.
+        let cam = UnifiedCamera::catadioptric(400, 400);
+        let half = 5usize;
+        let world_ray = DVec3::new(0.0, 0.0, 1.0);
+        let (world_r, world_t) = (DVec3::X, DVec3::Y);
+        let uv0 = DVec2::new(cam.cx + 120.0, cam.cy + 45.0);
+        let s0 = cam.unproject(uv0).unwrap();
+        let d0 = 3.0;
+        let img = textured(400, 400);
+        let fp = FeaturePatch::new(&img, &cam, uv0, 15, half).unwrap();
+        assert!(
+            (fp.radial_init - half as f64).abs() < 1e-6,
+            "{}",
+            fp.radial_init
+        );
+        // The world-space segments from the initial view: the radial one ends on the ray of
+        // r_im-.
+        let r0 = camera_from_world(s0, world_ray, world_r, world_t);
+        let p = world_ray * d0;
+        let u0 = radial_direction(&cam, uv0);
+        let s_minus = cam.unproject(uv0 - u0 * half as f64).unwrap();
+        // Intersection of the r_im- ray with the plane through P perpendicular to the ray.
+        let s_minus_w = r0.transpose() * s_minus;
+        let q_r = s_minus_w * (d0 / s_minus_w.dot(world_ray));
+        let len = (q_r - p).length();
+        assert!(
+            (q_r - p).normalize().dot(-world_r) > 1.0 - 1e-9,
+            "the radial segment points towards the axis"
+        );
+        let q_t = p + world_t * len;
+        let image_len = |rot: glam::DMat3, centre: DVec3, q: DVec3| {
+            let a = cam.project(rot * (p - centre)).unwrap();
+            let b = cam.project(rot * (q - centre)).unwrap();
+            (a - b).length()
+        };
+        let l_r0 = image_len(r0, DVec3::ZERO, q_r);
+        let l_t0 = image_len(r0, DVec3::ZERO, q_t);
+        assert!((l_r0 - half as f64).abs() < 1e-6, "{l_r0}");
+        for (uv1, d1) in [
+            (DVec2::new(cam.cx + 20.0, cam.cy - 30.0), 1.5),
+            (DVec2::new(cam.cx - 150.0, cam.cy + 60.0), 3.0),
+            (DVec2::new(cam.cx + 60.0, cam.cy + 170.0), 6.0),
+            (DVec2::new(cam.cx - 10.0, cam.cy + 100.0), 2.2),
+        ] {
+            let s1 = cam.unproject(uv1).unwrap();
+            let r1 = camera_from_world(s1, world_ray, world_r, world_t);
+            let centre = p - world_ray * d1;
+            assert!((cam.project(r1 * (p - centre)).unwrap() - uv1).length() < 1e-6);
+            let true_r = image_len(r1, centre, q_r) / l_r0;
+            let true_t = image_len(r1, centre, q_t) / l_t0;
+            let ratio = d0 / d1;
+            let (k_r, k_t) = fp
+                .raw_scales(&cam, uv1, PatchMode::Anisotropic, ratio)
+                .unwrap();
+            assert!(
+                (k_r - true_r).abs() < 1e-6 * true_r,
+                "{uv1}: {k_r} vs {true_r}"
+            );
+            assert!(
+                (k_t - true_t).abs() < 1e-6 * true_t,
+                "{uv1}: {k_t} vs {true_t}"
+            );
+            let (k, k2) = fp.raw_scales(&cam, uv1, PatchMode::Thesis, ratio).unwrap();
+            assert_eq!((k, k2), (k_r, k_r));
+        }
     }
 }
