@@ -10,8 +10,9 @@ use rgbid::io::trajectory::{write_trajectory, TrajectoryFormat};
 use rgbid::io::tum::{OpenOptions, TumSequence};
 use rgbid::io::CalibFormat;
 use rgbid::io::Layout;
-use rgbid::odometry::{Odometry, OdometryError};
+use rgbid::odometry::{ModelOdometry, ModelParams, Odometry, OdometryError, TrackResult};
 use rgbid::trajectory::TimedPose;
+use rgbid::tsdf::TsdfParams;
 
 use super::options::{range, BackendArgs, ConfigArgs, OdometryOptions};
 use rgbid::io::settings::Provenance;
@@ -71,6 +72,26 @@ pub struct Args {
     /// the `rerun` build feature.
     #[arg(long, value_name = "save:FILE.rrd|connect[=ADDR]", value_parser = super::rerun::parse_spec)]
     pub rerun: Option<super::rerun::RerunSpec>,
+    /// What each frame is aligned to: `frame` (a reference frame, replaced when the dense
+    /// covisibility drops below the threshold; thesis 6.4.1) or `model` (KinectFusion's
+    /// frame-to-model tracking: intensity and inverse depth ray cast from a TSDF volume of the
+    /// frames tracked so far, at the previous frame's pose; each tracked frame is then
+    /// integrated at its estimate). The residuals are the same in both.
+    #[arg(long, value_enum, default_value_t = Reference::Frame)]
+    pub reference: Reference,
+    /// Voxel edge of the model with `--reference model`, metres (> 0; depths 0.3-4 m are
+    /// integrated and cast).
+    #[arg(long, value_parser = range::positive, default_value_t = 0.02)]
+    pub voxel: f64,
+    /// Pyramid level at which the model is ray cast with `--reference model` (0 = full
+    /// resolution, 1 = half, ...; 0 to 7, below --levels). The odometry reads the reference
+    /// from its finest optimised level on (level 1 for 640x480 input).
+    #[arg(long, value_parser = range::pyramid_level, default_value_t = 1)]
+    pub model_level: usize,
+    /// With `--reference model`: leave pixels where the cast finds no surface empty, instead
+    /// of filling them with the previous frame's intensity and inverse depth.
+    #[arg(long)]
+    pub no_model_fill: bool,
     /// Configuration: an `OdometryConfig` file (`rgbid config dump --command odometry`).
     #[command(flatten)]
     pub config: ConfigArgs,
@@ -78,6 +99,45 @@ pub struct Args {
     pub odometry: OdometryOptions,
     #[command(flatten)]
     pub backend: BackendArgs,
+}
+
+/// What `rgbid odometry` aligns each frame to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Reference {
+    /// A reference frame (frame-to-reference tracking, the default).
+    Frame,
+    /// Ray casts of a TSDF model (frame-to-model tracking).
+    Model,
+}
+
+/// The odometry of either reference mode.
+enum Tracking {
+    Frame(Box<Odometry>),
+    Model(Box<ModelOdometry>),
+}
+
+impl Tracking {
+    fn set_initial_pose(&mut self, world_from_camera: rgbid::geometry::Se3) {
+        match self {
+            Tracking::Frame(o) => o.set_initial_pose(world_from_camera),
+            Tracking::Model(o) => o.set_initial_pose(world_from_camera),
+        }
+    }
+
+    /// The tracking result and, with a model, its ray cast and integration times (ms).
+    fn track(
+        &mut self,
+        frame: &rgbid::image::RgbdFrame,
+    ) -> Result<(TrackResult, Option<(f64, f64)>), OdometryError> {
+        match self {
+            Tracking::Frame(o) => Ok((o.track(frame)?, None)),
+            Tracking::Model(o) => {
+                let r = o.track(frame)?;
+                Ok((r.track, Some((r.model.ray_cast_ms, r.model.integrate_ms))))
+            }
+        }
+    }
 }
 
 /// Runs the subcommand.
@@ -124,7 +184,29 @@ pub fn run(args: Args) -> Result<()> {
     let format = args
         .traj_format
         .unwrap_or_else(|| TrajectoryFormat::from_extension(&args.out));
-    let mut odo = Odometry::new(config.clone(), seq.camera, &backend)?;
+    let mut odo = match args.reference {
+        Reference::Frame => Tracking::Frame(Box::new(Odometry::new(
+            config.clone(),
+            seq.camera,
+            &backend,
+        )?)),
+        Reference::Model => {
+            let params = ModelParams {
+                tsdf: TsdfParams {
+                    voxel_size: args.voxel,
+                    ..TsdfParams::default()
+                },
+                cast_level: args.model_level,
+                fill_holes: !args.no_model_fill,
+            };
+            Tracking::Model(Box::new(ModelOdometry::new(
+                config.clone(),
+                params,
+                seq.camera,
+                &backend,
+            )?))
+        }
+    };
     let groundtruth = seq.ground_truth()?;
     if let Some(gt) = &groundtruth {
         if let (Some(first), Some(e)) = (gt.first(), seq.entries.first()) {
@@ -146,7 +228,7 @@ pub fn run(args: Args) -> Result<()> {
             let mut f = std::io::BufWriter::new(
                 std::fs::File::create(p).with_context(|| format!("{}", p.display()))?,
             );
-            writeln!(f, "index,timestamp,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,covariance_ms,total_ms,iterations,sigma_photo,sigma_geo,nu,covisibility,condition_number,new_reference,status,level_iterations,mu_photo,mu_geo")?;
+            writeln!(f, "index,timestamp,pyramid_ms,scale_ms,reduce_ms,solve_ms,covisibility_ms,covariance_ms,total_ms,iterations,sigma_photo,sigma_geo,nu,covisibility,condition_number,new_reference,status,level_iterations,mu_photo,mu_geo,model_cast_ms,model_integrate_ms")?;
             Some(f)
         }
         None => None,
@@ -196,10 +278,10 @@ pub fn run(args: Args) -> Result<()> {
         };
         let tracked = odo.track(&frame);
         if let Some(rr) = rerun.as_mut() {
-            rr.odometry_frame(i, &frame, &seq.camera, tracked.as_ref().ok());
+            rr.odometry_frame(i, &frame, &seq.camera, tracked.as_ref().ok().map(|r| &r.0));
         }
         match tracked {
-            Ok(r) => {
+            Ok((r, model)) => {
                 last_pose = Some(r.world_from_camera);
                 poses.push(TimedPose {
                     timestamp: frame.timestamp(),
@@ -210,13 +292,15 @@ pub fn run(args: Args) -> Result<()> {
                     let t = &s.times;
                     writeln!(
                         f,
-                        "{},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.7},{:.3},{:.4},{:.3e},{},ok,{},{:.4},{:.7}",
+                        "{},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.7},{:.3},{:.4},{:.3e},{},ok,{},{:.4},{:.7},{},{}",
                         s.index, s.timestamp, t.pyramid_ms, t.scale_ms, t.reduce_ms, t.solve_ms, t.covisibility_ms,
                         t.covariance_ms, t.total_ms, s.iterations, s.sigma_photo, s.sigma_geo, s.nu, s.covisibility,
                         s.condition_number, u8::from(s.new_reference),
                         // Coarsest level first, e.g. `10 8 6`.
                         s.level_iterations.iter().map(|n| n.to_string()).collect::<Vec<_>>().join(" "),
-                        s.mu_photo, s.mu_geo
+                        s.mu_photo, s.mu_geo,
+                        model.map_or(String::new(), |m| format!("{:.3}", m.0)),
+                        model.map_or(String::new(), |m| format!("{:.3}", m.1)),
                     )?;
                 }
             }
@@ -235,7 +319,7 @@ pub fn run(args: Args) -> Result<()> {
                 if let Some(f) = csv.as_mut() {
                     writeln!(
                         f,
-                        "{i},{:.6},,,,,,,,,,,,,,,tracking_failed,,,",
+                        "{i},{:.6},,,,,,,,,,,,,,,tracking_failed,,,,,",
                         frame.timestamp()
                     )?;
                 }
@@ -303,6 +387,12 @@ pub fn run(args: Args) -> Result<()> {
         poses: poses.len(),
         skipped_frames: skips.count,
         failed_to_track: failures,
+        reference: args.reference,
+        model: (args.reference == Reference::Model).then_some(ModelSummary {
+            voxel_m: args.voxel,
+            cast_level: args.model_level,
+            fill_holes: !args.no_model_fill,
+        }),
         warnings: input_warning.into_iter().collect(),
     };
     if let Some(w) = skips.warning() {
@@ -353,6 +443,22 @@ struct Summary {
     skipped_frames: usize,
     /// Frames whose tracking failed (they keep the previous pose).
     failed_to_track: usize,
+    /// What the frames were aligned to (`--reference`).
+    reference: Reference,
+    /// The model's options with `--reference model`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    model: Option<ModelSummary>,
     /// The warnings of exit code 3, as printed.
     warnings: Vec<String>,
+}
+
+/// The options of frame-to-model tracking, in the run's summary.
+#[derive(serde::Serialize)]
+struct ModelSummary {
+    /// Voxel edge, metres.
+    voxel_m: f64,
+    /// Pyramid level of the ray cast (0 = full resolution).
+    cast_level: usize,
+    /// Holes of the cast filled from the previous frame.
+    fill_holes: bool,
 }

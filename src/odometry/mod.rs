@@ -26,6 +26,7 @@ mod cpu;
 mod gpu;
 mod inspect;
 mod kernel;
+mod model;
 #[cfg(test)]
 mod oracle;
 #[cfg(test)]
@@ -40,6 +41,7 @@ pub use config::{
     Location, OdometryConfig, Terms, OCCLUSION_SIGMAS,
 };
 pub use inspect::{residual_images, ResidualImages, RobustScales};
+pub use model::{model_reference, ModelOdometry, ModelParams, ModelTimes, ModelTrackResult};
 pub use robust::{Estimator, ScaleMethod};
 pub use tracker::{
     Alignment, FrameStats, LevelStats, Odometry, PreparedFrame, StageTimes, TrackResult,
@@ -84,4 +86,10 @@ pub enum OdometryError {
     /// No level had enough valid residuals to estimate the motion (no overlap or no depth).
     #[error("tracking failed: {0}")]
     TrackingFailed(String),
+    /// The model of frame-to-model tracking failed (integration or ray cast).
+    #[error("frame-to-model tracking: {0}")]
+    Model(#[from] crate::tsdf::TsdfError),
+    /// An image built for frame-to-model tracking is malformed.
+    #[error(transparent)]
+    Image(#[from] crate::image::ImageError),
 }

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 
 use super::integrate::Voxel;
 use super::volume::VolumeView;
-use super::BLOCK_SIDE;
+use super::{BLOCK_SIDE, BLOCK_VOXELS};
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
 use crate::image::ImageF32;
@@ -49,10 +49,27 @@ fn trilinear(
     let b = q.map(|c| c.floor());
     let f = [q[0] - b[0], q[1] - b[1], q[2] - b[2]];
     let g = b.map(|c| c as i32);
+    let n = BLOCK_SIDE as i32;
+    let l = g.map(|c| c.rem_euclid(n));
+    // When the 8 voxels share a block (most positions), one block look-up serves them all.
+    let block = if l.iter().all(|&c| c < n - 1) {
+        let key = g.map(|c| c.div_euclid(n));
+        let slot = *view.map.get(&key)? as usize;
+        view.voxels
+            .get(slot * BLOCK_VOXELS..(slot + 1) * BLOCK_VOXELS)
+    } else {
+        None
+    };
     let mut acc = [0.0f32; 4];
     for c in 0..8 {
         let o = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
-        let v = view.voxel([g[0] + o[0], g[1] + o[1], g[2] + o[2]])?;
+        let v = match block {
+            Some(voxels) => {
+                let i = (l[0] + o[0] + n * (l[1] + o[1] + n * (l[2] + o[2]))) as usize;
+                voxels.get(i)?
+            }
+            None => view.voxel([g[0] + o[0], g[1] + o[1], g[2] + o[2]])?,
+        };
         if !(v.weight > 0.0) {
             return None;
         }
@@ -67,15 +84,18 @@ fn trilinear(
 }
 
 /// Ray casts `view` from `camera` at `world_from_camera`; `step` (m) is the largest march
-/// step in free space, depths are searched in `[min_depth, max_depth]` (m).
+/// step in free space, depths are searched in `[min_depth, max_depth]` (m). Without
+/// `with_normals` the normals stay `[0; 3]` (their six extra TSDF samples per pixel are
+/// skipped).
 pub(crate) fn cast(
     view: &VolumeView<'_>,
     camera: &PinholeCamera,
     world_from_camera: &Se3,
     step: f32,
-    min_depth: f32,
-    max_depth: f32,
+    depth_range: (f32, f32),
+    with_normals: bool,
 ) -> RayCastImages {
+    let (min_depth, max_depth) = depth_range;
     let (w, h) = (camera.width as usize, camera.height as usize);
     let r = world_from_camera.rotation_matrix();
     let t = world_from_camera.translation;
@@ -125,7 +145,9 @@ pub(crate) fn cast(
                                 if sp > 0.0 && s <= 0.0 {
                                     let zh = zp + (z - zp) * sp / (sp - s);
                                     depth[x] = zh;
-                                    normals[x] = normal(view, at(zh), voxel, ray_c, &r);
+                                    if with_normals {
+                                        normals[x] = normal(view, at(zh), voxel, ray_c, &r);
+                                    }
                                     colours[x] = sample_colour(view, at(zh)).unwrap_or([0; 3]);
                                     break;
                                 }

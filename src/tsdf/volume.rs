@@ -560,14 +560,32 @@ impl TsdfVolume {
         camera: &PinholeCamera,
         world_from_camera: &Se3,
     ) -> Result<RayCastImages, TsdfError> {
+        self.cast(camera, world_from_camera, true)
+    }
+
+    /// [`Self::ray_cast`] without the normals (left `[0; 3]`): depth and colour only.
+    pub(crate) fn ray_cast_depth_colour(
+        &self,
+        camera: &PinholeCamera,
+        world_from_camera: &Se3,
+    ) -> Result<RayCastImages, TsdfError> {
+        self.cast(camera, world_from_camera, false)
+    }
+
+    fn cast(
+        &self,
+        camera: &PinholeCamera,
+        world_from_camera: &Se3,
+        with_normals: bool,
+    ) -> Result<RayCastImages, TsdfError> {
         let view = self.snapshot()?;
         Ok(raycast::cast(
             &view,
             camera,
             world_from_camera,
             (self.params.trunc_min_voxels * self.params.voxel_size) as f32,
-            self.params.min_depth as f32,
-            self.params.max_depth as f32,
+            (self.params.min_depth as f32, self.params.max_depth as f32),
+            with_normals,
         ))
     }
 }
