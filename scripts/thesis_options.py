@@ -24,7 +24,7 @@ import statistics
 SEQUENCES = ["tum_fr1_rpy_0_199", "redkitchen_0_299"]
 # (variant, odometry option as given to --set, bench file suffix, odometry CSV suffix)
 VARIANTS = [
-    ("defaults (covisibility_test=consistent, geometric_sampling=nearest, location=both, linearisation=current)", "base", "nearest"),
+    ("defaults (covisibility_test=consistent, geometric_sampling=nearest, location=both, linearisation=current)", "base", "base"),
     ("covisibility_test=depth (no occlusion condition of eq. 4.33)", "depthcovis", None),
     ("geometric_sampling=coarselinear", "coarse", "coarse"),
     ("location=zero (no mu of eq. 4.26-4.27)", "loczero", None),
