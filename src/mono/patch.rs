@@ -751,19 +751,26 @@ mod tests {
         }
     }
 
+    /// `img` (square) turned by +90 degrees about its centre: `rot(x, y) = img(y, n - 1 - x)`
+    /// (y down).
+    fn turned_90(img: &ImageF32) -> ImageF32 {
+        let n = img.width;
+        let mut rot = ImageF32::filled(n, n, 0.0);
+        for y in 0..n {
+            for x in 0..n {
+                rot.data[y * n + x] = img.at(y, n - 1 - x);
+            }
+        }
+        rot
+    }
+
     #[test]
     fn warp_undoes_a_rotation_and_k_is_limited() {
         // Rotate the image by 90 degrees about the principal point: a feature moves from
         // polar angle 0 to pi/2 and its patch turns by pi/2.
         let n = 81;
         let img = textured(n, n);
-        let mut rot = ImageF32::filled(n, n, 0.0);
-        for y in 0..n {
-            for x in 0..n {
-                // rot(x, y) = img(y, n - 1 - x): a +90 degree turn (y down).
-                rot.data[y * n + x] = img.at(y, n - 1 - x);
-            }
-        }
+        let rot = turned_90(&img);
         let cam = UnifiedCamera::new(0.9, 60.0, 40.0, 40.0, n as u32, n as u32);
         let src = DVec2::new(60.0, 40.0);
         let dst = DVec2::new(40.0, 60.0);
@@ -797,12 +804,7 @@ mod tests {
         // the initial ray (b, -a, c).
         let n = 81;
         let img = textured(n, n);
-        let mut rot = ImageF32::filled(n, n, 0.0);
-        for y in 0..n {
-            for x in 0..n {
-                rot.data[y * n + x] = img.at(y, n - 1 - x);
-            }
-        }
+        let rot = turned_90(&img);
         let cam = UnifiedCamera::new(0.9, 60.0, 40.0, 40.0, n as u32, n as u32);
         let fp = FeaturePatch::new(&img, &cam, DVec2::new(60.0, 40.0), 10, 4).unwrap();
         let dst = DVec2::new(40.0, 60.0);

@@ -243,27 +243,19 @@ impl ModelOdometry {
         self.previous = Some(frame.clone());
         alignment.times.pyramid_ms = pyramid_ms;
         alignment.times.total_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let fin = alignment.levels.last().copied().unwrap_or_default();
         Ok(ModelTrackResult {
             track: TrackResult {
                 world_from_camera: world_from_cur,
                 cur_from_ref: alignment.cur_from_ref,
                 covariance: alignment.covariance,
-                stats: FrameStats {
+                // Every frame is aligned to a fresh cast of the model.
+                stats: FrameStats::of_alignment(
                     index,
-                    timestamp: frame.timestamp(),
-                    iterations: alignment.levels.iter().map(|l| l.iterations).sum(),
-                    level_iterations: alignment.levels.iter().map(|l| l.iterations).collect(),
-                    sigma_photo: fin.sigma_photo,
-                    sigma_geo: fin.sigma_geo,
-                    nu: fin.nu_photo,
-                    mu_photo: fin.mu_photo,
-                    mu_geo: fin.mu_geo,
+                    frame.timestamp(),
+                    &alignment,
                     covisibility,
-                    condition_number: alignment.condition_number,
-                    new_reference: true,
-                    times: alignment.times,
-                },
+                    true,
+                ),
             },
             model: ModelTimes {
                 ray_cast_ms,

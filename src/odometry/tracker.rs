@@ -119,6 +119,35 @@ pub struct FrameStats {
     pub times: StageTimes,
 }
 
+impl FrameStats {
+    /// The statistics of frame `index` (time stamp `timestamp`, s) from its alignment, with
+    /// the covisibility ratio at the estimate and whether the frame becomes the reference.
+    pub(crate) fn of_alignment(
+        index: usize,
+        timestamp: f64,
+        alignment: &Alignment,
+        covisibility: f64,
+        new_reference: bool,
+    ) -> Self {
+        let fin = alignment.levels.last().copied().unwrap_or_default();
+        Self {
+            index,
+            timestamp,
+            iterations: alignment.levels.iter().map(|l| l.iterations).sum(),
+            level_iterations: alignment.levels.iter().map(|l| l.iterations).collect(),
+            sigma_photo: fin.sigma_photo,
+            sigma_geo: fin.sigma_geo,
+            nu: fin.nu_photo,
+            mu_photo: fin.mu_photo,
+            mu_geo: fin.mu_geo,
+            covisibility,
+            condition_number: alignment.condition_number,
+            new_reference,
+            times: alignment.times,
+        }
+    }
+}
+
 /// Result of tracking one frame.
 #[derive(Clone, Debug)]
 pub struct TrackResult {
@@ -384,26 +413,17 @@ impl<K: Kernels> Tracker<K> {
             self.reference = Some(reference);
         }
         alignment.times.total_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let fin = alignment.levels.last().copied().unwrap_or_default();
         Ok(TrackResult {
             world_from_camera: world_from_cur,
             cur_from_ref: alignment.cur_from_ref,
             covariance: alignment.covariance,
-            stats: FrameStats {
+            stats: FrameStats::of_alignment(
                 index,
-                timestamp: frame.timestamp,
-                iterations: alignment.levels.iter().map(|l| l.iterations).sum(),
-                level_iterations: alignment.levels.iter().map(|l| l.iterations).collect(),
-                sigma_photo: fin.sigma_photo,
-                sigma_geo: fin.sigma_geo,
-                nu: fin.nu_photo,
-                mu_photo: fin.mu_photo,
-                mu_geo: fin.mu_geo,
+                frame.timestamp,
+                &alignment,
                 covisibility,
-                condition_number: alignment.condition_number,
-                new_reference: switch,
-                times: alignment.times,
-            },
+                switch,
+            ),
         })
     }
 
