@@ -166,7 +166,9 @@ pub struct MonoConfig {
     pub big_patch_half: usize,
     /// ZNCC threshold for a match, in `[-1, 1]`.
     pub zncc_threshold: f64,
-    /// Patch mode: plain, or one of the catadioptric warps (see [`PatchMode`]).
+    /// Patch mode: plain, or one of the catadioptric warps (see [`PatchMode`]). The default,
+    /// plain, suits pinhole cameras; for catadioptric ones `PatchMode::Projective` tracks best
+    /// on the generated walks (docs/results.md), and `rgbid mono` picks it when `xi > 0`.
     pub patch_mode: PatchMode,
     /// Limit of the warp's scale factors `k` (`1 / k_lim <= k <= k_lim`, eq. 2.67); at most
     /// `big_patch_half / (sqrt(2) patch_half)` keeps the warped patch inside the big patch.
