@@ -31,7 +31,7 @@ use crate::camera::UnifiedCamera;
 use crate::geometry::Se3;
 use crate::image::ImageF32;
 use crate::mono::fast::detect;
-use crate::mono::patch::{FeaturePatch, PatchMode, ViewChange};
+use crate::mono::patch::{refine_peak, FeaturePatch, PatchMode, ViewChange};
 use crate::mono::MonoError;
 use crate::synth::{
     CameraModel, RenderBackend, RenderedFrame, Renderer, Scene, SensorModel, Trajectory,
@@ -190,26 +190,7 @@ fn search(
         return None;
     }
     let (bx, by) = (best_i % bw, best_i / bw);
-    let bh = scores.len() / bw;
-    let at = |x: usize, y: usize| scores[y * bw + x];
-    let refine = |m: f64, c: f64, p: f64| {
-        let den = m - 2.0 * c + p;
-        if m.is_finite() && p.is_finite() && den < -1e-12 {
-            (0.5 * (m - p) / den).clamp(-0.5, 0.5)
-        } else {
-            0.0
-        }
-    };
-    let dx = if bx > 0 && bx + 1 < bw {
-        refine(at(bx - 1, by), best, at(bx + 1, by))
-    } else {
-        0.0
-    };
-    let dy = if by > 0 && by + 1 < bh {
-        refine(at(bx, by - 1), best, at(bx, by + 1))
-    } else {
-        0.0
-    };
+    let (dx, dy) = refine_peak(&scores, bw, bx, by, best);
     let found = DVec2::new((x0 + bx as i64) as f64 + dx, (y0 + by as i64) as f64 + dy);
     Some(((found - truth).length(), best))
 }

@@ -605,25 +605,7 @@ impl MonoSlam {
             return None;
         }
         let (bx, by) = (best.1, best.2);
-        let at = |x: usize, y: usize| scores[y * bw + x];
-        let refine = |m: f64, c: f64, p: f64| {
-            let den = m - 2.0 * c + p;
-            if m.is_finite() && p.is_finite() && den < -1e-12 {
-                (0.5 * (m - p) / den).clamp(-0.5, 0.5)
-            } else {
-                0.0
-            }
-        };
-        let dx = if bx > 0 && bx + 1 < bw {
-            refine(at(bx - 1, by), best.0, at(bx + 1, by))
-        } else {
-            0.0
-        };
-        let dy = if by > 0 && by + 1 < bh {
-            refine(at(bx, by - 1), best.0, at(bx, by + 1))
-        } else {
-            0.0
-        };
+        let (dx, dy) = super::patch::refine_peak(&scores, bw, bx, by, best.0);
         Some(DVec2::new(
             (x0 + bx as i64) as f64 + dx,
             (y0 + by as i64) as f64 + dy,

@@ -150,6 +150,40 @@ pub fn zncc(a: &[f32], b: &[f32]) -> f64 {
     (sab - sa * sb / nf) / (va * vb).sqrt()
 }
 
+/// Sub-pixel offset `(dx, dy)` of the correlation peak at `(bx, by)` (score `best`) in a
+/// row-major score window `bw` wide: a parabola through the peak and its two neighbours per
+/// axis, limited to half a pixel; 0 on the window's border or where a neighbour is not
+/// finite or the scores do not curve down.
+pub(crate) fn refine_peak(
+    scores: &[f64],
+    bw: usize,
+    bx: usize,
+    by: usize,
+    best: f64,
+) -> (f64, f64) {
+    let bh = scores.len() / bw;
+    let at = |x: usize, y: usize| scores[y * bw + x];
+    let refine = |m: f64, c: f64, p: f64| {
+        let den = m - 2.0 * c + p;
+        if m.is_finite() && p.is_finite() && den < -1e-12 {
+            (0.5 * (m - p) / den).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        }
+    };
+    let dx = if bx > 0 && bx + 1 < bw {
+        refine(at(bx - 1, by), best, at(bx + 1, by))
+    } else {
+        0.0
+    };
+    let dy = if by > 0 && by + 1 < bh {
+        refine(at(bx, by - 1), best, at(bx, by + 1))
+    } else {
+        0.0
+    };
+    (dx, dy)
+}
+
 /// A template normalised once (zero mean, unit norm) for repeated correlation.
 #[derive(Clone, Debug)]
 pub struct Template {
