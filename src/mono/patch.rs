@@ -775,9 +775,16 @@ mod tests {
             let (w, k) = fp
                 .template(&cam, DVec2::new(40.0, 30.0), mode, 1.0, 2.0, 4)
                 .unwrap();
+            // The magnification ratio is exact; the projected lengths of the other scale
+            // rules go through trigonometry and carry its rounding.
+            let tol = if matches!(mode, PatchMode::Plain | PatchMode::Warped) {
+                1e-12
+            } else {
+                1e-9
+            };
             assert!(
-                (k.radial - 1.0).abs() < 1e-9
-                    && (k.tangential - 1.0).abs() < 1e-9
+                (k.radial - 1.0).abs() < tol
+                    && (k.tangential - 1.0).abs() < tol
                     && k.delta_alpha.abs() < 1e-12,
                 "{mode:?}: {k:?}"
             );
