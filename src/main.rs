@@ -71,6 +71,7 @@ enum Command {
 }
 
 fn main() {
+    cli::heap::keep_freed_buffers();
     cli::heap::init_trace_from_env();
     let cli = Cli::parse();
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {

@@ -693,20 +693,10 @@ fn decode_frame(
     Ok(frame)
 }
 
-/// `colour` undistorted channel by channel (bilinear, rounded to the nearest byte).
+/// `colour` undistorted (bilinear, rounded to the nearest byte).
 fn remap_colour(m: &UndistortMap, colour: &ColourImage) -> ColourImage {
-    let n = colour.width() * colour.height();
-    let mut rgb = vec![0u8; 3 * n];
-    let (mut plane, mut out) = (vec![0.0f32; n], vec![0.0f32; n]);
-    for ch in 0..3 {
-        for (p, px) in plane.iter_mut().zip(colour.rgb().chunks_exact(3)) {
-            *p = f32::from(px[ch]);
-        }
-        m.remap_bilinear(&plane, &mut out);
-        for (px, v) in rgb.chunks_exact_mut(3).zip(&out) {
-            px[ch] = v.round().clamp(0.0, 255.0) as u8;
-        }
-    }
+    let mut rgb = vec![0u8; colour.rgb().len()];
+    m.remap_bilinear_rgb8(colour.rgb(), &mut rgb);
     // The size is the frame's by construction.
     ColourImage::from_rgb(colour.width(), colour.height(), rgb).unwrap_or_else(|_| colour.clone())
 }

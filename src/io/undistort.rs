@@ -113,6 +113,32 @@ impl UndistortMap {
         }
     }
 
+    /// Bilinear resampling of interleaved 8-bit RGB (`3` bytes per pixel), the arithmetic of
+    /// [`Self::remap_bilinear`] per channel, rounded half up to the nearest byte. One pass
+    /// reads each tap once for the three channels. Does nothing when `raw` or `out` is smaller
+    /// than the table's image.
+    pub(crate) fn remap_bilinear_rgb8(&self, raw: &[u8], out: &mut [u8]) {
+        let w = self.width;
+        let n = w * self.height;
+        if raw.len() < 3 * n || out.len() < 3 * n || w == 0 {
+            return;
+        }
+        let step_x = 3 * usize::from(w > 1);
+        let step_y = if self.height > 1 { 3 * w } else { 0 };
+        for (o, t) in out.chunks_exact_mut(3).zip(&self.bilinear) {
+            let i = 3 * t.index as usize;
+            for (ch, o) in o.iter_mut().enumerate() {
+                let at = |k: usize| f32::from(raw[k + ch]);
+                let (a, b) = (at(i), at(i + step_x));
+                let (c, d) = (at(i + step_y), at(i + step_y + step_x));
+                let top = a + (b - a) * t.wx;
+                let bottom = c + (d - c) * t.wx;
+                // A saturating cast: the blend of bytes stays within 0..=255 up to rounding.
+                *o = (top + (bottom - top) * t.wy + 0.5) as u8;
+            }
+        }
+    }
+
     /// Nearest-neighbour resampling (for depth); pixels that map outside the raw image get `0`.
     pub fn remap_nearest(&self, raw: &[f32], out: &mut [f32]) {
         for (o, &i) in out.iter_mut().zip(&self.nearest) {
@@ -220,6 +246,32 @@ mod tests {
             .iter()
             .zip(&raw.data)
             .any(|(a, b)| (a - b).abs() > 1.0));
+    }
+
+    #[test]
+    fn rgb_resampling_matches_the_plane_by_plane_resampling() {
+        let cam = fr1_small();
+        let map = UndistortMap::new(&cam);
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let rgb: Vec<u8> = (0..3 * w * h)
+            .map(|k| ((k * 37 + (k / (3 * w)) * 11) % 256) as u8)
+            .collect();
+        let mut out = vec![0u8; 3 * w * h];
+        map.remap_bilinear_rgb8(&rgb, &mut out);
+        let (mut plane, mut resampled) = (vec![0.0f32; w * h], vec![0.0f32; w * h]);
+        for ch in 0..3 {
+            for (p, px) in plane.iter_mut().zip(rgb.chunks_exact(3)) {
+                *p = f32::from(px[ch]);
+            }
+            map.remap_bilinear(&plane, &mut resampled);
+            for (k, v) in resampled.iter().enumerate() {
+                assert_eq!(
+                    out[3 * k + ch],
+                    v.round().clamp(0.0, 255.0) as u8,
+                    "pixel {k} channel {ch} (value {v})"
+                );
+            }
+        }
     }
 
     #[test]
