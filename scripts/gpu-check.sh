@@ -43,6 +43,9 @@ done
 # Benchmarks: odometry per stage, keyframe fusion and ray casting, per backend and size.
 "$BIN/rgbid" --log warn bench kernels --backends cpu,gpu --sizes 640x480,320x240 \
     --repeat 15 --json "$OUT/kernels.json" | tee "$OUT/kernels.txt"
+# TSDF integration and ray casting per backend on the generated room (no peer here).
+"$BIN/rgbid" --log warn bench tsdf --backends cpu,gpu --python "" \
+    --json "$OUT/tsdf.json" | tee "$OUT/tsdf.txt"
 end=$(date +%s)
 
 # One report: the kernels report (meta: date, commit, machine, adapters) with the tests.
@@ -56,6 +59,10 @@ except (OSError, ValueError) as e:
 doc["benchmark"] = "gpu-check"
 doc["check_seconds"] = seconds
 doc["adapters"] = open(f"{out}/adapters.txt").read()
+try:
+    doc["tsdf"] = json.load(open(f"{out}/tsdf.json"))
+except (OSError, ValueError) as e:
+    doc["tsdf"] = {"error": f"bench tsdf wrote no report: {e}"}
 doc["tests"] = [
     dict(zip(["executable", "exit", "passed", "failed", "seconds"], line.rstrip("\n").split("\t")))
     for line in open(f"{out}/tests.tsv") if line.strip()

@@ -214,7 +214,11 @@ def render_gpu_check(doc):
                  [[t.get("executable"), t.get("exit"), t.get("passed"), t.get("failed"), t.get("seconds")]
                   for t in doc.get("tests", [])])
     out += ["", "Odometry kernels, keyframe fusion and ray casting per backend:", ""]
-    return out + render_kernels(doc)
+    out += render_kernels(doc)
+    if "tsdf" in doc:
+        out += ["", "TSDF integration and ray casting (`rgbid bench tsdf`, no peer):", ""]
+        out += render_generic(doc["tsdf"])
+    return out
 
 
 def render_python_overhead(doc):

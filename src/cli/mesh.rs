@@ -363,6 +363,9 @@ struct TsdfRow {
     active_blocks: Option<f64>,
     /// Seconds to extract the mesh.
     extract_s: f64,
+    /// Median ms of a ray cast of the finished volume (depth, normals and colour at the
+    /// frames' size) from every tenth frame's pose (rgbid only).
+    cast_ms: Option<f64>,
     /// Open3D's median integration time over this method's.
     open3d_ratio: Option<f64>,
     #[serde(flatten)]
@@ -486,6 +489,12 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
             let t = Instant::now();
             let mesh = vol.extract_mesh()?;
             let extract_s = t.elapsed().as_secs_f64();
+            let mut cast = Vec::new();
+            for p in gt.iter().take(tum.len()).step_by(10) {
+                let t = Instant::now();
+                vol.ray_cast(&cam, &p.world_from_camera)?;
+                cast.push(t.elapsed().as_secs_f64() * 1e3);
+            }
             rows.push(TsdfRow {
                 method: format!(
                     "rgbid {}{}",
@@ -498,6 +507,7 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
                 kernel_ms: Some(median(&mut kernel)),
                 active_blocks: Some(median(&mut blocks)),
                 extract_s,
+                cast_ms: Some(median(&mut cast)),
                 open3d_ratio: None,
                 accuracy: mesh_accuracy(&mesh.vertices, distance, &reference, 0.02),
             });
@@ -545,6 +555,7 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
                     kernel_ms: None,
                     active_blocks: None,
                     extract_s: doc["extract_s"].as_f64().unwrap_or(f64::NAN),
+                    cast_ms: None,
                     open3d_ratio: Some(1.0),
                     accuracy: mesh_accuracy(&verts, distance, &reference, 0.02),
                 });
@@ -565,13 +576,14 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
         a.frames, a.width, a.height, a.voxel, a.scene, a.seed
     );
     println!(
-        "{:<44} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>8} {:>8} {:>7} {:>8}",
+        "{:<44} {:>9} {:>9} {:>9} {:>7} {:>9} {:>8} {:>9} {:>8} {:>8} {:>7} {:>8}",
         "method",
         "int. ms",
         "alloc ms",
         "kern. ms",
         "blocks",
         "extract s",
+        "cast ms",
         "vertices",
         "mean mm",
         "p90 mm",
@@ -581,13 +593,14 @@ fn bench_in(a: &TsdfBench, work: &std::path::Path) -> Result<()> {
     let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
     for r in &rows {
         println!(
-            "{:<44} {:>9.2} {:>9} {:>9} {:>7} {:>9.2} {:>9} {:>8.2} {:>8.2} {:>7.3} {:>8}",
+            "{:<44} {:>9.2} {:>9} {:>9} {:>7} {:>9.2} {:>8} {:>9} {:>8.2} {:>8.2} {:>7.3} {:>8}",
             r.method,
             r.integrate_ms,
             opt(r.allocate_ms, 2),
             opt(r.kernel_ms, 2),
             opt(r.active_blocks, 0),
             r.extract_s,
+            opt(r.cast_ms, 1),
             r.accuracy.vertices,
             r.accuracy.mean_m * 1e3,
             r.accuracy.p90_m * 1e3,

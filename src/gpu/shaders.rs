@@ -16,6 +16,10 @@ pub const ALL: &[(&str, &str)] = &[
     ("normals.wgsl", include_str!("../../shaders/normals.wgsl")),
     ("fuse.wgsl", include_str!("../../shaders/fuse.wgsl")),
     ("tsdf.wgsl", include_str!("../../shaders/tsdf.wgsl")),
+    (
+        "tsdf_cast.wgsl",
+        include_str!("../../shaders/tsdf_cast.wgsl"),
+    ),
 ];
 
 /// Returns the raw source of `name`.

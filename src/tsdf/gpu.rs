@@ -1,12 +1,14 @@
-//! The TSDF integration kernel on a wgpu device (`shaders/tsdf.wgsl`), with the voxels
-//! resident there.
+//! The TSDF kernels on a wgpu device, with the voxels resident there: integration
+//! (`shaders/tsdf.wgsl`) and ray casting (`shaders/tsdf_cast.wgsl`).
 
 use std::borrow::Cow;
 use std::sync::Arc;
 
 use super::integrate::{IntegrateUniform, TsdfKernels, Voxel};
-use super::{TsdfError, BLOCK_VOXELS};
+use super::raycast::CastUniform;
+use super::{RayCastImages, TsdfError, BLOCK_VOXELS};
 use crate::gpu::{shaders, GpuContext, GpuError};
+use crate::image::ImageF32;
 
 /// Workgroups per dispatch row (the per-dimension dispatch limit of every wgpu backend).
 const ROW: u32 = 65535;
@@ -23,11 +25,44 @@ struct Resident {
     block_capacity: usize,
 }
 
+/// The ray-cast kernel: pipeline, bind-group layout and uniform.
+struct CastKernel {
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    uniform: wgpu::Buffer,
+}
+
+impl CastKernel {
+    fn new(ctx: &GpuContext) -> Result<Self, TsdfError> {
+        let name = "tsdf_cast.wgsl";
+        let missing = |message: &str| GpuError::Shader {
+            name: name.into(),
+            message: message.into(),
+        };
+        let src = shaders::assembled(name).ok_or_else(|| missing("not embedded"))?;
+        let layout = ctx.buffer_layout("tsdf cast", &[true, true, false, false, false]);
+        let pipeline = ctx
+            .compute_pipelines_with_layout(name, &src, &["cast_rays"], Some(&layout))?
+            .pop()
+            .ok_or_else(|| missing("no pipeline"))?;
+        let uniform = ctx.uniform(
+            "tsdf cast params",
+            std::mem::size_of::<CastUniform>() as u64,
+        );
+        Ok(CastKernel {
+            pipeline,
+            layout,
+            uniform,
+        })
+    }
+}
+
 pub(crate) struct GpuTsdf {
     ctx: Arc<GpuContext>,
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     uniform: wgpu::Buffer,
+    cast: CastKernel,
     resident: Option<Resident>,
     blocks: usize,
     /// Most slots of the voxel buffer (`None` = unbounded).
@@ -56,9 +91,11 @@ impl GpuTsdf {
             "tsdf params",
             std::mem::size_of::<IntegrateUniform>() as u64,
         );
+        let cast = CastKernel::new(&ctx)?;
         Ok(GpuTsdf {
             ctx,
             pipeline,
+            cast,
             layout,
             uniform,
             resident: None,
@@ -332,6 +369,80 @@ impl TsdfKernels for GpuTsdf {
 
     fn slot_capacity(&self) -> usize {
         self.resident.as_ref().map_or(0, |r| r.block_capacity)
+    }
+
+    fn ray_cast(
+        &self,
+        table: &[[i32; 4]],
+        u: &CastUniform,
+    ) -> Result<Option<RayCastImages>, TsdfError> {
+        let (w, h) = (u.width as usize, u.height as usize);
+        let pixels = w * h;
+        let Some(r) = &self.resident else {
+            // Nothing integrated yet: no surface anywhere.
+            return Ok(Some(RayCastImages {
+                depth: ImageF32::filled(w, h, 0.0),
+                normals: vec![[0.0; 3]; pixels],
+                colours: vec![[0; 3]; pixels],
+            }));
+        };
+        let ctx = &self.ctx;
+        let k = &self.cast;
+        let normals_len = if u.with_normals == 1 { pixels } else { 1 };
+        let table_buf = ctx.storage_init("tsdf cast table", table);
+        let depth = ctx.storage("tsdf cast depth", (pixels * 4) as u64);
+        let rgb = ctx.storage("tsdf cast rgb", (pixels * 4) as u64);
+        let normals = ctx.storage("tsdf cast normals", (normals_len * 16) as u64);
+        ctx.queue.write_buffer(&k.uniform, 0, bytemuck::bytes_of(u));
+        let bind = ctx.bind_buffers(
+            "tsdf cast",
+            &k.layout,
+            &[&k.uniform, &table_buf, &r.voxels, &depth, &rgb, &normals],
+        );
+        // One staging buffer: depth, then colour, then normals (4 words per pixel).
+        let words = 2 * pixels + 4 * normals_len;
+        let staging = ctx.staging("tsdf cast readback", (words * 4) as u64);
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf cast"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("tsdf cast"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&k.pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(u.width.div_ceil(8), u.height.div_ceil(8), 1);
+        }
+        let plane = (pixels * 4) as u64;
+        enc.copy_buffer_to_buffer(&depth, 0, &staging, 0, plane);
+        enc.copy_buffer_to_buffer(&rgb, 0, &staging, plane, plane);
+        enc.copy_buffer_to_buffer(&normals, 0, &staging, 2 * plane, (normals_len * 16) as u64);
+        ctx.submit(enc.finish());
+        let out: Vec<u32> = ctx.read_staging(&staging, words)?;
+        ctx.check()?;
+        let (d, rest) = out.split_at(pixels);
+        let (c, n) = rest.split_at(pixels);
+        let depth = d.iter().map(|&v| f32::from_bits(v)).collect();
+        let colours = c
+            .iter()
+            .map(|&v| [v as u8, (v >> 8) as u8, (v >> 16) as u8])
+            .collect();
+        let normals = if u.with_normals == 1 {
+            n.chunks_exact(4)
+                .map(|q| [0, 1, 2].map(|i| f32::from_bits(q[i])))
+                .collect()
+        } else {
+            vec![[0.0; 3]; pixels]
+        };
+        Ok(Some(RayCastImages {
+            depth: ImageF32::from_vec(w, h, depth)
+                .ok_or_else(|| GpuError::Validation("tsdf cast: depth size".into()))?,
+            normals,
+            colours,
+        }))
     }
 
     fn memory_bytes(&self) -> (usize, usize) {

@@ -186,6 +186,16 @@ pub(crate) trait TsdfKernels: Send {
     fn set_voxels(&mut self, blocks: usize, voxels: &[Voxel]) -> Result<(), TsdfError>;
     /// Bytes held, `(host, device)`.
     fn memory_bytes(&self) -> (usize, usize);
+    /// Ray casts the voxels where they are resident, finding blocks through `table` (see
+    /// [`super::raycast::block_table`]); `None` when this backend has no ray-cast kernel of its
+    /// own and the caller runs the CPU mirror on its view of the voxels.
+    fn ray_cast(
+        &self,
+        _table: &[[i32; 4]],
+        _u: &super::raycast::CastUniform,
+    ) -> Result<Option<super::RayCastImages>, TsdfError> {
+        Ok(None)
+    }
     /// The voxels of `slots`, one block after another (paging out).
     fn read_slots(&self, slots: &[u32]) -> Result<Vec<Voxel>, TsdfError>;
     /// Makes room for `blocks` slots, writes each `(slot, voxels)` of `uploads` (paging in,

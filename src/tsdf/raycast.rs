@@ -1,6 +1,8 @@
-//! Ray casting of the volume on the CPU: depth, normals and colour of the zero crossing seen
-//! from a camera.
+//! Ray casting of the volume: depth, normals and colour of the zero crossing seen from a
+//! camera. [`cast`] is the CPU mirror of `shaders/tsdf_cast.wgsl` (same f32 operations in the
+//! same order); [`block_table`] builds the hash table through which the kernel finds blocks.
 
+use bytemuck::{Pod, Zeroable};
 use rayon::prelude::*;
 
 use super::integrate::Voxel;
@@ -22,6 +24,94 @@ pub struct RayCastImages {
     /// 8-bit RGB of the surface, trilinear in the voxels' colours (`[0; 3]` where no surface
     /// was found), row-major.
     pub colours: Vec<[u8; 3]>,
+}
+
+/// Uniform block of `tsdf_cast.wgsl` (`Params`, same layout; a test compares them).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+pub(crate) struct CastUniform {
+    /// Rows of the `world_from_camera` rotation, the camera centre (world frame, m) in `[3]`.
+    pub(crate) world_from_camera: [[f32; 4]; 3],
+    /// Image size, pixels.
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    /// Hash table entries minus one (a power of two minus one).
+    pub(crate) table_mask: u32,
+    /// 1: the kernel writes normals.
+    pub(crate) with_normals: u32,
+    /// Intrinsics, pixels.
+    pub(crate) fx: f32,
+    pub(crate) fy: f32,
+    pub(crate) cx: f32,
+    pub(crate) cy: f32,
+    /// Voxel edge, m.
+    pub(crate) voxel_size: f32,
+    /// Largest march step in free space, m.
+    pub(crate) step: f32,
+    /// Searched depth range along the optical axis, m.
+    pub(crate) min_depth: f32,
+    pub(crate) max_depth: f32,
+}
+
+impl CastUniform {
+    /// The uniform of a cast by `camera` at `world_from_camera` over `table_len` hash entries.
+    pub(crate) fn new(
+        camera: &PinholeCamera,
+        world_from_camera: &Se3,
+        voxel_size: f64,
+        step: f32,
+        depth_range: (f32, f32),
+        table_len: usize,
+        with_normals: bool,
+    ) -> Self {
+        let r = world_from_camera.rotation_matrix();
+        let t = world_from_camera.translation;
+        let origin = [t.x as f32, t.y as f32, t.z as f32];
+        let row = |i: usize| {
+            let v = r.row(i);
+            [v.x as f32, v.y as f32, v.z as f32, origin[i]]
+        };
+        CastUniform {
+            world_from_camera: [row(0), row(1), row(2)],
+            width: camera.width,
+            height: camera.height,
+            table_mask: (table_len.max(1) - 1) as u32,
+            with_normals: u32::from(with_normals),
+            fx: camera.fx as f32,
+            fy: camera.fy as f32,
+            cx: camera.cx as f32,
+            cy: camera.cy as f32,
+            voxel_size: voxel_size as f32,
+            step,
+            min_depth: depth_range.0,
+            max_depth: depth_range.1,
+        }
+    }
+}
+
+/// The hash of block coordinates used by `tsdf_cast.wgsl` (wrapping 32-bit arithmetic).
+fn block_hash(b: [i32; 3]) -> u32 {
+    (b[0] as u32).wrapping_mul(73_856_093)
+        ^ (b[1] as u32).wrapping_mul(19_349_669)
+        ^ (b[2] as u32).wrapping_mul(83_492_791)
+}
+
+/// An open-addressing hash table (linear probing) of `(block coordinates, slot)` entries as
+/// `[bx, by, bz, slot]`, with a power-of-two length of at least twice the entries so probes
+/// stay short; empty entries have slot -1.
+pub(crate) fn block_table(blocks: &[([i32; 3], u32)]) -> Vec<[i32; 4]> {
+    let len = (2 * blocks.len()).next_power_of_two().max(16);
+    let mask = len - 1;
+    let mut table = vec![[0, 0, 0, -1]; len];
+    for &(b, slot) in blocks {
+        let mut i = block_hash(b) as usize & mask;
+        // The table is at most half full, so a free entry is always found.
+        while table[i][3] >= 0 {
+            i = (i + 1) & mask;
+        }
+        table[i] = [b[0], b[1], b[2], slot as i32];
+    }
+    table
 }
 
 /// The trilinear TSDF at world point `p` (metres), `None` when one of the 8 voxels around it
@@ -212,4 +302,62 @@ fn normal(
         n = n.map(|v| -v);
     }
     n
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{block_hash, block_table, CastUniform};
+    use crate::gpu::{host_layout, layout_mismatches, shaders};
+
+    #[test]
+    fn cast_uniform_matches_the_wgsl_layout() {
+        let host = host_layout!(CastUniform {
+            rot0 = world_from_camera[0] stride 16,
+            rot1 = world_from_camera[1] stride 16,
+            rot2 = world_from_camera[2] stride 16,
+            width,
+            height,
+            table_mask,
+            with_normals,
+            fx,
+            fy,
+            cx,
+            cy,
+            voxel_size,
+            step,
+            min_depth,
+            max_depth,
+        });
+        let src = shaders::assembled("tsdf_cast.wgsl").unwrap_or_default();
+        let size = std::mem::size_of::<CastUniform>();
+        let bad = layout_mismatches(&src, "Params", &host, size);
+        assert!(bad.is_empty(), "{}", bad.join("\n"));
+    }
+
+    #[test]
+    fn every_block_is_found_by_probing_from_its_hash() {
+        let blocks: Vec<([i32; 3], u32)> = (0..300)
+            .map(|k: i32| ([k % 7 - 3, (k / 7) % 11 - 5, k / 77 - 2], k as u32))
+            .collect();
+        let table = block_table(&blocks);
+        assert!(table.len().is_power_of_two() && table.len() >= 2 * blocks.len());
+        let mask = table.len() - 1;
+        let find = |b: [i32; 3]| {
+            let mut i = block_hash(b) as usize & mask;
+            loop {
+                let e = table[i];
+                if e[3] < 0 {
+                    return None;
+                }
+                if [e[0], e[1], e[2]] == b {
+                    return Some(e[3] as u32);
+                }
+                i = (i + 1) & mask;
+            }
+        };
+        for (b, slot) in &blocks {
+            assert_eq!(find(*b), Some(*slot), "block {b:?}");
+        }
+        assert_eq!(find([100, 100, 100]), None);
+    }
 }

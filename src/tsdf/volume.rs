@@ -12,7 +12,7 @@ use super::integrate::{truncation, CpuTsdf, IntegrateUniform, TsdfKernels, Voxel
 use super::mesh::{self, Mesh};
 use super::paging::{PagingStats, Residency};
 use super::persist;
-use super::raycast::{self, RayCastImages};
+use super::raycast::{self, CastUniform, RayCastImages};
 use super::{TsdfError, BLOCK_SIDE, BLOCK_VOXELS};
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
@@ -554,7 +554,8 @@ impl TsdfVolume {
     }
 
     /// Depth (metres along the optical axis, 0 = no surface), normals (camera frame) and
-    /// colour of the surface seen by `camera` at `world_from_camera`, ray cast on the CPU.
+    /// colour of the surface seen by `camera` at `world_from_camera`, ray cast by the volume's
+    /// backend (by the CPU when a device budget pages blocks out).
     pub fn ray_cast(
         &self,
         camera: &PinholeCamera,
@@ -572,19 +573,62 @@ impl TsdfVolume {
         self.cast(camera, world_from_camera, false)
     }
 
+    /// The largest march step in free space (the smallest truncation, m) and the searched
+    /// depth range (m) of a ray cast.
+    fn cast_limits(&self) -> (f32, (f32, f32)) {
+        let p = &self.params;
+        (
+            (p.trunc_min_voxels * p.voxel_size) as f32,
+            (p.min_depth as f32, p.max_depth as f32),
+        )
+    }
+
+    /// On the GPU backend the kernel casts the voxels where they are, unless blocks may be
+    /// paged out to host memory (a device budget is set): the CPU mirror then casts every
+    /// block, so a cast never misses surface the volume holds.
     fn cast(
         &self,
         camera: &PinholeCamera,
         world_from_camera: &Se3,
         with_normals: bool,
     ) -> Result<RayCastImages, TsdfError> {
+        if self.on_device && self.residency.is_identity() {
+            // Without paging every block's slot is its id.
+            let blocks: Vec<([i32; 3], u32)> = self.map.iter().map(|(b, &id)| (*b, id)).collect();
+            let table = raycast::block_table(&blocks);
+            let (step, range) = self.cast_limits();
+            let u = CastUniform::new(
+                camera,
+                world_from_camera,
+                self.params.voxel_size,
+                step,
+                range,
+                table.len(),
+                with_normals,
+            );
+            if let Some(out) = self.kernels.ray_cast(&table, &u)? {
+                return Ok(out);
+            }
+        }
+        self.cast_cpu(camera, world_from_camera, with_normals)
+    }
+
+    /// The CPU mirror's ray cast of every block (read back from the device on the GPU
+    /// backend).
+    fn cast_cpu(
+        &self,
+        camera: &PinholeCamera,
+        world_from_camera: &Se3,
+        with_normals: bool,
+    ) -> Result<RayCastImages, TsdfError> {
         let view = self.snapshot()?;
+        let (step, range) = self.cast_limits();
         Ok(raycast::cast(
             &view,
             camera,
             world_from_camera,
-            (self.params.trunc_min_voxels * self.params.voxel_size) as f32,
-            (self.params.min_depth as f32, self.params.max_depth as f32),
+            step,
+            range,
             with_normals,
         ))
     }
@@ -797,7 +841,11 @@ mod tests {
         assert_eq!(pm.triangles, mesh.triangles);
         assert!(pm == mesh);
         let pose = &frames[5].1;
-        let a = full.ray_cast(&cam, pose).unwrap_or_else(|e| panic!("{e}"));
+        // The CPU mirror on both: an unbounded GPU volume casts with the kernel, whose
+        // parity with the mirror `gpu_tsdf_ray_cast_matches_the_cpu_mirror` checks.
+        let a = full
+            .cast_cpu(&cam, pose, true)
+            .unwrap_or_else(|e| panic!("{e}"));
         let b = paged.ray_cast(&cam, pose).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(a.depth.data(), b.depth.data());
         assert_eq!(a.colours, b.colours);
@@ -833,6 +881,86 @@ mod tests {
             return;
         };
         paged_volume_matches_an_unbounded_one(&ComputeBackend::Gpu(ctx));
+    }
+
+    /// Six frames of the generated office at 160x120 and their camera, integrated on
+    /// `backend` (2 cm voxels).
+    fn office_volume(backend: &ComputeBackend) -> (TsdfVolume, Vec<crate::geometry::Se3>) {
+        let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
+        let scene = Arc::new(Scene::preset("office", 2).unwrap_or_else(|e| panic!("{e}")));
+        let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, 1.0, 2)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let config = SequenceConfig {
+            frames: 6,
+            seed: 2,
+            ..Default::default()
+        };
+        let seq = Sequence::new(
+            scene,
+            CameraModel::Pinhole(cam),
+            traj,
+            config,
+            &RenderBackend::Cpu,
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let params = TsdfParams {
+            voxel_size: 0.02,
+            ..Default::default()
+        };
+        let mut volume = TsdfVolume::new(params, cam, backend).unwrap_or_else(|e| panic!("{e}"));
+        let mut poses = Vec::new();
+        for f in seq {
+            let f = f.unwrap_or_else(|e| panic!("{e}"));
+            let frame = f.frame.to_rgbd_frame(f.timestamp);
+            volume
+                .integrate(&frame, &f.world_from_camera)
+                .unwrap_or_else(|e| panic!("{e}"));
+            poses.push(f.world_from_camera);
+        }
+        (volume, poses)
+    }
+
+    #[test]
+    #[ignore = "needs a GPU adapter"]
+    fn gpu_tsdf_ray_cast_matches_the_cpu_mirror() {
+        let Some(ctx) = test_gpu("gpu_tsdf_ray_cast_matches_the_cpu_mirror") else {
+            return;
+        };
+        let (volume, poses) = office_volume(&ComputeBackend::Gpu(ctx));
+        let cam = *volume.camera();
+        // From the first frame's pose and from between two frames.
+        let between =
+            poses[2] * crate::geometry::Se3::exp(&[0.03, -0.02, 0.01, 0.02, -0.01, 0.015]);
+        for pose in [poses[0], between] {
+            let gpu = volume
+                .ray_cast(&cam, &pose)
+                .unwrap_or_else(|e| panic!("{e}"));
+            let cpu = volume
+                .cast_cpu(&cam, &pose, true)
+                .unwrap_or_else(|e| panic!("{e}"));
+            let n = cpu.depth.data.len();
+            let hits = cpu.depth.data.iter().filter(|&&d| d > 0.0).count();
+            assert!(hits > n / 2, "only {hits} of {n} CPU rays hit the surface");
+            // Same f32 operations: a ray may differ only where a fused multiply-add moves a
+            // sample across a voxel or block boundary.
+            let mut differ = 0usize;
+            for i in 0..n {
+                let (a, b) = (cpu.depth.data[i], gpu.depth.data[i]);
+                let same_hit = (a > 0.0) == (b > 0.0);
+                let close = same_hit
+                    && (a - b).abs() <= 1e-4
+                    && (0..3)
+                        .all(|k| (cpu.colours[i][k] as i32 - gpu.colours[i][k] as i32).abs() <= 1)
+                    && (0..3).all(|k| (cpu.normals[i][k] - gpu.normals[i][k]).abs() <= 1e-3);
+                if !close {
+                    differ += 1;
+                }
+            }
+            assert!(
+                (differ as f64) <= 1e-3 * n as f64,
+                "{differ} of {n} rays differ between the kernel and the CPU mirror"
+            );
+        }
     }
 
     #[test]
