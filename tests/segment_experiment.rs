@@ -184,7 +184,10 @@ fn mesh_change_experiment_on_a_generated_home() {
     let masked: Vec<f64> = r.detection.iter().map(|d| d.masked_share).collect();
     assert!(masked.windows(2).all(|w| w[0] < w[1]), "{masked:?}");
     let strict = &r.detection[2];
-    assert!(strict.recall > 0.99 && strict.static_kept < 0.01, "{strict:?}");
+    assert!(
+        strict.recall > 0.99 && strict.static_kept < 0.01,
+        "{strict:?}"
+    );
     assert_eq!(r.matching[3].matches_on_changed, 0, "{:?}", r.matching[3]);
     // Unmasked, RANSAC recovers every pair's true relative pose.
     let none = &r.matching[0];

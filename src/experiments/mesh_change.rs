@@ -47,8 +47,8 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::segment::{
-    match_pair, median, summarise, ClutteredViews, ExperimentError, MatchingRow, Prepared,
-    RowAcc, Verify,
+    match_pair, median, summarise, ClutteredViews, ExperimentError, MatchingRow, Prepared, RowAcc,
+    Verify,
 };
 use crate::camera::PinholeCamera;
 use crate::gpu::ComputeBackend;
@@ -501,8 +501,14 @@ pub fn run_mesh_change_experiment(
                 session,
                 lap_seconds: None,
             };
-            let (mesh0, frames0, scene0, camera) =
-                capture_session(&spec(0), backend, config, &indices, &mut segmenter, &mut times)?;
+            let (mesh0, frames0, scene0, camera) = capture_session(
+                &spec(0),
+                backend,
+                config,
+                &indices,
+                &mut segmenter,
+                &mut times,
+            )?;
             let refs = frames0
                 .into_iter()
                 .map(|f| prepare(f, &mesh0, &camera, &config.orb))
@@ -627,7 +633,12 @@ mod tests {
     #[test]
     fn vertex_areas_split_each_triangle_in_thirds() {
         let mesh = TriMesh {
-            vertices: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]],
+            vertices: vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0],
+                [1.0, 1.0, 0.0],
+            ],
             triangles: vec![[0, 1, 2], [1, 3, 2]],
             ..TriMesh::default()
         };
