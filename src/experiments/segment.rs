@@ -514,7 +514,7 @@ pub(crate) fn match_pair(
     }
     let da: Vec<_> = ka.iter().map(|&i| a.features.descriptors[i]).collect();
     let db: Vec<_> = kb.iter().map(|&i| b.features.descriptors[i]).collect();
-    let matches = match_descriptors(&da, &db, &config.matching);
+    let matches = match_descriptors(&da, &db, config.matching);
     acc.matches += matches.len();
     let (w, h) = (b.frame.frame.width(), b.frame.frame.height());
     let point = |p: &Prepared, i: usize| p.features.points[i].unwrap_or(DVec3::ZERO);
@@ -532,7 +532,7 @@ pub(crate) fn match_pair(
     if matches.len() < 3 {
         return Ok(());
     }
-    let Ok(r) = ransac_rigid(&pa, &pb, &config.ransac) else {
+    let Ok(r) = ransac_rigid(&pa, &pb, config.ransac) else {
         return Ok(()); // degenerate sample sets verify nothing
     };
     let a_from_b_true = a.frame.world_from_camera.inverse() * b.frame.world_from_camera;
