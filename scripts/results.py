@@ -582,12 +582,60 @@ def render_thesis_tables(doc):
     return out
 
 
+def render_mesh_change(doc):
+    c = doc.get("config", {})
+    tsdf = c.get("tsdf", {})
+    g = doc.get("ground_truth", {})
+    out = [f"`rgbid segment mesh-experiment`: the thesis' mesh experiment (eq. 5.3, figs. 5.9-5.10) "
+           f"on generated loops ({', '.join(c.get('scenes', []))}; seeds {c.get('seeds', '?')}; "
+           f"{c.get('sessions', '?')} changed sessions each; {c.get('lap_frames', '?')} frames per "
+           f"session at {c.get('width', '?')} px, sensor `{doc.get('sensor', '?')}`, TSDF voxels "
+           f"{num(tsdf.get('voxel_size'), '.3f')} m, mesh segments of >= "
+           f"{c.get('segment', {}).get('min_size', '?')} vertices). A changed-session vertex is "
+           f"changed (eq. 5.3) when no session-0 surface lies within "
+           f"{num(c.get('change_distance'), '.2f')} m; areas are area-weighted over vertices.", "",
+           "Eq. 5.3 against the generator's labels (vertex on a moved or added object): "
+           f"{num(g.get('eq53_changed_m2'), '.1f')} m^2 changed of {num(g.get('area_m2'), '.1f')} m^2, "
+           f"{num(g.get('generator_changed_m2'), '.1f')} m^2 on moved/added objects; agreement "
+           f"{num(g.get('agreement'), '.3f')}, precision {num(g.get('eq53_precision'), '.3f')}, "
+           f"recall {num(g.get('eq53_recall'), '.3f')}; {num(g.get('off_surface_m2'), '.1f')} m^2 of "
+           "mesh off every true surface of its session (artefacts) left out.", "",
+           "Changed-area detection (segments with neg-entropy below the threshold masked):", ""]
+    body = [["< " + num(d["threshold"], ".2f"), num(d["masked_share"], ".3f"), num(d["precision"], ".3f"),
+             num(d["recall"], ".3f"), num(d["recall_generator"], ".3f"), num(d["static_kept"], ".3f")]
+            for d in doc.get("detection", [])]
+    out += table(["mask", "masked area", "precision", "recall (eq. 5.3)", "recall (generator)",
+                  "unchanged area kept"], body)
+
+    def matching(rows):
+        return table(["mask", "kept keypoints", "matches", "on changed objects", "inlier ratio",
+                      "precision", "recall"],
+                     [["none" if r["threshold"] is None else ">= " + num(r["threshold"], ".2f"),
+                       num(r["kept_keypoints"], ".2f"), r["matches"], r["matches_on_changed"],
+                       num(r["inlier_ratio"], ".3f"), num(r["precision"], ".3f"), num(r["recall"], ".3f")]
+                      for r in rows])
+    out += ["", f"Matching session 0 against the changed sessions with the projected mesh masks "
+            f"({doc.get('pairs', '?')} pairs, {doc.get('pairs_with_changes', '?')} see changed objects):", ""]
+    out += matching(doc.get("matching", []))
+    for v in doc.get("cluttered_views", []):
+        if v.get("pairs"):
+            out += ["", f"Views of moved clutter ({v['pairs']} pairs whose unmasked matches lie on changed "
+                    f"objects for >= {num(100 * v['min_changed_share'], '.0f')} %):", ""]
+            out += matching(v["matching"])
+    out += ["", "Median per session: render + integrate {} s, mesh {} s, segmentation {} s, ground truth "
+            "{} s; {} s in all.".format(num(doc.get("integrate_s"), ".1f"), num(doc.get("extract_s"), ".1f"),
+                                        num(doc.get("segment_s"), ".1f"), num(doc.get("ground_truth_s"), ".1f"),
+                                        num(doc.get("wall_s"), ".0f"))]
+    return out
+
+
 RENDERERS = {"odometry": render_odometry, "posegraph": render_posegraph, "kernels": render_kernels,
              "gpu-check": render_gpu_check, "python-overhead": render_python_overhead,
              "load": render_load, "thesis-tables": render_thesis_tables,
              "scale-sweep": render_scale_sweep, "mono-walks": render_mono_walks, "mono-loops": render_mono_loops,
              "patch-sweeps": render_patch_sweeps, "mono-patch-modes": render_mono_patch_modes,
-             "layouts": render_layouts, "camera-rate": render_camera_rate}
+             "layouts": render_layouts, "camera-rate": render_camera_rate,
+             "mesh-change": render_mesh_change}
 TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odometry kernels",
           "tsdf": "TSDF reconstruction (`rgbid bench tsdf`)",
           "gpu-check": "GPU check on a real GPU", "python-overhead": "Python per-frame overhead",
@@ -599,7 +647,8 @@ TITLES = {"odometry": "Odometry", "posegraph": "Pose graphs", "kernels": "Odomet
           "mono-patch-modes": "Monocular EKF per patch mode on generated walks",
           "patch-sweeps": "Catadioptric patch warping: decoupled matching (thesis 2.6.1)",
           "layouts": "`rgbid slam` on every dataset layout",
-          "camera-rate": "Camera rate on real data (`scripts/camera_rate.py`)"}
+          "camera-rate": "Camera rate on real data (`scripts/camera_rate.py`)",
+          "mesh-change": "Changed scenes on TSDF meshes (thesis eq. 5.3, figs. 5.9-5.10)"}
 
 
 def title(doc):
@@ -607,6 +656,8 @@ def title(doc):
     t = TITLES.get(kind, kind)
     if kind == "odometry":
         t += f" on `{doc.get('sequence_name', '?')}`"
+    if kind == "mesh-change":
+        t += f", sensor `{doc.get('sensor', '?')}`"
     if kind == "posegraph":
         t += f" (`--suite {doc.get('suite', 'files')}`)"
     return t

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use rgbid::experiments::mesh_change::{run_mesh_change_experiment, MeshChangeConfig};
 use rgbid::experiments::segment::{run_change_experiment, ChangeExperimentConfig};
 use rgbid::gpu::{select_backend, BackendChoice};
 use rgbid::io::tum::{OpenOptions, TumSequence};
@@ -34,6 +35,64 @@ pub enum Command {
     /// ground truth), and ORB matching between sessions with and without neg-entropy masks
     /// (precision and recall of RANSAC-verified matches against the true relative pose).
     Experiment(ExperimentArgs),
+    /// The thesis' mesh experiment (eq. 5.3, figs. 5.9-5.10) on generated loops: TSDF meshes
+    /// of session 0 and of changed sessions (objects moved, removed, added), the changed
+    /// session's mesh segmented by its edges; eq. 5.3 ground truth (vertices farther than D
+    /// from every session-0 surface), changed-area precision/recall per neg-entropy threshold,
+    /// and ORB matching with the projected mesh masks.
+    MeshExperiment(MeshExperimentArgs),
+}
+
+/// Options of `rgbid segment mesh-experiment`.
+#[derive(clap::Args)]
+pub struct MeshExperimentArgs {
+    /// Scene presets.
+    #[arg(long, value_delimiter = ',', default_value = "office,kitchen,lab,home")]
+    scenes: Vec<String>,
+    /// Scene seeds (each scene with each seed) (any whole number, 0 to 2^64-1).
+    #[arg(long, value_parser = crate::cli::options::range::seed, value_delimiter = ',', default_value = "1")]
+    seeds: Vec<u64>,
+    /// Changed sessions 1..=N compared with session 0 (1 to 1000).
+    #[arg(long, value_parser = crate::cli::options::range::sessions, default_value_t = 2)]
+    sessions: u32,
+    /// Frames per lap of the loop, all integrated into the session's TSDF (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = MeshChangeConfig::default().lap_frames)]
+    lap_frames: usize,
+    /// Every STEP-th frame starts a matching pair (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = MeshChangeConfig::default().step)]
+    step: usize,
+    /// The changed-session frame of a pair is OFFSET frames after the reference frame (a whole number >= 0).
+    #[arg(long, value_parser = crate::cli::options::range::count, default_value_t = MeshChangeConfig::default().offset)]
+    offset: usize,
+    /// Image width in pixels (height 3/4 of it) (16 to 16384 pixels).
+    #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = MeshChangeConfig::default().width)]
+    width: u32,
+    /// Depth sensor of the rendered frames (see `rgbid segment experiment --help`). The
+    /// default, `kinect-native`, gives the 640x480 Kinect's depth resolution the thesis'
+    /// meshes were fused from, whatever the rendered width.
+    #[arg(long, value_enum, default_value_t = SensorArg::KinectNative)]
+    sensor: SensorArg,
+    /// TSDF voxel edge, metres (> 0).
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = MeshChangeConfig::default().tsdf.voxel_size)]
+    voxel: f64,
+    /// Eq. 5.3's distance D, metres (> 0): a changed-session vertex farther than D from every
+    /// session-0 surface is changed.
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = MeshChangeConfig::default().change_distance)]
+    change_distance: f64,
+    /// Neg-entropy thresholds: segments below one are masked as changed (an unmasked run is
+    /// always added to the matching) (each in [0, 1]).
+    #[arg(long, value_parser = crate::cli::options::range::unit, value_delimiter = ',', default_value = "0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9")]
+    thresholds: Vec<f64>,
+    /// Minimum mesh segment size, vertices (>= 1).
+    #[arg(long, value_parser = crate::cli::options::range::at_least_one, default_value_t = MeshChangeConfig::default().segment.min_size)]
+    min_size: usize,
+    /// Where frames are rendered and integrated.
+    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
+    backend: BackendChoice,
+    /// Also write the report as JSON here (with a `meta` block; `scripts/results.py`
+    /// renders `docs/results/*.json`).
+    #[arg(long)]
+    json: Option<PathBuf>,
 }
 
 /// Options of `rgbid segment experiment`.
@@ -171,6 +230,7 @@ fn save_gray(path: &Path, w: usize, h: usize, data: Vec<u8>) -> Result<()> {
 pub fn run(args: Args) -> Result<()> {
     match args.command {
         Some(Command::Experiment(e)) => run_experiment(&e),
+        Some(Command::MeshExperiment(e)) => run_mesh_experiment(&e),
         None => run_segment(&args.run),
     }
 }
@@ -184,6 +244,128 @@ enum SensorArg {
     KinectNative,
     /// No noise, no quantisation, no dropout.
     Noiseless,
+}
+
+fn sensor_model(s: SensorArg) -> SensorModel {
+    match s {
+        SensorArg::Kinect => SensorModel::kinect(),
+        SensorArg::KinectNative => SensorModel {
+            focal_px: Some(525.0),
+            ..SensorModel::kinect()
+        },
+        SensorArg::Noiseless => SensorModel::noiseless(),
+    }
+}
+
+fn run_mesh_experiment(a: &MeshExperimentArgs) -> Result<()> {
+    let mut config = MeshChangeConfig {
+        scenes: a.scenes.clone(),
+        seeds: a.seeds.clone(),
+        sessions: a.sessions,
+        lap_frames: a.lap_frames,
+        step: a.step,
+        offset: a.offset,
+        width: a.width,
+        sensor: sensor_model(a.sensor),
+        change_distance: a.change_distance,
+        thresholds: a.thresholds.clone(),
+        ..Default::default()
+    };
+    config.tsdf.voxel_size = a.voxel;
+    config.segment.min_size = a.min_size;
+    config.validate()?;
+    let backend = select_backend(a.backend, None)?;
+    let bar = indicatif::ProgressBar::new(0);
+    let t = Instant::now();
+    let report = run_mesh_change_experiment(&config, &backend, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let wall_s = t.elapsed().as_secs_f64();
+    println!("| scene | seed | session | changed objects | vertices | segments | eq. 5.3 changed | generator changed | agreement |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for r in &report.sessions {
+        let g = &r.ground_truth;
+        println!(
+            "| {} | {} | {} | {} | {} | {} | {:.2} m^2 | {:.2} m^2 | {:.3} |",
+            r.scene,
+            r.seed,
+            r.session,
+            r.changed_objects,
+            r.vertices,
+            r.segments,
+            g.eq53_changed_m2,
+            g.generator_changed_m2,
+            g.agreement
+        );
+    }
+    let g = &report.ground_truth;
+    println!(
+        "\nEq. 5.3 (d = {} m) against the generator's labels: {:.1} of {:.1} m^2 changed by eq. 5.3, {:.1} m^2 on moved/added objects; agreement {:.3}, precision {:.3}, recall {:.3}; {:.2} m^2 off every surface of its own session",
+        config.change_distance,
+        g.eq53_changed_m2,
+        g.area_m2,
+        g.generator_changed_m2,
+        g.agreement,
+        g.eq53_precision,
+        g.eq53_recall,
+        g.off_surface_m2
+    );
+    println!("\nChanged-area detection (segments with neg-entropy below the threshold masked; area-weighted):");
+    println!("| threshold | masked area | precision | recall (eq. 5.3) | recall (generator) | unchanged area kept |");
+    println!("|---|---|---|---|---|---|");
+    for d in &report.detection {
+        println!(
+            "| < {:.2} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} |",
+            d.threshold, d.masked_share, d.precision, d.recall, d.recall_generator, d.static_kept
+        );
+    }
+    println!(
+        "\nMatching session 0 against changed sessions, mesh masks ({} pairs, {} see changed objects):",
+        report.pairs, report.pairs_with_changes
+    );
+    print_matching(&report.matching);
+    for c in &report.cluttered_views {
+        println!(
+            "\nViews of moved clutter: the {} frame pairs in which changed objects carry >= {:.0} % of the unmasked matches:",
+            c.pairs,
+            100.0 * c.min_changed_share
+        );
+        if c.pairs > 0 {
+            print_matching(&c.matching);
+        }
+    }
+    println!(
+        "\nmedian per session: render + integrate {:.1} s, mesh {:.1} s, segmentation {:.1} s, ground truth {:.1} s; {:.0} s in all",
+        report.integrate_s, report.extract_s, report.segment_s, report.ground_truth_s, wall_s
+    );
+    if let Some(p) = &a.json {
+        #[derive(serde::Serialize)]
+        struct Body<'a> {
+            config: &'a MeshChangeConfig,
+            sensor: String,
+            wall_s: f64,
+            #[serde(flatten)]
+            report: &'a rgbid::experiments::mesh_change::MeshChangeReport,
+        }
+        let adapters = match &backend {
+            rgbid::gpu::ComputeBackend::Gpu(g) => vec![g.adapter_info().name.clone()],
+            rgbid::gpu::ComputeBackend::Cpu => Vec::new(),
+        };
+        super::report::write(
+            p,
+            "mesh-change",
+            &super::report::meta(adapters),
+            &Body {
+                config: &config,
+                sensor: format!("{:?}", a.sensor),
+                wall_s,
+                report: &report,
+            },
+        )?;
+    }
+    Ok(())
 }
 
 fn run_experiment(a: &ExperimentArgs) -> Result<()> {

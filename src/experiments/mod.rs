@@ -5,6 +5,9 @@
 //!
 //! - [`segment`]: the changed-environment experiments of chapter 5 (ROC AUC per superjut
 //!   feature, masked matching across generated sessions).
+//! - [`mesh_change`]: the mesh experiment of chapter 5 (TSDF meshes of changed sessions,
+//!   eq. 5.3 ground truth, changed-area detection and masked matching per neg-entropy
+//!   threshold).
 //! - [`scale`]: tables 3.1-3.4 analogues (walking scale on emulated drift or on the monocular
 //!   EKF of rendered catadioptric walks).
 //! - [`mono`]: monocular EKF SLAM on rendered sequences with ground truth (table 2.1).
@@ -15,6 +18,7 @@
 //!   scripts, for the benchmarks.
 
 pub mod graph;
+pub mod mesh_change;
 pub mod mono;
 pub mod patches;
 pub mod peers;

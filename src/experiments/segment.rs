@@ -59,6 +59,9 @@ pub enum ExperimentError {
     /// Keyframe fusion failed.
     #[error(transparent)]
     Fusion(#[from] crate::slam::SlamError),
+    /// TSDF integration or mesh extraction failed.
+    #[error(transparent)]
+    Tsdf(#[from] crate::tsdf::TsdfError),
 }
 
 /// Parameters of [`run_change_experiment`].
@@ -288,12 +291,34 @@ fn feature_values(s: &Superjut) -> [f64; 5] {
 }
 
 /// A rendered, segmented and described frame.
-struct Prepared {
-    frame: SequenceFrame,
-    juts: Superjuts,
-    features: OrbFeatures,
+pub(crate) struct Prepared {
+    pub(crate) frame: SequenceFrame,
+    /// The frame's superjuts (`None` when its segments came from elsewhere, e.g. a mesh).
+    pub(crate) juts: Option<Superjuts>,
+    pub(crate) features: OrbFeatures,
     /// Neg-entropy of each keypoint's superjut (`-inf` where it has none).
-    keypoint_neg_entropy: Vec<f64>,
+    pub(crate) keypoint_neg_entropy: Vec<f64>,
+}
+
+/// How verified matches are found and judged (shared with the mesh experiment).
+#[derive(Clone, Copy)]
+pub(crate) struct Verify<'a> {
+    pub(crate) matching: &'a MatchParams,
+    pub(crate) ransac: &'a RansacParams,
+    /// Metres, plus `correct_per_metre` per metre of depth.
+    pub(crate) correct_tolerance: f64,
+    pub(crate) correct_per_metre: f64,
+}
+
+impl ChangeExperimentConfig {
+    fn verify(&self) -> Verify<'_> {
+        Verify {
+            matching: &self.matching,
+            ransac: &self.ransac,
+            correct_tolerance: self.correct_tolerance,
+            correct_per_metre: self.correct_per_metre,
+        }
+    }
 }
 
 fn prepare(
@@ -346,7 +371,7 @@ fn prepare(
         .collect();
     Ok(Prepared {
         frame,
-        juts,
+        juts: Some(juts),
         features,
         keypoint_neg_entropy,
     })
@@ -359,19 +384,19 @@ fn label_superjuts(
     changed: &mut Vec<[f64; 5]>,
     unchanged: &mut Vec<[f64; 5]>,
 ) {
-    let Some(mask) = &p.frame.frame.moved_mask else {
+    let (Some(mask), Some(juts)) = (&p.frame.frame.moved_mask, &p.juts) else {
         return;
     };
-    let n = p.juts.segments.len();
+    let n = juts.segments.len();
     let mut total = vec![0usize; n];
     let mut moved = vec![0usize; n];
-    for (l, m) in p.juts.labels.iter().zip(mask) {
+    for (l, m) in juts.labels.iter().zip(mask) {
         if let Some(t) = total.get_mut(*l as usize) {
             *t += 1;
             moved[*l as usize] += usize::from(*m);
         }
     }
-    for (s, (t, m)) in p.juts.segments.iter().zip(total.iter().zip(&moved)) {
+    for (s, (t, m)) in juts.segments.iter().zip(total.iter().zip(&moved)) {
         if *t == 0 {
             continue;
         }
@@ -385,7 +410,7 @@ fn label_superjuts(
 }
 
 #[derive(Default, Clone)]
-struct RowAcc {
+pub(crate) struct RowAcc {
     kept: f64,
     frames: usize,
     matches: usize,
@@ -396,7 +421,7 @@ struct RowAcc {
 }
 
 impl RowAcc {
-    fn add(&mut self, o: &RowAcc) {
+    pub(crate) fn add(&mut self, o: &RowAcc) {
         self.kept += o.kept;
         self.frames += o.frames;
         self.matches += o.matches;
@@ -409,7 +434,7 @@ impl RowAcc {
 
 /// The matching rows of summed accumulators (one per threshold, the unmasked one first);
 /// recall is relative to the first row's correct matches.
-fn matching_rows(thresholds: &[Option<f64>], rows: &[RowAcc]) -> Vec<MatchingRow> {
+pub(crate) fn matching_rows(thresholds: &[Option<f64>], rows: &[RowAcc]) -> Vec<MatchingRow> {
     let base_correct = rows.first().map_or(1, |r| r.correct.max(1)) as f64;
     thresholds
         .iter()
@@ -429,13 +454,48 @@ fn matching_rows(thresholds: &[Option<f64>], rows: &[RowAcc]) -> Vec<MatchingRow
         .collect()
 }
 
+/// The matching rows over all pairs and over the cluttered views ([`CLUTTER_SHARES`]) of
+/// per-pair accumulators (one per threshold, the unmasked one first).
+pub(crate) fn summarise(
+    thresholds: &[Option<f64>],
+    per_pair: &[Vec<RowAcc>],
+) -> (Vec<MatchingRow>, Vec<ClutteredViews>) {
+    // Rows summed over the pairs whose unmasked run (index 0) passes `keep`.
+    let summed = |keep: &dyn Fn(&RowAcc) -> bool| {
+        let mut sum = vec![RowAcc::default(); thresholds.len()];
+        let mut n = 0;
+        for pair in per_pair.iter().filter(|p| p.first().is_some_and(keep)) {
+            n += 1;
+            for (t, one) in sum.iter_mut().zip(pair) {
+                t.add(one);
+            }
+        }
+        (n, matching_rows(thresholds, &sum))
+    };
+    let matching = summed(&|_| true).1;
+    let cluttered_views = CLUTTER_SHARES
+        .iter()
+        .map(|&share| {
+            let (pairs, matching) = summed(&|u: &RowAcc| {
+                u.matches > 0 && u.on_changed as f64 >= share * u.matches as f64
+            });
+            ClutteredViews {
+                min_changed_share: share,
+                pairs,
+                matching,
+            }
+        })
+        .collect();
+    (matching, cluttered_views)
+}
+
 /// Matches a session-0 frame `a` against a session-`k` frame `b` with keypoints restricted to
 /// superjuts of neg-entropy `>= threshold` (all keypoints for `None`).
-fn match_pair(
+pub(crate) fn match_pair(
     a: &Prepared,
     b: &Prepared,
     threshold: Option<f64>,
-    config: &ChangeExperimentConfig,
+    config: Verify<'_>,
     acc: &mut RowAcc,
 ) -> Result<(), ExperimentError> {
     let keep = |p: &Prepared| -> Vec<usize> {
@@ -454,9 +514,9 @@ fn match_pair(
     }
     let da: Vec<_> = ka.iter().map(|&i| a.features.descriptors[i]).collect();
     let db: Vec<_> = kb.iter().map(|&i| b.features.descriptors[i]).collect();
-    let matches = match_descriptors(&da, &db, &config.matching);
+    let matches = match_descriptors(&da, &db, config.matching);
     acc.matches += matches.len();
-    let w = b.juts.width;
+    let (w, h) = (b.frame.frame.width(), b.frame.frame.height());
     let point = |p: &Prepared, i: usize| p.features.points[i].unwrap_or(DVec3::ZERO);
     let mut pa = Vec::with_capacity(matches.len());
     let mut pb = Vec::with_capacity(matches.len());
@@ -465,14 +525,14 @@ fn match_pair(
         pa.push(point(a, ia));
         pb.push(point(b, ib));
         if let Some(mask) = &b.frame.frame.moved_mask {
-            let (x, y) = b.features.keypoints[ib].nearest_pixel(w, b.juts.height);
+            let (x, y) = b.features.keypoints[ib].nearest_pixel(w, h);
             acc.on_changed += usize::from(mask[y * w + x]);
         }
     }
     if matches.len() < 3 {
         return Ok(());
     }
-    let Ok(r) = ransac_rigid(&pa, &pb, &config.ransac) else {
+    let Ok(r) = ransac_rigid(&pa, &pb, config.ransac) else {
         return Ok(()); // degenerate sample sets verify nothing
     };
     let a_from_b_true = a.frame.world_from_camera.inverse() * b.frame.world_from_camera;
@@ -493,7 +553,7 @@ fn match_pair(
     Ok(())
 }
 
-fn median(v: &mut [f64]) -> f64 {
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     if v.is_empty() {
         return f64::NAN;
     }
@@ -582,7 +642,7 @@ pub fn run_change_experiment(
                     }
                     let mut this_pair = vec![RowAcc::default(); thresholds.len()];
                     for (t, acc) in thresholds.iter().zip(this_pair.iter_mut()) {
-                        match_pair(a, &b, *t, config, acc)?;
+                        match_pair(a, &b, *t, config.verify(), acc)?;
                     }
                     per_pair.push(this_pair);
                     pairs += 1;
@@ -603,32 +663,7 @@ pub fn run_change_experiment(
             }
         })
         .collect();
-    // Rows summed over the pairs whose unmasked run (index 0) passes `keep`.
-    let summed = |keep: &dyn Fn(&RowAcc) -> bool| {
-        let mut sum = vec![RowAcc::default(); thresholds.len()];
-        let mut n = 0;
-        for pair in per_pair.iter().filter(|p| p.first().is_some_and(keep)) {
-            n += 1;
-            for (t, one) in sum.iter_mut().zip(pair) {
-                t.add(one);
-            }
-        }
-        (n, matching_rows(&thresholds, &sum))
-    };
-    let matching = summed(&|_| true).1;
-    let cluttered_views = CLUTTER_SHARES
-        .iter()
-        .map(|&share| {
-            let (pairs, matching) = summed(&|u: &RowAcc| {
-                u.matches > 0 && u.on_changed as f64 >= share * u.matches as f64
-            });
-            ClutteredViews {
-                min_changed_share: share,
-                pairs,
-                matching,
-            }
-        })
-        .collect();
+    let (matching, cluttered_views) = summarise(&thresholds, &per_pair);
     Ok(ChangeReport {
         changed_superjuts: changed.len(),
         static_superjuts: unchanged.len(),
