@@ -516,14 +516,51 @@ impl Trajectory {
                     },
                     ..WalkingParams::default()
                 };
+                let staircase = scene.params().staircase;
                 if kind == TrajectoryKind::Stairs {
                     params.stairs = Some((duration * 0.3, 12, 0.17));
+                    // On a scene's staircase the pace puts one step on each tread:
+                    // alpha f^beta H / f = run.
+                    let frequency = match staircase {
+                        Some(st) if params.beta > 1.0 => (st.run / (params.alpha * params.height))
+                            .powf(1.0 / (params.beta - 1.0)),
+                        _ => 1.5,
+                    };
                     params.schedule = vec![PaceSegment {
                         duration: 1e9,
-                        frequency: 1.5,
+                        frequency,
                     }];
                 }
-                return Ok(Trajectory::walking(scene, params, duration, seed));
+                let traj = Trajectory::walking(scene, params, duration, seed);
+                if let Motion::Walk { path, table, .. } = &traj.motion {
+                    let end = table.last().map_or(0.0, |e| e.0);
+                    if scene.params().open_route && end > path.length() {
+                        return Err(SynthError::InvalidParameter {
+                            name: "duration",
+                            why: format!(
+                                "a {duration} s walk covers {end:.1} m, longer than the {:.1} m \
+                                 route through `{}`",
+                                path.length(),
+                                scene.params().name
+                            ),
+                        });
+                    }
+                    let reach = path.at_length(end)[0];
+                    if let Some(st) = staircase.filter(|_| kind != TrajectoryKind::Stairs) {
+                        if reach > st.first_riser_x - 0.5 {
+                            return Err(SynthError::InvalidParameter {
+                                name: "trajectory",
+                                why: format!(
+                                    "a {duration} s walk reaches the staircase of `{}` at x = \
+                                     {:.1} m; only the `stairs` trajectory climbs it",
+                                    scene.params().name,
+                                    st.first_riser_x
+                                ),
+                            });
+                        }
+                    }
+                }
+                return Ok(traj);
             }
             TrajectoryKind::Robot => {
                 let pts = ellipse_points(&area, 6, 0.8, &mut rng, (0.4, 0.4), false);
@@ -543,11 +580,37 @@ impl Trajectory {
 
     /// A walking trajectory with explicit parameters (head or chest mount, schedule, stairs)
     /// along a closed path around the free area.
-    pub fn walking(scene: &Scene, params: WalkingParams, duration: f64, seed: u64) -> Trajectory {
+    /// ([`crate::synth::SceneParams::open_route`]: along the scene's length instead). On a
+    /// scene with a staircase, `params.stairs` keeps only its presence: the climb starts when
+    /// the walker is half a tread before the first riser, with the scene's risers.
+    pub fn walking(
+        scene: &Scene,
+        mut params: WalkingParams,
+        duration: f64,
+        seed: u64,
+    ) -> Trajectory {
         let area = scene.free_area();
         let mut rng = Pcg64::seed_from_u64(seed ^ 0x3a1c_0000_0000_0003);
-        let pts = ellipse_points(&area, 8, 0.85, &mut rng, (0.0, 0.0), false);
-        let path = Spline::new(pts, true);
+        let open = scene.params().open_route;
+        let path = if open {
+            // Straight along x with a gentle weave across the free width, so the heading is
+            // not constant.
+            let c = area.center();
+            let amp = (0.4 * area.extent().y).min(0.3);
+            let phase = rng.random_range(0.0..TAU);
+            let (x0, x1) = (area.min.x + 0.3, area.max.x - 0.3);
+            let n = ((x1 - x0) / 4.0).ceil().max(1.0) as usize;
+            let pts = (0..=n)
+                .map(|k| {
+                    let x = x0 + (x1 - x0) * k as f64 / n as f64;
+                    [x, c.y + amp * (TAU * x / 14.0 + phase).sin(), 0.0, 0.0, 0.0]
+                })
+                .collect();
+            Spline::new(pts, false)
+        } else {
+            let pts = ellipse_points(&area, 8, 0.85, &mut rng, (0.0, 0.0), false);
+            Spline::new(pts, true)
+        };
         // Integrate distance and step phase on a fine grid.
         let dt = 1e-3;
         let n = (duration.max(0.0) / dt).ceil() as usize + 2;
@@ -558,10 +621,14 @@ impl Trajectory {
         let bend = |s: f64| {
             ((path.heading_at(s + 0.5) - path.heading_at(s - 0.5) + PI).rem_euclid(TAU) - PI).abs()
         };
-        let start = (0..(len / 0.1).ceil().max(1.0) as usize)
-            .map(|k| k as f64 * 0.1)
-            .min_by(|a, b| bend(*a).total_cmp(&bend(*b)))
-            .unwrap_or(0.0);
+        let start = if open {
+            0.0
+        } else {
+            (0..(len / 0.1).ceil().max(1.0) as usize)
+                .map(|k| k as f64 * 0.1)
+                .min_by(|a, b| bend(*a).total_cmp(&bend(*b)))
+                .unwrap_or(0.0)
+        };
         let (mut s, mut phase) = (start, 0.0);
         let mut heading = path.heading_at(start);
         for i in 0..n {
@@ -575,6 +642,14 @@ impl Trajectory {
             // by up to 180 degrees within a few centimetres.
             let turn = (path.heading_at(s) - heading + PI).rem_euclid(TAU) - PI;
             heading += turn.clamp(-MAX_TURN_RATE * dt, MAX_TURN_RATE * dt);
+        }
+        if let (Some(st), Some(_)) = (scene.params().staircase, params.stairs) {
+            let x = st.first_riser_x - 0.5 * st.run;
+            let i = table
+                .iter()
+                .position(|e| path.at_length(e.0)[0] >= x)
+                .unwrap_or(table.len());
+            params.stairs = Some((i as f64 * dt, st.steps, st.rise));
         }
         let head = [
             Jitter::new(&mut rng, 0.25, &[0.07, 0.13]),
