@@ -119,6 +119,11 @@ pub struct WalkingParams {
     /// Stairs: `(start time s, number of steps, rise per step m)`; the person climbs one
     /// riser per step from the start time on.
     pub stairs: Option<(f64, usize, f64)>,
+    /// Peak vertical oscillation at the stride frequency (half the step frequency) while
+    /// climbing the stairs, metres: the legs lift the body unequally from one riser to the
+    /// next. 0 = both legs alike (absent in older files).
+    #[serde(default)]
+    pub stride_bob: f64,
 }
 
 impl Default for WalkingParams {
@@ -150,6 +155,7 @@ impl Default for WalkingParams {
             bob_amplitude: 0.025,
             sway_amplitude: 0.02,
             stairs: None,
+            stride_bob: 0.0,
         }
     }
 }
@@ -767,6 +773,9 @@ impl Trajectory {
                         let k = climbed.floor();
                         let frac = climbed - k;
                         z += rise * (k + 0.5 - 0.5 * (PI * frac).cos());
+                        if climbed < steps as f64 {
+                            z += params.stride_bob * (PI * climbed).sin();
+                        }
                     }
                 }
                 let roll = 0.02 * walking * (PI * phase).sin();
