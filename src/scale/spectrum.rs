@@ -5,7 +5,9 @@
 //! drift), and each analysis window is Hann-windowed, zero-padded and transformed by FFT
 //! (`rustfft`). The one-sided power spectral density is normalised so that Parseval holds:
 //! `sum_k PSD_k df = mean square` of the window. The step frequency is the PSD peak in the
-//! feasible band (1-3 Hz), refined by a parabola through the log-PSD around the peak bin.
+//! feasible band (1-3 Hz), refined by a parabola through the log-PSD around the peak bin; a
+//! peak with a comparable one at exactly twice its frequency is taken for the stride (half the
+//! step frequency) and the one at twice it for the step (`SpectrumConfig::stride_ratio`).
 //!
 //! Walking / standing (3.18-3.19): the walker is taken to walk when (a) the power around the
 //! peak (`P_peak`, the Hann main lobe `f_p +- 2/T`) is a fair share of the whole high-passed
@@ -451,6 +453,41 @@ mod tests {
             "{}",
             f(&weak, Some(2.0))
         );
+    }
+
+    #[test]
+    fn stride_peak_gives_the_step_at_twice_it() {
+        let fs = 30.0;
+        let sig = |f1: f64, a2: f64, f2: f64| -> Vec<f64> {
+            (0..120)
+                .map(|i| {
+                    let t = i as f64 / fs;
+                    0.05 * (2.0 * PI * f1 * t).sin() + a2 * (2.0 * PI * f2 * t + 0.4).sin()
+                })
+                .collect()
+        };
+        let on = SpectrumConfig::default();
+        let off = SpectrumConfig {
+            stride_ratio: 0.0,
+            ..on.clone()
+        };
+        let f = |x: &[f64], c: &SpectrumConfig, h: Option<f64>| {
+            StepAnalysis::analyze_with_hint(x, fs, c, h)
+                .unwrap()
+                .frequency
+        };
+        // The stride (1.1 Hz) stronger than the step (2.2 Hz), as on stairs with unequal legs.
+        let stairs = sig(1.1, 0.035, 2.2);
+        assert!((f(&stairs, &off, None) - 1.1).abs() < 0.03);
+        assert!((f(&stairs, &on, None) - 2.2).abs() < 0.03);
+        // Also when a wrong scale predicts the stride.
+        assert!((f(&stairs, &on, Some(1.1)) - 2.2).abs() < 0.03);
+        // A harmonic of the step at a quarter of its density is not the step.
+        let harmonic = sig(1.2, 0.025, 2.4);
+        assert!((f(&harmonic, &on, None) - 1.2).abs() < 0.03);
+        // A comparable peak near, but not at, twice the frequency is not taken for the step.
+        let near = sig(1.1, 0.045, 2.0);
+        assert!((f(&near, &on, None) - 1.1).abs() < 0.03);
     }
 
     #[test]

@@ -814,6 +814,44 @@ mod tests {
     }
 
     #[test]
+    fn hall_walk_never_returns_and_stairwell_walk_climbs_the_treads() {
+        let hall = Scene::preset("hall", 7).unwrap();
+        let t = Trajectory::new(TrajectoryKind::WalkHead, &hall, 60.0, 7).unwrap();
+        let pos: Vec<DVec3> = (0..=600)
+            .map(|i| t.pose_at(i as f64 * 0.1).translation)
+            .collect();
+        assert!(t.walking_state(60.0).unwrap().0 > 60.0);
+        for (i, a) in pos.iter().enumerate() {
+            for b in pos.iter().skip(i + 100) {
+                assert!(
+                    (a.truncate() - b.truncate()).length() > 2.0,
+                    "the hall walk comes back to {a} 10 s or more later"
+                );
+            }
+        }
+        // Longer than the route, or a flat walk into the stairs: refused.
+        assert!(Trajectory::new(TrajectoryKind::WalkHead, &hall, 100.0, 7).is_err());
+        let well = Scene::preset("stairwell", 7).unwrap();
+        let st = well.params().staircase.unwrap();
+        assert!(Trajectory::new(TrajectoryKind::WalkHead, &well, 60.0, 7).is_err());
+        let t = Trajectory::new(TrajectoryKind::Stairs, &well, 60.0, 7).unwrap();
+        // The eye stays at its height over the tread under it, within half a riser (where the
+        // foot is between two treads) and the bob.
+        let eye = 0.93 * WalkingParams::default().height;
+        let mut worst = 0.0f64;
+        for i in 0..=600 {
+            let p = t.pose_at(i as f64 * 0.1).translation;
+            worst = worst.max((p.z - st.floor_height(p.x) - eye).abs());
+        }
+        assert!(
+            worst < 0.5 * st.rise + 0.05,
+            "eye off the treads by {worst} m"
+        );
+        let end = t.pose_at(60.0).translation;
+        assert!((end.z - eye - st.height()).abs() < 0.05, "{end}");
+    }
+
+    #[test]
     fn walking_speed_follows_step_frequency() {
         let p = WalkingParams::default();
         let v = p.speed(1.8);
