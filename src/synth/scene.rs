@@ -225,8 +225,9 @@ pub struct SceneParams {
     #[serde(default)]
     pub open_route: bool,
     /// A straight flight of stairs across the whole width, climbing towards +x; the last
-    /// tread is an upper floor that runs on to the far end wall. Only in `stairwell` (absent
-    /// in older files).
+    /// tread is an upper floor (a 0.2 m slab) that runs on to the far end wall. Only in
+    /// `stairwell`, which is made for the `stairs` walk: other camera paths there may cross
+    /// the steps (absent in older files).
     #[serde(default)]
     pub staircase: Option<Staircase>,
 }
@@ -1015,8 +1016,8 @@ impl<'a> Generator<'a> {
         }
     }
 
-    /// Adds the flight of stairs to the structure (solid boxes across the width, the last
-    /// one the upper floor up to the far end wall) and stands the other objects on the
+    /// Adds the flight of stairs to the structure (solid boxes across the width, then the
+    /// upper floor, a slab up to the far end wall) and stands the other objects on the
     /// surface below them: lifted by the floor height under them, or left out where they
     /// would straddle a riser.
     fn staircase(&mut self, st: &Staircase) {
@@ -1027,9 +1028,16 @@ impl<'a> Generator<'a> {
             let x0 = st.first_riser_x + k as f64 * st.run;
             let x1 = if k + 1 == st.steps { sx } else { x0 + st.run };
             let h = (k + 1) as f64 * st.rise;
+            // The upper floor is a slab, leaving a low storey under it rather than a solid
+            // block that a camera placed at the scene's centre would sit inside.
+            let z0 = if k + 1 == st.steps {
+                (h - 0.2).max(0.0)
+            } else {
+                0.0
+            };
             let mut p = Self::boxp(
-                DVec3::new(0.5 * (x0 + x1), 0.5 * sy, 0.5 * h),
-                DVec3::new(0.5 * (x1 - x0), 0.5 * sy, 0.5 * h),
+                DVec3::new(0.5 * (x0 + x1), 0.5 * sy, 0.5 * (z0 + h)),
+                DVec3::new(0.5 * (x1 - x0), 0.5 * sy, 0.5 * (h - z0)),
                 DMat3::IDENTITY,
                 mat,
             );
