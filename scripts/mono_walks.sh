@@ -10,14 +10,14 @@ cd "$(dirname "$0")/.."
 bin=${1:-./target/release/rgbid}
 runs=${2:-/tmp/rgbid-mono-walks}
 mkdir -p "$runs"
-# scene:trajectory:frames at 30 Hz (the default pace schedule walks, stops and walks on). No
-# stairs: the scene presets have no staircase, and `rgbid mono --synthetic` does not raise the
-# ceiling as the scale experiment harness does, so a climbing walker would rise through it.
+# scene:trajectory:frames at 30 Hz (the default pace schedule walks, stops and walks on).
 # The office's walking loop is about 8 m, the corridor's about 30 m: every 60 s walk laps its
 # loop. The 25 s corridor walk stays within its first lap, so no place is seen twice in the
-# same direction and the loops can only be false ones.
+# same direction and the loops can only be false ones. The hall and the stairwell are walked
+# along an open route (about 64 m in 60 s) that never comes back, so they have no true loop;
+# the stairwell's `stairs` walk climbs its 12 risers of 0.17 m, one step per tread.
 walks=(corridor:walk-head:1800 corridor:walk-chest:1800 office:walk-head:1800 office:walk-chest:1800
-  corridor:walk-head:3600 corridor:walk-head:750)
+  corridor:walk-head:3600 corridor:walk-head:750 hall:walk-head:1800 stairwell:stairs:1800)
 for w in "${walks[@]}"; do
   IFS=: read -r scene traj frames <<<"$w"
   name="${scene}_${traj}_${frames}"

@@ -341,6 +341,11 @@ def render_mono_walks(doc):
     out += table(["walk", "path m", "walking", "unscaled mean %", "end %", "length", "causal mean %",
                   "end %", "length", "final mean %", "end %", "length", "filter ms/frame",
                   "scale ms/frame", "EKF Sim(3) ATE %"], body)
+    own = [(r["sequence"], r["meta"]) for r in rows if isinstance(r.get("meta"), dict)]
+    if own:
+        out += ["", "Run apart from the others: " + "; ".join(
+            f"{name} measured {str(m.get('date_utc', '?'))[:10]} at commit `{m.get('commit', '?')}`"
+            + (" (with uncommitted changes)" if m.get("dirty") else "") for name, m in own) + "."]
     if not with_loops:
         return out
     out += ["", "With loops from the images (thesis 3.3.2): keyframes from the EKF stream, ORB + bag "

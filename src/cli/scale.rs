@@ -5,9 +5,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rgbid::experiments::scale::{
-    estimate_sequence, evaluate_run, load_run, median, percentile, run_cache_name, save_run,
-    standard_sequences, Estimator, ExperimentConfig, MonoEstimator, RunReport, SequenceSpec,
-    WindowTruth, METHODS,
+    estimate_sequence, evaluate_run, extra_sequences, load_run, median, percentile, run_cache_name,
+    save_run, standard_sequences, Estimator, ExperimentConfig, MonoEstimator, RunReport,
+    SequenceSpec, WindowTruth, METHODS,
 };
 use rgbid::gpu::ComputeBackend;
 use rgbid::io::trajectory::{read_tum, write_tum};
@@ -126,9 +126,16 @@ pub struct ExperimentArgs {
     /// Image side of the catadioptric camera with `--estimator mono`, pixels (16 to 16384 pixels).
     #[arg(long, value_parser = crate::cli::options::range::image_side, default_value_t = 400)]
     size: u32,
-    /// Sequences to run, comma separated (head, chest, stops, stairs); default all.
+    /// Sequences to run, comma separated (head, chest, stops, stairs, flights); default the
+    /// first four. `flights`: 60 risers at 2.0 steps/s with unequal legs (a stride-frequency
+    /// oscillation stronger than the step's).
     #[arg(long, value_delimiter = ',')]
     sequences: Vec<String>,
+    /// Stride-aware peak choice (`spectrum.stride_ratio`): a peak at twice the chosen one's
+    /// frequency with at least this share of its density is taken for the step and the
+    /// chosen one for the stride; 0 turns it off (0 to 1).
+    #[arg(long, value_parser = crate::cli::options::range::unit, default_value_t = 0.4)]
+    stride_ratio: f64,
     /// Folder for plots and TUM files (estimate, ground truth) of the first seed of every
     /// sequence.
     #[arg(long)]
@@ -534,15 +541,17 @@ fn write_windows(
 fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     let mut seqs = standard_sequences(a.duration);
     if !a.sequences.is_empty() {
+        seqs.extend(extra_sequences(a.duration));
         for name in &a.sequences {
             if !seqs.iter().any(|s| &s.name == name) {
-                bail!("unknown sequence {name:?} (head, chest, stops, stairs)");
+                bail!("unknown sequence {name:?} (head, chest, stops, stairs, flights)");
             }
         }
         seqs.retain(|s| a.sequences.contains(&s.name));
     }
     let mut cfg = ExperimentConfig::default();
     cfg.dynscale.filter.particles = a.particles;
+    cfg.dynscale.spectrum.stride_ratio = a.stride_ratio;
     cfg.drift.drift = a.drift;
     if a.estimator == "mono" {
         cfg.estimator = Estimator::Monocular(MonoEstimator {

@@ -30,7 +30,8 @@ pub enum CameraKind {
 /// Arguments of `rgbid synth`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Scene preset (office, kitchen, corridor, lab, home).
+    /// Scene preset (office, kitchen, corridor, lab, home; hall and stairwell: long corridors
+    /// walked along an open route, the stairwell with a flight of stairs for `stairs`).
     #[arg(long, default_value = "office")]
     scene: String,
     /// Trajectory (handheld, slow, fast, loop, walk-head, walk-chest, stairs, robot).

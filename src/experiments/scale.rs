@@ -98,6 +98,25 @@ pub fn standard_sequences(duration: f64) -> Vec<SequenceSpec> {
     ]
 }
 
+/// Sequences run only when named: `flights` (head, 2.0 steps/s, 60 risers of 0.17 m from the
+/// start, so that the first windows have no scale to predict the step frequency from; the
+/// legs lift the body unequally: a 0.05 m oscillation at the stride frequency while climbing,
+/// 1.0 Hz, inside the feasible band and stronger than the step's).
+/// Walker height 1.80 m, Grieve's model.
+pub fn extra_sequences(duration: f64) -> Vec<SequenceSpec> {
+    vec![SequenceSpec {
+        name: "flights".into(),
+        params: WalkingParams {
+            height: 1.80,
+            schedule: pace(&[(1e9, 2.0)]),
+            stairs: Some((0.0, 60, 0.17)),
+            stride_bob: 0.05,
+            ..WalkingParams::default()
+        },
+        duration,
+    }]
+}
+
 /// Where the monocular estimate of a walk comes from.
 #[derive(Clone, Debug)]
 pub enum Estimator {

@@ -5,7 +5,9 @@
 //! drift), and each analysis window is Hann-windowed, zero-padded and transformed by FFT
 //! (`rustfft`). The one-sided power spectral density is normalised so that Parseval holds:
 //! `sum_k PSD_k df = mean square` of the window. The step frequency is the PSD peak in the
-//! feasible band (1-3 Hz), refined by a parabola through the log-PSD around the peak bin.
+//! feasible band (1-3 Hz), refined by a parabola through the log-PSD around the peak bin; a
+//! peak with a comparable one at exactly twice its frequency is taken for the stride (half the
+//! step frequency) and the one at twice it for the step (`SpectrumConfig::stride_ratio`).
 //!
 //! Walking / standing (3.18-3.19): the walker is taken to walk when (a) the power around the
 //! peak (`P_peak`, the Hann main lobe `f_p +- 2/T`) is a fair share of the whole high-passed
@@ -39,10 +41,32 @@ pub struct SpectrumConfig {
     /// ([`StepAnalysis::analyze_with_hint`]).
     #[serde(default = "default_candidate_ratio")]
     pub candidate_ratio: f64,
+    /// Stride-aware peak choice: when the band also holds a PSD peak at twice the chosen
+    /// one's frequency (within [`Self::stride_tolerance_hz`]) with at least this share of its
+    /// density, the chosen peak is taken for the stride (half the step frequency: one leg
+    /// lifting the body more than the other, as on stairs) and the step frequency is the one
+    /// at twice it. 0 turns the choice off. A harmonic of a step oscillation (the steps of a
+    /// staircase, at most a quarter of the fundamental's density) stays below the default.
+    #[serde(default = "default_stride_ratio")]
+    pub stride_ratio: f64,
+    /// Largest difference between the second peak's frequency and twice the first one's for
+    /// the stride-aware choice, Hz (two refined peak frequencies, so a few times the error of
+    /// one; well under the main lobe, so an unrelated peak near twice the frequency is not
+    /// taken).
+    #[serde(default = "default_stride_tolerance")]
+    pub stride_tolerance_hz: f64,
 }
 
 fn default_candidate_ratio() -> f64 {
     0.5
+}
+
+fn default_stride_ratio() -> f64 {
+    0.4
+}
+
+fn default_stride_tolerance() -> f64 {
+    0.08
 }
 
 impl Default for SpectrumConfig {
@@ -54,6 +78,8 @@ impl Default for SpectrumConfig {
             amplitude_bounds: (0.005, 0.10),
             min_fft_len: 4096,
             candidate_ratio: default_candidate_ratio(),
+            stride_ratio: default_stride_ratio(),
+            stride_tolerance_hz: default_stride_tolerance(),
         }
     }
 }
@@ -80,6 +106,16 @@ impl SpectrumConfig {
             "candidate_ratio",
             self.candidate_ratio > 0.0 && self.candidate_ratio <= 1.0,
             || format!("{} must be in (0, 1]", self.candidate_ratio),
+        )?;
+        check_param(
+            "stride_ratio",
+            (0.0..=1.0).contains(&self.stride_ratio),
+            || format!("{} must be in [0, 1]", self.stride_ratio),
+        )?;
+        check_param(
+            "stride_tolerance_hz",
+            self.stride_tolerance_hz.is_finite() && self.stride_tolerance_hz > 0.0,
+            || format!("{} Hz must be > 0", self.stride_tolerance_hz),
         )?;
         check_param(
             "min_concentration",
@@ -256,10 +292,10 @@ impl StepAnalysis {
                 kmax = k;
             }
         }
+        let peaks: Vec<usize> = (lo.max(1)..=hi.min(psd.len() - 2))
+            .filter(|&k| psd[k] > psd[k - 1] && psd[k] >= psd[k + 1])
+            .collect();
         if let Some(fh) = hint.filter(|f| f.is_finite() && *f > 0.0) {
-            let peaks: Vec<usize> = (lo.max(1)..=hi.min(psd.len() - 2))
-                .filter(|&k| psd[k] > psd[k - 1] && psd[k] >= psd[k + 1])
-                .collect();
             let strongest = peaks.iter().map(|&k| psd[k]).fold(0.0, f64::max);
             let dist = |k: usize| ((k as f64 * df) / fh).ln().abs();
             if let Some(&k) = peaks
@@ -270,24 +306,42 @@ impl StepAnalysis {
                 kmax = k;
             }
         }
+        // Parabolic refinement on the log PSD.
+        let refine = |k: usize| -> f64 {
+            if k > 0 && k + 1 < psd.len() {
+                let (a, b, c) = (
+                    psd[k - 1].max(1e-300).ln(),
+                    psd[k].max(1e-300).ln(),
+                    psd[k + 1].max(1e-300).ln(),
+                );
+                let den = a - 2.0 * b + c;
+                if den < 0.0 {
+                    return (k as f64 + (0.5 * (a - c) / den).clamp(-0.5, 0.5)) * df;
+                }
+            }
+            k as f64 * df
+        };
+        // The stride and the step are locked at 1 : 2, so a peak at exactly twice the chosen
+        // one means the chosen one is the stride; the walking model's hint cannot tell them
+        // apart while the scale is still unknown or wrong by the ratio of their speeds.
+        if cfg.stride_ratio > 0.0 {
+            let double = 2.0 * refine(kmax);
+            if let Some(&k) = peaks
+                .iter()
+                .filter(|&&k| {
+                    psd[k] >= cfg.stride_ratio * psd[kmax]
+                        && (refine(k) - double).abs() <= cfg.stride_tolerance_hz
+                })
+                .max_by(|&&a, &&b| psd[a].total_cmp(&psd[b]))
+            {
+                kmax = k;
+            }
+        }
         // A gait peak is a local maximum of the PSD; at a band edge, with the PSD still rising
         // outside the band (the 1/f^2 tail of a drifting estimate at the bottom), there is none.
         let local_max = (kmax == 0 || psd[kmax] > psd[kmax - 1])
             && (kmax + 1 >= psd.len() || psd[kmax] > psd[kmax + 1]);
-        // Parabolic refinement on the log PSD.
-        let mut frequency = kmax as f64 * df;
-        if kmax > 0 && kmax + 1 < psd.len() {
-            let (a, b, c) = (
-                psd[kmax - 1].max(1e-300).ln(),
-                psd[kmax].max(1e-300).ln(),
-                psd[kmax + 1].max(1e-300).ln(),
-            );
-            let den = a - 2.0 * b + c;
-            if den < 0.0 {
-                let d = (0.5 * (a - c) / den).clamp(-0.5, 0.5);
-                frequency = (kmax as f64 + d) * df;
-            }
-        }
+        let frequency = refine(kmax);
         let t = signal.len() as f64 / sample_rate_hz;
         let sum =
             |f0: f64, f1: f64| -> f64 { (bin(f0)..=bin(f1)).map(|k| psd[k]).sum::<f64>() * df };
@@ -399,6 +453,41 @@ mod tests {
             "{}",
             f(&weak, Some(2.0))
         );
+    }
+
+    #[test]
+    fn stride_peak_gives_the_step_at_twice_it() {
+        let fs = 30.0;
+        let sig = |f1: f64, a2: f64, f2: f64| -> Vec<f64> {
+            (0..120)
+                .map(|i| {
+                    let t = i as f64 / fs;
+                    0.05 * (2.0 * PI * f1 * t).sin() + a2 * (2.0 * PI * f2 * t + 0.4).sin()
+                })
+                .collect()
+        };
+        let on = SpectrumConfig::default();
+        let off = SpectrumConfig {
+            stride_ratio: 0.0,
+            ..on.clone()
+        };
+        let f = |x: &[f64], c: &SpectrumConfig, h: Option<f64>| {
+            StepAnalysis::analyze_with_hint(x, fs, c, h)
+                .unwrap()
+                .frequency
+        };
+        // The stride (1.1 Hz) stronger than the step (2.2 Hz), as on stairs with unequal legs.
+        let stairs = sig(1.1, 0.035, 2.2);
+        assert!((f(&stairs, &off, None) - 1.1).abs() < 0.03);
+        assert!((f(&stairs, &on, None) - 2.2).abs() < 0.03);
+        // Also when a wrong scale predicts the stride.
+        assert!((f(&stairs, &on, Some(1.1)) - 2.2).abs() < 0.03);
+        // A harmonic of the step at a quarter of its density is not the step.
+        let harmonic = sig(1.2, 0.025, 2.4);
+        assert!((f(&harmonic, &on, None) - 1.2).abs() < 0.03);
+        // A comparable peak near, but not at, twice the frequency is not taken for the step.
+        let near = sig(1.1, 0.045, 2.0);
+        assert!((f(&near, &on, None) - 1.1).abs() < 0.03);
     }
 
     #[test]

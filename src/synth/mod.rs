@@ -31,7 +31,7 @@ pub use raycast::NO_OBJECT;
 pub use render::{render, render_pinhole, CameraModel, RenderBackend, RenderedFrame, Renderer};
 pub use scene::{
     FreeArea, FurnitureStyle, Layout, ObjectKind, Primitive, Scene, SceneObject, SceneParams,
-    Shape, PRESETS,
+    Shape, Staircase, PRESETS,
 };
 pub use sensor::{SensorModel, DEPTH_FACTOR};
 pub use sequence::{Sequence, SequenceConfig, SequenceFrame};

@@ -218,10 +218,60 @@ pub struct SceneParams {
     pub ambient: f64,
     /// Diffuse light level.
     pub diffuse: f64,
+    /// Walks through the scene follow an open route along its length (world x, from the
+    /// low-x end towards the other) rather than a closed loop around the free area, so that a
+    /// walk shorter than the route never returns to a place. True in `hall` and `stairwell`
+    /// only (absent in older files).
+    #[serde(default)]
+    pub open_route: bool,
+    /// A straight flight of stairs across the whole width, climbing towards +x; the last
+    /// tread is an upper floor (a 0.2 m slab) that runs on to the far end wall. Only in
+    /// `stairwell`, which is made for the `stairs` walk: other camera paths there may cross
+    /// the steps (absent in older files).
+    #[serde(default)]
+    pub staircase: Option<Staircase>,
+}
+
+/// A straight flight of stairs across a scene's width, climbing towards world +x (metres).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Staircase {
+    /// World x of the first riser, metres.
+    pub first_riser_x: f64,
+    /// Number of risers; the top of the last one is the upper floor.
+    pub steps: usize,
+    /// Height of each riser, metres.
+    pub rise: f64,
+    /// Depth of each tread (horizontal distance between risers), metres.
+    pub run: f64,
+}
+
+impl Staircase {
+    /// Height of the walking surface at world `x`, metres above the ground floor (0 before
+    /// the first riser, `steps * rise` on the upper floor).
+    pub fn floor_height(&self, x: f64) -> f64 {
+        if x < self.first_riser_x || self.run <= 0.0 {
+            return 0.0;
+        }
+        let k = ((x - self.first_riser_x) / self.run).floor() as usize + 1;
+        k.min(self.steps) as f64 * self.rise
+    }
+
+    /// Total climb, metres.
+    pub fn height(&self) -> f64 {
+        self.steps as f64 * self.rise
+    }
 }
 
 /// Names of the built-in presets.
-pub const PRESETS: &[&str] = &["office", "kitchen", "corridor", "lab", "home"];
+pub const PRESETS: &[&str] = &[
+    "office",
+    "kitchen",
+    "corridor",
+    "lab",
+    "home",
+    "hall",
+    "stairwell",
+];
 
 impl SceneParams {
     /// The parameters of a named preset (see [`PRESETS`]).
@@ -244,6 +294,24 @@ impl SceneParams {
             to_light: [0.35, 0.25, 0.9],
             ambient: 0.5,
             diffuse: 0.45,
+            open_route: false,
+            staircase: None,
+        };
+        // A corridor long enough for a minute's walk along it, its doors, posters and
+        // furniture at the density of `corridor`.
+        let long = SceneParams {
+            layout: Layout::Corridor,
+            size: [80.0, 3.0, 2.7],
+            doors: 34,
+            windows: 9,
+            posters: 44,
+            style: FurnitureStyle::Corridor,
+            furniture_density: 0.35,
+            piles: 22,
+            items_per_metre: 1.0,
+            wall_band: 0.95,
+            open_route: true,
+            ..base.clone()
         };
         Ok(match name {
             "office" => base,
@@ -298,6 +366,27 @@ impl SceneParams {
                 wall_band: 1.2,
                 ..base
             },
+            // A straight walk of about 64 m (the default pace schedule for a minute) that
+            // never comes back.
+            "hall" => long,
+            // A hall with a flight of 12 risers of 0.17 m after 15 m; the treads are as deep
+            // as a 1.75 m walker's step at 1.5 steps/s (V = alpha f^beta H of Grieve), so the
+            // `stairs` walk puts one step on each. The ceiling leaves room above the upper
+            // floor.
+            "stairwell" => SceneParams {
+                size: [70.0, 3.0, 5.0],
+                doors: 26,
+                windows: 7,
+                posters: 36,
+                piles: 16,
+                staircase: Some(Staircase {
+                    first_riser_x: 16.5,
+                    steps: 12,
+                    rise: 0.17,
+                    run: 0.69,
+                }),
+                ..long
+            },
             _ => {
                 return Err(SynthError::UnknownPreset {
                     name: name.to_string(),
@@ -329,6 +418,26 @@ impl SceneParams {
                     self.wall_band
                 ),
             });
+        }
+        if let Some(st) = self.staircase {
+            let ok = st.steps >= 1
+                && st.rise.is_finite()
+                && st.rise > 0.0
+                && st.run.is_finite()
+                && st.run > 0.0
+                && st.first_riser_x.is_finite()
+                && st.first_riser_x > 0.5
+                && st.first_riser_x + st.steps as f64 * st.run < x - 0.5
+                && st.height() + 2.1 <= z;
+            if !ok {
+                return Err(SynthError::InvalidParameter {
+                    name: "staircase",
+                    why: format!(
+                        "{st:?}: need steps >= 1, rise and run > 0, the flight inside the \
+                         {x} m length and 2.1 m of headroom above its top in the {z} m height"
+                    ),
+                });
+            }
         }
         if self.pile_items.0 > self.pile_items.1 || self.pile_items.1 > 64 {
             return Err(SynthError::InvalidParameter {
@@ -902,6 +1011,60 @@ impl<'a> Generator<'a> {
             let c = wall.point(u, d, 0.0);
             self.soft(c);
         }
+        if let Some(st) = self.p.staircase {
+            self.staircase(&st);
+        }
+    }
+
+    /// Adds the flight of stairs to the structure (solid boxes across the width, then the
+    /// upper floor, a slab up to the far end wall) and stands the other objects on the
+    /// surface below them: lifted by the floor height under them, or left out where they
+    /// would straddle a riser.
+    fn staircase(&mut self, st: &Staircase) {
+        let [sx, sy, _] = self.p.size;
+        let mat = self.material(pattern::NOISE, 0.2, 0.03);
+        let mut steps = Vec::with_capacity(st.steps);
+        for k in 0..st.steps {
+            let x0 = st.first_riser_x + k as f64 * st.run;
+            let x1 = if k + 1 == st.steps { sx } else { x0 + st.run };
+            let h = (k + 1) as f64 * st.rise;
+            // The upper floor is a slab, leaving a low storey under it rather than a solid
+            // block that a camera placed at the scene's centre would sit inside.
+            let z0 = if k + 1 == st.steps {
+                (h - 0.2).max(0.0)
+            } else {
+                0.0
+            };
+            let mut p = Self::boxp(
+                DVec3::new(0.5 * (x0 + x1), 0.5 * sy, 0.5 * (z0 + h)),
+                DVec3::new(0.5 * (x1 - x0), 0.5 * sy, 0.5 * (h - z0)),
+                DMat3::IDENTITY,
+                mat,
+            );
+            p.world_texture = true;
+            steps.push(p);
+        }
+        let mut kept = Vec::with_capacity(self.objects.len());
+        for mut o in std::mem::take(&mut self.objects) {
+            if o.kind == ObjectKind::Structure {
+                o.prims.extend(steps.iter().copied());
+                kept.push(o);
+                continue;
+            }
+            let (lo, hi) = o.prims.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+                let b = p.aabb();
+                (lo.min(b.min[0]), hi.max(b.max[0]))
+            });
+            let (z0, z1) = (st.floor_height(lo), st.floor_height(hi));
+            if z0 != z1 {
+                continue;
+            }
+            for p in &mut o.prims {
+                p.center.z += z0;
+            }
+            kept.push(o);
+        }
+        self.objects = kept;
     }
 
     /// One piece of furniture of the style at wall position `u` of width `w`.

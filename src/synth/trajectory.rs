@@ -119,6 +119,11 @@ pub struct WalkingParams {
     /// Stairs: `(start time s, number of steps, rise per step m)`; the person climbs one
     /// riser per step from the start time on.
     pub stairs: Option<(f64, usize, f64)>,
+    /// Peak vertical oscillation at the stride frequency (half the step frequency) while
+    /// climbing the stairs, metres: the legs lift the body unequally from one riser to the
+    /// next. 0 = both legs alike (absent in older files).
+    #[serde(default)]
+    pub stride_bob: f64,
 }
 
 impl Default for WalkingParams {
@@ -150,6 +155,7 @@ impl Default for WalkingParams {
             bob_amplitude: 0.025,
             sway_amplitude: 0.02,
             stairs: None,
+            stride_bob: 0.0,
         }
     }
 }
@@ -516,14 +522,51 @@ impl Trajectory {
                     },
                     ..WalkingParams::default()
                 };
+                let staircase = scene.params().staircase;
                 if kind == TrajectoryKind::Stairs {
                     params.stairs = Some((duration * 0.3, 12, 0.17));
+                    // On a scene's staircase the pace puts one step on each tread:
+                    // alpha f^beta H / f = run.
+                    let frequency = match staircase {
+                        Some(st) if params.beta > 1.0 => (st.run / (params.alpha * params.height))
+                            .powf(1.0 / (params.beta - 1.0)),
+                        _ => 1.5,
+                    };
                     params.schedule = vec![PaceSegment {
                         duration: 1e9,
-                        frequency: 1.5,
+                        frequency,
                     }];
                 }
-                return Ok(Trajectory::walking(scene, params, duration, seed));
+                let traj = Trajectory::walking(scene, params, duration, seed);
+                if let Motion::Walk { path, table, .. } = &traj.motion {
+                    let end = table.last().map_or(0.0, |e| e.0);
+                    if scene.params().open_route && end > path.length() {
+                        return Err(SynthError::InvalidParameter {
+                            name: "duration",
+                            why: format!(
+                                "a {duration} s walk covers {end:.1} m, longer than the {:.1} m \
+                                 route through `{}`",
+                                path.length(),
+                                scene.params().name
+                            ),
+                        });
+                    }
+                    let reach = path.at_length(end)[0];
+                    if let Some(st) = staircase.filter(|_| kind != TrajectoryKind::Stairs) {
+                        if reach > st.first_riser_x - 0.5 {
+                            return Err(SynthError::InvalidParameter {
+                                name: "trajectory",
+                                why: format!(
+                                    "a {duration} s walk reaches the staircase of `{}` at x = \
+                                     {:.1} m; only the `stairs` trajectory climbs it",
+                                    scene.params().name,
+                                    st.first_riser_x
+                                ),
+                            });
+                        }
+                    }
+                }
+                return Ok(traj);
             }
             TrajectoryKind::Robot => {
                 let pts = ellipse_points(&area, 6, 0.8, &mut rng, (0.4, 0.4), false);
@@ -543,11 +586,37 @@ impl Trajectory {
 
     /// A walking trajectory with explicit parameters (head or chest mount, schedule, stairs)
     /// along a closed path around the free area.
-    pub fn walking(scene: &Scene, params: WalkingParams, duration: f64, seed: u64) -> Trajectory {
+    /// ([`crate::synth::SceneParams::open_route`]: along the scene's length instead). On a
+    /// scene with a staircase, `params.stairs` keeps only its presence: the climb starts when
+    /// the walker is half a tread before the first riser, with the scene's risers.
+    pub fn walking(
+        scene: &Scene,
+        mut params: WalkingParams,
+        duration: f64,
+        seed: u64,
+    ) -> Trajectory {
         let area = scene.free_area();
         let mut rng = Pcg64::seed_from_u64(seed ^ 0x3a1c_0000_0000_0003);
-        let pts = ellipse_points(&area, 8, 0.85, &mut rng, (0.0, 0.0), false);
-        let path = Spline::new(pts, true);
+        let open = scene.params().open_route;
+        let path = if open {
+            // Straight along x with a gentle weave across the free width, so the heading is
+            // not constant.
+            let c = area.center();
+            let amp = (0.4 * area.extent().y).min(0.3);
+            let phase = rng.random_range(0.0..TAU);
+            let (x0, x1) = (area.min.x + 0.3, area.max.x - 0.3);
+            let n = ((x1 - x0) / 4.0).ceil().max(1.0) as usize;
+            let pts = (0..=n)
+                .map(|k| {
+                    let x = x0 + (x1 - x0) * k as f64 / n as f64;
+                    [x, c.y + amp * (TAU * x / 14.0 + phase).sin(), 0.0, 0.0, 0.0]
+                })
+                .collect();
+            Spline::new(pts, false)
+        } else {
+            let pts = ellipse_points(&area, 8, 0.85, &mut rng, (0.0, 0.0), false);
+            Spline::new(pts, true)
+        };
         // Integrate distance and step phase on a fine grid.
         let dt = 1e-3;
         let n = (duration.max(0.0) / dt).ceil() as usize + 2;
@@ -558,10 +627,14 @@ impl Trajectory {
         let bend = |s: f64| {
             ((path.heading_at(s + 0.5) - path.heading_at(s - 0.5) + PI).rem_euclid(TAU) - PI).abs()
         };
-        let start = (0..(len / 0.1).ceil().max(1.0) as usize)
-            .map(|k| k as f64 * 0.1)
-            .min_by(|a, b| bend(*a).total_cmp(&bend(*b)))
-            .unwrap_or(0.0);
+        let start = if open {
+            0.0
+        } else {
+            (0..(len / 0.1).ceil().max(1.0) as usize)
+                .map(|k| k as f64 * 0.1)
+                .min_by(|a, b| bend(*a).total_cmp(&bend(*b)))
+                .unwrap_or(0.0)
+        };
         let (mut s, mut phase) = (start, 0.0);
         let mut heading = path.heading_at(start);
         for i in 0..n {
@@ -575,6 +648,14 @@ impl Trajectory {
             // by up to 180 degrees within a few centimetres.
             let turn = (path.heading_at(s) - heading + PI).rem_euclid(TAU) - PI;
             heading += turn.clamp(-MAX_TURN_RATE * dt, MAX_TURN_RATE * dt);
+        }
+        if let (Some(st), Some(_)) = (scene.params().staircase, params.stairs) {
+            let x = st.first_riser_x - 0.5 * st.run;
+            let i = table
+                .iter()
+                .position(|e| path.at_length(e.0)[0] >= x)
+                .unwrap_or(table.len());
+            params.stairs = Some((i as f64 * dt, st.steps, st.rise));
         }
         let head = [
             Jitter::new(&mut rng, 0.25, &[0.07, 0.13]),
@@ -692,6 +773,9 @@ impl Trajectory {
                         let k = climbed.floor();
                         let frac = climbed - k;
                         z += rise * (k + 0.5 - 0.5 * (PI * frac).cos());
+                        if climbed < steps as f64 {
+                            z += params.stride_bob * (PI * climbed).sin();
+                        }
                     }
                 }
                 let roll = 0.02 * walking * (PI * phase).sin();
@@ -727,6 +811,44 @@ mod tests {
         let p = camera_pose(DVec3::ZERO, PI / 2.0, 0.3, 0.0);
         let f = p.transform_vector(DVec3::Z);
         assert!((f - DVec3::new(0.0, 0.3f64.cos(), 0.3f64.sin())).length() < 1e-12);
+    }
+
+    #[test]
+    fn hall_walk_never_returns_and_stairwell_walk_climbs_the_treads() {
+        let hall = Scene::preset("hall", 7).unwrap();
+        let t = Trajectory::new(TrajectoryKind::WalkHead, &hall, 60.0, 7).unwrap();
+        let pos: Vec<DVec3> = (0..=600)
+            .map(|i| t.pose_at(i as f64 * 0.1).translation)
+            .collect();
+        assert!(t.walking_state(60.0).unwrap().0 > 60.0);
+        for (i, a) in pos.iter().enumerate() {
+            for b in pos.iter().skip(i + 100) {
+                assert!(
+                    (a.truncate() - b.truncate()).length() > 2.0,
+                    "the hall walk comes back to {a} 10 s or more later"
+                );
+            }
+        }
+        // Longer than the route, or a flat walk into the stairs: refused.
+        assert!(Trajectory::new(TrajectoryKind::WalkHead, &hall, 100.0, 7).is_err());
+        let well = Scene::preset("stairwell", 7).unwrap();
+        let st = well.params().staircase.unwrap();
+        assert!(Trajectory::new(TrajectoryKind::WalkHead, &well, 60.0, 7).is_err());
+        let t = Trajectory::new(TrajectoryKind::Stairs, &well, 60.0, 7).unwrap();
+        // The eye stays at its height over the tread under it, within half a riser (where the
+        // foot is between two treads) and the bob.
+        let eye = 0.93 * WalkingParams::default().height;
+        let mut worst = 0.0f64;
+        for i in 0..=600 {
+            let p = t.pose_at(i as f64 * 0.1).translation;
+            worst = worst.max((p.z - st.floor_height(p.x) - eye).abs());
+        }
+        assert!(
+            worst < 0.5 * st.rise + 0.05,
+            "eye off the treads by {worst} m"
+        );
+        let end = t.pose_at(60.0).translation;
+        assert!((end.z - eye - st.height()).abs() < 0.05, "{end}");
     }
 
     #[test]
