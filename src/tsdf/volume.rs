@@ -969,39 +969,8 @@ mod tests {
         let Some(ctx) = test_gpu("gpu_tsdf_integration_matches_the_cpu_mirror") else {
             return;
         };
-        let cam = PinholeCamera::new(131.25, 131.25, 79.5, 59.5, 160, 120);
-        let scene = Arc::new(Scene::preset("office", 2).unwrap_or_else(|e| panic!("{e}")));
-        let traj = Trajectory::new(TrajectoryKind::Handheld, &scene, 1.0, 2)
-            .unwrap_or_else(|e| panic!("{e}"));
-        let config = SequenceConfig {
-            frames: 6,
-            seed: 2,
-            ..Default::default()
-        };
-        let seq = Sequence::new(
-            scene,
-            CameraModel::Pinhole(cam),
-            traj,
-            config,
-            &RenderBackend::Cpu,
-        )
-        .unwrap_or_else(|e| panic!("{e}"));
-        let params = TsdfParams {
-            voxel_size: 0.02,
-            ..Default::default()
-        };
-        let mut cpu =
-            TsdfVolume::new(params, cam, &ComputeBackend::Cpu).unwrap_or_else(|e| panic!("{e}"));
-        let mut gpu = TsdfVolume::new(params, cam, &ComputeBackend::Gpu(ctx))
-            .unwrap_or_else(|e| panic!("{e}"));
-        for f in seq {
-            let f = f.unwrap_or_else(|e| panic!("{e}"));
-            let frame = f.frame.to_rgbd_frame(f.timestamp);
-            cpu.integrate(&frame, &f.world_from_camera)
-                .unwrap_or_else(|e| panic!("{e}"));
-            gpu.integrate(&frame, &f.world_from_camera)
-                .unwrap_or_else(|e| panic!("{e}"));
-        }
+        let (cpu, _) = office_volume(&ComputeBackend::Cpu);
+        let (gpu, _) = office_volume(&ComputeBackend::Gpu(ctx));
         assert_eq!(cpu.block_count(), gpu.block_count());
         let a = cpu.kernels.voxels().unwrap_or_else(|e| panic!("{e}"));
         let b = gpu.kernels.voxels().unwrap_or_else(|e| panic!("{e}"));
