@@ -49,10 +49,12 @@ fn presets_render_with_depth_and_texture_everywhere() {
             let n = f.inverse_depth.data().len() as f64;
             let valid = f.inverse_depth.data().iter().filter(|d| **d > 0.0).count() as f64 / n;
             // Known gap: looking along the length of the long open-route presets (`hall`,
-            // `stairwell`) part of the view finds no surface; the cause is not found yet.
+            // `stairwell`) part of the view finds no surface; the cause is not found yet, so
+            // those views are held to a lower floor.
             let along = scene.params().open_route && k % 2 == 0;
+            let floor = if along { 0.9 } else { 0.97 };
             assert!(
-                valid > 0.97 || along,
+                valid > floor,
                 "{name} view {k}: only {valid:.3} of pixels have depth"
             );
             // Gradients: fraction of interior pixels with a noticeable intensity gradient.
