@@ -326,16 +326,7 @@ fn run_mesh_experiment(a: &MeshExperimentArgs) -> Result<()> {
         report.pairs, report.pairs_with_changes
     );
     print_matching(&report.matching);
-    for c in &report.cluttered_views {
-        println!(
-            "\nViews of moved clutter: the {} frame pairs in which changed objects carry >= {:.0} % of the unmasked matches:",
-            c.pairs,
-            100.0 * c.min_changed_share
-        );
-        if c.pairs > 0 {
-            print_matching(&c.matching);
-        }
-    }
+    print_cluttered(&report.cluttered_views);
     println!(
         "\nmedian per session: render + integrate {:.1} s, mesh {:.1} s, segmentation {:.1} s, ground truth {:.1} s; {:.0} s in all",
         report.integrate_s, report.extract_s, report.segment_s, report.ground_truth_s, wall_s
@@ -410,16 +401,7 @@ fn run_experiment(a: &ExperimentArgs) -> Result<()> {
     }
     println!("\nMatching session 0 against changed sessions (RANSAC-verified matches):");
     print_matching(&report.matching);
-    for c in &report.cluttered_views {
-        println!(
-            "\nViews of moved clutter: the {} frame pairs in which changed objects carry >= {:.0} % of the unmasked matches:",
-            c.pairs,
-            100.0 * c.min_changed_share
-        );
-        if c.pairs > 0 {
-            print_matching(&c.matching);
-        }
-    }
+    print_cluttered(&report.cluttered_views);
     println!(
         "\nmedian per frame: segmentation {:.1} ms, ORB {:.1} ms ({}x{})",
         report.segment_ms,
@@ -566,6 +548,20 @@ fn run_segment(args: &RunArgs) -> Result<()> {
 }
 
 /// Prints matching rows as a Markdown table (header included).
+/// The matching tables over the views of moved clutter, one per share of changed matches.
+fn print_cluttered(views: &[rgbid::experiments::segment::ClutteredViews]) {
+    for c in views {
+        println!(
+            "\nViews of moved clutter: the {} frame pairs in which changed objects carry >= {:.0} % of the unmasked matches:",
+            c.pairs,
+            100.0 * c.min_changed_share
+        );
+        if c.pairs > 0 {
+            print_matching(&c.matching);
+        }
+    }
+}
+
 fn print_matching(rows: &[rgbid::experiments::segment::MatchingRow]) {
     println!(
         "| neg-entropy mask | kept keypoints | matches | on changed objects | verified | inlier ratio | correct | precision | recall | pairs with pose ok |"

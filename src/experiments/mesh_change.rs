@@ -47,8 +47,8 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::segment::{
-    match_pair, median, summarise, ClutteredViews, ExperimentError, MatchingRow, Prepared, RowAcc,
-    Verify,
+    check_capture, match_pair, median, summarise, ClutteredViews, ExperimentError, MatchingRow,
+    Prepared, RowAcc, Verify,
 };
 use crate::camera::PinholeCamera;
 use crate::gpu::ComputeBackend;
@@ -150,15 +150,14 @@ impl MeshChangeConfig {
     /// Checks the parameters.
     pub fn validate(&self) -> Result<(), ExperimentError> {
         let bad = |s: &str| Err(ExperimentError::Invalid(s.into()));
-        if self.scenes.is_empty() || self.seeds.is_empty() {
-            return bad("at least one scene and one seed are needed");
-        }
-        if self.sessions == 0 {
-            return bad("sessions must be >= 1 (session 0 is the reference)");
-        }
-        if self.step == 0 || self.lap_frames <= self.offset {
-            return bad("step must be >= 1 and lap_frames > offset");
-        }
+        check_capture(
+            &self.scenes,
+            &self.seeds,
+            self.sessions,
+            self.step,
+            self.lap_frames,
+            self.offset,
+        )?;
         if !(self.change_distance.is_finite() && self.change_distance > 0.0) {
             return bad("change_distance must be finite and > 0 (metres)");
         }

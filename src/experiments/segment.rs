@@ -143,15 +143,14 @@ impl ChangeExperimentConfig {
     /// Checks the parameters.
     pub fn validate(&self) -> Result<(), ExperimentError> {
         let bad = |s: &str| Err(ExperimentError::Invalid(s.into()));
-        if self.scenes.is_empty() || self.seeds.is_empty() {
-            return bad("at least one scene and one seed are needed");
-        }
-        if self.sessions == 0 {
-            return bad("sessions must be >= 1 (session 0 is the reference)");
-        }
-        if self.step == 0 || self.lap_frames <= self.offset {
-            return bad("step must be >= 1 and lap_frames > offset");
-        }
+        check_capture(
+            &self.scenes,
+            &self.seeds,
+            self.sessions,
+            self.step,
+            self.lap_frames,
+            self.offset,
+        )?;
         if !(0.0..=1.0).contains(&self.static_fraction)
             || !(0.0..=1.0).contains(&self.changed_fraction)
             || self.static_fraction >= self.changed_fraction
@@ -164,6 +163,29 @@ impl ChangeExperimentConfig {
         self.segment.validate()?;
         Ok(())
     }
+}
+
+/// The checks both changed-scene experiments make of their captures: scenes and seeds given,
+/// at least one changed session, a frame step of at least 1 and pairs inside the lap.
+pub(crate) fn check_capture(
+    scenes: &[String],
+    seeds: &[u64],
+    sessions: u32,
+    step: usize,
+    lap_frames: usize,
+    offset: usize,
+) -> Result<(), ExperimentError> {
+    let bad = |s: &str| Err(ExperimentError::Invalid(s.into()));
+    if scenes.is_empty() || seeds.is_empty() {
+        return bad("at least one scene and one seed are needed");
+    }
+    if sessions == 0 {
+        return bad("sessions must be >= 1 (session 0 is the reference)");
+    }
+    if step == 0 || lap_frames <= offset {
+        return bad("step must be >= 1 and lap_frames > offset");
+    }
+    Ok(())
 }
 
 /// ROC AUC of one superjut feature (higher value taken to mean "static").
