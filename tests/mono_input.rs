@@ -289,3 +289,136 @@ fn cli_runs_on_an_euroc_folder_with_its_sensor_yaml() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("sensor.yaml"));
 }
+
+/// A folder of `frames` generated pinhole images named by their time stamps, its camera file
+/// and the names of the images in order.
+fn pinhole_folder(dir: &Path, frames: usize) -> (std::path::PathBuf, Vec<std::path::PathBuf>) {
+    let spec = SyntheticSpec::new(SyntheticCamera::Pinhole, 320, 240, frames);
+    let r = render(&spec).expect("render");
+    let seq = dir.join("seq");
+    std::fs::create_dir_all(&seq).unwrap();
+    let mut names = Vec::new();
+    for (t, img) in &r.images {
+        let p = seq.join(format!("{t:.6}.png"));
+        save_grey(&p, img);
+        names.push(p);
+    }
+    let c = r.camera;
+    let cam_file = dir.join("camera.txt");
+    std::fs::write(
+        &cam_file,
+        format!(
+            "{} {} {} {} {} {}\n",
+            c.xi, c.gamma, c.cx, c.cy, c.width, c.height
+        ),
+    )
+    .unwrap();
+    (cam_file, names)
+}
+
+/// Unreadable frames: one is skipped and counted (exit code 3, every other frame has its
+/// pose); when most frames are unreadable the run stops with an error (exit code 1) that
+/// says where the poses of the frames before it went, and those poses are written.
+#[test]
+fn mono_skips_a_bad_frame_and_keeps_the_poses_before_a_fatal_one() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (cam_file, names) = pinhole_folder(tmp.path(), 45);
+    let seq = tmp.path().join("seq");
+    let out = tmp.path().join("traj.txt");
+    let exe = env!("CARGO_BIN_EXE_rgbid");
+    let run = || {
+        Command::new(exe)
+            .args(["mono", seq.to_str().unwrap(), "--camera"])
+            .arg(&cam_file)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    std::fs::write(&names[10], b"not a png").unwrap();
+    let o = run();
+    let all = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_eq!(o.status.code(), Some(3), "{all}");
+    assert!(all.contains("1 frames skipped"), "{all}");
+    let bad = names[10]
+        .file_name()
+        .unwrap()
+        .to_string_lossy()
+        .into_owned();
+    assert!(all.contains(&bad), "{all}");
+    assert_eq!(read_tum(&out).unwrap().len(), 44);
+
+    for name in &names[20..] {
+        std::fs::write(name, b"not a png").unwrap();
+    }
+    let o = run();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("could not be used"), "{stderr}");
+    assert!(
+        stderr.contains("frames processed before the error are in"),
+        "{stderr}"
+    );
+    // Frames 0-19 but the damaged frame 10.
+    assert_eq!(read_tum(&out).unwrap().len(), 19);
+}
+
+/// `rgbid mono --walker-height` checkpoints the filter's trajectory while it runs, and on
+/// SIGINT stops reading frames, writes its outputs and exits with code 130.
+#[test]
+fn interrupted_mono_keeps_the_trajectory_so_far() {
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("t.txt");
+    let unscaled = tmp.path().join("t_unscaled.txt");
+    let frames = 900;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rgbid"))
+        .args([
+            "mono",
+            "--synthetic",
+            "pinhole",
+            "--width",
+            "160",
+            "--height",
+            "120",
+        ])
+        .args(["--frames", &frames.to_string(), "--walker-height", "1.75"])
+        .args(["--checkpoint-every", "0.2", "--out"])
+        .arg(&out)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    while !std::fs::metadata(&unscaled).is_ok_and(|m| m.len() > 0) {
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "no checkpoint written"
+        );
+        assert!(child.try_wait().unwrap().is_none(), "exited early");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let checkpoint = read_tum(&unscaled).expect("a checkpoint parses");
+    assert!(!checkpoint.is_empty());
+    let kill = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{stderr}");
+    assert!(stderr.contains("interrupted"), "{stderr}");
+    let kept = read_tum(&unscaled).unwrap();
+    assert!(
+        kept.len() >= checkpoint.len() && kept.len() < frames,
+        "{} poses",
+        kept.len()
+    );
+}

@@ -167,6 +167,116 @@ pub struct Args {
     /// mode; prints the share within 1 / 2 pixels of the truth per step.
     #[arg(long, conflicts_with_all = ["table21", "loops", "walker_height"])]
     patch_sweeps: Option<PathBuf>,
+    /// Seconds of input (frame time stamps) between checkpoints on a sequence folder: with
+    /// --out, the trajectory so far (the --out file; with --walker-height NAME_unscaled.txt
+    /// and NAME_causal.txt) is replaced atomically, so a run killed later leaves it readable.
+    /// Ctrl-C (or SIGTERM) stops reading frames and writes every output; a second one exits
+    /// at once with the last checkpoint's files; > 0 [default: 5].
+    #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = super::outputs::CHECKPOINT_EVERY_S)]
+    checkpoint_every: f64,
+}
+
+/// A frame loop over a sequence that keeps what it computed whatever stops it: an unreadable
+/// frame is skipped and counted (when most frames are, the run stops), Ctrl-C stops reading,
+/// and an error of the filter stops the run; in each case the frames processed so far have
+/// their outputs written before the cause is returned (see [`FrameLoop::end`]).
+struct FrameLoop {
+    stop: super::outputs::Stop,
+    skips: super::outputs::Skips,
+    checkpoints: super::outputs::Checkpoints,
+    error: Option<anyhow::Error>,
+    interrupted: bool,
+    processed: usize,
+}
+
+impl FrameLoop {
+    fn new(args: &Args) -> Result<Self> {
+        Ok(FrameLoop {
+            stop: super::outputs::Stop::install(|| {})?,
+            skips: super::outputs::Skips::default(),
+            checkpoints: super::outputs::Checkpoints::new(args.checkpoint_every),
+            error: None,
+            interrupted: false,
+            processed: 0,
+        })
+    }
+
+    /// The next usable frame `(index, time stamp, image)`, or `None` when the input ended,
+    /// a stop was asked for, or too many frames could not be read.
+    fn next<I>(&mut self, frames: &mut I, bar: &ProgressBar) -> Option<(usize, f64, ImageF32)>
+    where
+        I: Iterator<Item = (usize, Result<(f64, ImageF32), rgbid::mono::MonoError>)>,
+    {
+        if self.error.is_some() {
+            return None;
+        }
+        for (i, frame) in frames.by_ref() {
+            if self.stop.requested() {
+                self.interrupted = true;
+                return None;
+            }
+            match frame {
+                Ok((t, img)) => return Some((i, t, img)),
+                Err(e) => {
+                    bar.inc(1);
+                    if let Some(fatal) = self.skips.skip(i, e.into()) {
+                        self.error = Some(fatal);
+                        return None;
+                    }
+                }
+            }
+        }
+        None
+    }
+
+    /// Frame `i` (time stamp `t`, seconds) was processed; whether a checkpoint is due.
+    fn done(&mut self, t: f64, bar: &ProgressBar) -> bool {
+        self.processed += 1;
+        bar.inc(1);
+        self.checkpoints.due(t)
+    }
+
+    /// The filter failed on frame `i` (time stamp `t`): the run stops there.
+    fn failed(&mut self, i: usize, t: f64, e: rgbid::mono::MonoError) {
+        self.error = Some(anyhow::Error::new(e).context(format!("frame {i} ({t:.3} s)")));
+    }
+
+    /// Writes a checkpoint; a failure keeps the previous one and is logged, not fatal.
+    fn checkpoint(files: &[(PathBuf, &[TimedPose])]) {
+        for (path, poses) in files {
+            if let Err(e) = write_tum(path, poses) {
+                log::warn!(
+                    "checkpoint of {} failed (its previous checkpoint is kept): {e}",
+                    path.display()
+                );
+            }
+        }
+    }
+
+    /// After every output was written: the error that stopped the run (saying where the
+    /// frames before it went), the interruption (exit code 130), or `warnings` with the
+    /// skipped frames' warning (exit code 3 when there are any).
+    fn end(self, out: Option<&Path>, mut warnings: Vec<String>) -> Result<()> {
+        if let Some(e) = self.error {
+            return Err(match out {
+                Some(o) if self.processed > 0 => e.context(format!(
+                    "the {} frames processed before the error are in {} (and the files \
+                     beside it)",
+                    self.processed,
+                    o.display()
+                )),
+                _ => e,
+            });
+        }
+        if self.interrupted {
+            return Err(super::outcome::Interrupted {
+                out: out.map(Path::to_path_buf),
+            }
+            .into());
+        }
+        warnings.extend(self.skips.warning());
+        super::outcome::warnings(warnings)
+    }
 }
 
 fn progress(len: usize, what: &str) -> ProgressBar {
@@ -292,7 +402,7 @@ pub fn run(args: Args) -> Result<()> {
         } else {
             None
         };
-        let frames = (0..seq.len()).map_while(|i| seq.load(i));
+        let frames = (0..seq.len()).map_while(|i| seq.load(i).map(|f| (i, f)));
         return metric(
             &args,
             camera,
@@ -304,29 +414,38 @@ pub fn run(args: Args) -> Result<()> {
         );
     }
     if args.loops {
-        let frames = (0..seq.len()).map_while(|i| seq.load(i));
+        let frames = (0..seq.len()).map_while(|i| seq.load(i).map(|f| (i, f)));
         return loops_on_sequence(&args, camera, &cfg, seq.len(), frames);
     }
     let mut slam = MonoSlam::new(camera, cfg.clone())?;
     let bar = progress(seq.len(), "mono");
     let mut reports = Vec::with_capacity(seq.len());
+    let mut estimate: Vec<TimedPose> = Vec::with_capacity(seq.len());
     let mut load_ms = Vec::with_capacity(seq.len());
-    for i in 0..seq.len() {
-        let t0 = Instant::now();
-        let Some(frame) = seq.load(i) else { break };
-        let (t, img) = frame?;
+    let mut run = FrameLoop::new(&args)?;
+    let mut t0 = Instant::now();
+    let mut frames = (0..seq.len()).map_while(|i| seq.load(i).map(|f| (i, f)));
+    while let Some((i, t, img)) = run.next(&mut frames, &bar) {
         load_ms.push(t0.elapsed().as_secs_f64() * 1e3);
-        reports.push(slam.process(t, &img)?);
-        bar.inc(1);
+        match slam.process(t, &img) {
+            Ok(r) => {
+                estimate.push(TimedPose {
+                    timestamp: r.timestamp,
+                    world_from_camera: r.world_from_camera,
+                });
+                reports.push(r);
+            }
+            Err(e) => {
+                run.failed(i, t, e);
+                break;
+            }
+        }
+        if let (true, Some(out)) = (run.done(t, &bar), &args.out) {
+            FrameLoop::checkpoint(&[(out.clone(), &estimate)]);
+        }
+        t0 = Instant::now();
     }
     bar.finish_and_clear();
-    let estimate: Vec<TimedPose> = reports
-        .iter()
-        .map(|r| TimedPose {
-            timestamp: r.timestamp,
-            world_from_camera: r.world_from_camera,
-        })
-        .collect();
     if let Some(out) = &args.out {
         write_tum(out, &estimate)?;
         write_sidecar(out, &cfg, &ComputeBackend::Cpu)?;
@@ -353,7 +472,7 @@ pub fn run(args: Args) -> Result<()> {
     if args.bench {
         print_bench(&reports, Some(&mut load_ms));
     }
-    Ok(())
+    run.end(args.out.as_deref(), Vec::new())
 }
 
 fn summary(reports: &[FrameReport], slam: &MonoSlam, mode: PatchMode) {
@@ -426,7 +545,11 @@ fn synthetic(args: &Args, kind: SynthArg) -> Result<()> {
     );
     let cfg = config(args, &frames.camera)?;
     if let Some(height) = args.walker_height {
-        let images = frames.images.iter().map(|(t, img)| Ok((*t, img.clone())));
+        let images = frames
+            .images
+            .iter()
+            .enumerate()
+            .map(|(i, (t, img))| (i, Ok((*t, img.clone()))));
         return metric(
             args,
             frames.camera,
@@ -605,7 +728,7 @@ fn metric<I>(
     gt: Option<&[TimedPose]>,
 ) -> Result<()>
 where
-    I: Iterator<Item = Result<(f64, ImageF32), rgbid::mono::MonoError>>,
+    I: Iterator<Item = (usize, Result<(f64, ImageF32), rgbid::mono::MonoError>)>,
 {
     let scale_cfg = DynScaleConfig {
         model: WalkingModel {
@@ -634,9 +757,16 @@ where
     let (mut ekf_ms, mut scale_ms) = (Vec::with_capacity(len), Vec::with_capacity(len));
     let mut keyframe_ms = Vec::new();
     let mut first_scaled = None;
-    for frame in frames {
-        let (t, img) = frame?;
-        let r = system.process(t, &img)?;
+    let mut frame_loop = FrameLoop::new(args)?;
+    let mut frames = frames;
+    while let Some((i, t, img)) = frame_loop.next(&mut frames, &bar) {
+        let r = match system.process(t, &img) {
+            Ok(r) => r,
+            Err(e) => {
+                frame_loop.failed(i, t, e);
+                break;
+            }
+        };
         ekf_ms.push(r.report.times.total());
         scale_ms.push(r.scale_ms);
         if r.keyframe.is_some() {
@@ -645,7 +775,12 @@ where
         if first_scaled.is_none() && r.metric.is_some() {
             first_scaled = Some(t);
         }
-        bar.inc(1);
+        if let (true, Some(out)) = (frame_loop.done(t, &bar), &args.out) {
+            FrameLoop::checkpoint(&[
+                (beside(out, "unscaled"), system.unscaled()),
+                (beside(out, "causal"), system.causal()),
+            ]);
+        }
     }
     bar.finish_and_clear();
     let run = system.finish();
@@ -845,7 +980,7 @@ where
             &report,
         )?;
     }
-    super::outcome::warnings(warnings)
+    frame_loop.end(args.out.as_deref(), warnings)
 }
 
 fn path_length(p: &[TimedPose]) -> f64 {
@@ -873,7 +1008,7 @@ fn loops_on_sequence(
     camera: UnifiedCamera,
     cfg: &MonoConfig,
     len: usize,
-    frames: impl Iterator<Item = Result<(f64, ImageF32), rgbid::mono::MonoError>>,
+    mut frames: impl Iterator<Item = (usize, Result<(f64, ImageF32), rgbid::mono::MonoError>)>,
 ) -> Result<()> {
     let params = loop_params(args)?;
     let slam = MonoSlam::new(camera, cfg.clone())?;
@@ -881,15 +1016,23 @@ fn loops_on_sequence(
     let bar = progress(len, "mono --loops");
     let mut queries = Vec::new();
     let mut estimate = Vec::with_capacity(len);
-    for frame in frames {
-        let (t, img) = frame?;
-        let r = sys.process(t, &img)?;
+    let mut run = FrameLoop::new(args)?;
+    while let Some((i, t, img)) = run.next(&mut frames, &bar) {
+        let r = match sys.process(t, &img) {
+            Ok(r) => r,
+            Err(e) => {
+                run.failed(i, t, e);
+                break;
+            }
+        };
         estimate.push(TimedPose {
             timestamp: t,
             world_from_camera: r.filter.world_from_camera,
         });
         queries.extend(r.keyframe);
-        bar.inc(1);
+        if let (true, Some(out)) = (run.done(t, &bar), &args.out) {
+            FrameLoop::checkpoint(&[(out.clone(), &estimate)]);
+        }
     }
     bar.finish_and_clear();
     if let Some(out) = &args.out {
@@ -923,7 +1066,7 @@ fn loops_on_sequence(
         });
         super::report::write(path, "mono-loops", &super::report::meta(Vec::new()), &doc)?;
     }
-    Ok(())
+    run.end(args.out.as_deref(), Vec::new())
 }
 
 /// `--loops --synthetic`: loops scored against the ground truth.

@@ -424,7 +424,10 @@ pub fn run(args: Args) -> Result<()> {
     outcome?;
     written?;
     if interrupted {
-        return Err(super::outcome::Interrupted { out: args.out }.into());
+        return Err(super::outcome::Interrupted {
+            out: Some(args.out),
+        }
+        .into());
     }
     super::outcome::warnings(summary.warnings)
 }

@@ -45,17 +45,20 @@ pub fn warnings(list: Vec<String>) -> anyhow::Result<()> {
 /// (exit code 130).
 #[derive(Debug)]
 pub struct Interrupted {
-    /// Where the partial outputs are.
-    pub out: PathBuf,
+    /// Where the partial outputs are (`None`: the command was given nowhere to write them).
+    pub out: Option<PathBuf>,
 }
 
 impl fmt::Display for Interrupted {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "interrupted; the outputs up to the interruption are in {}",
-            self.out.display()
-        )
+        match &self.out {
+            Some(out) => write!(
+                f,
+                "interrupted; the outputs up to the interruption are in {}",
+                out.display()
+            ),
+            None => write!(f, "interrupted; no output was asked for"),
+        }
     }
 }
 
@@ -148,7 +151,10 @@ mod tests {
     #[test]
     fn exit_codes_by_ending() {
         assert_eq!(exit_code(&Warnings(vec!["x".into()]).into()), WARNINGS);
-        let interrupted: anyhow::Error = Interrupted { out: "o".into() }.into();
+        let interrupted: anyhow::Error = Interrupted {
+            out: Some("o".into()),
+        }
+        .into();
         assert_eq!(exit_code(&interrupted.context("slam")), INTERRUPTED);
         assert_eq!(exit_code(&anyhow::anyhow!("x")), ERROR);
         assert!(warnings(vec![]).is_ok());

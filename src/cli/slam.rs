@@ -708,7 +708,10 @@ fn run_slam(
         });
     }
     if interrupted {
-        return Err(super::outcome::Interrupted { out: a.out.clone() }.into());
+        return Err(super::outcome::Interrupted {
+            out: Some(a.out.clone()),
+        }
+        .into());
     }
     super::outcome::warnings(warnings)
 }

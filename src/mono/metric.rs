@@ -186,6 +186,17 @@ impl MetricMono {
         &self.scale
     }
 
+    /// The EKF's trajectory so far (SLAM units, `world_from_camera`, filter world = first
+    /// camera).
+    pub fn unscaled(&self) -> &[TimedPose] {
+        &self.unscaled
+    }
+
+    /// The causal metric pose of every frame so far that had a scale (metres).
+    pub fn causal(&self) -> &[TimedPose] {
+        &self.causal
+    }
+
     /// Processes one grey image (intensity in `[0, 255]`) taken at `timestamp` seconds
     /// (strictly increasing).
     pub fn process(&mut self, timestamp: f64, image: &ImageF32) -> Result<MetricReport, MonoError> {
