@@ -20,7 +20,9 @@ pub const DEPTH_FACTOR: f64 = 5000.0;
 pub struct SensorModel {
     /// Closest valid depth, metres.
     pub min_range: f64,
-    /// Farthest valid depth, metres.
+    /// Farthest valid depth, metres. Depth is stored as 16-bit TUM values
+    /// ([`DEPTH_FACTOR`] per metre), so nothing beyond 65535 / `DEPTH_FACTOR` metres (13.1 m)
+    /// has depth whatever this is.
     pub max_range: f64,
     /// Projector-camera baseline, metres (disparity = focal * baseline / depth).
     pub baseline: f64,
@@ -65,8 +67,8 @@ impl SensorModel {
         }
     }
 
-    /// No noise and no dropout: depth wherever a surface is hit between 0.05 and 100 m
-    /// (only the 16-bit / 8-bit storage quantisation remains).
+    /// No noise and no dropout: depth wherever a surface is hit between 0.05 m and the 16-bit
+    /// storage's 13.1 m (only the 16-bit / 8-bit storage quantisation remains).
     pub fn noiseless() -> Self {
         SensorModel {
             min_range: 0.05,
