@@ -19,6 +19,18 @@ fn save_grey(path: &Path, img: &ImageF32) {
     g.save(path).expect("save png");
 }
 
+/// Writes `camera` as a one-line camera file (`xi gamma cx cy width height`).
+fn write_camera_line(path: &Path, c: &UnifiedCamera) {
+    std::fs::write(
+        path,
+        format!(
+            "{} {} {} {} {} {}\n",
+            c.xi, c.gamma, c.cx, c.cy, c.width, c.height
+        ),
+    )
+    .unwrap();
+}
+
 #[test]
 fn bad_folders_and_files_give_errors() {
     let tmp = tempfile::tempdir().unwrap();
@@ -120,16 +132,8 @@ fn cli_runs_on_an_image_only_folder() {
         save_grey(&seq.join("images").join(format!("{t:.6}.png")), img);
         list.push_str(&format!("{t:.6} images/{t:.6}.png\n"));
     }
-    let c = frames.camera;
     let cam_file = tmp.path().join("camera.txt");
-    std::fs::write(
-        &cam_file,
-        format!(
-            "{} {} {} {} {} {}\n",
-            c.xi, c.gamma, c.cx, c.cy, c.width, c.height
-        ),
-    )
-    .unwrap();
+    write_camera_line(&cam_file, &frames.camera);
     write_tum(&seq.join("groundtruth.txt"), &frames.ground_truth).unwrap();
     let exe = env!("CARGO_BIN_EXE_rgbid");
     let out = tmp.path().join("traj.txt");
@@ -303,16 +307,8 @@ fn pinhole_folder(dir: &Path, frames: usize) -> (std::path::PathBuf, Vec<std::pa
         save_grey(&p, img);
         names.push(p);
     }
-    let c = r.camera;
     let cam_file = dir.join("camera.txt");
-    std::fs::write(
-        &cam_file,
-        format!(
-            "{} {} {} {} {} {}\n",
-            c.xi, c.gamma, c.cx, c.cy, c.width, c.height
-        ),
-    )
-    .unwrap();
+    write_camera_line(&cam_file, &r.camera);
     (cam_file, names)
 }
 
