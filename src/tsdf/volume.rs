@@ -1031,11 +1031,14 @@ mod tests {
         // signs and weights decide them, exactly on both.
         assert_eq!(gpu.cubes, cpu.cubes);
         assert_eq!(gpu.vertices.len(), cpu.vertices.len());
+        let (mut farthest, mut recoloured) = (0.0f32, 0usize);
         for (i, (a, b)) in cpu.vertices.iter().zip(&gpu.vertices).enumerate() {
             assert_eq!(a.edge(), b.edge(), "vertex {i}");
             let far = (0..3)
                 .map(|k| (a.position[k] - b.position[k]).abs())
                 .fold(0.0, f32::max);
+            farthest = farthest.max(far);
+            recoloured += usize::from(a.colour() != b.colour());
             assert!(
                 far <= 1e-5,
                 "vertex {i}: {:?} against {:?}",
@@ -1048,6 +1051,7 @@ mod tests {
                 "vertex {i}: colour {ca:?} against {cb:?}"
             );
         }
+        eprintln!("largest position difference {farthest} m, {recoloured} colours differ");
         // The meshes: same topology, vertices and colours within the same tolerances, and
         // `extract_mesh` on the GPU volume is the kernel's.
         let (mc, mg) = (super::mesh::assemble(&cpu), super::mesh::assemble(&gpu));
@@ -1066,6 +1070,11 @@ mod tests {
             }
         }
         // A normal can turn only where all its triangles are nearly degenerate.
+        eprintln!(
+            "{} vertices, {} normals differ by more than 1e-3",
+            mc.vertices.len(),
+            bent
+        );
         assert!(
             bent as f64 <= 1e-3 * mc.vertices.len() as f64,
             "{bent} of {} normals differ",
