@@ -20,6 +20,10 @@ pub const ALL: &[(&str, &str)] = &[
         "tsdf_cast.wgsl",
         include_str!("../../shaders/tsdf_cast.wgsl"),
     ),
+    (
+        "tsdf_mesh.wgsl",
+        include_str!("../../shaders/tsdf_mesh.wgsl"),
+    ),
 ];
 
 /// Returns the raw source of `name`.

@@ -1,12 +1,14 @@
 //! The TSDF kernels on a wgpu device, with the voxels resident there: integration
-//! (`shaders/tsdf.wgsl`) and ray casting (`shaders/tsdf_cast.wgsl`).
+//! (`shaders/tsdf.wgsl`), ray casting (`shaders/tsdf_cast.wgsl`) and the per-cube work of
+//! mesh extraction (`shaders/tsdf_mesh.wgsl`).
 
 use std::borrow::Cow;
 use std::sync::Arc;
 
 use super::integrate::{IntegrateUniform, TsdfKernels, Voxel};
+use super::mesh::{CubeTriangles, CubeVertex, MeshUniform, BLOCK_ROWS, ROW_CUBES};
 use super::raycast::CastUniform;
-use super::{RayCastImages, TsdfError, BLOCK_VOXELS};
+use super::{RayCastImages, TsdfError, BLOCK_SIDE, BLOCK_VOXELS};
 use crate::gpu::{shaders, GpuContext, GpuError};
 use crate::image::ImageF32;
 
@@ -57,12 +59,57 @@ impl CastKernel {
     }
 }
 
+/// The mesh kernels (`count_cubes`, `emit_cubes`): pipelines, bind-group layout and uniform.
+struct MeshKernel {
+    count: wgpu::ComputePipeline,
+    emit: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    uniform: wgpu::Buffer,
+}
+
+impl MeshKernel {
+    fn new(ctx: &GpuContext) -> Result<Self, TsdfError> {
+        let name = "tsdf_mesh.wgsl";
+        let missing = |message: &str| GpuError::Shader {
+            name: name.into(),
+            message: message.into(),
+        };
+        let src = shaders::assembled(name).ok_or_else(|| missing("not embedded"))?;
+        let layout = ctx.buffer_layout("tsdf mesh", &[true, true, true, false, true, false]);
+        let mut pipes = ctx.compute_pipelines_with_layout(
+            name,
+            &src,
+            &["count_cubes", "emit_cubes"],
+            Some(&layout),
+        )?;
+        let emit = pipes.pop().ok_or_else(|| missing("no pipeline"))?;
+        let count = pipes.pop().ok_or_else(|| missing("no pipeline"))?;
+        let uniform = ctx.uniform(
+            "tsdf mesh params",
+            std::mem::size_of::<MeshUniform>() as u64,
+        );
+        Ok(MeshKernel {
+            count,
+            emit,
+            layout,
+            uniform,
+        })
+    }
+}
+
+/// Workgroups `(x, y)` covering `n` workgroups in rows of [`ROW`].
+fn groups(n: usize) -> (u32, u32) {
+    let n = n as u32;
+    (n.clamp(1, ROW), n.div_ceil(ROW).max(1))
+}
+
 pub(crate) struct GpuTsdf {
     ctx: Arc<GpuContext>,
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     uniform: wgpu::Buffer,
     cast: CastKernel,
+    mesh: MeshKernel,
     resident: Option<Resident>,
     blocks: usize,
     /// Most slots of the voxel buffer (`None` = unbounded).
@@ -92,10 +139,12 @@ impl GpuTsdf {
             std::mem::size_of::<IntegrateUniform>() as u64,
         );
         let cast = CastKernel::new(&ctx)?;
+        let mesh = MeshKernel::new(&ctx)?;
         Ok(GpuTsdf {
             ctx,
             pipeline,
             cast,
+            mesh,
             layout,
             uniform,
             resident: None,
@@ -172,6 +221,71 @@ impl GpuTsdf {
             block_capacity,
         });
         Ok(())
+    }
+}
+
+impl GpuTsdf {
+    /// Runs `emit_cubes` over `rows` (`[slot * 64 + y + 8 z, first triangle]`) and reads back
+    /// their `triangles` triangles; `lookups` are the table and coordinate buffers.
+    fn emit_rows(
+        &self,
+        rows: &[[u32; 2]],
+        triangles: usize,
+        u: &MeshUniform,
+        lookups: &[&wgpu::Buffer; 2],
+    ) -> Result<Vec<CubeVertex>, TsdfError> {
+        let Some(r) = &self.resident else {
+            return Err(GpuError::Validation("tsdf buffers missing".into()).into());
+        };
+        let ctx = &self.ctx;
+        let k = &self.mesh;
+        let count = 3 * triangles;
+        let bytes = (count * std::mem::size_of::<CubeVertex>()) as u64;
+        let rows_buf = ctx.storage_init("tsdf mesh rows", rows);
+        let vertices = ctx.storage("tsdf mesh vertices", bytes);
+        let unused_counts = ctx.storage("tsdf mesh counts placeholder", 16);
+        ctx.queue.write_buffer(
+            &k.uniform,
+            0,
+            bytemuck::bytes_of(&MeshUniform {
+                rows: rows.len() as u32,
+                ..*u
+            }),
+        );
+        let bind = ctx.bind_buffers(
+            "tsdf mesh emit",
+            &k.layout,
+            &[
+                &k.uniform,
+                lookups[0],
+                lookups[1],
+                &r.voxels,
+                &unused_counts,
+                &rows_buf,
+                &vertices,
+            ],
+        );
+        let staging = ctx.staging("tsdf mesh vertices readback", bytes);
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf mesh emit"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("tsdf mesh emit"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&k.emit);
+            pass.set_bind_group(0, &bind, &[]);
+            let (gx, gy) = groups(rows.len().div_ceil(64));
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        enc.copy_buffer_to_buffer(&vertices, 0, &staging, 0, bytes);
+        ctx.submit(enc.finish());
+        let out: Vec<CubeVertex> = ctx.read_staging(&staging, count)?;
+        ctx.check()?;
+        Ok(out)
     }
 }
 
@@ -445,10 +559,148 @@ impl TsdfKernels for GpuTsdf {
         }))
     }
 
+    fn mesh_cubes(
+        &self,
+        table: &[[i32; 4]],
+        coords: &[[i32; 4]],
+        u: &MeshUniform,
+    ) -> Result<Option<CubeTriangles>, TsdfError> {
+        let Some(r) = &self.resident else {
+            return Ok(Some(CubeTriangles::default()));
+        };
+        let blocks = coords.len();
+        if blocks == 0 {
+            return Ok(Some(CubeTriangles::default()));
+        }
+        if blocks > r.block_capacity {
+            return Err(GpuError::Validation(format!(
+                "tsdf mesh: {blocks} blocks, {} slots",
+                r.block_capacity
+            ))
+            .into());
+        }
+        let ctx = &self.ctx;
+        let k = &self.mesh;
+        let table_buf = ctx.storage_init("tsdf mesh table", table);
+        let coords_buf = ctx.storage_init("tsdf mesh coords", coords);
+        let row_words = blocks * BLOCK_ROWS;
+        let counts = ctx.storage("tsdf mesh counts", (row_words * 4) as u64);
+        // Unused by the counting pass (separate buffers: one is read-only, one read-write).
+        let unused_rows = ctx.storage("tsdf mesh rows placeholder", 16);
+        let unused_vertices = ctx.storage("tsdf mesh vertices placeholder", 16);
+        // Pass 1: every row's triangle counts.
+        ctx.queue.write_buffer(
+            &k.uniform,
+            0,
+            bytemuck::bytes_of(&MeshUniform {
+                blocks: blocks as u32,
+                rows: 0,
+                ..*u
+            }),
+        );
+        let bind = ctx.bind_buffers(
+            "tsdf mesh count",
+            &k.layout,
+            &[
+                &k.uniform,
+                &table_buf,
+                &coords_buf,
+                &r.voxels,
+                &counts,
+                &unused_rows,
+                &unused_vertices,
+            ],
+        );
+        let staging = ctx.staging("tsdf mesh counts readback", (row_words * 4) as u64);
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tsdf mesh count"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("tsdf mesh count"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&k.count);
+            pass.set_bind_group(0, &bind, &[]);
+            let (gx, gy) = groups(blocks);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        enc.copy_buffer_to_buffer(&counts, 0, &staging, 0, (row_words * 4) as u64);
+        ctx.submit(enc.finish());
+        let packed: Vec<u32> = ctx.read_staging(&staging, row_words)?;
+        ctx.check()?;
+        // The rows with triangles, each with its first triangle, and the cubes in order.
+        let mut out = CubeTriangles::default();
+        let mut listed: Vec<[u32; 2]> = Vec::new();
+        let mut total = 0u32;
+        let side = BLOCK_SIDE as i32;
+        for (row, &word) in packed.iter().enumerate() {
+            if word == 0 {
+                continue;
+            }
+            listed.push([row as u32, total]);
+            let b = coords[row / BLOCK_ROWS];
+            let (y, z) = (
+                (row % BLOCK_ROWS) % BLOCK_SIDE,
+                (row % BLOCK_ROWS) / BLOCK_SIDE,
+            );
+            for x in 0..ROW_CUBES {
+                let n = (word >> (4 * x)) & 15;
+                if n > 0 {
+                    let g = [
+                        b[0] * side + x as i32,
+                        b[1] * side + y as i32,
+                        b[2] * side + z as i32,
+                    ];
+                    out.cubes.push((g, n));
+                    total += n;
+                }
+            }
+        }
+        // Pass 2, in chunks of rows whose triangles fit one storage binding.
+        let vertex_bytes = std::mem::size_of::<CubeVertex>();
+        let limit = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size)
+            .min(1 << 28) as usize;
+        // A row has at most 12 triangles per cube.
+        let row_most = (12 * ROW_CUBES) as u32;
+        let max_triangles = ((limit / (3 * vertex_bytes)) as u32).max(row_most);
+        out.vertices.reserve(3 * total as usize);
+        let mut start = 0;
+        while start < listed.len() {
+            let first = listed[start][1];
+            let mut end = start + 1;
+            while end < listed.len() && listed[end][1] - first + row_most <= max_triangles {
+                end += 1;
+            }
+            let chunk_end = listed.get(end).map_or(total, |e| e[1]);
+            let triangles = (chunk_end - first) as usize;
+            let chunk: Vec<[u32; 2]> = listed[start..end]
+                .iter()
+                .map(|&[row, t]| [row, t - first])
+                .collect();
+            out.vertices.extend(self.emit_rows(
+                &chunk,
+                triangles,
+                u,
+                &[&table_buf, &coords_buf],
+            )?);
+            start = end;
+        }
+        Ok(Some(out))
+    }
+
     fn memory_bytes(&self) -> (usize, usize) {
         let resident = self.resident.as_ref().map_or(0, |r| {
             r.rho.size() + r.rgb.size() + r.active.size() + r.voxels.size()
         });
-        (0, (self.uniform.size() + resident) as usize)
+        (
+            0,
+            (self.uniform.size() + self.mesh.uniform.size() + resident) as usize,
+        )
     }
 }

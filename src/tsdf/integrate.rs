@@ -196,6 +196,19 @@ pub(crate) trait TsdfKernels: Send {
     ) -> Result<Option<super::RayCastImages>, TsdfError> {
         Ok(None)
     }
+    /// Marching tetrahedra over the voxels where they are resident: the triangles of every
+    /// cube of the blocks of `coords` (`[bx, by, bz, _]` per slot, in slot order), finding
+    /// neighbouring blocks through `table` (see [`super::raycast::block_table`]); `None` when
+    /// this backend has no mesh kernel of its own and the caller runs the CPU mirror
+    /// ([`super::mesh::cube_triangles`]) on its view of the voxels.
+    fn mesh_cubes(
+        &self,
+        _table: &[[i32; 4]],
+        _coords: &[[i32; 4]],
+        _u: &super::mesh::MeshUniform,
+    ) -> Result<Option<super::mesh::CubeTriangles>, TsdfError> {
+        Ok(None)
+    }
     /// The voxels of `slots`, one block after another (paging out).
     fn read_slots(&self, slots: &[u32]) -> Result<Vec<Voxel>, TsdfError>;
     /// Makes room for `blocks` slots, writes each `(slot, voxels)` of `uploads` (paging in,

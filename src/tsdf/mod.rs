@@ -15,9 +15,11 @@
 //!   the odometry's geometric scale), so depth noise grows as `sigma_z = sigma_rho z^2`. The
 //!   truncation is `mu(z) = max(trunc_min, trunc_sigmas sigma_z)` and a measurement's weight
 //!   is its inverse depth variance relative to a measurement at 1 m, `(1 m / z)^4`.
-//! * Meshes (`mesh.rs`): marching tetrahedra on the CPU (six tetrahedra per voxel cube),
-//!   vertices shared between faces, per-vertex normals and colours.
-//! * Ray casting (`raycast.rs`): depth, normals and colour from any pose, on the CPU.
+//! * Meshes (`mesh.rs`): marching tetrahedra (six tetrahedra per voxel cube); the per-cube
+//!   work is the CPU mirror of `shaders/tsdf_mesh.wgsl`, vertices shared between faces,
+//!   per-vertex normals and colours on the host.
+//! * Ray casting (`raycast.rs`): depth, normals and colour from any pose, the CPU mirror of
+//!   `shaders/tsdf_cast.wgsl`.
 //!
 //! Frames: the volume lives in the world frame; frames are integrated at `world_from_camera`.
 //! Units: metres; inverse depth in 1/m with 0 = no measurement.

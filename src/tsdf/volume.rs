@@ -9,7 +9,7 @@ use rustc_hash::FxHasher;
 
 use super::gpu::GpuTsdf;
 use super::integrate::{truncation, CpuTsdf, IntegrateUniform, TsdfKernels, Voxel};
-use super::mesh::{self, Mesh};
+use super::mesh::{self, CubeTriangles, Mesh, MeshUniform};
 use super::paging::{PagingStats, Residency};
 use super::persist;
 use super::raycast::{self, CastUniform, RayCastImages};
@@ -45,8 +45,9 @@ pub struct TsdfParams {
     /// Most voxel blocks resident on the GPU at once (each 8^3 voxels of 12 bytes, 6144
     /// bytes), >= 1; `None` = unbounded. Beyond it, the blocks farthest from the camera that
     /// a frame does not touch are moved to host memory and back when a frame needs them
-    /// again; a frame touching more blocks is integrated in chunks. Meshes, ray casts and
-    /// saved files are the same as without a budget. The CPU backend ignores it (its voxels
+    /// again; a frame touching more blocks is integrated in chunks. Saved files are the
+    /// same as without a budget; meshes and ray casts are the CPU mirror's while blocks are
+    /// paged out (without a budget the GPU kernels', equal within their parity tolerance). The CPU backend ignores it (its voxels
     /// are host memory). A property of the run, not of the volume: files do not store it.
     pub device_blocks: Option<usize>,
 }
@@ -548,9 +549,38 @@ impl TsdfVolume {
     }
 
     /// The zero level set as a triangle mesh (world frame, metres) with per-vertex normals
-    /// and colours, by marching tetrahedra over every observed voxel cube.
+    /// and colours, by marching tetrahedra over every observed voxel cube. On the GPU backend
+    /// the kernel does the per-cube work where the voxels are (the CPU mirror when a device
+    /// budget pages blocks out); sharing vertices and the normals are the host's.
     pub fn extract_mesh(&self) -> Result<Mesh, TsdfError> {
-        Ok(mesh::extract(&self.snapshot()?))
+        Ok(mesh::assemble(&self.mesh_cubes()?))
+    }
+
+    /// The per-cube triangles, by the backend's kernel when every block is in its device
+    /// slot, else by the CPU mirror over every block.
+    fn mesh_cubes(&self) -> Result<CubeTriangles, TsdfError> {
+        if self.on_device && self.residency.is_identity() {
+            // Without paging every block's slot is its id.
+            let blocks: Vec<([i32; 3], u32)> = self.map.iter().map(|(b, &id)| (*b, id)).collect();
+            let table = raycast::block_table(&blocks);
+            let coords: Vec<[i32; 4]> = self.coords.iter().map(|c| [c[0], c[1], c[2], 0]).collect();
+            let u = MeshUniform {
+                table_mask: (table.len().max(1) - 1) as u32,
+                blocks: coords.len() as u32,
+                rows: 0,
+                voxel_size: self.params.voxel_size as f32,
+            };
+            if let Some(out) = self.kernels.mesh_cubes(&table, &coords, &u)? {
+                return Ok(out);
+            }
+        }
+        self.mesh_cubes_cpu()
+    }
+
+    /// The CPU mirror's per-cube triangles of every block (read back from the device on the
+    /// GPU backend).
+    fn mesh_cubes_cpu(&self) -> Result<CubeTriangles, TsdfError> {
+        Ok(mesh::cube_triangles(&self.snapshot()?))
     }
 
     /// Depth (metres along the optical axis, 0 = no surface), normals (camera frame) and
@@ -834,7 +864,9 @@ mod tests {
             paged.kernels_voxels() == full.kernels_voxels(),
             "paged voxels differ"
         );
-        let mesh = full.extract_mesh().unwrap_or_else(|e| panic!("{e}"));
+        // The CPU mirror on both: an unbounded GPU volume meshes with the kernel, whose
+        // parity with the mirror `gpu_tsdf_mesh_matches_the_cpu_mirror` checks.
+        let mesh = full.mesh_cpu();
         assert!(mesh.triangles.len() > 1000, "{}", mesh.triangles.len());
         let pm = paged.extract_mesh().unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(pm.vertices, mesh.vertices);
@@ -961,6 +993,93 @@ mod tests {
                 "{differ} of {n} rays differ between the kernel and the CPU mirror"
             );
         }
+    }
+
+    impl TsdfVolume {
+        /// The CPU mirror's mesh of every block.
+        fn mesh_cpu(&self) -> super::Mesh {
+            super::mesh::assemble(&self.mesh_cubes_cpu().unwrap_or_else(|e| panic!("{e}")))
+        }
+    }
+
+    #[test]
+    #[ignore = "needs a GPU adapter"]
+    fn gpu_tsdf_mesh_matches_the_cpu_mirror() {
+        let Some(ctx) = test_gpu("gpu_tsdf_mesh_matches_the_cpu_mirror") else {
+            return;
+        };
+        let (volume, _) = office_volume(&ComputeBackend::Gpu(ctx));
+        let t = std::time::Instant::now();
+        let gpu = volume.mesh_cubes().unwrap_or_else(|e| panic!("{e}"));
+        let gpu_s = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        let cpu = volume.mesh_cubes_cpu().unwrap_or_else(|e| panic!("{e}"));
+        let cpu_s = t.elapsed().as_secs_f64();
+        eprintln!(
+            "{} blocks, {} triangles: kernel {:.1} ms, CPU mirror {:.1} ms (with read-back)",
+            volume.block_count(),
+            cpu.vertices.len() / 3,
+            gpu_s * 1e3,
+            cpu_s * 1e3
+        );
+        assert!(
+            cpu.vertices.len() > 3 * 5000,
+            "{} vertices",
+            cpu.vertices.len()
+        );
+        // The same cubes with the same triangle counts, each vertex on the same edge: the
+        // signs and weights decide them, exactly on both.
+        assert_eq!(gpu.cubes, cpu.cubes);
+        assert_eq!(gpu.vertices.len(), cpu.vertices.len());
+        let (mut farthest, mut recoloured) = (0.0f32, 0usize);
+        for (i, (a, b)) in cpu.vertices.iter().zip(&gpu.vertices).enumerate() {
+            assert_eq!(a.edge(), b.edge(), "vertex {i}");
+            let far = (0..3)
+                .map(|k| (a.position[k] - b.position[k]).abs())
+                .fold(0.0, f32::max);
+            farthest = farthest.max(far);
+            recoloured += usize::from(a.colour() != b.colour());
+            assert!(
+                far <= 1e-5,
+                "vertex {i}: {:?} against {:?}",
+                a.position,
+                b.position
+            );
+            let (ca, cb) = (a.colour(), b.colour());
+            assert!(
+                (0..3).all(|k| (i32::from(ca[k]) - i32::from(cb[k])).abs() <= 1),
+                "vertex {i}: colour {ca:?} against {cb:?}"
+            );
+        }
+        eprintln!("largest position difference {farthest} m, {recoloured} colours differ");
+        // The meshes: same topology, vertices and colours within the same tolerances, and
+        // `extract_mesh` on the GPU volume is the kernel's.
+        let (mc, mg) = (super::mesh::assemble(&cpu), super::mesh::assemble(&gpu));
+        assert_eq!(mc.triangles, mg.triangles);
+        assert!(volume.extract_mesh().unwrap_or_else(|e| panic!("{e}")) == mg);
+        let mut bent = 0usize;
+        for i in 0..mc.vertices.len() {
+            let (a, b) = (mc.vertices[i], mg.vertices[i]);
+            assert!(
+                (0..3).all(|k| (a[k] - b[k]).abs() <= 1e-5),
+                "{a:?} against {b:?}"
+            );
+            let (na, nb) = (mc.normals[i], mg.normals[i]);
+            if (0..3).any(|k| (na[k] - nb[k]).abs() > 1e-3) {
+                bent += 1;
+            }
+        }
+        // A normal can turn only where all its triangles are nearly degenerate.
+        eprintln!(
+            "{} vertices, {} normals differ by more than 1e-3",
+            mc.vertices.len(),
+            bent
+        );
+        assert!(
+            bent as f64 <= 1e-3 * mc.vertices.len() as f64,
+            "{bent} of {} normals differ",
+            mc.vertices.len()
+        );
     }
 
     #[test]
