@@ -55,7 +55,15 @@ class Camera:
 class Odometry:
     """Dense RGB-D odometry with inverse depth."""
 
-    def __init__(self, camera: Camera, config: _Config = None, backend: str = "auto") -> None: ...
+    def __init__(
+        self,
+        camera: Camera,
+        config: _Config = None,
+        backend: str = "auto",
+        model: Optional[Dict[str, Any]] = None,
+    ) -> None:
+        """``model``: ``None`` (frame-to-reference) or a dict with any of ``voxel`` (metres),
+        ``cast_level``, ``fill_holes`` for frame-to-model tracking against a TSDF."""
     def track(
         self,
         image: npt.NDArray[np.uint8],
@@ -64,7 +72,8 @@ class Odometry:
         timestamp: float = 0.0,
     ) -> Dict[str, Any]:
         """``world_from_camera`` ``float64[4, 4]`` (or ``None``), ``cur_from_ref``,
-        ``covariance`` ``float64[6, 6]`` or ``None``, ``status``, ``stats``, ``rust_ms``."""
+        ``covariance`` ``float64[6, 6]`` or ``None``, ``status``, ``stats``, ``model_ms``
+        (``ray_cast`` and ``integrate`` ms with a model, else ``None``), ``rust_ms``."""
     def set_initial_pose(self, world_from_camera: npt.NDArray[np.float64]) -> None: ...
     @property
     def backend(self) -> str: ...

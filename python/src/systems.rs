@@ -11,7 +11,10 @@ use pyo3::types::PyDict;
 use rgbid::geometry::Se3;
 use rgbid::io::run_folder::LoopRow;
 use rgbid::io::UndistortMap;
-use rgbid::odometry::{OdometryConfig, OdometryError, TrackResult};
+use rgbid::odometry::{
+    ModelOdometry, ModelParams as TrackingModelParams, ModelTimes, OdometryConfig, OdometryError,
+    TrackResult,
+};
 use rgbid::place::Vocabulary;
 use rgbid::slam::{
     build_coloured_model, FrameStatus, KeyframeLink, Map, ModelParams, SlamConfig, SlamEvent,
@@ -31,15 +34,69 @@ fn locked<T>(m: &Mutex<T>) -> PyResult<std::sync::MutexGuard<'_, T>> {
         .map_err(|_| crate::RgbidError::new_err("a previous call panicked inside rgbid"))
 }
 
+/// What an [`Odometry`] aligns each frame to.
+enum Tracker {
+    /// Frame-to-reference (the default).
+    Reference(rgbid::odometry::Odometry),
+    /// Frame-to-model: the intensity and inverse depth ray cast from a TSDF of the frames.
+    Model(Box<ModelOdometry>),
+}
+
+impl Tracker {
+    fn set_initial_pose(&mut self, world_from_camera: Se3) {
+        match self {
+            Tracker::Reference(o) => o.set_initial_pose(world_from_camera),
+            Tracker::Model(o) => o.set_initial_pose(world_from_camera),
+        }
+    }
+
+    /// The tracking result and, frame-to-model, the model's stage times.
+    fn track(
+        &mut self,
+        frame: &rgbid::image::RgbdFrame,
+    ) -> Result<(TrackResult, Option<ModelTimes>), OdometryError> {
+        match self {
+            Tracker::Reference(o) => Ok((o.track(frame)?, None)),
+            Tracker::Model(o) => o.track(frame).map(|r| (r.track, Some(r.model))),
+        }
+    }
+}
+
+/// The model's options from the ``model`` dict: ``voxel`` (metres), ``cast_level`` and
+/// ``fill_holes``, each optional; any other key is an error.
+fn model_params(model: &Bound<'_, PyDict>) -> PyResult<TrackingModelParams> {
+    let mut p = TrackingModelParams::default();
+    for (k, v) in model.iter() {
+        let key: String = k.extract()?;
+        match key.as_str() {
+            "voxel" => p.tsdf.voxel_size = v.extract()?,
+            "cast_level" => p.cast_level = v.extract()?,
+            "fill_holes" => p.fill_holes = v.extract()?,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "model: unknown key {other:?} (known: voxel, cast_level, fill_holes)"
+                )))
+            }
+        }
+    }
+    Ok(p)
+}
+
 /// Dense RGB-D odometry with inverse depth (thesis ch. 4, 6.3) over a stream of frames.
 ///
-/// ``Odometry(camera, config=None, backend="auto")``: ``config`` is a dict with the keys of an
-/// ``OdometryConfig`` TOML file (``rgbid config dump --command odometry``; any subset, unknown
-/// keys are an error) or a path to such a file; ``backend`` is ``"auto"`` (a hardware GPU,
-/// else the CPU), ``"gpu"`` (any adapter, lavapipe included) or ``"cpu"``.
+/// ``Odometry(camera, config=None, backend="auto", model=None)``: ``config`` is a dict with
+/// the keys of an ``OdometryConfig`` TOML file (``rgbid config dump --command odometry``; any
+/// subset, unknown keys are an error) or a path to such a file; ``backend`` is ``"auto"`` (a
+/// hardware GPU, else the CPU), ``"gpu"`` (any adapter, lavapipe included) or ``"cpu"``.
+/// ``model``: ``None`` aligns each frame to a reference frame; a dict (``{}`` for the
+/// defaults) aligns it to the intensity and inverse depth ray cast from a TSDF model of the
+/// frames tracked so far, as ``rgbid odometry --reference model`` does, with the keys
+/// ``voxel`` (TSDF voxel edge, metres, default 0.02), ``cast_level`` (pyramid level of the
+/// cast, default 1) and ``fill_holes`` (the previous frame fills what the cast misses,
+/// default ``True``).
 #[pyclass(module = "rgbid")]
 pub struct Odometry {
-    inner: Mutex<rgbid::odometry::Odometry>,
+    inner: Mutex<Tracker>,
     camera: Camera,
     map: Option<UndistortMap>,
     backend: String,
@@ -48,21 +105,31 @@ pub struct Odometry {
 #[pymethods]
 impl Odometry {
     #[new]
-    #[pyo3(signature = (camera, config = None, backend = "auto"))]
+    #[pyo3(signature = (camera, config = None, backend = "auto", model = None))]
     fn py_new(
         py: Python<'_>,
         camera: Camera,
         config: Option<&Bound<'_, PyAny>>,
         backend: &str,
+        model: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
         let config: OdometryConfig = config_from(py, config)?;
         config.validate().map_err(value)?;
         let compute = backend_from(backend)?;
         let cam = camera.undistorted();
+        let params = model.map(model_params).transpose()?;
         let odo = py
-            .detach(|| rgbid::odometry::Odometry::new(config, cam, &compute))
+            .detach(|| match params {
+                None => {
+                    rgbid::odometry::Odometry::new(config, cam, &compute).map(Tracker::Reference)
+                }
+                Some(p) => ModelOdometry::new(config, p, cam, &compute)
+                    .map(|m| Tracker::Model(Box::new(m))),
+            })
             .map_err(|e| match e {
-                OdometryError::InvalidConfig(_) | OdometryError::TooManyLevels { .. } => value(e),
+                OdometryError::InvalidConfig(_)
+                | OdometryError::TooManyLevels { .. }
+                | OdometryError::Model(rgbid::tsdf::TsdfError::InvalidParameter { .. }) => value(e),
                 other => runtime(other),
             })?;
         Ok(Self {
@@ -92,8 +159,9 @@ impl Odometry {
     /// ``cur_from_ref`` (``float64[4, 4]``), ``covariance`` (``float64[6, 6]`` of the
     /// alignment, twist ``[v; w]`` in m and rad, or ``None``), ``status`` (``"ok"``),
     /// ``stats`` (iterations, sigma_photo, sigma_geo, nu, covisibility, condition_number,
-    /// new_reference, times in ms) and ``rust_ms`` (time spent in the library for this call:
-    /// building the frame and tracking it).
+    /// new_reference, times in ms), ``model_ms`` (frame-to-model: ``ray_cast`` and
+    /// ``integrate`` times in ms, else ``None``) and ``rust_ms`` (time spent in the library for
+    /// this call: building the frame and tracking it).
     #[pyo3(signature = (image, depth, depth_factor = None, timestamp = 0.0))]
     fn track<'py>(
         &self,
@@ -108,22 +176,32 @@ impl Odometry {
         let (map, inner) = (self.map.as_ref(), &self.inner);
         let (outcome, rust_ms) = py.detach(|| {
             let t0 = Instant::now();
-            let outcome = (|| -> PyResult<Result<TrackResult, OdometryError>> {
-                let frame = buffers.frame(timestamp, map).map_err(value)?;
-                Ok(locked(inner)?.track(&frame))
-            })();
+            let outcome =
+                (|| -> PyResult<Result<(TrackResult, Option<ModelTimes>), OdometryError>> {
+                    let frame = buffers.frame(timestamp, map).map_err(value)?;
+                    Ok(locked(inner)?.track(&frame))
+                })();
             (outcome, t0.elapsed().as_secs_f64() * 1e3)
         });
         let tracked = outcome?;
         let d = PyDict::new(py);
         match tracked {
-            Ok(r) => {
+            Ok((r, model)) => {
                 d.set_item("world_from_camera", pose_matrix(py, &r.world_from_camera))?;
                 d.set_item("cur_from_ref", pose_matrix(py, &r.cur_from_ref))?;
                 let cov = r.covariance.map(|c| covariance_array(py, c.rows()));
                 d.set_item("covariance", cov)?;
                 d.set_item("status", "ok")?;
                 d.set_item("stats", to_python(py, &r.stats)?)?;
+                match model {
+                    Some(m) => {
+                        let times = PyDict::new(py);
+                        times.set_item("ray_cast", m.ray_cast_ms)?;
+                        times.set_item("integrate", m.integrate_ms)?;
+                        d.set_item("model_ms", times)?;
+                    }
+                    None => d.set_item("model_ms", py.None())?,
+                }
             }
             Err(OdometryError::TrackingFailed(m)) => {
                 d.set_item("world_from_camera", py.None())?;
@@ -132,6 +210,7 @@ impl Odometry {
                 d.set_item("status", "tracking_failed")?;
                 d.set_item("message", m)?;
                 d.set_item("stats", py.None())?;
+                d.set_item("model_ms", py.None())?;
             }
             Err(e @ OdometryError::FrameSize { .. }) => return Err(value(e)),
             Err(e) => return Err(runtime(e)),

@@ -35,12 +35,15 @@ def to_matrix(row: np.ndarray) -> np.ndarray:
     return m
 
 
-def track_all(seq, backend="cpu"):
-    odo = rgbid.Odometry(seq.camera, backend=backend)
+def track_all(seq, backend="cpu", model=None, initial=None):
+    odo = rgbid.Odometry(seq.camera, backend=backend, model=model)
+    if initial is not None:
+        odo.set_initial_pose(initial)
     rows = []
     for t, image, depth, factor in seq:
         r = odo.track(image, depth, factor, t)
         assert r["status"] == "ok", r
+        assert (r["model_ms"] is None) == (model is None), r
         m = r["world_from_camera"]
         assert m.shape == (4, 4) and m.dtype == np.float64
         rows.append(pose_row(t, m))
@@ -84,6 +87,33 @@ def test_odometry_matches_the_cli(tum_dir: Path, tmp_path: Path):
     # Translations within 1e-6 m; the file's 7 decimals bound the rounding.
     assert np.abs(a[:, :3, 3] - b[:, :3, 3]).max() < 1e-6
     assert np.abs(a[:, :3, :3] - b[:, :3, :3]).max() < 1e-6
+
+
+def test_frame_to_model_odometry_matches_the_cli(tum_dir: Path, tmp_path: Path):
+    out = tmp_path / "cli.txt"
+    run_cli(
+        "odometry", str(tum_dir), "--out", str(out), "--backend", "cpu",
+        "--reference", "model", "--voxel", "0.03",
+    )
+    cli = rgbid.read_trajectory(out)
+    seq = rgbid.read_sequence(tum_dir)
+    # The program starts at the ground truth's first pose, and a TSDF's voxels are fixed in
+    # the world frame, so the same start is needed for the same model.
+    gt = seq.groundtruth
+    first = seq[0][0]
+    initial = to_matrix(gt[np.argmin(np.abs(gt[:, 0] - first))])
+    py = track_all(seq, model={"voxel": 0.03}, initial=initial)
+    assert cli.shape == py.shape == (FRAMES, 8)
+    a, b = relative_to_first(cli), relative_to_first(py)
+    assert np.abs(a[:, :3, 3] - b[:, :3, 3]).max() < 1e-6
+    assert np.abs(a[:, :3, :3] - b[:, :3, :3]).max() < 1e-6
+    # Not the frame-to-reference trajectory under another name.
+    frame = relative_to_first(track_all(seq))
+    assert np.abs(frame[:, :3, 3] - b[:, :3, 3]).max() > 1e-6
+    with pytest.raises(ValueError, match="unknown key"):
+        rgbid.Odometry(seq.camera, backend="cpu", model={"voxels": 0.03})
+    with pytest.raises(ValueError, match="voxel"):
+        rgbid.Odometry(seq.camera, backend="cpu", model={"voxel": -1.0})
 
 
 def test_slam_matches_the_cli(tum_dir: Path, tmp_path: Path):

@@ -47,8 +47,8 @@ pub struct TsdfParams {
     /// a frame does not touch are moved to host memory and back when a frame needs them
     /// again; a frame touching more blocks is integrated in chunks. Saved files are the
     /// same as without a budget; meshes and ray casts are the CPU mirror's while blocks are
-    /// paged out (without a budget the GPU kernels', equal within their parity tolerance). The CPU backend ignores it (its voxels
-    /// are host memory). A property of the run, not of the volume: files do not store it.
+    /// paged out (without a budget the GPU kernels', equal within their parity tolerance).
+    /// The CPU backend ignores it (its voxels are host memory). A property of the run, not of the volume: files do not store it.
     pub device_blocks: Option<usize>,
 }
 
