@@ -230,7 +230,7 @@ impl FrameLoop {
         None
     }
 
-    /// Frame `i` (time stamp `t`, seconds) was processed; whether a checkpoint is due.
+    /// A frame stamped `t` (seconds) was processed; whether a checkpoint is due.
     fn done(&mut self, t: f64, bar: &ProgressBar) -> bool {
         self.processed += 1;
         bar.inc(1);
