@@ -1,3 +1,4 @@
+//! include: tsdf_blocks.wgsl
 // Ray casting of the TSDF volume (KinectFusion's surface prediction): depth, colour and
 // optionally normals of the first zero crossing from + to - along each pixel's ray.
 // CPU mirror: src/tsdf/raycast.rs (`cast`), same f32 operations in the same order.
@@ -45,23 +46,6 @@ struct Voxel {
 
 const BLOCK_SIDE: i32 = 8;
 const BLOCK_VOXELS: i32 = 512;
-
-// The block's slot in `voxels` (in blocks), -1 when it is not allocated (or not resident).
-fn find_slot(b: vec3<i32>) -> i32 {
-    let h = (u32(b.x) * 73856093u) ^ (u32(b.y) * 19349669u) ^ (u32(b.z) * 83492791u);
-    var i = h & params.table_mask;
-    for (var k = 0u; k <= params.table_mask; k++) {
-        let e = table[i];
-        if (e.w < 0) {
-            return -1;
-        }
-        if (e.x == b.x && e.y == b.y && e.z == b.z) {
-            return e.w;
-        }
-        i = (i + 1u) & params.table_mask;
-    }
-    return -1;
-}
 
 // Floor division and remainder by the block side (arithmetic shift: floor for negatives).
 fn block_of(g: vec3<i32>) -> vec3<i32> {

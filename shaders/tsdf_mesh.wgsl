@@ -1,3 +1,4 @@
+//! include: tsdf_blocks.wgsl
 // Marching tetrahedra over the TSDF volume, per voxel cube: which of the cube's six Kuhn
 // tetrahedra cross the zero level, the vertices on the crossed edges (position and colour
 // interpolated along the edge) and each triangle's orientation.
@@ -51,23 +52,6 @@ const ROW: u32 = 65535u;
 
 // The corner voxels of the cube being processed.
 var<private> cv: array<Voxel, 8>;
-
-// The block's slot in `voxels` (in blocks), -1 when it is not allocated.
-fn find_slot(b: vec3<i32>) -> i32 {
-    let h = (u32(b.x) * 73856093u) ^ (u32(b.y) * 19349669u) ^ (u32(b.z) * 83492791u);
-    var i = h & params.table_mask;
-    for (var k = 0u; k <= params.table_mask; k++) {
-        let e = table[i];
-        if (e.w < 0) {
-            return -1;
-        }
-        if (e.x == b.x && e.y == b.y && e.z == b.z) {
-            return e.w;
-        }
-        i = (i + 1u) & params.table_mask;
-    }
-    return -1;
-}
 
 // Corner c of a cube: bit 0 = +x, bit 1 = +y, bit 2 = +z.
 fn corner(c: u32) -> vec3<i32> {
