@@ -1,5 +1,6 @@
 // TSDF integration of one frame into the active voxel blocks (thesis 4.5.5).
-// CPU mirror: src/tsdf/integrate.rs (`update_voxel`), same operations in the same order.
+// CPU mirror: src/tsdf/integrate.rs (`integrate_block`; `update_row` does the per-voxel update
+// below on eight voxels at once as SIMD lanes, with the same operations in the same order).
 //
 // One workgroup per active block (8x8 invocations, each walks the 8 voxels of a z column).
 // Voxel g (global integer coordinates) sits at g * voxel_size in the world; it is moved into
