@@ -39,7 +39,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..Default::default()
     };
     for _ in 0..reps {
-        let mut vol = TsdfVolume::new(params, cam.clone(), &ComputeBackend::Cpu)?;
+        let mut vol = TsdfVolume::new(params, cam, &ComputeBackend::Cpu)?;
         let (mut total, mut alloc, mut kernel) = (Vec::new(), Vec::new(), Vec::new());
         for i in 0..tum.len() {
             let mut frame = tum.load(i)?;
