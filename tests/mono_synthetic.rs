@@ -233,4 +233,45 @@ fn metric_walk_with_image_loops_beats_the_walking_scale_alone() {
         with_loops.relative,
         walking.relative
     );
+    // The causal output corrected by the loops as they are found: one pose per causal pose,
+    // the causal pose itself until a loop is used, then moved rigidly.
+    let (causal, online) = (&run.causal, &run.causal_looped);
+    assert_eq!(online.len(), causal.len());
+    let moved: Vec<f64> = causal
+        .iter()
+        .zip(online)
+        .map(|(c, o)| {
+            assert_eq!(c.timestamp, o.timestamp);
+            (c.world_from_camera.translation - o.world_from_camera.translation).length()
+        })
+        .collect();
+    let first = moved
+        .iter()
+        .position(|&d| d > 0.0)
+        .expect("a loop moved the causal output");
+    let first_loop_frame = looped
+        .loops
+        .iter()
+        .filter(|l| l.similarity.is_some())
+        .map(|l| looped.keyframe_frames[l.query])
+        .min()
+        .expect("a used loop");
+    let first_causal_frame = frames.images.len() - causal.len();
+    assert!(
+        first + first_causal_frame >= first_loop_frame,
+        "moved at frame {} before the first used loop at frame {first_loop_frame}",
+        first + first_causal_frame
+    );
+    let pairs = rgbid::eval::associate(causal, gt, 0.02);
+    let g: Vec<_> = pairs.iter().map(|p| gt[p.1]).collect();
+    let pick =
+        |t: &[rgbid::trajectory::TimedPose]| -> Vec<_> { pairs.iter().map(|p| t[p.0]).collect() };
+    let e_causal = arc_length_error_from_start(&g, &pick(causal), 500).expect("eq. 3.36");
+    let e_online = arc_length_error_from_start(&g, &pick(online), 500).expect("eq. 3.36");
+    eprintln!(
+        "causal: {:.2} %, causal with the loops found so far {:.2} % (first moved {} frames after the first causal pose)",
+        100.0 * e_causal.relative,
+        100.0 * e_online.relative,
+        first
+    );
 }

@@ -71,8 +71,9 @@ pub struct Args {
     /// unknown, or metres with --walker-height (then the EKF's own trajectory goes to
     /// NAME_unscaled.txt and each frame's causal metric pose to NAME_causal.txt beside it;
     /// with --synthetic also the ground truth, to NAME_groundtruth.txt). With --walker-height
-    /// and --loops: the loop-corrected metric trajectory, and the one without loops (dynScale
-    /// alone) to NAME_dynscale.txt.
+    /// and --loops: the loop-corrected metric trajectory, the one without loops (dynScale
+    /// alone) to NAME_dynscale.txt, and each frame's causal pose corrected by the loops found
+    /// up to it to NAME_causal_loops.txt.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Height of the person wearing the camera, metres, in (0, 3]: runs the metric scale
@@ -169,8 +170,8 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["table21", "loops", "walker_height"])]
     patch_sweeps: Option<PathBuf>,
     /// Seconds of input (frame time stamps) between checkpoints on a sequence folder: with
-    /// --out, the trajectory so far (the --out file; with --walker-height NAME_unscaled.txt
-    /// and NAME_causal.txt) is replaced atomically, so a run killed later leaves it readable.
+    /// --out, the trajectory so far (the --out file; with --walker-height NAME_unscaled.txt,
+    /// NAME_causal.txt and with --loops NAME_causal_loops.txt) is replaced atomically, so a run killed later leaves it readable.
     /// Ctrl-C (or SIGTERM) stops reading frames and writes every output; a second one exits
     /// at once with the last checkpoint's files; > 0 [default: 5].
     #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = super::outputs::CHECKPOINT_EVERY_S)]
@@ -360,7 +361,13 @@ pub fn run(args: Args) -> Result<()> {
         let inputs: Vec<&Path> = args.seq.iter().map(PathBuf::as_path).collect();
         super::outputs::output_file(out, "--out", &inputs)?;
         if args.walker_height.is_some() {
-            for suffix in ["unscaled", "causal", "groundtruth", "dynscale"] {
+            for suffix in [
+                "unscaled",
+                "causal",
+                "causal_loops",
+                "groundtruth",
+                "dynscale",
+            ] {
                 super::outputs::output_file(&beside(out, suffix), "--out", &inputs)?;
             }
         }
@@ -785,10 +792,14 @@ where
             first_scaled = Some(t);
         }
         if let (true, Some(out)) = (frame_loop.done(t, &bar), &args.out) {
-            FrameLoop::checkpoint(&[
+            let mut files = vec![
                 (beside(out, "unscaled"), system.unscaled()),
                 (beside(out, "causal"), system.causal()),
-            ]);
+            ];
+            if args.loops {
+                files.push((beside(out, "causal_loops"), system.causal_looped()));
+            }
+            FrameLoop::checkpoint(&files);
         }
     }
     bar.finish_and_clear();
@@ -903,6 +914,9 @@ where
         }
         write_tum(&beside(out, "unscaled"), &run.unscaled)?;
         write_tum(&beside(out, "causal"), &run.causal)?;
+        if args.loops {
+            write_tum(&beside(out, "causal_loops"), &run.causal_looped)?;
+        }
         write_sidecar(
             out,
             &serde_json::json!({ "mono": cfg, "scale": scale_cfg }),
@@ -927,24 +941,28 @@ where
     }
     if let Some(gt) = gt {
         println!("eq. 3.36, placed on the ground truth at the first pose, never rescaled:");
+        // (printed name, JSON key, trajectory)
         let mut rows = vec![
-            ("unscaled (EKF)", &run.unscaled),
-            ("causal metric", &run.causal),
+            ("unscaled (EKF)", "unscaled", &run.unscaled),
+            ("causal metric", "causal", &run.causal),
         ];
+        if args.loops {
+            rows.push(("loops + causal", "causal_loops", &run.causal_looped));
+        }
         if let Ok(r) = &run.scaled {
-            rows.push(("final metric", &r.scaled));
+            rows.push(("final metric", "final", &r.scaled));
         }
         if let Some(l) = looped {
-            rows.push(("loops + final metric", &l.trajectory));
+            rows.push(("loops + final metric", "loops", &l.trajectory));
         }
-        for (name, est) in rows {
+        for (name, key, est) in rows {
             let pairs = rgbid::eval::associate(est, gt, 0.02);
             let e: Vec<TimedPose> = pairs.iter().map(|p| est[p.0]).collect();
             let g: Vec<TimedPose> = pairs.iter().map(|p| gt[p.1]).collect();
             let result = arc_length_error_from_start(&g, &e, 1000);
             if let Ok(a) = &result {
                 let end = a.curve.last().map_or(f64::NAN, |c| c.1);
-                report[name.split(' ').next().unwrap_or(name)] = serde_json::json!({
+                report[key] = serde_json::json!({
                     "mean_pct": 100.0 * a.relative,
                     "end_pct": 100.0 * end / a.gt_length,
                     "path_m": a.gt_length,

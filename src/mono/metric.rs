@@ -18,6 +18,13 @@
 //! particle filter's standard deviation), consecutive keyframes are joined by the metric
 //! trajectory's relative motion, and the loops add their similarities. Every frame then takes
 //! the correction of the keyframes around it, blended by time.
+//!
+//! Loops also correct the causal output as they are found: when a keyframe closes a loop, the
+//! same `optimSim3` runs on everything seen so far (the sections closed so far, the open one
+//! with the scale now), and the rigid motion that takes the frame's causal pose to its
+//! corrected pose is applied to this and every later causal pose until the next loop
+//! ([`MetricReport::looped`], [`MetricRun::causal_looped`]). The scale of the motion after
+//! the loop stays the walking estimate's.
 
 use std::time::Instant;
 
@@ -61,9 +68,12 @@ pub struct MetricReport {
     pub scale_ms: f64,
     /// With loop detection: the keyframe query when the frame became a keyframe.
     pub keyframe: Option<KeyframeQuery>,
-    /// Milliseconds spent on keyframe selection, ORB, database query and verification (0
-    /// without loop detection).
+    /// Milliseconds spent on keyframe selection, ORB, database query and verification, and
+    /// on the loop correction when this frame closed a loop (0 without loop detection).
     pub loop_ms: f64,
+    /// With loop detection: [`Self::metric`] moved by the correction of the loops found up to
+    /// and including this frame (causal; the same as `metric` before the first used loop).
+    pub looped: Option<TimedPose>,
 }
 
 /// A verified loop of a [`MetricMono`] run with loop detection.
@@ -119,6 +129,9 @@ pub struct MetricRun {
     /// With loop detection and a metric trajectory: the loops and the loop-corrected metric
     /// trajectory (an error when the Sim(3) graph failed).
     pub looped: Option<Result<LoopedRun, ScaleError>>,
+    /// With loop detection: each frame's causal metric pose moved by the loops found up to it
+    /// ([`MetricReport::looped`]), metres, the same frames as [`Self::causal`]; empty without.
+    pub causal_looped: Vec<TimedPose>,
 }
 
 /// Monocular EKF SLAM with metric scale from walking.
@@ -128,6 +141,9 @@ pub struct MetricMono {
     unscaled: Vec<TimedPose>,
     causal: Vec<TimedPose>,
     loops: Option<LoopState>,
+    /// New world from old world of the causal output, from the latest loop correction.
+    correction: Option<Se3>,
+    causal_looped: Vec<TimedPose>,
 }
 
 impl MetricMono {
@@ -145,6 +161,8 @@ impl MetricMono {
             unscaled: Vec::new(),
             causal: Vec::new(),
             loops: None,
+            correction: None,
+            causal_looped: Vec::new(),
         })
     }
 
@@ -197,6 +215,12 @@ impl MetricMono {
         &self.causal
     }
 
+    /// With loop detection: [`Self::causal`] corrected by the loops found up to each frame
+    /// (metres; empty without loop detection).
+    pub fn causal_looped(&self) -> &[TimedPose] {
+        &self.causal_looped
+    }
+
     /// Processes one grey image (intensity in `[0, 255]`) taken at `timestamp` seconds
     /// (strictly increasing).
     pub fn process(&mut self, timestamp: f64, image: &ImageF32) -> Result<MetricReport, MonoError> {
@@ -215,6 +239,7 @@ impl MetricMono {
         }
         let t1 = Instant::now();
         let mut keyframe = None;
+        let mut looped = None;
         if let Some(l) = &mut self.loops {
             if l.selector.update(timestamp, &self.slam) {
                 let q =
@@ -223,10 +248,26 @@ impl MetricMono {
                 let p = l.detector.params();
                 if let Some(c) = q.best(p.min_normalised_score, p.min_inliers, p.min_inlier_ratio) {
                     l.found.push((q.keyframe, *c));
+                    if let Some(m) = metric {
+                        if let Some(c) = causal_correction(l, &self.scale, &self.unscaled, &m) {
+                            self.correction = Some(c);
+                        }
+                    }
                 }
                 keyframe = Some(q);
             }
             l.frame += 1;
+            if let Some(m) = metric {
+                let corrected = match &self.correction {
+                    Some(c) => TimedPose {
+                        timestamp: m.timestamp,
+                        world_from_camera: *c * m.world_from_camera,
+                    },
+                    None => m,
+                };
+                self.causal_looped.push(corrected);
+                looped = Some(corrected);
+            }
         }
         let loop_ms = if self.loops.is_some() {
             t1.elapsed().as_secs_f64() * 1e3
@@ -241,6 +282,7 @@ impl MetricMono {
             scale_ms,
             keyframe,
             loop_ms,
+            looped,
         })
     }
 
@@ -257,8 +299,29 @@ impl MetricMono {
             causal: self.causal,
             scaled,
             looped,
+            causal_looped: self.causal_looped,
         }
     }
+}
+
+/// The causal output's correction after a loop was found at the latest frame, whose causal
+/// metric pose is `metric`: `optimSim3` ([`close_loops`]) on the run so far, scaled by a copy
+/// of the scale estimation closed now, and the rigid motion (new world from old) that takes
+/// `metric` to the frame's corrected pose. `None` when the run so far has no scale or no
+/// usable loop, or the graph failed (the previous correction then stays).
+fn causal_correction(
+    l: &LoopState,
+    scale: &LiveDynScale,
+    unscaled: &[TimedPose],
+    metric: &TimedPose,
+) -> Option<Se3> {
+    let so_far = scale.clone().finish(unscaled).ok()?;
+    let run = close_loops(l, &so_far).ok()?;
+    if run.constraints == 0 {
+        return None;
+    }
+    let now = run.trajectory.last()?;
+    Some(now.world_from_camera * metric.world_from_camera.inverse())
 }
 
 /// `optimSim3` on the metric keyframes with the loops' similarities (see the module docs).
