@@ -110,7 +110,32 @@ struct LoopState {
     detector: MonoLoopDetector,
     scale_params: LoopScaleParams,
     found: Vec<(usize, CandidateCheck)>,
+    /// The similarities of the first loops of `found`, those whose query keyframe already has
+    /// its later neighbour (so they no longer change).
+    settled: Vec<Option<LoopSimilarity>>,
     frame: usize,
+}
+
+impl LoopState {
+    /// The similarity of every loop found so far (eq. 3.10, [`MonoLoopDetector::loop_similarity`]
+    /// with the keyframes that exist now). A loop's similarity is final once its query keyframe
+    /// has its later neighbour (the candidate is older, so it has its own): those are kept,
+    /// so the work per call grows with the loops still unsettled, not with all loops.
+    fn similarities(&mut self) -> Vec<Option<LoopSimilarity>> {
+        let keyframes = self.detector.keyframes().len();
+        while let Some((q, c)) = self.found.get(self.settled.len()) {
+            if q + 1 >= keyframes {
+                break;
+            }
+            let sim = self.detector.loop_similarity(*q, c, &self.scale_params);
+            self.settled.push(sim);
+        }
+        let mut all = self.settled.clone();
+        for (q, c) in &self.found[self.settled.len()..] {
+            all.push(self.detector.loop_similarity(*q, c, &self.scale_params));
+        }
+        all
+    }
 }
 
 /// The trajectories of a finished [`MetricMono`] run (`world_from_camera`, filter world =
@@ -184,6 +209,7 @@ impl MetricMono {
             detector: MonoLoopDetector::new(camera, vocabulary, params)?,
             scale_params,
             found: Vec::new(),
+            settled: Vec::new(),
             frame: 0,
         });
         Ok(m)
@@ -290,8 +316,11 @@ impl MetricMono {
     /// With loop detection, the loop-corrected metric trajectory too.
     pub fn finish(mut self) -> MetricRun {
         let scaled = self.scale.finish(&self.unscaled);
-        let looped = match (&self.loops, &scaled) {
-            (Some(l), Ok(r)) => Some(close_loops(l, r)),
+        let looped = match (&mut self.loops, &scaled) {
+            (Some(l), Ok(r)) => {
+                let similarities = l.similarities();
+                Some(close_loops(l, &similarities, r))
+            }
             _ => None,
         };
         MetricRun {
@@ -310,13 +339,14 @@ impl MetricMono {
 /// `metric` to the frame's corrected pose. `None` when the run so far has no scale or no
 /// usable loop, or the graph failed (the previous correction then stays).
 fn causal_correction(
-    l: &LoopState,
+    l: &mut LoopState,
     scale: &LiveDynScale,
     unscaled: &[TimedPose],
     metric: &TimedPose,
 ) -> Option<Se3> {
     let so_far = scale.clone().finish(unscaled).ok()?;
-    let run = close_loops(l, &so_far).ok()?;
+    let similarities = l.similarities();
+    let run = close_loops(l, &similarities, &so_far).ok()?;
     if run.constraints == 0 {
         return None;
     }
@@ -324,18 +354,24 @@ fn causal_correction(
     Some(now.world_from_camera * metric.world_from_camera.inverse())
 }
 
-/// `optimSim3` on the metric keyframes with the loops' similarities (see the module docs).
-fn close_loops(l: &LoopState, metric: &DynScaleResult) -> Result<LoopedRun, ScaleError> {
+/// `optimSim3` on the metric keyframes with the loops' similarities (`similarities`, one per
+/// loop of `l.found`; see the module docs).
+fn close_loops(
+    l: &LoopState,
+    similarities: &[Option<LoopSimilarity>],
+    metric: &DynScaleResult,
+) -> Result<LoopedRun, ScaleError> {
     let kfs = l.detector.keyframes();
     let keyframe_frames: Vec<usize> = kfs.iter().map(|k| k.frame).collect();
     let loops: Vec<MetricLoop> = l
         .found
         .iter()
-        .map(|(q, c)| MetricLoop {
+        .zip(similarities)
+        .map(|((q, c), similarity)| MetricLoop {
             query: *q,
             candidate: c.keyframe,
             check: *c,
-            similarity: l.detector.loop_similarity(*q, c, &l.scale_params),
+            similarity: *similarity,
         })
         .collect();
     let traj = &metric.scaled;
