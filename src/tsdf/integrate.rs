@@ -166,13 +166,13 @@ pub(crate) fn integrate_block(
     }
 }
 
-/// [`update_measured`] on a row of [`BLOCK_SIDE`] voxels whose nearest pixels are `idx` (used
-/// where `hit`) at camera depths `zc` (m), as eight SIMD lanes: every lane computes the update
-/// and a mask chooses between it and the old voxel. Lanes without a valid measurement compute
-/// with inverse depth 1, so every value stays finite, and keep their voxel. The same f32
-/// operations in the same order as [`update_measured`], with minimum and maximum taken so that
-/// a NaN operand gives what `f32::min`/`f32::max` give, so the voxels are the same bit for bit
-/// (a test compares them).
+/// The per-voxel update of `shaders/tsdf.wgsl` (`update_measured` in the tests) on a row of
+/// [`BLOCK_SIDE`] voxels whose nearest pixels are `idx` (used where `hit`) at camera depths
+/// `zc` (m), as eight SIMD lanes: every lane computes the update and a mask chooses between it
+/// and the old voxel. Lanes without a valid measurement compute with inverse depth 1, so every
+/// value stays finite, and keep their voxel. The same f32 operations in the same order as the
+/// per-voxel form, with minimum and maximum taken so that a NaN operand gives what
+/// `f32::min`/`f32::max` give, so the voxels are the same bit for bit (a test compares them).
 #[inline]
 pub(crate) fn update_row(
     u: &IntegrateUniform,
