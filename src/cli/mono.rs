@@ -156,6 +156,11 @@ pub struct Args {
     /// With --loops: fewest essential-matrix inliers of a verified loop, >= 8 [default: 30].
     #[arg(long, requires = "loops", value_parser = crate::cli::options::range::at_least_eight)]
     loop_inliers: Option<usize>,
+    /// With --loops and --walker-height: seconds over which the online output
+    /// (NAME_causal_loops.txt) moves to a new loop's correction instead of jumping to it,
+    /// >= 0 (0 = at once).
+    #[arg(long, requires = "walker_height", value_parser = crate::cli::options::range::non_negative, default_value_t = LoopScaleParams::default().correction_blend)]
+    loop_blend: f64,
     /// Print the thesis' table 2.1 (FI, Rm, Rf, ATE) for every patch mode (plain, warped,
     /// thesis, anisotropic, projective) at ZNCC thresholds 0.8 / 0.9 / 0.95 on a synthetic
     /// catadioptric sequence.
@@ -171,7 +176,8 @@ pub struct Args {
     patch_sweeps: Option<PathBuf>,
     /// Seconds of input (frame time stamps) between checkpoints on a sequence folder: with
     /// --out, the trajectory so far (the --out file; with --walker-height NAME_unscaled.txt,
-    /// NAME_causal.txt and with --loops NAME_causal_loops.txt) is replaced atomically, so a run killed later leaves it readable.
+    /// NAME_causal.txt and with --loops NAME_causal_loops.txt) is replaced atomically, so a
+    /// run killed later leaves it readable.
     /// Ctrl-C (or SIGTERM) stops reading frames and writes every output; a second one exits
     /// at once with the last checkpoint's files; > 0 [default: 5].
     #[arg(long, value_parser = crate::cli::options::range::positive, default_value_t = super::outputs::CHECKPOINT_EVERY_S)]
@@ -765,7 +771,10 @@ where
             scale_cfg.clone(),
             Vocabulary::embedded_default()?,
             p.clone(),
-            LoopScaleParams::default(),
+            LoopScaleParams {
+                correction_blend: args.loop_blend,
+                ..LoopScaleParams::default()
+            },
         )?,
         None => MetricMono::new(camera, cfg.clone(), scale_cfg.clone())?,
     };

@@ -535,6 +535,11 @@ pub struct LoopScaleParams {
     pub min_parallax: f64,
     /// Fewest loop inliers with a local point in both keyframes for a similarity (>= 3).
     pub min_points: usize,
+    /// Seconds over which the online (causal) output of [`super::MetricMono`] moves from the
+    /// previous loop correction to a new one (>= 0; 0 applies it at once). A correction
+    /// applied at once is a jump no walker makes, and the arc-length error of eq. 3.36
+    /// counts its length; spread over a second it adds little length.
+    pub correction_blend: f64,
 }
 
 impl Default for LoopScaleParams {
@@ -543,6 +548,7 @@ impl Default for LoopScaleParams {
             local_threshold: 0.02,
             min_parallax: 0.03,
             min_points: 8,
+            correction_blend: 0.0,
         }
     }
 }
@@ -564,6 +570,9 @@ impl LoopScaleParams {
         }
         if self.min_points < 3 {
             return bad("loop_scale.min_points", "must be >= 3");
+        }
+        if !(self.correction_blend >= 0.0 && self.correction_blend.is_finite()) {
+            return bad("loop_scale.correction_blend", "must be finite and >= 0 s");
         }
         Ok(())
     }

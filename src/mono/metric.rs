@@ -23,8 +23,10 @@
 //! same `optimSim3` runs on everything seen so far (the sections closed so far, the open one
 //! with the scale now), and the rigid motion that takes the frame's causal pose to its
 //! corrected pose is applied to this and every later causal pose until the next loop
-//! ([`MetricReport::looped`], [`MetricRun::causal_looped`]). The scale of the motion after
-//! the loop stays the walking estimate's.
+//! ([`MetricReport::looped`], [`MetricRun::causal_looped`]); with
+//! [`LoopScaleParams::correction_blend`] the output moves to the new correction over that many
+//! seconds instead of jumping. The scale of the motion after the loop stays the walking
+//! estimate's.
 
 use std::time::Instant;
 
@@ -166,8 +168,8 @@ pub struct MetricMono {
     unscaled: Vec<TimedPose>,
     causal: Vec<TimedPose>,
     loops: Option<LoopState>,
-    /// New world from old world of the causal output, from the latest loop correction.
-    correction: Option<Se3>,
+    /// The loop correction of the causal output in effect (new world from old world).
+    correction: Option<CorrectionBlend>,
     causal_looped: Vec<TimedPose>,
 }
 
@@ -276,7 +278,16 @@ impl MetricMono {
                     l.found.push((q.keyframe, *c));
                     if let Some(m) = metric {
                         if let Some(c) = causal_correction(l, &self.scale, &self.unscaled, &m) {
-                            self.correction = Some(c);
+                            let blend = l.scale_params.correction_blend;
+                            let from = match &self.correction {
+                                Some(b) => b.world_correction(&m, blend),
+                                None => Se3::IDENTITY,
+                            };
+                            self.correction = Some(CorrectionBlend {
+                                from,
+                                to: c,
+                                start: m.timestamp,
+                            });
                         }
                     }
                 }
@@ -287,7 +298,7 @@ impl MetricMono {
                 let corrected = match &self.correction {
                     Some(c) => TimedPose {
                         timestamp: m.timestamp,
-                        world_from_camera: *c * m.world_from_camera,
+                        world_from_camera: c.apply(&m, l.scale_params.correction_blend),
                     },
                     None => m,
                 };
@@ -330,6 +341,43 @@ impl MetricMono {
             looped,
             causal_looped: self.causal_looped,
         }
+    }
+}
+
+/// A loop correction of the causal output that takes effect over `blend` seconds: from the
+/// correction in effect when the loop was found (`from`, new world from old world) to the
+/// loop's (`to`), starting at the frame that found it (`start`, seconds).
+#[derive(Clone, Copy, Debug)]
+struct CorrectionBlend {
+    from: Se3,
+    to: Se3,
+    start: f64,
+}
+
+impl CorrectionBlend {
+    /// The corrected pose (`world_from_camera`, metres) of the causal metric pose `metric`.
+    /// Between the two corrections the pose moves along the geodesic between the two
+    /// corrected poses in the camera's own frame, so the rotation of the world correction
+    /// does not swing the camera about the distant world origin.
+    fn apply(&self, metric: &TimedPose, blend: f64) -> Se3 {
+        let b = self.to * metric.world_from_camera;
+        let alpha = if blend > 0.0 {
+            ((metric.timestamp - self.start) / blend).clamp(0.0, 1.0)
+        } else {
+            1.0
+        };
+        if alpha >= 1.0 {
+            return b;
+        }
+        let a = self.from * metric.world_from_camera;
+        let step = (a.inverse() * b).log().map(|v| v * alpha);
+        a * Se3::exp(&step)
+    }
+
+    /// The world correction (new world from old world) that takes `metric` to its corrected
+    /// pose now: where the next correction starts from.
+    fn world_correction(&self, metric: &TimedPose, blend: f64) -> Se3 {
+        self.apply(metric, blend) * metric.world_from_camera.inverse()
     }
 }
 
@@ -499,5 +547,60 @@ mod tests {
         assert_eq!((run.unscaled.len(), run.causal.len()), (20, 0));
         let e = run.scaled.unwrap_err().to_string();
         assert!(e.contains("walking"), "{e}");
+    }
+
+    fn pose_at(t: f64, x: f64) -> TimedPose {
+        TimedPose {
+            timestamp: t,
+            world_from_camera: Se3::new(
+                glam::DQuat::from_rotation_z(0.1 * x),
+                glam::DVec3::new(x, 0.5 * x, 0.2),
+            ),
+        }
+    }
+
+    fn close(a: &Se3, b: &Se3) -> bool {
+        (a.inverse() * *b).log().iter().all(|v| v.abs() < 1e-9)
+    }
+
+    #[test]
+    fn a_blended_correction_moves_from_the_old_to_the_new_correction_over_its_duration() {
+        let from = Se3::new(
+            glam::DQuat::from_rotation_z(0.05),
+            glam::DVec3::new(0.3, 0.0, 0.0),
+        );
+        let to = Se3::new(
+            glam::DQuat::from_rotation_z(-0.1),
+            glam::DVec3::new(-0.2, 1.0, 0.1),
+        );
+        let b = CorrectionBlend {
+            from,
+            to,
+            start: 10.0,
+        };
+        let at_start = pose_at(10.0, 5.0);
+        assert!(close(
+            &b.apply(&at_start, 2.0),
+            &(from * at_start.world_from_camera)
+        ));
+        let after = pose_at(12.0, 7.0);
+        assert!(close(
+            &b.apply(&after, 2.0),
+            &(to * after.world_from_camera)
+        ));
+        assert!(close(
+            &b.apply(&at_start, 0.0),
+            &(to * at_start.world_from_camera)
+        ));
+        // Halfway the position lies halfway between the two corrected positions: the blend
+        // does not swing the camera about the world origin, 5 m away.
+        let mid = pose_at(11.0, 6.0);
+        let half = b.apply(&mid, 2.0).translation;
+        let pa = (from * mid.world_from_camera).translation;
+        let pb = (to * mid.world_from_camera).translation;
+        assert!((half - 0.5 * (pa + pb)).length() < 0.02 * (pb - pa).length());
+        // A new correction starts where the output is now.
+        let w = b.world_correction(&mid, 2.0);
+        assert!(close(&(w * mid.world_from_camera), &b.apply(&mid, 2.0)));
     }
 }
