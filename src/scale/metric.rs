@@ -96,6 +96,46 @@ pub fn arc_length_error_from_start(
     })
 }
 
+/// The position error at equal times, placed as [`arc_length_error_from_start`] places the
+/// estimate (the rigid transform `gt[0] * est[0]^-1`, never rescaled): the mean of
+/// `|p_gt(t_i) - A p_est(t_i)|` over the pairs `(gt[i], est[i])`, which must be associated
+/// in time (equal lengths, `>= 2`). Returned as `(mean error, ground-truth path length)`,
+/// metres. Unlike eq. 3.36 it does not depend on how the estimate spends its arc length, so
+/// a jump, which lengthens the path, counts only for the distance it leaves.
+pub fn time_matched_error_from_start(
+    gt: &[TimedPose],
+    est: &[TimedPose],
+) -> Result<(f64, f64), ScaleError> {
+    if gt.len() != est.len() || gt.len() < 2 {
+        return Err(ScaleError::TooShort {
+            have: gt.len().min(est.len()),
+            seconds: 0.0,
+            need: "2 or more time-associated pose pairs".into(),
+        });
+    }
+    let gt_from_est = gt[0].world_from_camera * est[0].world_from_camera.inverse();
+    let mut sum = 0.0;
+    let mut length = 0.0;
+    for (i, (g, e)) in gt.iter().zip(est).enumerate() {
+        let pg = g.world_from_camera.translation;
+        let pe = gt_from_est.transform_point(e.world_from_camera.translation);
+        if !(pg.is_finite() && pe.is_finite()) {
+            return Err(ScaleError::NonFinite("trajectory positions".into()));
+        }
+        sum += (pg - pe).length();
+        if i > 0 {
+            length += (pg - gt[i - 1].world_from_camera.translation).length();
+        }
+    }
+    if !(length > 0.0) {
+        return Err(ScaleError::InvalidParameter {
+            name: "trajectory",
+            why: "zero path length".into(),
+        });
+    }
+    Ok((sum / gt.len() as f64, length))
+}
+
 /// A map from the estimate's world frame into the ground truth's, with its scale.
 type Align = (f64, Box<dyn Fn(DVec3) -> DVec3>);
 
@@ -208,5 +248,38 @@ mod tests {
         // A rigid best fit moves the start to share the error out, so its end error is smaller.
         let rigid = arc_length_error(&gt, &long, 301, false).unwrap();
         assert!(rigid.curve.last().unwrap().1 < end && rigid.curve[0].1 > 0.1);
+    }
+
+    #[test]
+    fn the_time_matched_error_counts_a_jump_by_its_distance_not_by_its_length() {
+        let gt = walk();
+        let other_from_gt = Se3::new(DQuat::from_rotation_x(0.4), DVec3::new(1.0, 2.0, 3.0));
+        let moved: Vec<TimedPose> = gt
+            .iter()
+            .map(|p| TimedPose {
+                timestamp: p.timestamp,
+                world_from_camera: other_from_gt * p.world_from_camera,
+            })
+            .collect();
+        let (mean, length) = time_matched_error_from_start(&gt, &moved).unwrap();
+        assert!(
+            mean < 1e-9 && (length - 15.0).abs() < 1e-9,
+            "{mean} {length}"
+        );
+        // One pose 1 m off to the side: 1 m of error over 151 poses, while the arc length
+        // grows by 1.8 m.
+        let mut jumped = moved.clone();
+        let side = other_from_gt.transform_vector(DVec3::new(0.0, 0.0, 1.0));
+        jumped[40].world_from_camera.translation += side;
+        let (mean, _) = time_matched_error_from_start(&gt, &jumped).unwrap();
+        assert!((mean - 1.0 / 151.0).abs() < 1e-9, "{mean}");
+        let arc = arc_length_error_from_start(&gt, &jumped, 301).unwrap();
+        assert!(
+            arc.est_length > 16.7 && arc.mean > 10.0 * mean,
+            "{} {}",
+            arc.est_length,
+            arc.mean
+        );
+        assert!(time_matched_error_from_start(&gt, &moved[1..]).is_err());
     }
 }

@@ -24,7 +24,8 @@
 //!   on emulated loops; [`optim_sim3_with`]: the same graph on measured relative similarities.
 //! - [`arc_length_error`]: position error against ground truth by normalised arc length (3.36).
 //! - [`arc_length_error_from_start`]: the same, placed on the ground truth at the first pose and
-//!   never rescaled (how the thesis scores a walk).
+//!   never rescaled (how the thesis scores a walk); [`time_matched_error_from_start`]: the
+//!   same placement, compared at equal times.
 //!
 //! Frames: trajectories are `world_from_camera` in the trajectory's own world frame (for a
 //! monocular SLAM output, usually the first camera: x right, y down, z forward). Units: seconds,
@@ -49,7 +50,9 @@ pub use live::{LiveDynScale, SectionTransform};
 pub use loops::{
     detect_loops_from_ground_truth, optim_sim3, optim_sim3_with, LoopConfig, SimilarityConstraint,
 };
-pub use metric::{arc_length_error, arc_length_error_from_start, ArcLengthError};
+pub use metric::{
+    arc_length_error, arc_length_error_from_start, time_matched_error_from_start, ArcLengthError,
+};
 pub use particle::{FilterUpdate, ParticleConfig, ScaleFilter};
 pub use spectrum::{HighPass, SpectrumConfig, StepAnalysis};
 pub use walking::{calibrate, CalibrationSample, WalkingModel, GRIEVE_ALPHA, GRIEVE_BETA};
