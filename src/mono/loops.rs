@@ -537,8 +537,8 @@ pub struct LoopScaleParams {
     pub min_points: usize,
     /// Seconds over which the online (causal) output of [`super::MetricMono`] moves from the
     /// previous loop correction to a new one (>= 0; 0 applies it at once). A correction
-    /// applied at once is a jump no walker makes, and the arc-length error of eq. 3.36
-    /// counts its length; spread over a second it adds little length.
+    /// applied at once is a jump no walker makes, which a display or an odometer of the
+    /// online output would show; spread over a second or two it adds little length.
     pub correction_blend: f64,
 }
 

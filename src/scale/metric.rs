@@ -106,7 +106,18 @@ pub fn time_matched_error_from_start(
     gt: &[TimedPose],
     est: &[TimedPose],
 ) -> Result<(f64, f64), ScaleError> {
-    if gt.len() != est.len() || gt.len() < 2 {
+    if gt.len() != est.len() {
+        return Err(ScaleError::InvalidParameter {
+            name: "trajectory",
+            why: format!(
+                "{} ground-truth poses for {} estimated poses: the pairs must be associated \
+                 in time",
+                gt.len(),
+                est.len()
+            ),
+        });
+    }
+    if gt.len() < 2 {
         return Err(ScaleError::TooShort {
             have: gt.len().min(est.len()),
             seconds: 0.0,
