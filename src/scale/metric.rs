@@ -223,18 +223,22 @@ mod tests {
         p
     }
 
+    /// `gt` expressed in another world frame (`other_from_gt`).
+    fn in_frame(other_from_gt: &Se3, gt: &[TimedPose]) -> Vec<TimedPose> {
+        gt.iter()
+            .map(|p| TimedPose {
+                timestamp: p.timestamp,
+                world_from_camera: *other_from_gt * p.world_from_camera,
+            })
+            .collect()
+    }
+
     #[test]
     fn start_alignment_keeps_the_scale_error_that_a_rigid_fit_spreads_out() {
         let gt = walk();
         // The estimate in another world frame: exact up to where it started.
         let other_from_gt = Se3::new(DQuat::from_rotation_y(1.0), DVec3::new(3.0, -2.0, 1.0));
-        let moved: Vec<TimedPose> = gt
-            .iter()
-            .map(|p| TimedPose {
-                timestamp: p.timestamp,
-                world_from_camera: other_from_gt * p.world_from_camera,
-            })
-            .collect();
+        let moved = in_frame(&other_from_gt, &gt);
         let e = arc_length_error_from_start(&gt, &moved, 301).unwrap();
         assert!(e.max < 1e-9, "{}", e.max);
         assert!((e.est_length - 15.0).abs() < 1e-9);
@@ -265,13 +269,7 @@ mod tests {
     fn the_time_matched_error_counts_a_jump_by_its_distance_not_by_its_length() {
         let gt = walk();
         let other_from_gt = Se3::new(DQuat::from_rotation_x(0.4), DVec3::new(1.0, 2.0, 3.0));
-        let moved: Vec<TimedPose> = gt
-            .iter()
-            .map(|p| TimedPose {
-                timestamp: p.timestamp,
-                world_from_camera: other_from_gt * p.world_from_camera,
-            })
-            .collect();
+        let moved = in_frame(&other_from_gt, &gt);
         let (mean, length) = time_matched_error_from_start(&gt, &moved).unwrap();
         assert!(
             mean < 1e-9 && (length - 15.0).abs() < 1e-9,
