@@ -161,7 +161,7 @@ pub struct Args {
     /// With --loops and --walker-height: seconds over which the online output
     /// (NAME_causal_loops.txt) moves to a new loop's correction instead of jumping to it,
     /// >= 0 (0 = at once).
-    #[arg(long, requires = "walker_height", value_parser = crate::cli::options::range::non_negative, default_value_t = LoopScaleParams::default().correction_blend)]
+    #[arg(long, requires = "loops", requires = "walker_height", value_parser = crate::cli::options::range::non_negative, default_value_t = LoopScaleParams::default().correction_blend)]
     loop_blend: f64,
     /// Print the thesis' table 2.1 (FI, Rm, Rf, ATE) for every patch mode (plain, warped,
     /// thesis, anisotropic, projective) at ZNCC thresholds 0.8 / 0.9 / 0.95 on a synthetic

@@ -30,6 +30,8 @@
 
 use std::time::Instant;
 
+use glam::{DQuat, DVec3};
+
 use super::loops::{
     CandidateCheck, KeyframeQuery, KeyframeSelector, LoopScaleParams, LoopSimilarity,
     MonoLoopDetector, MonoLoopParams,
@@ -278,15 +280,15 @@ impl MetricMono {
                     l.found.push((q.keyframe, *c));
                     if let Some(m) = metric {
                         if let Some(c) = causal_correction(l, &self.scale, &self.unscaled, &m) {
-                            let blend = l.scale_params.correction_blend;
                             let from = match &self.correction {
-                                Some(b) => b.world_correction(&m, blend),
+                                Some(b) => b.world_correction(&m),
                                 None => Se3::IDENTITY,
                             };
                             self.correction = Some(CorrectionBlend {
                                 from,
                                 to: c,
                                 start: m.timestamp,
+                                duration: l.scale_params.correction_blend,
                             });
                         }
                     }
@@ -298,7 +300,7 @@ impl MetricMono {
                 let corrected = match &self.correction {
                     Some(c) => TimedPose {
                         timestamp: m.timestamp,
-                        world_from_camera: c.apply(&m, l.scale_params.correction_blend),
+                        world_from_camera: c.apply(&m),
                     },
                     None => m,
                 };
@@ -344,7 +346,19 @@ impl MetricMono {
     }
 }
 
-/// A loop correction of the causal output that takes effect over `blend` seconds: from the
+/// `world_from_camera` moved by a world correction blended from `a` to `b` at `u` in [0, 1],
+/// each correction given as its rotation and the position it moves the camera to: the
+/// rotation slerped, the position on the straight line between the two corrected positions
+/// (so a rotation of the correction does not swing the camera about the distant world
+/// origin).
+fn blend_corrected(world_from_camera: &Se3, a: (DQuat, DVec3), b: (DQuat, DVec3), u: f64) -> Se3 {
+    Se3::new(
+        (a.0.slerp(b.0, u) * world_from_camera.rotation).normalize(),
+        a.1.lerp(b.1, u),
+    )
+}
+
+/// A loop correction of the causal output that takes effect over `duration` seconds: from the
 /// correction in effect when the loop was found (`from`, new world from old world) to the
 /// loop's (`to`), starting at the frame that found it (`start`, seconds).
 #[derive(Clone, Copy, Debug)]
@@ -352,32 +366,33 @@ struct CorrectionBlend {
     from: Se3,
     to: Se3,
     start: f64,
+    duration: f64,
 }
 
 impl CorrectionBlend {
     /// The corrected pose (`world_from_camera`, metres) of the causal metric pose `metric`.
-    /// Between the two corrections the pose moves along the geodesic between the two
-    /// corrected poses in the camera's own frame, so the rotation of the world correction
-    /// does not swing the camera about the distant world origin.
-    fn apply(&self, metric: &TimedPose, blend: f64) -> Se3 {
-        let b = self.to * metric.world_from_camera;
-        let alpha = if blend > 0.0 {
-            ((metric.timestamp - self.start) / blend).clamp(0.0, 1.0)
+    fn apply(&self, metric: &TimedPose) -> Se3 {
+        let u = if self.duration > 0.0 {
+            ((metric.timestamp - self.start) / self.duration).clamp(0.0, 1.0)
         } else {
             1.0
         };
-        if alpha >= 1.0 {
-            return b;
+        if u >= 1.0 {
+            return self.to * metric.world_from_camera;
         }
-        let a = self.from * metric.world_from_camera;
-        let step = (a.inverse() * b).log().map(|v| v * alpha);
-        a * Se3::exp(&step)
+        let p = metric.world_from_camera.translation;
+        blend_corrected(
+            &metric.world_from_camera,
+            (self.from.rotation, self.from.transform_point(p)),
+            (self.to.rotation, self.to.transform_point(p)),
+            u,
+        )
     }
 
     /// The world correction (new world from old world) that takes `metric` to its corrected
     /// pose now: where the next correction starts from.
-    fn world_correction(&self, metric: &TimedPose, blend: f64) -> Se3 {
-        self.apply(metric, blend) * metric.world_from_camera.inverse()
+    fn world_correction(&self, metric: &TimedPose) -> Se3 {
+        self.apply(metric) * metric.world_from_camera.inverse()
     }
 }
 
@@ -496,22 +511,20 @@ fn close_loops(
                 .saturating_sub(1);
             let ck = &corrections[k];
             let p = pose.world_from_camera.translation;
-            let (rotation, translation) = match (corrections.get(k + 1), kfs.get(k + 1)) {
+            let (next, u) = match (corrections.get(k + 1), kfs.get(k + 1)) {
                 (Some(cn), Some(next)) => {
                     let (t0, t1) = (kfs[k].timestamp, next.timestamp);
-                    let u = ((pose.timestamp - t0) / (t1 - t0)).clamp(0.0, 1.0);
-                    (
-                        ck.rotation.slerp(cn.rotation, u),
-                        ck.transform_point(p).lerp(cn.transform_point(p), u),
-                    )
+                    (cn, ((pose.timestamp - t0) / (t1 - t0)).clamp(0.0, 1.0))
                 }
-                _ => (ck.rotation, ck.transform_point(p)),
+                _ => (ck, 0.0),
             };
             TimedPose {
                 timestamp: pose.timestamp,
-                world_from_camera: Se3::new(
-                    (rotation * pose.world_from_camera.rotation).normalize(),
-                    translation,
+                world_from_camera: blend_corrected(
+                    &pose.world_from_camera,
+                    (ck.rotation, ck.transform_point(p)),
+                    (next.rotation, next.transform_point(p)),
+                    u,
                 ),
             }
         })
@@ -577,30 +590,29 @@ mod tests {
             from,
             to,
             start: 10.0,
+            duration: 2.0,
         };
+        let at_once = CorrectionBlend { duration: 0.0, ..b };
         let at_start = pose_at(10.0, 5.0);
         assert!(close(
-            &b.apply(&at_start, 2.0),
+            &b.apply(&at_start),
             &(from * at_start.world_from_camera)
         ));
         let after = pose_at(12.0, 7.0);
+        assert!(close(&b.apply(&after), &(to * after.world_from_camera)));
         assert!(close(
-            &b.apply(&after, 2.0),
-            &(to * after.world_from_camera)
-        ));
-        assert!(close(
-            &b.apply(&at_start, 0.0),
+            &at_once.apply(&at_start),
             &(to * at_start.world_from_camera)
         ));
         // Halfway the position lies halfway between the two corrected positions: the blend
         // does not swing the camera about the world origin, 5 m away.
         let mid = pose_at(11.0, 6.0);
-        let half = b.apply(&mid, 2.0).translation;
+        let half = b.apply(&mid).translation;
         let pa = (from * mid.world_from_camera).translation;
         let pb = (to * mid.world_from_camera).translation;
-        assert!((half - 0.5 * (pa + pb)).length() < 0.02 * (pb - pa).length());
+        assert!((half - 0.5 * (pa + pb)).length() < 1e-9 * (pb - pa).length());
         // A new correction starts where the output is now.
-        let w = b.world_correction(&mid, 2.0);
-        assert!(close(&(w * mid.world_from_camera), &b.apply(&mid, 2.0)));
+        let w = b.world_correction(&mid);
+        assert!(close(&(w * mid.world_from_camera), &b.apply(&mid)));
     }
 }
