@@ -205,6 +205,11 @@ fn cli_runs_on_an_image_only_folder() {
     assert_eq!(report["benchmark"], "mono-metric");
     assert_eq!(report["frames"], frames.images.len());
     assert!(report["unscaled"]["mean_pct"].as_f64().unwrap() >= 0.0);
+    // A rigid alignment has less freedom than a similarity, so it cannot fit the filter's
+    // trajectory better than the Sim(3) alignment does (same poses, same path length).
+    let rigid = report["unscaled"]["rigid_ate_pct"].as_f64().unwrap();
+    let sim3 = report["ekf_sim3_ate_pct"].as_f64().unwrap();
+    assert!(rigid.is_finite() && rigid >= sim3 - 1e-9, "{rigid} {sim3}");
     assert_eq!(report["warnings"].as_array().unwrap().len(), 1);
     let o = Command::new(exe)
         .args(["mono", "--synthetic", "pinhole", "--walker-height", "3.5"])
