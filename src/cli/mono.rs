@@ -975,9 +975,9 @@ where
             // its arc length (a loop correction's jump lengthens the path).
             let at_time = time_matched_error_from_start(&g, &e)
                 .map_or(f64::NAN, |(mean, length)| 100.0 * mean / length);
-            // The positions' RMSE after the rigid motion that fits them best (no scale): what
-            // is left without the start placement, so the metric shape and scale alone; the
-            // difference to eq. 3.36 is the attitude drift the start placement carries along.
+            // The positions' RMSE after the rigid motion that fits them best (no scale): the
+            // metric shape and scale without the start placement, which carries the filter's
+            // attitude error at every later pose along the whole walk.
             let rigid = ate(&g, &e, false).map_or(f64::NAN, |a| {
                 100.0 * a.translation.rmse / path_length(&g).max(1e-12)
             });
