@@ -16,6 +16,8 @@ Each depth pixel is back-projected with the pinhole intrinsics (lens distortion 
 it moves a pixel by far less than the motion does), moved by the rigid motion from the depth
 time to the colour time, and splatted to the nearest pixel (nearest surface kept).
 
+Only for TUM fr1 folders (the fr1 intrinsics are built in).
+
 Usage: /path/to/python scripts/depth_offset.py [--seq ../shared/data/rgbd/tum_fr1_rpy_0_199]
        [--variants none gt:0.5 gt:1 cv:1] [--bin target/release/rgbid]
 Needs numpy, scipy and OpenCV (the peers' Python).
@@ -124,7 +126,9 @@ def run_slam(binary, seq, out):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seq", type=pathlib.Path,
-                    default=ROOT.parent / "shared/data/rgbd/tum_fr1_rpy_0_199")
+                    default=ROOT.parent / "shared/data/rgbd/tum_fr1_rpy_0_199",
+                    help="a TUM fr1 folder: the warp and `rgbid slam --camera tum_fr1` take "
+                         "fr1's intrinsics")
     ap.add_argument("--variants", nargs="+", default=["none", "gt:0.5", "gt:1", "cv:1"])
     ap.add_argument("--bin", type=pathlib.Path, default=ROOT / "target/release/rgbid")
     args = ap.parse_args()
