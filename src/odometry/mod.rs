@@ -33,6 +33,7 @@ mod oracle;
 mod parity_tests;
 mod robust;
 mod rows;
+mod rolling_shutter;
 mod solver;
 mod tracker;
 
