@@ -88,9 +88,7 @@ impl CameraConfig {
             })
         };
         let (fx, fy, cx, cy, d, depth_scale, readout) = match name.to_ascii_lowercase().as_str() {
-            "icl_nuim" | "icl" => {
-                return other(481.2, 480.0, 319.5, 239.5, 640, 480, 5000.0, 0.0)
-            }
+            "icl_nuim" | "icl" => return other(481.2, 480.0, 319.5, 239.5, 640, 480, 5000.0, 0.0),
             "7scenes" | "7-scenes" => {
                 return other(585.0, 585.0, 320.0, 240.0, 640, 480, 1000.0, KINECT_READOUT)
             }
@@ -136,9 +134,15 @@ impl CameraConfig {
                 TUM_FR2_DEPTH_SCALE,
                 KINECT_READOUT,
             ),
-            "tum_fr3" | "fr3" | "freiburg3" => {
-                (535.4, 539.2, 320.1, 247.6, BrownConrady::default(), 1.0, 0.0)
-            }
+            "tum_fr3" | "fr3" | "freiburg3" => (
+                535.4,
+                539.2,
+                320.1,
+                247.6,
+                BrownConrady::default(),
+                1.0,
+                0.0,
+            ),
             _ => return None,
         };
         let mut camera = PinholeCamera::new(fx, fy, cx, cy, 640, 480);
@@ -631,22 +635,37 @@ mod tests {
             ("icl_nuim", 0.0),
             ("replica", 0.0),
         ] {
-            assert_eq!(CameraConfig::preset(p).unwrap().camera.readout, readout, "{p}");
+            assert_eq!(
+                CameraConfig::preset(p).unwrap().camera.readout,
+                readout,
+                "{p}"
+            );
         }
         let p = Path::new("cam.cfg");
-        let c = CameraConfig::parse_config("preset = tum_fr1
+        let c = CameraConfig::parse_config(
+            "preset = tum_fr1
 readout = 0
-", p).unwrap();
+",
+            p,
+        )
+        .unwrap();
         assert_eq!(c.camera.readout, 0.0);
-        let c = CameraConfig::parse_config("preset = tum_fr3
+        let c = CameraConfig::parse_config(
+            "preset = tum_fr3
 readout = 0.02
-", p).unwrap();
+",
+            p,
+        )
+        .unwrap();
         assert_eq!(c.camera.readout, 0.02);
-        let e = CameraConfig::parse_config("preset = default
+        let e = CameraConfig::parse_config(
+            "preset = default
 readout = -0.01
-", p)
-            .unwrap_err()
-            .to_string();
+",
+            p,
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("readout") && e.contains("cam.cfg"), "{e}");
     }
 }

@@ -32,8 +32,8 @@ mod oracle;
 #[cfg(test)]
 mod parity_tests;
 mod robust;
-mod rows;
 mod rolling_shutter;
+mod rows;
 mod solver;
 mod tracker;
 

@@ -50,44 +50,55 @@ pub(crate) fn rectify(
     if 0.5 * readout * omega.length() * focal < MIN_SHIFT_PX {
         return None;
     }
-    let src = &frame.intensity;
+    let src = frame.intensity.data();
     let mut out = vec![0.0f32; w * h];
+    let (fx, fy, cx, cy) = (camera.fx, camera.fy, camera.cx, camera.cy);
+    let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
     out.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
         let tau = (v as f64 / h as f64 - 0.5) * readout;
         // The ray of the middle-row camera seen from the camera at row v's time.
         let r = DMat3::from_quat(DQuat::from_scaled_axis(-omega * tau));
-        let y = (v as f64 - camera.cy) / camera.fy;
-        // The ray of pixel (u, v) is (u - cx)/fx * ex + (y, 1): linear in u.
-        let a = r * DVec3::new(-camera.cx / camera.fx, y, 1.0);
-        let b = r * DVec3::new(1.0 / camera.fx, 0.0, 0.0);
+        // The ray of pixel (u, v) is (u - cx)/fx * ex + ((v - cy)/fy, 1): linear in u, so
+        // its projection is a ratio of two linear functions of u. Pixel coordinates
+        // below a few thousand keep f32 well under a thousandth of a pixel.
+        let a = r * DVec3::new(-cx / fx, (v as f64 - cy) / fy, 1.0);
+        let b = r * DVec3::new(1.0 / fx, 0.0, 0.0);
+        let (ax, ay, az) = ((fx * a.x) as f32, (fy * a.y) as f32, a.z as f32);
+        let (bx, by, bz) = ((fx * b.x) as f32, (fy * b.y) as f32, b.z as f32);
+        let (cx, cy) = (cx as f32, cy as f32);
         for (u, px) in row.iter_mut().enumerate() {
-            let d = a + b * u as f64;
-            let (x, yy) = if d.z > 1e-9 {
-                (
-                    camera.fx * d.x / d.z + camera.cx,
-                    camera.fy * d.y / d.z + camera.cy,
-                )
+            let uf = u as f32;
+            let z = az + bz * uf;
+            let (x, y) = if z > 1e-6 {
+                let inv = 1.0 / z;
+                ((ax + bx * uf) * inv + cx, (ay + by * uf) * inv + cy)
             } else {
-                (u as f64, v as f64)
+                (uf, v as f32)
             };
-            *px = bilinear_clamped(src, x, yy);
+            *px = bilinear_clamped(src, w, x.clamp(0.0, xmax), y.clamp(0.0, ymax));
         }
     });
-    let mut rectified = frame.clone();
-    rectified.intensity = ImageF32::from_vec(w, h, out)?;
-    Some(rectified)
+    let intensity = ImageF32::from_vec(w, h, out)?;
+    Some(RgbdFrame {
+        timestamp: frame.timestamp,
+        intensity,
+        inverse_depth: frame.inverse_depth.clone(),
+        colour: frame.colour.clone(),
+    })
 }
 
-fn bilinear_clamped(img: &ImageF32, x: f64, y: f64) -> f32 {
-    let (w, h) = (img.width(), img.height());
-    let x = x.clamp(0.0, (w - 1) as f64);
-    let y = y.clamp(0.0, (h - 1) as f64);
+/// Bilinear sample of a `w`-wide row-major image at `(x, y)`, both already clamped to the
+/// image (`0 <= x <= w - 1`, `0 <= y <= h - 1`, `w, h >= 2`).
+#[inline]
+fn bilinear_clamped(img: &[f32], w: usize, x: f32, y: f32) -> f32 {
+    let h = img.len() / w;
     let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
-    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
-    let p = |xx, yy| img.at(xx, yy);
-    let top = p(x0, y0) * (1.0 - fx) + p(x0 + 1, y0) * fx;
-    let bottom = p(x0, y0 + 1) * (1.0 - fx) + p(x0 + 1, y0 + 1) * fx;
-    top * (1.0 - fy) + bottom * fy
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let i = y0 * w + x0;
+    let (top, bottom) = (&img[i..i + 2], &img[i + w..i + w + 2]);
+    let t = top[0] + (top[1] - top[0]) * fx;
+    let b = bottom[0] + (bottom[1] - bottom[0]) * fx;
+    t + (b - t) * fy
 }
 
 #[cfg(test)]
@@ -170,7 +181,10 @@ mod tests {
 
     #[test]
     fn angular_velocity_of_a_motion() {
-        let m = Se3::new(DQuat::from_scaled_axis(DVec3::new(0.0, 0.05, 0.0)), DVec3::X);
+        let m = Se3::new(
+            DQuat::from_scaled_axis(DVec3::new(0.0, 0.05, 0.0)),
+            DVec3::X,
+        );
         let w = angular_velocity(&m, 0.05).expect("valid interval");
         assert!((w - DVec3::new(0.0, 1.0, 0.0)).length() < 1e-9);
         assert!(angular_velocity(&m, 0.0).is_none());

@@ -9,8 +9,8 @@ use super::config::{
 };
 use super::gpu::GpuKernels;
 use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
-use super::rolling_shutter;
 use super::robust::{estimate_scale, update_scale, ScaleEstimate, ScaleMethod, NU_DEFAULT};
+use super::rolling_shutter;
 use super::solver::NormalEquations;
 use super::OdometryError;
 use crate::camera::PinholeCamera;
