@@ -16,7 +16,7 @@ class RgbidError(RuntimeError):
 
 class Camera:
     """Pinhole camera: focal lengths and principal point in pixels, size in pixels, optional
-    Brown-Conrady distortion ``(k1, k2, p1, p2, k3)``."""
+    Brown-Conrady distortion ``(k1, k2, p1, p2, k3)`` and rolling-shutter ``readout`` (s)."""
 
     def __init__(
         self,
@@ -27,6 +27,7 @@ class Camera:
         width: int,
         height: int,
         distortion: Optional[Tuple[float, float, float, float, float]] = None,
+        readout: float = 0.0,
     ) -> None: ...
     @staticmethod
     def preset(name: str) -> "Camera":
@@ -45,6 +46,9 @@ class Camera:
     def height(self) -> int: ...
     @property
     def distortion(self) -> Tuple[float, float, float, float, float]: ...
+    @property
+    def readout(self) -> float:
+        """Rolling-shutter readout, seconds from the first row to the last (0: global)."""
     @property
     def depth_factor(self) -> Optional[float]:
         """Depth units per metre of the preset, ``None`` for a camera built from numbers."""

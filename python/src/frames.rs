@@ -17,7 +17,9 @@ use crate::convert::value;
 /// (integer pixel coordinates are pixel centres, so TUM's ``cx = 319.5`` means the image
 /// centre), image size ``width`` x ``height`` in pixels, and optional Brown-Conrady
 /// ``distortion`` ``(k1, k2, p1, p2, k3)`` (OpenCV order). Frames of a camera with distortion
-/// are undistorted before tracking (intensity bilinear, depth nearest).
+/// are undistorted before tracking (intensity bilinear, depth nearest). ``readout``: the
+/// rolling shutter's readout time in seconds, first row to last (0 for a global shutter; the
+/// odometry rectifies the intensity for it).
 #[pyclass(frozen, from_py_object, module = "rgbid")]
 #[derive(Clone)]
 pub struct Camera {
@@ -51,7 +53,8 @@ impl Camera {
 #[pymethods]
 impl Camera {
     #[new]
-    #[pyo3(signature = (fx, fy, cx, cy, width, height, distortion = None))]
+    #[pyo3(signature = (fx, fy, cx, cy, width, height, distortion = None, readout = 0.0))]
+    #[allow(clippy::too_many_arguments)]
     fn py_new(
         fx: f64,
         fy: f64,
@@ -60,8 +63,10 @@ impl Camera {
         width: u32,
         height: u32,
         distortion: Option<[f64; 5]>,
+        readout: f64,
     ) -> PyResult<Self> {
         let mut camera = PinholeCamera::new(fx, fy, cx, cy, width, height);
+        camera.readout = readout;
         if let Some([k1, k2, p1, p2, k3]) = distortion {
             camera.distortion = BrownConrady { k1, k2, p1, p2, k3 };
         }
@@ -112,6 +117,11 @@ impl Camera {
     fn distortion(&self) -> (f64, f64, f64, f64, f64) {
         let d = self.camera.distortion;
         (d.k1, d.k2, d.p1, d.p2, d.k3)
+    }
+    /// Rolling-shutter readout, seconds from the first row to the last (0: global shutter).
+    #[getter]
+    fn readout(&self) -> f64 {
+        self.camera.readout
     }
     /// Depth units per metre of the preset or file (``None`` for a camera built from numbers).
     #[getter]

@@ -216,6 +216,10 @@ def test_eval_matches_the_cli(tum_dir: Path, tmp_path: Path):
 def test_config_as_a_dict():
     cam = rgbid.Camera.preset("tum_fr1")
     assert (cam.width, cam.height) == (640, 480) and cam.depth_factor == 5000.0
+    assert cam.readout > 0 and rgbid.Camera.preset("tum_fr3").readout == 0.0
+    assert rgbid.Camera(500, 500, 320, 240, 640, 480, readout=0.02).readout == 0.02
+    with pytest.raises(ValueError, match="readout"):
+        rgbid.Camera(500, 500, 320, 240, 640, 480, readout=-1.0)
     defaults = rgbid.default_config("odometry")
     assert defaults["estimator"] == "student"
     rgbid.Odometry(cam, config={"estimator": "huber", "levels": 3}, backend="cpu")

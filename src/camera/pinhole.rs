@@ -84,6 +84,11 @@ pub struct PinholeCamera {
     /// Distortion of the raw images (zero for none).
     #[serde(default)]
     pub distortion: BrownConrady,
+    /// Rolling-shutter readout time of the intensity image: seconds from the exposure of the
+    /// first row to that of the last (row 0 first); 0 for a global shutter. The odometry
+    /// rectifies each frame for it ([`crate::odometry::OdometryConfig::rolling_shutter`]).
+    #[serde(default)]
+    pub readout: f64,
 }
 
 impl PinholeCamera {
@@ -97,6 +102,7 @@ impl PinholeCamera {
             width,
             height,
             distortion: BrownConrady::default(),
+            readout: 0.0,
         }
     }
 
@@ -119,6 +125,13 @@ impl PinholeCamera {
                     why: "must be finite",
                 });
             }
+        }
+        if !(self.readout.is_finite() && (0.0..1.0).contains(&self.readout)) {
+            return Err(CameraError::InvalidParameter {
+                name: "readout",
+                value: self.readout,
+                why: "must be in [0, 1) s",
+            });
         }
         if self.width == 0 || self.height == 0 {
             return Err(CameraError::InvalidParameter {

@@ -235,6 +235,12 @@ pub struct OdometryConfig {
     /// (sigma_I for intensity, sigma_W for inverse depth; with the depth parametrisation,
     /// of `fixed_sigma_geo` read as 1/m).
     pub bilateral_range: f64,
+    /// Rectify each frame's intensity for the camera's rolling shutter
+    /// ([`crate::camera::PinholeCamera::readout`]; nothing to do with a global shutter):
+    /// [`crate::odometry::Odometry::track`] turns each row to the middle row's time with the
+    /// angular velocity of the previous inter-frame motion (constant velocity) before
+    /// aligning; the depth map is left as it is. Default on.
+    pub rolling_shutter: bool,
 }
 
 impl Default for OdometryConfig {
@@ -263,6 +269,7 @@ impl Default for OdometryConfig {
             linearisation: Linearisation::Current,
             covariance: CovarianceGradients::Raw,
             bilateral_range: 3.0,
+            rolling_shutter: true,
         }
     }
 }

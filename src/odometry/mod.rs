@@ -32,6 +32,7 @@ mod oracle;
 #[cfg(test)]
 mod parity_tests;
 mod robust;
+mod rolling_shutter;
 mod rows;
 mod solver;
 mod tracker;

@@ -10,6 +10,7 @@ use super::config::{
 use super::gpu::GpuKernels;
 use super::kernel::{PyrParams, WarpParams, INVALID_RESIDUAL};
 use super::robust::{estimate_scale, update_scale, ScaleEstimate, ScaleMethod, NU_DEFAULT};
+use super::rolling_shutter;
 use super::solver::NormalEquations;
 use super::OdometryError;
 use crate::camera::PinholeCamera;
@@ -203,6 +204,9 @@ pub struct Tracker<K: Kernels> {
     reference: Option<Reference<K::Pyramid>>,
     /// `world_from_camera` of the last frame and the motion `prev_from_cur` that led to it.
     last: Option<(Se3, Se3)>,
+    /// Time stamp of the last frame and the seconds from the frame before it (the interval
+    /// of `last`'s motion).
+    last_time: Option<(f64, Option<f64>)>,
     initial_pose: Se3,
     spare: Option<K::Pyramid>,
     /// Buffers of the covariance pass's filtered level, recycled.
@@ -240,6 +244,7 @@ impl<K: Kernels> Tracker<K> {
             kernels,
             reference: None,
             last: None,
+            last_time: None,
             initial_pose: Se3::IDENTITY,
             spare: None,
             filtered: None,
@@ -285,7 +290,21 @@ impl<K: Kernels> Tracker<K> {
             self.spare = Some(r.pyramid);
         }
         self.last = None;
+        self.last_time = None;
         self.initial_pose = world_from_camera;
+    }
+
+    /// `frame` with its intensity rectified for the camera's rolling shutter
+    /// ([`OdometryConfig::rolling_shutter`]), from the angular velocity of the last inter-frame motion. `None` when it is used as it is: a
+    /// global shutter, fewer than two frames tracked since the start or the last reset, or a
+    /// turn too slow to move a pixel by a tenth.
+    pub fn rectified(&self, frame: &RgbdFrame) -> Option<RgbdFrame> {
+        if !self.config.rolling_shutter || self.camera.readout <= 0.0 {
+            return None;
+        }
+        let (_, prev_from_cur) = self.last?;
+        let omega = rolling_shutter::angular_velocity(&prev_from_cur, self.last_time?.1?)?;
+        rolling_shutter::rectify(frame, &self.camera, omega, self.camera.readout)
     }
 
     fn check_frame(&self, f: &RgbdFrame) -> Result<(), OdometryError> {
@@ -329,8 +348,18 @@ impl<K: Kernels> Tracker<K> {
     }
 
     /// Tracks `frame`: aligns it to the current reference (constant-velocity guess), returns
-    /// its `world_from_camera`, and switches the reference when covisibility is low.
+    /// its `world_from_camera`, and switches the reference when covisibility is low. With a
+    /// rolling shutter the frame is rectified first ([`Self::rectified`]).
     pub fn track(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
+        match self.rectified(frame) {
+            Some(r) => self.track_as_given(&r),
+            None => self.track_as_given(frame),
+        }
+    }
+
+    /// [`Self::track`] without the rolling-shutter rectification: for a frame that
+    /// [`Self::rectified`] already gave (or a global-shutter one).
+    pub fn track_as_given(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
         self.check_frame(frame)?;
         let t0 = Instant::now();
         let pyramid = self.build(frame)?;
@@ -344,6 +373,7 @@ impl<K: Kernels> Tracker<K> {
                 world_from_ref: pose,
             });
             self.last = Some((pose, Se3::IDENTITY));
+            self.last_time = Some((frame.timestamp, None));
             let times = StageTimes {
                 pyramid_ms,
                 total_ms: pyramid_ms,
@@ -398,6 +428,8 @@ impl<K: Kernels> Tracker<K> {
         let world_from_cur = reference.world_from_ref * alignment.cur_from_ref.inverse();
         let prev_from_cur = world_from_prev.inverse() * world_from_cur;
         self.last = Some((world_from_cur, prev_from_cur));
+        let interval = self.last_time.map(|(t, _)| frame.timestamp - t);
+        self.last_time = Some((frame.timestamp, interval));
         let switch = match self.config.reference_switch {
             None => true,
             Some(t) => covisibility < t,
@@ -994,9 +1026,26 @@ impl Odometry {
     }
 
     /// Tracks `frame`: aligns it to the current reference (constant-velocity guess), returns
-    /// its `world_from_camera`, and switches the reference when covisibility is low.
+    /// its `world_from_camera`, and switches the reference when covisibility is low. With a
+    /// rolling shutter ([`OdometryConfig::rolling_shutter`]) the frame is rectified first.
     pub fn track(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
         on_tracker!(&mut self.inner, t => t.track(frame))
+    }
+
+    /// `frame` with its intensity rectified for the camera's rolling shutter
+    /// ([`OdometryConfig::rolling_shutter`]) from the angular velocity of the last inter-frame motion, as [`Self::track`] would align it
+    /// (call it to keep the rectified frame, e.g. for keyframe fusion, then
+    /// [`Self::track_as_given`]). `None` when the frame is used as it is: a global shutter,
+    /// fewer than two frames tracked since the start or the last reset, or a turn too slow to
+    /// move a pixel by a tenth.
+    pub fn rectified(&self, frame: &RgbdFrame) -> Option<RgbdFrame> {
+        on_tracker!(&self.inner, t => t.rectified(frame))
+    }
+
+    /// [`Self::track`] without the rolling-shutter rectification (for a frame that
+    /// [`Self::rectified`] already gave).
+    pub fn track_as_given(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
+        on_tracker!(&mut self.inner, t => t.track_as_given(frame))
     }
 
     /// Aligns `current` to `reference` starting from `cur_from_ref_guess` (no tracking state

@@ -614,8 +614,11 @@ impl Slam {
             record.frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
             return Ok(self.report(record));
         }
+        // With a rolling shutter the rectified frame is the one tracked, fused and kept.
+        let rectified = self.odometry.rectified(frame);
+        let frame = rectified.as_ref().unwrap_or(frame);
         // Tracking.
-        let tracked = match self.odometry.track(frame) {
+        let tracked = match self.odometry.track_as_given(frame) {
             Ok(r) => Some(r),
             Err(crate::odometry::OdometryError::Gpu(e)) => return Err(SlamError::Gpu(e)),
             Err(e) => {
