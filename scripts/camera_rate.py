@@ -18,7 +18,6 @@ Standard library only.
 """
 import argparse
 import csv
-import datetime
 import json
 import os
 import pathlib
@@ -28,7 +27,7 @@ import sys
 import tempfile
 import time
 
-from layouts import ROOT, git, machine
+from layouts import ROOT, meta
 
 DATA = ROOT.parent / "shared" / "data" / "rgbd"
 SEQUENCES = [("tum_fr1_rpy_0_199", ["--camera", "tum_fr1"]), ("redkitchen_0_299", [])]
@@ -117,17 +116,8 @@ def main():
             print(f"{name}: slam {row['slam_wall_s_median']:.2f} s for {camera_s:.2f} s of camera; "
                   f"front-end p95 {row['frontend_ms_p95']:.1f} ms; odometry {odo_ms:.1f} ms/frame"
                   + (f", OpenCV {row['opencv_ms_per_frame']:.1f}" if cv else ""))
-    meta = {
-        "command": "python3 scripts/camera_rate.py " + " ".join(sys.argv[1:]),
-        "commit": git("rev-parse", "--short", "HEAD") or "unknown",
-        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
-        "machine": machine(),
-        "rgbid_version": (subprocess.run([a.bin, "--version"], capture_output=True, text=True)
-                          .stdout.split() or ["?"])[-1],
-    }
-    doc = {"benchmark": "camera-rate", "meta": meta, "runs": a.runs, "backend": "cpu", "rows": rows}
+    doc = {"benchmark": "camera-rate", "meta": meta("camera_rate.py", a.bin), "runs": a.runs,
+           "backend": "cpu", "rows": rows}
     pathlib.Path(a.json).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
     print(f"wrote {a.json}")
 

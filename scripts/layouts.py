@@ -52,6 +52,21 @@ def git(*args):
     return r.stdout.strip() if r.returncode == 0 else None
 
 
+def meta(script, binary, load=None):
+    """The report's provenance: the command line of `scripts/SCRIPT`, commit, date, load
+    average (`load`, else now), machine and the version of the rgbid binary `binary`."""
+    return {
+        "command": f"python3 scripts/{script} " + " ".join(sys.argv[1:]),
+        "commit": git("rev-parse", "--short", "HEAD") or "unknown",
+        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "load_average": [round(x, 2) for x in (load or os.getloadavg())],
+        "machine": machine(),
+        "rgbid_version": (subprocess.run([binary, "--version"], capture_output=True, text=True)
+                          .stdout.split() or ["?"])[-1],
+    }
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--bin", default=str(ROOT / "target/release/rgbid"))
@@ -95,18 +110,8 @@ def main():
         })
         print(f"{layout:8} detected {detected} frames {s['frames']} keyframes {s['keyframes']} "
               f"ATE {s.get('slam_ate_rmse')} m, {rows[-1]['fps']:.1f} fps")
-    meta = {
-        "command": "python3 scripts/layouts.py " + " ".join(sys.argv[1:]),
-        "commit": git("rev-parse", "--short", "HEAD") or "unknown",
-        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "load_average": [round(x, 2) for x in load_start],
-        "machine": machine(),
-        "rgbid_version": (subprocess.run([a.bin, "--version"], capture_output=True, text=True)
-                          .stdout.split() or ["?"])[-1],
-    }
-    doc = {"benchmark": "layouts", "meta": meta, "scene": "office", "trajectory": "handheld",
-           "frames": a.frames, "width": a.width, "height": a.width * 3 // 4, "seed": a.seed,
+    doc = {"benchmark": "layouts", "meta": meta("layouts.py", a.bin, load_start), "scene": "office",
+           "trajectory": "handheld", "frames": a.frames, "width": a.width, "height": a.width * 3 // 4, "seed": a.seed,
            "backend": "cpu", "rows": rows}
     pathlib.Path(a.json).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
     print(f"wrote {a.json}")

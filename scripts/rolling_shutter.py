@@ -16,15 +16,13 @@ Usage: python3 scripts/rolling_shutter.py --python /work/.venv-peers/bin/python
 Standard library only (the peer needs a Python with OpenCV).
 """
 import argparse
-import datetime
 import json
-import os
 import pathlib
 import subprocess
 import sys
 import tempfile
 
-from layouts import ROOT, git, machine
+from layouts import ROOT, meta
 
 DATA = ROOT.parent / "shared" / "data" / "rgbd"
 # name, the camera file's lines before the readout.
@@ -91,17 +89,7 @@ def main():
                       f"({ate / peers[name][0]:.3f} of OpenCV), RPE {rpe:.4f} m/s; SLAM ATE "
                       f"{slam_ate:.4f} m, {s['keyframes']} keyframes, {s.get('loops_accepted')} loops",
                       flush=True)
-    meta = {
-        "command": "python3 scripts/rolling_shutter.py " + " ".join(sys.argv[1:]),
-        "commit": git("rev-parse", "--short", "HEAD") or "unknown",
-        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
-        "machine": machine(),
-        "rgbid_version": (subprocess.run([a.bin, "--version"], capture_output=True, text=True)
-                          .stdout.split() or ["?"])[-1],
-    }
-    doc = {"benchmark": "rolling-shutter", "meta": meta, "rows": rows,
+    doc = {"benchmark": "rolling-shutter", "meta": meta("rolling_shutter.py", a.bin), "rows": rows,
            "opencv": {k: {"ate_m": v[0], "rpe_m_per_s": v[1]} for k, v in peers.items()}}
     pathlib.Path(a.json).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
     print(f"wrote {a.json}")

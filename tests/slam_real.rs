@@ -56,8 +56,8 @@ fn real_data_fr1_rpy_slam_halves_the_peer_odometry_error() {
 }
 
 /// The thesis-fidelity issue's bar: SLAM ATE at most 0.012 m on fr1/rpy 0-199 with the
-/// default configuration (the `tum_fr1` preset's rolling-shutter readout included; without
-/// the rectification 0.0121 m, docs/notes.md).
+/// default configuration, the `tum_fr1` preset's rolling-shutter readout included
+/// (docs/notes.md, "Rolling shutter").
 #[test]
 #[ignore = "needs ../shared/data (runs in CI's real-data stage)"]
 fn real_data_fr1_rpy_slam_ate_at_most_12_mm() {

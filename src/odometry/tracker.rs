@@ -295,9 +295,10 @@ impl<K: Kernels> Tracker<K> {
     }
 
     /// `frame` with its intensity rectified for the camera's rolling shutter
-    /// ([`OdometryConfig::rolling_shutter`]), from the angular velocity of the last inter-frame motion. `None` when it is used as it is: a
-    /// global shutter, fewer than two frames tracked since the start or the last reset, or a
-    /// turn too slow to move a pixel by a tenth.
+    /// ([`OdometryConfig::rolling_shutter`]), from the angular velocity of the last
+    /// inter-frame motion. `None` when it is used as it is: a global shutter, fewer than two
+    /// frames tracked since the start or the last reset, or a turn too slow to move a pixel
+    /// by a tenth.
     pub fn rectified(&self, frame: &RgbdFrame) -> Option<RgbdFrame> {
         if !self.config.rolling_shutter || self.camera.readout <= 0.0 {
             return None;
@@ -1033,11 +1034,11 @@ impl Odometry {
     }
 
     /// `frame` with its intensity rectified for the camera's rolling shutter
-    /// ([`OdometryConfig::rolling_shutter`]) from the angular velocity of the last inter-frame motion, as [`Self::track`] would align it
-    /// (call it to keep the rectified frame, e.g. for keyframe fusion, then
-    /// [`Self::track_as_given`]). `None` when the frame is used as it is: a global shutter,
-    /// fewer than two frames tracked since the start or the last reset, or a turn too slow to
-    /// move a pixel by a tenth.
+    /// ([`OdometryConfig::rolling_shutter`]) from the angular velocity of the last
+    /// inter-frame motion, as [`Self::track`] would align it (call it to keep the rectified
+    /// frame, e.g. for keyframe fusion, then [`Self::track_as_given`]). `None` when the frame
+    /// is used as it is: a global shutter, fewer than two frames tracked since the start or
+    /// the last reset, or a turn too slow to move a pixel by a tenth.
     pub fn rectified(&self, frame: &RgbdFrame) -> Option<RgbdFrame> {
         on_tracker!(&self.inner, t => t.rectified(frame))
     }
