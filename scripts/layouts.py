@@ -110,9 +110,9 @@ def main():
         })
         print(f"{layout:8} detected {detected} frames {s['frames']} keyframes {s['keyframes']} "
               f"ATE {s.get('slam_ate_rmse')} m, {rows[-1]['fps']:.1f} fps")
-    doc = {"benchmark": "layouts", "meta": meta("layouts.py", a.bin, load_start), "scene": "office",
-           "trajectory": "handheld", "frames": a.frames, "width": a.width, "height": a.width * 3 // 4, "seed": a.seed,
-           "backend": "cpu", "rows": rows}
+    doc = {"benchmark": "layouts", "meta": meta("layouts.py", a.bin, load_start),
+           "scene": "office", "trajectory": "handheld", "frames": a.frames, "width": a.width,
+           "height": a.width * 3 // 4, "seed": a.seed, "backend": "cpu", "rows": rows}
     pathlib.Path(a.json).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
     print(f"wrote {a.json}")
 

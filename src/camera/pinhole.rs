@@ -86,7 +86,7 @@ pub struct PinholeCamera {
     pub distortion: BrownConrady,
     /// Rolling-shutter readout time of the intensity image: seconds from the exposure of the
     /// first row to that of the last (row 0 first); 0 for a global shutter. The odometry
-    /// rectifies each frame for it ([`crate::odometry::OdometryConfig::rolling_shutter`]).
+    /// rectifies each frame for it (the odometry configuration's `rolling_shutter`).
     #[serde(default)]
     pub readout: f64,
 }
