@@ -3,8 +3,8 @@
 //! `layers:begin` and `layers:end` markers), so the document and the code cannot drift apart.
 //!
 //! Every `crate::` path in `src/` counts, wherever it stands: `use` lines (also inside
-//! braces), qualified paths in code, `#[from]` attributes and type positions. Comments (doc
-//! links included) do not. `super::` paths that leave their top-level module count as well.
+//! braces), qualified paths in code, `#[from]` attributes, type positions and doc comments
+//! (doc links resolve against the crate); plain `//` comments do not. `super::` paths that leave their top-level module count as well.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -58,8 +58,8 @@ fn parse_layer_table(doc: &str) -> Result<Vec<(String, Vec<String>)>, String> {
     Ok(layers)
 }
 
-/// Removes `//` comments (doc comments included) and the contents of string literals, so that
-/// neither counts as an import.
+/// Removes `//` comments (doc comments are read apart, by [`doc_text`]) and the contents of
+/// string literals, so that neither counts as an import here.
 fn strip_comments_and_strings(line: &str) -> String {
     let mut out = String::with_capacity(line.len());
     let mut chars = line.chars().peekable();
@@ -95,6 +95,12 @@ fn strip_comments_and_strings(line: &str) -> String {
         out.push(c);
     }
     out
+}
+
+/// The text of a doc comment line (`///` or `//!`), else `None`.
+fn doc_text(line: &str) -> Option<String> {
+    let t = line.trim_start();
+    (t.starts_with("///") || t.starts_with("//!")).then(|| t[3..].to_string())
 }
 
 /// The top-level modules named by `crate::` paths in one line of code. `group` carries an
@@ -224,6 +230,10 @@ fn imports(files: &[(PathBuf, String)], modules: &BTreeSet<String>) -> Vec<Impor
         for (i, line) in text.lines().enumerate() {
             let code = strip_comments_and_strings(line);
             let mut targets = crate_targets(&code, &mut group);
+            // Doc links resolve against the crate as imports do, so they count as edges.
+            if let Some(doc) = doc_text(line) {
+                targets.extend(crate_targets(&doc.replace('"', " "), &mut None));
+            }
             targets.extend(super_targets(&code, depth));
             for to in targets {
                 if to != from && modules.contains(&to) {
@@ -347,7 +357,8 @@ fn modules_import_only_from_their_layer_or_below_and_form_no_cycle() {
 }
 
 /// The checker itself: an upward import, a cycle within a layer, a grouped `use`, a `#[from]`
-/// attribute, a qualified path, a `super::` that leaves its module, and what must not count.
+/// attribute, a qualified path, a `super::` that leaves its module, a doc link, and what must
+/// not count (a plain comment, a string).
 #[test]
 fn the_checker_finds_upward_imports_and_cycles() {
     let layers = vec![
@@ -366,7 +377,7 @@ fn the_checker_finds_upward_imports_and_cycles() {
     let files = vec![
         file(
             "geometry/se3.rs",
-            "//! See [`crate::slam`].\nlet s = \"crate::slam\";\nuse crate::{\n    odometry::X,\n};",
+            "//! See [`crate::slam`].\n// not crate::graph\nlet s = \"crate::slam\";\nuse crate::{\n    odometry::X,\n};",
         ),
         file("odometry/mod.rs", "fn f(g: crate::graph::G) {}"),
         file(
@@ -383,7 +394,8 @@ fn the_checker_finds_upward_imports_and_cycles() {
     assert_eq!(
         pairs,
         vec![
-            ("geometry", "odometry", 4),
+            ("geometry", "odometry", 5),
+            ("geometry", "slam", 1),
             ("graph", "odometry", 2),
             ("odometry", "graph", 1),
             ("slam", "geometry", 1),
@@ -391,9 +403,11 @@ fn the_checker_finds_upward_imports_and_cycles() {
         ]
     );
     let bad = violations(&layers, &found);
-    assert_eq!(bad.len(), 2, "{bad:?}");
-    assert!(bad[0].contains("src/geometry/se3.rs:4") && bad[0].contains("higher layer"));
-    assert_eq!(bad[1], "import cycle: graph -> odometry -> graph");
+    assert_eq!(bad.len(), 4, "{bad:?}");
+    assert!(bad[0].contains("src/geometry/se3.rs:5") && bad[0].contains("higher layer"));
+    assert!(bad[1].contains("src/geometry/se3.rs:1") && bad[1].contains("higher layer"));
+    assert_eq!(bad[2], "import cycle: geometry -> slam -> geometry");
+    assert_eq!(bad[3], "import cycle: graph -> odometry -> graph");
     // Without the upward import and the cycle, nothing is reported.
     let clean: Vec<Import> = found
         .into_iter()
