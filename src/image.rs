@@ -3,6 +3,8 @@
 //! Intensity is f32 in `[0, 255]`; inverse depth is f32 in 1/m with `0` meaning "no
 //! measurement". Images are row-major, index `y * width + x`.
 
+use std::sync::{Arc, OnceLock};
+
 /// Errors of the frame and image constructors: which buffer does not fit, and how.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ImageError {
@@ -197,7 +199,65 @@ pub struct RgbdFrame {
     pub(crate) timestamp: f64,
     pub(crate) intensity: ImageF32,
     pub(crate) inverse_depth: ImageF32,
-    pub(crate) colour: Option<ColourImage>,
+    pub(crate) colour: Option<FrameColour>,
+}
+
+/// A correction that maps a decoded colour image onto its frame's pixel grid (e.g. lens
+/// undistortion).
+pub(crate) type ColourFix = Arc<dyn Fn(&ColourImage) -> ColourImage + Send + Sync>;
+
+/// A frame's colour, with its correction applied the first time it is read: most frames'
+/// colour is never read (only keyframes keep theirs), so a reader need not pay for
+/// correcting all of them.
+#[derive(Clone)]
+pub(crate) struct FrameColour {
+    pub(crate) stored: ColourImage,
+    fix: Option<ColourFix>,
+    pub(crate) fixed: OnceLock<ColourImage>,
+}
+
+impl FrameColour {
+    /// Colour already on the frame's pixel grid.
+    pub(crate) fn ready(colour: ColourImage) -> Self {
+        Self {
+            stored: colour,
+            fix: None,
+            fixed: OnceLock::new(),
+        }
+    }
+
+    /// This colour, with `fix` applied to it when it is first read. `fix` must keep the
+    /// image's size.
+    pub(crate) fn fixed_later(self, fix: ColourFix) -> Self {
+        let stored = match self.fixed.into_inner() {
+            Some(fixed) => fixed,
+            None => self.stored,
+        };
+        Self {
+            stored,
+            fix: Some(fix),
+            fixed: OnceLock::new(),
+        }
+    }
+
+    /// The colour on the frame's pixel grid.
+    pub(crate) fn get(&self) -> &ColourImage {
+        match &self.fix {
+            None => &self.stored,
+            Some(fix) => self.fixed.get_or_init(|| fix(&self.stored)),
+        }
+    }
+}
+
+impl std::fmt::Debug for FrameColour {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FrameColour")
+            .field("width", &self.stored.width)
+            .field("height", &self.stored.height)
+            .field("deferred", &self.fix.is_some())
+            .field("fixed", &self.fixed.get().is_some())
+            .finish()
+    }
 }
 
 impl RgbdFrame {
@@ -246,11 +306,11 @@ impl RgbdFrame {
                     .collect();
                 (
                     i,
-                    Some(ColourImage {
+                    Some(FrameColour::ready(ColourImage {
                         width,
                         height,
                         data: c.to_vec(),
-                    }),
+                    })),
                 )
             }
         };
@@ -334,7 +394,7 @@ impl RgbdFrame {
                 got_h: colour.height,
             });
         }
-        self.colour = Some(colour);
+        self.colour = Some(FrameColour::ready(colour));
         Ok(self)
     }
 
@@ -371,7 +431,7 @@ impl RgbdFrame {
 
     /// The colour image, when the frame was made from RGB.
     pub fn colour(&self) -> Option<&ColourImage> {
-        self.colour.as_ref()
+        self.colour.as_ref().map(FrameColour::get)
     }
 
     /// `(intensity, inverse depth)`, consuming the frame.

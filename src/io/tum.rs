@@ -25,7 +25,7 @@ use super::undistort::UndistortMap;
 use super::IoError;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
-use crate::image::{ColourImage, DepthBuffer, ImageBuffer, RgbdFrame};
+use crate::image::{ColourFix, ColourImage, DepthBuffer, ImageBuffer, RgbdFrame};
 use crate::trajectory::TimedPose;
 
 /// Default tolerance when associating colour and depth time stamps, seconds.
@@ -393,7 +393,7 @@ pub fn load_pair_frame(
         source: "the given camera".into(),
     };
     cfg.validate(rgb_path)?;
-    let map = (!camera.distortion.is_zero()).then(|| UndistortMap::new(camera));
+    let map = (!camera.distortion.is_zero()).then(|| Arc::new(UndistortMap::new(camera)));
     decode_frame(
         rgb_path,
         depth_path,
@@ -611,7 +611,7 @@ enum Remap<'a> {
     /// The camera has no distortion.
     None,
     /// The remap table on the CPU.
-    Cpu(&'a UndistortMap),
+    Cpu(&'a Arc<UndistortMap>),
 }
 
 #[derive(Clone, Copy)]
@@ -685,8 +685,10 @@ fn decode_frame(
             let mut out = vec![0.0f32; frame.inverse_depth.data.len()];
             m.remap_nearest(&frame.inverse_depth.data, &mut out);
             frame.inverse_depth.data = out;
-            if let Some(c) = &frame.colour {
-                frame.colour = Some(remap_colour(m, c));
+            if let Some(c) = frame.colour.take() {
+                let m = Arc::clone(m);
+                let fix: ColourFix = Arc::new(move |c: &ColourImage| remap_colour(&m, c));
+                frame.colour = Some(c.fixed_later(fix));
             }
         }
     }
@@ -974,6 +976,54 @@ fn check_depth_scale(raw: &[u16], factor: f64, path: &Path) -> Result<(), IoErro
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A distorted camera's colour is undistorted when it is first read, as the intensity is
+    /// when the frame is decoded, and the result is kept: clones made after the first read
+    /// share it, clones made before undistort their own copy the same way.
+    #[test]
+    fn colour_is_undistorted_when_first_read() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (w, h) = (32u32, 24u32);
+        let rgb = image::RgbImage::from_fn(w, h, |x, y| {
+            image::Rgb([(7 * x) as u8, (9 * y) as u8, ((x * y) % 251) as u8])
+        });
+        rgb.save(tmp.path().join("c.png")).unwrap();
+        let d = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |x, _| {
+            image::Luma([5000 + 10 * x as u16])
+        });
+        d.save(tmp.path().join("d.png")).unwrap();
+        let mut cam = PinholeCamera::new(30.0, 30.0, 15.5, 11.5, w, h);
+        cam.distortion.k1 = 0.25;
+        cam.distortion.p1 = -0.005;
+        let f = load_pair_frame(
+            &tmp.path().join("c.png"),
+            &tmp.path().join("d.png"),
+            &cam,
+            5000.0,
+        )
+        .unwrap();
+        let before = f.clone();
+        let stored = f.colour.as_ref().unwrap();
+        assert!(
+            stored.fixed.get().is_none(),
+            "nothing is undistorted before a read"
+        );
+        let want = remap_colour(
+            &UndistortMap::new(&cam),
+            &ColourImage::from_rgb(w as usize, h as usize, rgb.into_raw()).unwrap(),
+        );
+        assert_eq!(f.colour(), Some(&want));
+        assert_ne!(
+            want.rgb(),
+            stored.stored.rgb(),
+            "the camera's distortion moves pixels"
+        );
+        assert!(f.colour.as_ref().unwrap().fixed.get().is_some());
+        let after = f.clone();
+        assert!(after.colour.as_ref().unwrap().fixed.get().is_some());
+        assert_eq!(after.colour(), Some(&want));
+        assert_eq!(before.colour(), Some(&want));
+    }
 
     #[test]
     fn association_is_one_to_one_and_closest_first() {

@@ -9,7 +9,7 @@ use half::f16;
 
 use crate::camera::PinholeCamera;
 use crate::geometry::{Covariance6, Se3};
-use crate::image::{ColourImage, ImageError, ImageF32, RgbdFrame};
+use crate::image::{ColourImage, FrameColour, ImageError, ImageF32, RgbdFrame};
 
 /// How a keyframe is attached to the map when it is created.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -151,7 +151,7 @@ impl Keyframe {
             timestamp: self.timestamp,
             intensity: self.intensity_image(),
             inverse_depth: self.inverse_depth_image(),
-            colour: self.colour.clone(),
+            colour: self.colour.clone().map(FrameColour::ready),
         }
     }
 

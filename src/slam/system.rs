@@ -404,7 +404,7 @@ impl Slam {
             timestamp: frame.timestamp,
             intensity: frame.intensity.clone(),
             colour: if self.config.keyframe_colour {
-                frame.colour.clone()
+                frame.colour().cloned()
             } else {
                 None
             },

@@ -15,7 +15,7 @@ use super::SynthError;
 use crate::camera::{PinholeCamera, UnifiedCamera};
 use crate::geometry::Se3;
 use crate::gpu::GpuContext;
-use crate::image::{ColourImage, ImageF32, RgbdFrame};
+use crate::image::{ColourImage, FrameColour, ImageF32, RgbdFrame};
 
 /// A central camera model the renderer can cast rays through.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -145,7 +145,9 @@ impl RenderedFrame {
             timestamp,
             intensity: self.intensity.clone(),
             inverse_depth: self.inverse_depth.clone(),
-            colour: ColourImage::from_rgb(self.width(), self.height(), self.rgb.clone()).ok(),
+            colour: ColourImage::from_rgb(self.width(), self.height(), self.rgb.clone())
+                .ok()
+                .map(FrameColour::ready),
         }
     }
     /// Depth as 16-bit TUM values (`round(depth * 5000)`, 0 = invalid), row-major.
