@@ -226,12 +226,16 @@ impl FrameColour {
         }
     }
 
-    /// This colour, with `fix` applied to it when it is first read. `fix` must keep the
-    /// image's size.
+    /// This colour, with `fix` applied to it (after any correction it already has) when it
+    /// is first read. `fix` must keep the image's size.
     pub(crate) fn fixed_later(self, fix: ColourFix) -> Self {
-        let stored = match self.fixed.into_inner() {
-            Some(fixed) => fixed,
-            None => self.stored,
+        let (stored, fix) = match (self.fixed.into_inner(), self.fix) {
+            (Some(fixed), _) => (fixed, fix),
+            (None, None) => (self.stored, fix),
+            (None, Some(first)) => {
+                let both: ColourFix = Arc::new(move |c: &ColourImage| fix(&first(c)));
+                (self.stored, both)
+            }
         };
         Self {
             stored,
@@ -528,3 +532,38 @@ pub const FAST_CIRCLE: [(i32, i32); 16] = [
     (-2, -2),
     (-1, -3),
 ];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn colour(data: Vec<u8>) -> ColourImage {
+        ColourImage::from_rgb(2, 1, data).unwrap()
+    }
+
+    /// Corrections apply in the order they were added, once, and on top of a correction
+    /// already applied by a read.
+    #[test]
+    fn deferred_corrections_compose_in_order() {
+        let calls = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = Arc::clone(&calls);
+        let invert: ColourFix = Arc::new(move |c: &ColourImage| {
+            counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            colour(c.rgb().iter().map(|v| 255 - v).collect())
+        });
+        let halve: ColourFix =
+            Arc::new(|c: &ColourImage| colour(c.rgb().iter().map(|v| v / 2).collect()));
+        let c = FrameColour::ready(colour(vec![0, 10, 20, 30, 40, 50]))
+            .fixed_later(Arc::clone(&invert))
+            .fixed_later(Arc::clone(&halve));
+        let want = colour(vec![127, 122, 117, 112, 107, 102]);
+        assert_eq!(c.get(), &want);
+        assert_eq!(c.get(), &want);
+        assert_eq!(calls.load(std::sync::atomic::Ordering::SeqCst), 1);
+        // Read first, then one more correction: it starts from the corrected colour.
+        let read = FrameColour::ready(colour(vec![0, 10, 20, 30, 40, 50])).fixed_later(invert);
+        assert_eq!(read.get().rgb(), &[255, 245, 235, 225, 215, 205]);
+        assert_eq!(read.fixed_later(halve).get(), &want);
+        assert_eq!(calls.load(std::sync::atomic::Ordering::SeqCst), 2);
+    }
+}
