@@ -68,6 +68,15 @@ def main():
     p.add_argument("--python", default=None, help="a Python with OpenCV for the peer row")
     p.add_argument("--json", default=str(ROOT / "docs/results/camera_rate.json"))
     a = p.parse_args()
+    if a.python:
+        # Checked before the first run: the peer row comes after minutes of rgbid runs.
+        try:
+            r = subprocess.run([a.python, "-c", "import cv2"], capture_output=True, text=True)
+        except OSError as e:
+            p.error(f"--python {a.python}: {e}; set up the peers as ../shared/eval/README.md says")
+        if r.returncode != 0:
+            last = (r.stderr.strip().splitlines() or [""])[-1]
+            p.error(f"--python {a.python} cannot import cv2 (OpenCV): {last}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, extra in SEQUENCES:
