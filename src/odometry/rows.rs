@@ -715,29 +715,105 @@ mod lanes {
         )
     }
 
-    /// Bilinear sample of lane `c` at the four corner indices `t` (floats) with weights `b`
-    /// (`b00, b10, b01, b11`), summed left to right as the scalar code.
+    /// The four channels of eight consecutive `[f32; 4]` pixels starting at float `p`: lane
+    /// `l` of output `c` is channel `c` of pixel `l` (plain loads and a transpose, cheaper
+    /// than a strided gather per channel).
+    ///
+    /// # Safety
+    /// AVX2; floats `p .. p + 32` are readable.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
-    unsafe fn bilinear(
+    unsafe fn channels8(p: *const f32) -> [__m256; 4] {
+        // SAFETY: pixels 0..8 (floats 0..32) are readable, as the caller guarantees.
+        let r = |k: usize| unsafe {
+            _mm256_insertf128_ps::<1>(
+                _mm256_castps128_ps256(_mm_loadu_ps(p.add(4 * k))),
+                _mm_loadu_ps(p.add(4 * (k + 4))),
+            )
+        };
+        let (r0, r1, r2, r3) = (r(0), r(1), r(2), r(3));
+        let t0 = _mm256_unpacklo_ps(r0, r1);
+        let t1 = _mm256_unpackhi_ps(r0, r1);
+        let t2 = _mm256_unpacklo_ps(r2, r3);
+        let t3 = _mm256_unpackhi_ps(r2, r3);
+        [
+            _mm256_shuffle_ps::<0x44>(t0, t2),
+            _mm256_shuffle_ps::<0xEE>(t0, t2),
+            _mm256_shuffle_ps::<0x44>(t1, t3),
+            _mm256_shuffle_ps::<0xEE>(t1, t3),
+        ]
+    }
+
+    /// Rows `r[l]` (lane `l`) transposed: lane `l` of output `k` is `r[l][k]`.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn transpose8(r: [__m256; 8]) -> [__m256; 8] {
+        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+        let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+        let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+        let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+        let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+        let s0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let s1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+        let s2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let s3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        let s4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let s5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+        let s6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let s7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        [
+            _mm256_permute2f128_ps::<0x20>(s0, s4),
+            _mm256_permute2f128_ps::<0x20>(s1, s5),
+            _mm256_permute2f128_ps::<0x20>(s2, s6),
+            _mm256_permute2f128_ps::<0x20>(s3, s7),
+            _mm256_permute2f128_ps::<0x31>(s0, s4),
+            _mm256_permute2f128_ps::<0x31>(s1, s5),
+            _mm256_permute2f128_ps::<0x31>(s2, s6),
+            _mm256_permute2f128_ps::<0x31>(s3, s7),
+        ]
+    }
+
+    /// Bilinear samples of channels 0, 1 and 2 of `[f32; 4]` pixels: lane `l`'s top-left
+    /// corner starts at float `top[l]` of `base` and its bottom-left at `bottom[l]`, weights
+    /// `b` (`b00, b10, b01, b11`), summed left to right as the scalar code. Each lane's two
+    /// horizontal neighbours are one 8-float load per row (transposed into channels), which
+    /// costs less than a gather per corner and channel. Lanes whose result is not used must
+    /// still point into the buffer (index 0 does).
+    ///
+    /// # Safety
+    /// AVX2 and FMA; floats `top[l] .. top[l] + 8` and `bottom[l] .. bottom[l] + 8` are in
+    /// the buffer for every lane.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn bilinear3(
         base: *const f32,
-        t: [__m256i; 4],
+        top: __m256i,
+        bottom: __m256i,
         b: [__m256; 4],
-        c: i32,
-        mask: __m256,
-    ) -> __m256 {
+    ) -> [__m256; 3] {
+        let (mut t, mut u) = ([0i32; 8], [0i32; 8]);
+        // SAFETY: 8 i32s into 8-element arrays.
         unsafe {
+            _mm256_storeu_si256(t.as_mut_ptr() as *mut __m256i, top);
+            _mm256_storeu_si256(u.as_mut_ptr() as *mut __m256i, bottom);
+        }
+        // SAFETY: the caller guarantees both 8-float rows of every lane are in the buffer.
+        let load = |o: i32| unsafe { _mm256_loadu_ps(base.offset(o as isize)) };
+        let rt = transpose8(t.map(load));
+        let rb = transpose8(u.map(load));
+        let mix = |c: usize| {
             _mm256_add_ps(
                 _mm256_add_ps(
-                    _mm256_add_ps(
-                        _mm256_mul_ps(b[0], gather(base, t[0], c, mask)),
-                        _mm256_mul_ps(b[1], gather(base, t[1], c, mask)),
-                    ),
-                    _mm256_mul_ps(b[2], gather(base, t[2], c, mask)),
+                    _mm256_add_ps(_mm256_mul_ps(b[0], rt[c]), _mm256_mul_ps(b[1], rt[4 + c])),
+                    _mm256_mul_ps(b[2], rb[c]),
                 ),
-                _mm256_mul_ps(b[3], gather(base, t[3], c, mask)),
+                _mm256_mul_ps(b[3], rb[4 + c]),
             )
-        }
+        };
+        [mix(0), mix(1), mix(2)]
     }
 
     /// [`weight`]`(est, r / sigma, nu) * isig2` in lanes (the same operations), 0 where
@@ -812,15 +888,14 @@ mod lanes {
         unsafe {
             let i = y * k.w + x;
             let set = _mm256_set1_ps;
-            let all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
-            let stride4 = _mm256_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28);
             let rg_base = bufs.ref_geo.as_ptr().add(i) as *const f32;
-            let rho_ref = gather(rg_base, stride4, 0, all);
-            let z = gather(rg_base, stride4, 3, all);
+            let ref_geo = channels8(rg_base);
+            let (rho_ref, z) = (ref_geo[0], ref_geo[3]);
             // `!(rho <= 0)`, as the scalar test (NaN counts as depth there too).
             let has_depth = _mm256_cmp_ps::<_CMP_NLE_UQ>(rho_ref, _mm256_setzero_ps());
             let rp_base = bufs.ref_photo.as_ptr().add(i) as *const f32;
-            let ref_i = gather(rp_base, stride4, 0, all);
+            let ref_photo = channels8(rp_base);
+            let ref_i = ref_photo[0];
             let rx = _mm256_loadu_ps(k.rx.as_ptr().add(x));
             let ry = set(k.ry[y]);
             let px = _mm256_mul_ps(rx, z);
@@ -853,7 +928,8 @@ mod lanes {
                 *o = m.to_bits() != 0;
             }
             if k.photo {
-                // Lanes outside the image gather nothing (index 0, masked off).
+                // Lanes outside the image read pixel 0 and the row below it (index 0);
+                // `valid` masks their terms.
                 let xi = _mm256_cvttps_epi32(u);
                 let yi = _mm256_cvttps_epi32(v);
                 let ax = _mm256_sub_ps(u, _mm256_cvtepi32_ps(xi));
@@ -861,9 +937,7 @@ mod lanes {
                 let i0 = _mm256_add_epi32(_mm256_mullo_epi32(yi, wv), xi);
                 let i0 = _mm256_and_si256(i0, _mm256_castps_si256(valid));
                 let t0 = _mm256_slli_epi32::<2>(i0);
-                let t1 = _mm256_add_epi32(t0, _mm256_set1_epi32(4));
                 let b0 = _mm256_add_epi32(t0, _mm256_slli_epi32::<2>(wv));
-                let b1 = _mm256_add_epi32(b0, _mm256_set1_epi32(4));
                 let one = set(1.0);
                 let (nax, nay) = (_mm256_sub_ps(one, ax), _mm256_sub_ps(one, ay));
                 let b00 = _mm256_mul_ps(nax, nay);
@@ -871,24 +945,12 @@ mod lanes {
                 let b01 = _mm256_mul_ps(nax, ay);
                 let b11 = _mm256_mul_ps(ax, ay);
                 let base = bufs.cur_photo.as_ptr() as *const f32;
-                let (corners, weights) = ([t0, t1, b0, b1], [b00, b10, b01, b11]);
-                let c0 = bilinear(base, corners, weights, 0, valid);
-                let (c1, c2) = if k.reference {
-                    (zero, zero)
-                } else {
-                    (
-                        bilinear(base, corners, weights, 1, valid),
-                        bilinear(base, corners, weights, 2, valid),
-                    )
-                };
+                let [c0, c1, c2] = bilinear3(base, t0, b0, [b00, b10, b01, b11]);
                 let rp = _mm256_sub_ps(c0, ref_i);
                 let robust = (c.est, c.sp, c.isp2, c.nu[0], c.mu[0]);
                 let (gu, gv) = if k.reference {
                     // The reference pixel's stored gradient.
-                    (
-                        gather(rp_base, stride4, 1, all),
-                        gather(rp_base, stride4, 2, all),
-                    )
+                    (ref_photo[1], ref_photo[2])
                 } else {
                     (c1, c2)
                 };
@@ -928,8 +990,7 @@ mod lanes {
                 let neg = set(-0.0);
                 let (res, gu, gv, dz) = if k.reference {
                     // As the scalar `terms`: the sample's depth in A.
-                    let a1 = gather(rg_base, stride4, 1, all);
-                    let a2 = gather(rg_base, stride4, 2, all);
+                    let (a1, a2) = (ref_geo[1], ref_geo[2]);
                     let s = _mm256_div_ps(set(1.0), _mm256_mul_ps(rho, qz));
                     let r = &k.r;
                     let dx = _mm256_sub_ps(_mm256_mul_ps(qx, s), set(r[0][3]));
