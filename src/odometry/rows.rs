@@ -636,7 +636,7 @@ mod lanes {
     ///
     /// # Safety
     /// The CPU has AVX2 and FMA, all four buffers hold at least `k.w * k.h` pixels, and
-    /// `4 * k.w * k.h + 32` fits an `i32` (the gathers' float offsets).
+    /// `4 * k.w * k.h + 32` fits an `i32` (the lanes' float offsets).
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn accumulate_rows_lanes(
         k: &Warp,
@@ -686,21 +686,6 @@ mod lanes {
         }
     }
 
-    /// Lane `c` of the eight `[f32; 4]` pixels at `idx4` (an index in floats, 4 per pixel),
-    /// 0 where `mask` is clear.
-    #[target_feature(enable = "avx2,fma")]
-    #[inline]
-    unsafe fn gather(base: *const f32, idx4: __m256i, c: i32, mask: __m256) -> __m256 {
-        unsafe {
-            _mm256_mask_i32gather_ps::<4>(
-                _mm256_setzero_ps(),
-                base,
-                _mm256_add_epi32(idx4, _mm256_set1_epi32(c)),
-                mask,
-            )
-        }
-    }
-
     /// One row of `R p + t` in lanes: `((r0 px + r1 py) + r2 z) + r3`, as the scalar code.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
@@ -715,20 +700,20 @@ mod lanes {
         )
     }
 
-    /// The four channels of eight consecutive `[f32; 4]` pixels starting at float `p`: lane
-    /// `l` of output `c` is channel `c` of pixel `l` (plain loads and a transpose, cheaper
-    /// than a strided gather per channel).
+    /// The four channels of eight `[f32; 4]` pixels, lane `l`'s starting at float `at(l)` of
+    /// `base`: lane `l` of output `c` is channel `c` of that pixel (one 4-float load per lane
+    /// and a transpose, cheaper than a gather per channel).
     ///
     /// # Safety
-    /// AVX2; floats `p .. p + 32` are readable.
+    /// AVX2; floats `at(l) .. at(l) + 4` of `base` are readable for every lane.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
-    unsafe fn channels8(p: *const f32) -> [__m256; 4] {
-        // SAFETY: pixels 0..8 (floats 0..32) are readable, as the caller guarantees.
+    unsafe fn channels8(base: *const f32, at: impl Fn(usize) -> usize) -> [__m256; 4] {
+        // SAFETY: each lane's four floats are readable, as the caller guarantees.
         let r = |k: usize| unsafe {
             _mm256_insertf128_ps::<1>(
-                _mm256_castps128_ps256(_mm_loadu_ps(p.add(4 * k))),
-                _mm_loadu_ps(p.add(4 * (k + 4))),
+                _mm256_castps128_ps256(_mm_loadu_ps(base.add(at(k)))),
+                _mm_loadu_ps(base.add(at(k + 4))),
             )
         };
         let (r0, r1, r2, r3) = (r(0), r(1), r(2), r(3));
@@ -742,6 +727,16 @@ mod lanes {
             _mm256_shuffle_ps::<0x44>(t1, t3),
             _mm256_shuffle_ps::<0xEE>(t1, t3),
         ]
+    }
+
+    /// The lanes of `v` as `usize` (non-negative by construction at the call sites).
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn lanes_usize(v: __m256i) -> [usize; 8] {
+        let mut a = [0i32; 8];
+        // SAFETY: 8 i32s into an 8-element array.
+        unsafe { _mm256_storeu_si256(a.as_mut_ptr() as *mut __m256i, v) };
+        a.map(|x| x as usize)
     }
 
     /// Rows `r[l]` (lane `l`) transposed: lane `l` of output `k` is `r[l][k]`.
@@ -794,16 +789,10 @@ mod lanes {
         bottom: __m256i,
         b: [__m256; 4],
     ) -> [__m256; 3] {
-        let (mut t, mut u) = ([0i32; 8], [0i32; 8]);
-        // SAFETY: 8 i32s into 8-element arrays.
-        unsafe {
-            _mm256_storeu_si256(t.as_mut_ptr() as *mut __m256i, top);
-            _mm256_storeu_si256(u.as_mut_ptr() as *mut __m256i, bottom);
-        }
         // SAFETY: the caller guarantees both 8-float rows of every lane are in the buffer.
-        let load = |o: i32| unsafe { _mm256_loadu_ps(base.offset(o as isize)) };
-        let rt = transpose8(t.map(load));
-        let rb = transpose8(u.map(load));
+        let load = |o: usize| unsafe { _mm256_loadu_ps(base.add(o)) };
+        let rt = transpose8(lanes_usize(top).map(load));
+        let rb = transpose8(lanes_usize(bottom).map(load));
         let mix = |c: usize| {
             _mm256_add_ps(
                 _mm256_add_ps(
@@ -889,12 +878,12 @@ mod lanes {
             let i = y * k.w + x;
             let set = _mm256_set1_ps;
             let rg_base = bufs.ref_geo.as_ptr().add(i) as *const f32;
-            let ref_geo = channels8(rg_base);
+            let ref_geo = channels8(rg_base, |l| 4 * l);
             let (rho_ref, z) = (ref_geo[0], ref_geo[3]);
             // `!(rho <= 0)`, as the scalar test (NaN counts as depth there too).
             let has_depth = _mm256_cmp_ps::<_CMP_NLE_UQ>(rho_ref, _mm256_setzero_ps());
             let rp_base = bufs.ref_photo.as_ptr().add(i) as *const f32;
-            let ref_photo = channels8(rp_base);
+            let ref_photo = channels8(rp_base, |l| 4 * l);
             let ref_i = ref_photo[0];
             let rx = _mm256_loadu_ps(k.rx.as_ptr().add(x));
             let ry = set(k.ry[y]);
@@ -967,9 +956,9 @@ mod lanes {
                 let n = _mm256_and_si256(n, _mm256_castps_si256(valid));
                 let n4 = _mm256_slli_epi32::<2>(n);
                 let base = bufs.cur_geo.as_ptr() as *const f32;
-                let g0 = gather(base, n4, 0, valid);
-                let g1 = gather(base, n4, 1, valid);
-                let g2 = gather(base, n4, 2, valid);
+                // Lanes outside the image read pixel 0; `valid` masks their terms.
+                let n4 = lanes_usize(n4);
+                let [g0, g1, g2, _] = channels8(base, |l| n4[l]);
                 let mut gvalid = _mm256_and_ps(
                     valid,
                     _mm256_and_ps(
