@@ -722,11 +722,18 @@ mod lanes {
                 _mm_loadu_ps(base.add(at(k + 4))),
             )
         };
-        let (r0, r1, r2, r3) = (r(0), r(1), r(2), r(3));
-        let t0 = _mm256_unpacklo_ps(r0, r1);
-        let t1 = _mm256_unpackhi_ps(r0, r1);
-        let t2 = _mm256_unpacklo_ps(r2, r3);
-        let t3 = _mm256_unpackhi_ps(r2, r3);
+        transpose4x2([r(0), r(1), r(2), r(3)])
+    }
+
+    /// Each 128-bit half of the rows `r` transposed as a 4x4 block: float `l` of half `h` of
+    /// output `k` is float `k` of half `h` of `r[l]`.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn transpose4x2(r: [__m256; 4]) -> [__m256; 4] {
+        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
         [
             _mm256_shuffle_ps::<0x44>(t0, t2),
             _mm256_shuffle_ps::<0xEE>(t0, t2),
@@ -749,22 +756,8 @@ mod lanes {
     #[target_feature(enable = "avx2,fma")]
     #[inline]
     fn transpose8(r: [__m256; 8]) -> [__m256; 8] {
-        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
-        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
-        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
-        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
-        let t4 = _mm256_unpacklo_ps(r[4], r[5]);
-        let t5 = _mm256_unpackhi_ps(r[4], r[5]);
-        let t6 = _mm256_unpacklo_ps(r[6], r[7]);
-        let t7 = _mm256_unpackhi_ps(r[6], r[7]);
-        let s0 = _mm256_shuffle_ps::<0x44>(t0, t2);
-        let s1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
-        let s2 = _mm256_shuffle_ps::<0x44>(t1, t3);
-        let s3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
-        let s4 = _mm256_shuffle_ps::<0x44>(t4, t6);
-        let s5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
-        let s6 = _mm256_shuffle_ps::<0x44>(t5, t7);
-        let s7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        let [s0, s1, s2, s3] = transpose4x2([r[0], r[1], r[2], r[3]]);
+        let [s4, s5, s6, s7] = transpose4x2([r[4], r[5], r[6], r[7]]);
         [
             _mm256_permute2f128_ps::<0x20>(s0, s4),
             _mm256_permute2f128_ps::<0x20>(s1, s5),
