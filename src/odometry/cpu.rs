@@ -189,18 +189,43 @@ impl CpuPyramid {
 /// [`gradients_of_lane`]). For `lane == 0` (a pyramid build) it also caches `z = 1 / rho` in
 /// `geo.w` (0 where rho is invalid); other lanes keep `.w` (it holds the filtered values).
 fn write_gradients(photo: &mut [[f32; 4]], geo: &mut [[f32; 4]], l: &LevelLayout, lane: usize) {
+    /// A level's photometric and geometric values.
+    type LevelCopy = (Vec<[f32; 4]>, Vec<[f32; 4]>);
+    thread_local! {
+        /// The copies of the last level this thread wrote gradients for: kept, so that a
+        /// build per frame neither allocates nor first touches fresh memory.
+        static SOURCE: std::cell::RefCell<LevelCopy> =
+            const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+    }
     let range = l.offset..l.offset + l.width * l.height;
-    // The level's values, so that rows can be written in parallel while their neighbours are
-    // read.
-    let src_p: Vec<[f32; 4]> = photo[range.clone()].to_vec();
-    let src_g: Vec<[f32; 4]> = geo[range.clone()].to_vec();
+    SOURCE.with_borrow_mut(|(src_p, src_g)| {
+        // The level's values, so that rows can be written in parallel while their
+        // neighbours are read.
+        src_p.clear();
+        src_p.extend_from_slice(&photo[range.clone()]);
+        src_g.clear();
+        src_g.extend_from_slice(&geo[range.clone()]);
+        write_gradients_from(photo, geo, l, lane, src_p, src_g);
+    });
+}
+
+/// [`write_gradients`] with the level's values read from `src_p` and `src_g`.
+fn write_gradients_from(
+    photo: &mut [[f32; 4]],
+    geo: &mut [[f32; 4]],
+    l: &LevelLayout,
+    lane: usize,
+    src_p: &[[f32; 4]],
+    src_g: &[[f32; 4]],
+) {
+    let range = l.offset..l.offset + l.width * l.height;
     photo[range.clone()]
         .par_chunks_mut(l.width)
         .zip(geo[range].par_chunks_mut(l.width))
         .enumerate()
         .for_each(|(y, (rp, rg))| {
             for x in 0..l.width {
-                let (gp, gg) = gradients_of_lane(&src_p, &src_g, l.width, l.height, x, y, lane);
+                let (gp, gg) = gradients_of_lane(src_p, src_g, l.width, l.height, x, y, lane);
                 rp[x][1] = gp[0];
                 rp[x][2] = gp[1];
                 rg[x][1] = gg[0];

@@ -236,6 +236,8 @@ impl ModelOdometry {
         let covisibility = self
             .odometry
             .covisibility_prepared(&r, &c, &alignment.cur_from_ref)?;
+        self.odometry.recycle(r);
+        self.odometry.recycle(c);
         alignment.times.covisibility_ms = tv.elapsed().as_secs_f64() * 1e3;
         let world_from_cur = world_from_prev * alignment.cur_from_ref.inverse();
         let integrate_ms = self.integrate(frame, &world_from_cur)?;

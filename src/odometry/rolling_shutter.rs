@@ -75,7 +75,7 @@ pub(crate) fn rectify(
             } else {
                 (uf, v as f32)
             };
-            *px = bilinear_clamped(src, w, x.clamp(0.0, xmax), y.clamp(0.0, ymax));
+            *px = bilinear_clamped(src, w, h, x.clamp(0.0, xmax), y.clamp(0.0, ymax));
         }
     });
     let intensity = ImageF32::from_vec(w, h, out)?;
@@ -87,11 +87,10 @@ pub(crate) fn rectify(
     })
 }
 
-/// Bilinear sample of a `w`-wide row-major image at `(x, y)`, both already clamped to the
+/// Bilinear sample of a `w` x `h` row-major image at `(x, y)`, both already clamped to the
 /// image (`0 <= x <= w - 1`, `0 <= y <= h - 1`, `w, h >= 2`).
 #[inline]
-fn bilinear_clamped(img: &[f32], w: usize, x: f32, y: f32) -> f32 {
-    let h = img.len() / w;
+fn bilinear_clamped(img: &[f32], w: usize, h: usize, x: f32, y: f32) -> f32 {
     let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
     let (fx, fy) = (x - x0 as f32, y - y0 as f32);
     let i = y0 * w + x0;

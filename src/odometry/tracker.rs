@@ -208,11 +208,16 @@ pub struct Tracker<K: Kernels> {
     /// of `last`'s motion).
     last_time: Option<(f64, Option<f64>)>,
     initial_pose: Se3,
-    spare: Option<K::Pyramid>,
+    /// Pyramids whose buffers the next builds reuse (at most [`MAX_SPARES`]).
+    spares: Vec<K::Pyramid>,
     /// Buffers of the covariance pass's filtered level, recycled.
     filtered: Option<K::Pyramid>,
     frames: usize,
 }
+
+/// Pyramids a tracker keeps for reuse: the one the last frame left, and the two of a
+/// two-view alignment ([`Tracker::prepare`], [`Tracker::recycle`]).
+const MAX_SPARES: usize = 2;
 
 /// The tracker on the CPU mirror.
 pub type CpuTracker = Tracker<CpuKernels>;
@@ -246,14 +251,14 @@ impl<K: Kernels> Tracker<K> {
             last: None,
             last_time: None,
             initial_pose: Se3::IDENTITY,
-            spare: None,
+            spares: Vec::new(),
             filtered: None,
             frames: 0,
         })
     }
 
     /// Bytes this tracker holds between frames, `(host, device)`: the pyramids it keeps
-    /// (the reference, a spare one recycled for the next frame, the covariance pass's
+    /// (the reference, up to two spare ones recycled for the next builds, the covariance pass's
     /// filtered level) in host memory on the CPU backend, and on a GPU the buffers allocated
     /// for them and for the kernels' parameters, partial sums and read-back (host: only the
     /// level tables). Sums of capacities and buffer sizes; allocates nothing.
@@ -261,10 +266,9 @@ impl<K: Kernels> Tracker<K> {
         let (mut host, mut device) = (0, self.kernels.device_bytes());
         let pyramids = [
             self.reference.as_ref().map(|r| &r.pyramid),
-            self.spare.as_ref(),
             self.filtered.as_ref(),
         ];
-        for p in pyramids.into_iter().flatten() {
+        for p in pyramids.into_iter().flatten().chain(&self.spares) {
             let (h, d) = K::pyramid_bytes(p);
             host += h;
             device += d;
@@ -287,7 +291,7 @@ impl<K: Kernels> Tracker<K> {
     /// `world_from_camera` (used after relocalisation).
     pub fn reset(&mut self, world_from_camera: Se3) {
         if let Some(r) = self.reference.take() {
-            self.spare = Some(r.pyramid);
+            self.keep_spare(r.pyramid);
         }
         self.last = None;
         self.last_time = None;
@@ -332,8 +336,21 @@ impl<K: Kernels> Tracker<K> {
         let levels = self.config.levels;
         let first = self.config.finest_level(self.camera.width as usize);
         let stored = first.min(self.config.covisibility_level.min(levels - 1));
-        let spare = self.spare.take();
+        let spare = self.spares.pop();
         self.kernels.build(frame, levels, stored, first, spare)
+    }
+
+    /// Keeps `pyramid`'s buffers for a later build, unless [`MAX_SPARES`] are kept already.
+    fn keep_spare(&mut self, pyramid: K::Pyramid) {
+        if self.spares.len() < MAX_SPARES {
+            self.spares.push(pyramid);
+        }
+    }
+
+    /// Gives the buffers of a frame prepared by [`Self::prepare`] back, for the next
+    /// pyramid builds to reuse (instead of allocating and first touching new memory).
+    pub fn recycle(&mut self, prepared: Prepared<K>) {
+        self.keep_spare(prepared.pyramid);
     }
 
     /// Builds `frame`'s pyramid once for [`Self::align_prepared`] and
@@ -409,7 +426,7 @@ impl<K: Kernels> Tracker<K> {
             Err(e) => {
                 // Keep the reference so that the caller can go on with the next frame.
                 self.reference = Some(reference);
-                self.spare = Some(pyramid);
+                self.keep_spare(pyramid);
                 return Err(e);
             }
         };
@@ -436,13 +453,13 @@ impl<K: Kernels> Tracker<K> {
             Some(t) => covisibility < t,
         };
         if switch {
-            self.spare = Some(reference.pyramid);
+            self.keep_spare(reference.pyramid);
             self.reference = Some(Reference {
                 pyramid,
                 world_from_ref: world_from_cur,
             });
         } else {
-            self.spare = Some(pyramid);
+            self.keep_spare(pyramid);
             self.reference = Some(reference);
         }
         alignment.times.total_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -1001,7 +1018,7 @@ impl Odometry {
     }
 
     /// Bytes this odometry holds between frames, `(host, device)`: the pyramids it keeps
-    /// (the reference, a spare one recycled for the next frame, the covariance pass's
+    /// (the reference, up to two spare ones recycled for the next builds, the covariance pass's
     /// filtered level) in host memory on the CPU backend, and on a GPU the buffers allocated
     /// for them and for the kernels' parameters, partial sums and read-back (host: only the
     /// level tables). Sums of capacities and buffer sizes; allocates nothing.
@@ -1071,6 +1088,17 @@ impl Odometry {
         cur_from_ref: &Se3,
     ) -> Result<f64, OdometryError> {
         on_tracker!(&mut self.inner, t => t.covisibility_of(reference, current, cur_from_ref))
+    }
+
+    /// Gives the buffers of a frame prepared by [`Self::prepare`] back, for the next
+    /// pyramid builds to reuse (instead of allocating and first touching new memory). A
+    /// frame prepared on the other backend is dropped.
+    pub fn recycle(&mut self, prepared: PreparedFrame) {
+        match (&mut self.inner, prepared.inner) {
+            (Inner::Cpu(t), PreparedInner::Cpu(p)) => t.recycle(p),
+            (Inner::Gpu(t), PreparedInner::Gpu(p)) => t.recycle(p),
+            _ => {}
+        }
     }
 
     /// Builds `frame`'s pyramid once, for [`Self::align_prepared`] and

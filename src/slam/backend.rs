@@ -325,6 +325,8 @@ impl Backend {
         let cov = self
             .odometry
             .covisibility_prepared(&reference, &query, &a.cur_from_ref)?;
+        self.odometry.recycle(reference);
+        self.odometry.recycle(query);
         Ok((a.cur_from_ref.inverse(), a.covariance, cov))
     }
 
