@@ -37,6 +37,18 @@ mod rows;
 mod solver;
 mod tracker;
 
+/// Runs `f` on a worker of rayon's global pool (at once when the caller is one). The
+/// parallel passes inside it then fork from a worker; called from another thread, each of
+/// them would queue its job into the pool and put the caller to sleep until the job ends,
+/// a pair of context switches per pass.
+pub(crate) fn in_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    if rayon::current_thread_index().is_some() {
+        f()
+    } else {
+        rayon::scope(|_| f())
+    }
+}
+
 pub use config::{
     CovarianceGradients, CovisibilityTest, GeometricParam, GeometricSampling, Linearisation,
     Location, OdometryConfig, Terms, OCCLUSION_SIGMAS,

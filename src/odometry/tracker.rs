@@ -1047,7 +1047,7 @@ impl Odometry {
     /// its `world_from_camera`, and switches the reference when covisibility is low. With a
     /// rolling shutter ([`OdometryConfig::rolling_shutter`]) the frame is rectified first.
     pub fn track(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
-        on_tracker!(&mut self.inner, t => t.track(frame))
+        super::in_pool(|| on_tracker!(&mut self.inner, t => t.track(frame)))
     }
 
     /// `frame` with its intensity rectified for the camera's rolling shutter
@@ -1063,7 +1063,7 @@ impl Odometry {
     /// [`Self::track`] without the rolling-shutter rectification (for a frame that
     /// [`Self::rectified`] already gave).
     pub fn track_as_given(&mut self, frame: &RgbdFrame) -> Result<TrackResult, OdometryError> {
-        on_tracker!(&mut self.inner, t => t.track_as_given(frame))
+        super::in_pool(|| on_tracker!(&mut self.inner, t => t.track_as_given(frame)))
     }
 
     /// Aligns `current` to `reference` starting from `cur_from_ref_guess` (no tracking state

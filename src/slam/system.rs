@@ -566,14 +566,7 @@ impl Slam {
 
     /// Processes the next frame (front-end; keyframes go to the back-end thread).
     pub fn process(&mut self, frame: &RgbdFrame) -> Result<FrameReport, SlamError> {
-        // The front-end runs on a worker of rayon's pool: its parallel passes then fork from
-        // a worker, instead of each one queueing its job from outside the pool and putting
-        // the calling thread to sleep until the job ends.
-        if rayon::current_thread_index().is_some() {
-            self.process_frame(frame)
-        } else {
-            rayon::scope(|_| self.process_frame(frame))
-        }
+        crate::odometry::in_pool(|| self.process_frame(frame))
     }
 
     fn process_frame(&mut self, frame: &RgbdFrame) -> Result<FrameReport, SlamError> {
