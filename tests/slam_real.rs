@@ -64,3 +64,53 @@ fn real_data_fr1_rpy_slam_ate_at_most_12_mm() {
     let (slam, _) = fr1_rpy_slam();
     assert!(slam <= 0.012, "SLAM ATE {slam} m above 0.012 m");
 }
+
+/// With one rayon worker the front-end must still never hold the pool while it waits for the
+/// back-end, whose own parallel passes need a worker: `rgbid slam` with `RAYON_NUM_THREADS=1`
+/// and a one-keyframe queue (the front-end waits on the back-end often) ends, and in time.
+#[test]
+#[ignore = "needs ../shared/data (runs in CI's real-data stage)"]
+fn real_data_slam_ends_on_a_single_rayon_worker() {
+    use std::time::{Duration, Instant};
+    let dir = common::shared_data().join("rgbd/tum_fr1_rpy_0_199");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_rgbid"))
+        .args([
+            "slam",
+            dir.to_str().expect("utf-8 path"),
+            "--camera",
+            "tum_fr1",
+        ])
+        .args([
+            "--max-frames",
+            "60",
+            "--backend",
+            "cpu",
+            "--set",
+            "queue=1",
+            "--out",
+        ])
+        .arg(&out)
+        .env("RAYON_NUM_THREADS", "1")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("running rgbid");
+    // Seconds on one core; a deadlock never ends (SIGTERM only asks the run to stop).
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("waiting for rgbid") {
+            break status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("rgbid slam on one rayon worker did not end within 300 s (deadlock)");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(status.success(), "rgbid slam failed: {status}");
+    let trajectory =
+        rgbid::io::trajectory::read_tum(&out.join("trajectory.txt")).expect("trajectory");
+    assert_eq!(trajectory.len(), 60);
+}

@@ -40,7 +40,8 @@ mod tracker;
 /// Runs `f` on a worker of rayon's global pool (at once when the caller is one). The
 /// parallel passes inside it then fork from a worker; called from another thread, each of
 /// them would queue its job into the pool and put the caller to sleep until the job ends,
-/// a pair of context switches per pass.
+/// a pair of context switches per pass. `f` must not wait for other work on the pool: with
+/// every worker busy (one worker, say) that work would never run.
 pub(crate) fn in_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     if rayon::current_thread_index().is_some() {
         f()

@@ -1057,7 +1057,7 @@ impl Odometry {
     /// is used as it is: a global shutter, fewer than two frames tracked since the start or
     /// the last reset, or a turn too slow to move a pixel by a tenth.
     pub fn rectified(&self, frame: &RgbdFrame) -> Option<RgbdFrame> {
-        on_tracker!(&self.inner, t => t.rectified(frame))
+        super::in_pool(|| on_tracker!(&self.inner, t => t.rectified(frame)))
     }
 
     /// [`Self::track`] without the rolling-shutter rectification (for a frame that

@@ -566,10 +566,6 @@ impl Slam {
 
     /// Processes the next frame (front-end; keyframes go to the back-end thread).
     pub fn process(&mut self, frame: &RgbdFrame) -> Result<FrameReport, SlamError> {
-        crate::odometry::in_pool(|| self.process_frame(frame))
-    }
-
-    fn process_frame(&mut self, frame: &RgbdFrame) -> Result<FrameReport, SlamError> {
         let index = self.frames.len();
         self.check_frame(index, frame)?;
         let t0 = Instant::now();
@@ -690,10 +686,15 @@ impl Slam {
             GeometricParam::Depth => 0.0,
         };
         let tf = Instant::now();
-        let counts = self
-            .fuser
-            .fuse(&frame.inverse_depth, &kf_from_camera.inverse(), sigma_geo)?;
-        self.fuse_one_pending()?;
+        // On a worker of the pool, as the tracking (`in_pool`). Nothing in here waits for
+        // the back-end, whose own parallel passes need a free worker.
+        let counts = crate::odometry::in_pool(|| {
+            let counts =
+                self.fuser
+                    .fuse(&frame.inverse_depth, &kf_from_camera.inverse(), sigma_geo)?;
+            self.fuse_one_pending()?;
+            Ok::<_, SlamError>(counts)
+        })?;
         record.fusion_ms = tf.elapsed().as_secs_f64() * 1e3;
         record.keyframe_covisibility = counts.covisibility();
         record.keyframe = Some((kf_id, kf_from_camera));
