@@ -9,7 +9,10 @@ percentile, maximum) come from the run folder's `timing.csv`. `rgbid odometry` r
 way (process wall time per frame, decoding included), and OpenCV's RGB_DEPTH odometry
 (`../shared/eval/peer_odometry.py --methods cv_rgbd`) once per sequence in the same script run
 when `--python` names a Python with OpenCV; its figure is its per-frame compute median.
-Medians over the runs; the 1-minute load average before each run is recorded.
+Medians over the runs; the 1-minute load average before each run is recorded, and before
+and after each sequence's runs the cores the machine delivers: a single-threaded Python loop timed alone, then
+two copies at once (`cores = t_alone / t_1 + t_alone / t_2`: 2.0 on two free cores; a load
+average does not show a neighbour sharing the host's cores).
 Writes docs/results/camera_rate.json (rendered by scripts/results.py).
 
 Usage: python3 scripts/camera_rate.py [--bin target/release/rgbid] [--runs 5]
@@ -48,6 +51,22 @@ def timed(cmd):
     return wall, load
 
 
+SPIN = "import time\nt = time.perf_counter()\nx = 0\nfor i in range(6_000_000):\n    x += i\nprint(time.perf_counter() - t)"
+
+
+def cores_delivered():
+    """Cores the machine gives two single-threaded processes at once (median of 3 probes)."""
+    def spin(n):
+        procs = [subprocess.Popen([sys.executable, "-c", SPIN], stdout=subprocess.PIPE, text=True)
+                 for _ in range(n)]
+        return [float(p.communicate()[0]) for p in procs]
+    probes = []
+    for _ in range(3):
+        alone = spin(1)[0]
+        probes.append(sum(alone / t for t in spin(2)))
+    return statistics.median(probes)
+
+
 def peer(python, seq, out):
     script = ROOT.parent / "shared" / "eval" / "peer_odometry.py"
     r = subprocess.run([python, str(script), str(seq), str(out), "--methods", "cv_rgbd"],
@@ -83,6 +102,7 @@ def main():
             seq = DATA / name
             slam_walls, odo_walls, loads, fe = [], [], [], {"p50": [], "p95": [], "max": []}
             summary = None
+            cores = cores_delivered()
             for i in range(a.runs):
                 out = pathlib.Path(tmp) / f"{name}-{i}"
                 wall, load = timed([a.bin, "slam", str(seq), "--backend", "cpu", "--out", str(out), *extra])
@@ -99,6 +119,7 @@ def main():
                 wall, load = timed([a.bin, "odometry", str(seq), "--backend", "cpu", "--out", str(traj), *extra])
                 odo_walls.append(wall)
                 loads.append(load)
+            cores = [cores, cores_delivered()]
             camera_s = stamps[-1] - stamps[0] + 1.0 / 30.0
             n = len(stamps)
             cv = peer(a.python, seq, pathlib.Path(tmp) / f"{name}-cv") if a.python else None
@@ -118,13 +139,15 @@ def main():
                 "odometry_wall_ms_per_frame": odo_ms,
                 "opencv_ms_per_frame": cv.get("ms_median") if cv else None,
                 "load_1min": loads,
+                "cores_delivered": cores,
             }
             if row["opencv_ms_per_frame"]:
                 row["opencv_over_rgbid"] = row["opencv_ms_per_frame"] / odo_ms
             rows.append(row)
             print(f"{name}: slam {row['slam_wall_s_median']:.2f} s for {camera_s:.2f} s of camera; "
                   f"front-end p95 {row['frontend_ms_p95']:.1f} ms; odometry {odo_ms:.1f} ms/frame"
-                  + (f", OpenCV {row['opencv_ms_per_frame']:.1f}" if cv else ""))
+                  + (f", OpenCV {row['opencv_ms_per_frame']:.1f}" if cv else "")
+                  + f"; cores delivered of 2 before / after: {cores[0]:.2f} / {cores[1]:.2f}")
     doc = {"benchmark": "camera-rate", "meta": meta("camera_rate.py", a.bin), "runs": a.runs,
            "backend": "cpu", "rows": rows}
     pathlib.Path(a.json).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")

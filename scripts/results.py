@@ -542,7 +542,10 @@ def render_camera_rate(doc):
            "milliseconds per frame from `timing.csv` (percentiles over the frames, median over the "
            "runs); odometry wall time per frame with decoding, against OpenCV RGB_DEPTH's per-frame "
            "compute median (`peer_odometry.py --methods cv_rgbd`, same script run). The 1-minute "
-           "load average before each run is in the report (`load_1min`).", ""]
+           "load average before each run is in the report (`load_1min`). *Cores delivered*: two "
+           "single-threaded loops timed together against one alone, before the sequence's runs "
+           "(2.00 on two free cores; less where the host shares them, which a load average does "
+           "not show).", ""]
     body = []
     for r in doc.get("rows", []):
         loads = r.get("load_1min") or []
@@ -553,10 +556,11 @@ def render_camera_rate(doc):
                      num(r.get("frontend_ms_max"), ".1f"), num(r.get("slam_ate_m"), ".4f"),
                      num(r.get("odometry_wall_ms_per_frame"), ".1f"), num(r.get("opencv_ms_per_frame"), ".1f"),
                      num(r.get("opencv_over_rgbid"), ".2f"),
-                     num(max(loads), ".2f") if loads else "-"])
+                     num(max(loads), ".2f") if loads else "-", " / ".join(num(c, ".2f") for c in r.get("cores_delivered") or []) or "-"])
     return out + table(["sequence", "frames", "camera s", "slam wall s", "camera / wall",
                         "front-end ms p50", "p95", "max", "SLAM ATE m", "odometry ms/frame (wall)",
-                        "OpenCV ms/frame (compute)", "OpenCV / rgbid", "highest load"], body)
+                        "OpenCV ms/frame (compute)", "OpenCV / rgbid", "highest load",
+                        "cores delivered before / after"], body)
 
 
 def render_generic(doc):
