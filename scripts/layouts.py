@@ -58,7 +58,8 @@ def meta(script, binary, load=None):
     return {
         "command": f"python3 scripts/{script} " + " ".join(sys.argv[1:]),
         "commit": git("rev-parse", "--short", "HEAD") or "unknown",
-        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+        # Benchmark outputs (docs/results) are not source changes.
+        "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)docs/results")),
         "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "load_average": [round(x, 2) for x in (load or os.getloadavg())],
         "machine": machine(),

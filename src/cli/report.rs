@@ -121,8 +121,17 @@ fn git_state() -> (String, Option<bool>) {
     };
     match git(&["rev-parse", "--short", "HEAD"]) {
         Some(commit) if !commit.is_empty() => {
-            let dirty =
-                git(&["status", "--porcelain", "--untracked-files=no"]).map(|s| !s.is_empty());
+            // Benchmark outputs are not source: a chain of benchmarks would otherwise mark
+            // every run after the first as uncommitted.
+            let dirty = git(&[
+                "status",
+                "--porcelain",
+                "--untracked-files=no",
+                "--",
+                ".",
+                ":(exclude)docs/results",
+            ])
+            .map(|s| !s.is_empty());
             (commit, dirty)
         }
         _ => ("unknown".into(), None),
