@@ -198,15 +198,17 @@ fn write_gradients(photo: &mut [[f32; 4]], geo: &mut [[f32; 4]], l: &LevelLayout
             const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
     }
     let range = l.offset..l.offset + l.width * l.height;
-    SOURCE.with_borrow_mut(|(src_p, src_g)| {
-        // The level's values, so that rows can be written in parallel while their
-        // neighbours are read.
-        src_p.clear();
-        src_p.extend_from_slice(&photo[range.clone()]);
-        src_g.clear();
-        src_g.extend_from_slice(&geo[range.clone()]);
-        write_gradients_from(photo, geo, l, lane, src_p, src_g);
-    });
+    // Taken out of the cell, not borrowed: while this thread waits for the parallel rows
+    // below, rayon may run another build on it, which then finds the cell empty.
+    let (mut src_p, mut src_g) = SOURCE.take();
+    // The level's values, so that rows can be written in parallel while their neighbours
+    // are read.
+    src_p.clear();
+    src_p.extend_from_slice(&photo[range.clone()]);
+    src_g.clear();
+    src_g.extend_from_slice(&geo[range]);
+    write_gradients_from(photo, geo, l, lane, &src_p, &src_g);
+    SOURCE.set((src_p, src_g));
 }
 
 /// [`write_gradients`] with the level's values read from `src_p` and `src_g`.
