@@ -193,41 +193,27 @@ fn write_gradients(photo: &mut [[f32; 4]], geo: &mut [[f32; 4]], l: &LevelLayout
     type LevelCopy = (Vec<[f32; 4]>, Vec<[f32; 4]>);
     thread_local! {
         /// The copies of the last level this thread wrote gradients for: kept, so that a
-        /// build per frame neither allocates nor first touches fresh memory.
-        static SOURCE: std::cell::RefCell<LevelCopy> =
-            const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+        /// build per frame neither allocates nor first touches fresh memory. Taken out while
+        /// in use: while this thread waits for the parallel rows below, rayon may run another
+        /// build on it, which then finds the cell empty and allocates its own.
+        static SOURCE: std::cell::Cell<LevelCopy> =
+            const { std::cell::Cell::new((Vec::new(), Vec::new())) };
     }
     let range = l.offset..l.offset + l.width * l.height;
-    // Taken out of the cell, not borrowed: while this thread waits for the parallel rows
-    // below, rayon may run another build on it, which then finds the cell empty.
-    let (mut src_p, mut src_g) = SOURCE.take();
     // The level's values, so that rows can be written in parallel while their neighbours
     // are read.
+    let (mut src_p, mut src_g) = SOURCE.take();
     src_p.clear();
     src_p.extend_from_slice(&photo[range.clone()]);
     src_g.clear();
-    src_g.extend_from_slice(&geo[range]);
-    write_gradients_from(photo, geo, l, lane, &src_p, &src_g);
-    SOURCE.set((src_p, src_g));
-}
-
-/// [`write_gradients`] with the level's values read from `src_p` and `src_g`.
-fn write_gradients_from(
-    photo: &mut [[f32; 4]],
-    geo: &mut [[f32; 4]],
-    l: &LevelLayout,
-    lane: usize,
-    src_p: &[[f32; 4]],
-    src_g: &[[f32; 4]],
-) {
-    let range = l.offset..l.offset + l.width * l.height;
+    src_g.extend_from_slice(&geo[range.clone()]);
     photo[range.clone()]
         .par_chunks_mut(l.width)
         .zip(geo[range].par_chunks_mut(l.width))
         .enumerate()
         .for_each(|(y, (rp, rg))| {
             for x in 0..l.width {
-                let (gp, gg) = gradients_of_lane(src_p, src_g, l.width, l.height, x, y, lane);
+                let (gp, gg) = gradients_of_lane(&src_p, &src_g, l.width, l.height, x, y, lane);
                 rp[x][1] = gp[0];
                 rp[x][2] = gp[1];
                 rg[x][1] = gg[0];
@@ -238,6 +224,7 @@ fn write_gradients_from(
                 }
             }
         });
+    SOURCE.set((src_p, src_g));
 }
 
 /// The buffers of `level` of `reference` and `current` that one warp reads.

@@ -215,8 +215,8 @@ pub struct Tracker<K: Kernels> {
     frames: usize,
 }
 
-/// Pyramids a tracker keeps for reuse: the one the last frame left, and the two of a
-/// two-view alignment ([`Tracker::prepare`], [`Tracker::recycle`]).
+/// Pyramids a tracker keeps for reuse: enough for the two that a two-view alignment gives
+/// back ([`Tracker::prepare`], [`Tracker::recycle`]); tracking leaves one per frame.
 const MAX_SPARES: usize = 2;
 
 /// The tracker on the CPU mirror.
