@@ -105,8 +105,12 @@ impl UndistortMap {
         let step_y = if self.height > 1 { w } else { 0 };
         for (o, t) in out.iter_mut().zip(&self.bilinear) {
             let i = t.index as usize;
-            let (a, b) = (raw[i], raw[i + step_x]);
-            let (c, d) = (raw[i + step_y], raw[i + step_y + step_x]);
+            // One bounds check for the four taps.
+            let Some(p) = raw.get(i..=i + step_y + step_x) else {
+                continue;
+            };
+            let (a, b) = (p[0], p[step_x]);
+            let (c, d) = (p[step_y], p[step_y + step_x]);
             let top = a + (b - a) * t.wx;
             let bottom = c + (d - c) * t.wx;
             *o = top + (bottom - top) * t.wy;
@@ -127,10 +131,14 @@ impl UndistortMap {
         let step_y = if self.height > 1 { 3 * w } else { 0 };
         for (o, t) in out.chunks_exact_mut(3).zip(&self.bilinear) {
             let i = 3 * t.index as usize;
+            // One bounds check for the four taps' three channels.
+            let Some(p) = raw.get(i..i + step_y + step_x + 3) else {
+                continue;
+            };
             for (ch, o) in o.iter_mut().enumerate() {
-                let at = |k: usize| f32::from(raw[k + ch]);
-                let (a, b) = (at(i), at(i + step_x));
-                let (c, d) = (at(i + step_y), at(i + step_y + step_x));
+                let at = |k: usize| f32::from(p[k + ch]);
+                let (a, b) = (at(0), at(step_x));
+                let (c, d) = (at(step_y), at(step_y + step_x));
                 let top = a + (b - a) * t.wx;
                 let bottom = c + (d - c) * t.wx;
                 // A saturating cast: the blend of bytes stays within 0..=255 up to rounding.
