@@ -37,6 +37,19 @@ mod rows;
 mod solver;
 mod tracker;
 
+/// Whether the CPU has AVX2 (the lane loops' condition; they also run with the feature
+/// enabled per function, so the build needs no target flags).
+pub(crate) fn avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Runs `f` on a worker of rayon's global pool (at once when the caller is one). The
 /// parallel passes inside it then fork from a worker; called from another thread, each of
 /// them would queue its job into the pool and put the caller to sleep until the job ends,

@@ -12,6 +12,7 @@
 use glam::{DMat3, DQuat, DVec3};
 use rayon::prelude::*;
 
+use super::avx2;
 use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
 use crate::image::{ImageF32, RgbdFrame};
@@ -150,18 +151,6 @@ fn bilinear_clamped(img: &[f32], w: usize, h: usize, x: f32, y: f32) -> f32 {
     let t = top[0] + (top[1] - top[0]) * fx;
     let b = bottom[0] + (bottom[1] - bottom[0]) * fx;
     t + (b - t) * fy
-}
-
-/// Whether the CPU has AVX2.
-fn avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
 }
 
 /// [`RowMap::sample`] for the row's pixels eight at a time, with the same operations in the

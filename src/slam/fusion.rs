@@ -24,6 +24,7 @@ use crate::camera::PinholeCamera;
 use crate::geometry::Se3;
 use crate::gpu::{shaders, ComputeBackend, GpuContext, GpuError};
 use crate::image::ImageF32;
+use crate::odometry::avx2;
 
 /// Parameters of the weighted inverse-depth update.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -333,18 +334,6 @@ unsafe fn covisible_back_row_avx2(
 fn lanes_fit(u: &FuseUniform, len: usize) -> bool {
     let pixels = u.width as usize * u.height as usize;
     avx2() && len >= pixels && pixels <= i32::MAX as usize
-}
-
-/// Whether the CPU has AVX2.
-fn avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
 }
 
 /// [`covisible_back`] over every frame pixel: `(frame pixels with depth, covisible)`.
