@@ -8,9 +8,14 @@
 //! so inverse depths are never blended across depth edges.
 
 use glam::DVec2;
+use rayon::prelude::*;
 
 use crate::camera::PinholeCamera;
 use crate::image::ImageF32;
+
+/// Rows of the output per parallel task: a frame's remap is a few milliseconds of work, which
+/// a tracking thread would otherwise wait for alone.
+const ROWS_PER_TASK: usize = 32;
 
 /// One bilinear tap: top-left source index and the fractional offsets.
 #[derive(Clone, Copy, Debug)]
@@ -103,18 +108,23 @@ impl UndistortMap {
         }
         let step_x = usize::from(w > 1);
         let step_y = if self.height > 1 { w } else { 0 };
-        for (o, t) in out.iter_mut().zip(&self.bilinear) {
-            let i = t.index as usize;
-            // One bounds check for the four taps.
-            let Some(p) = raw.get(i..=i + step_y + step_x) else {
-                continue;
-            };
-            let (a, b) = (p[0], p[step_x]);
-            let (c, d) = (p[step_y], p[step_y + step_x]);
-            let top = a + (b - a) * t.wx;
-            let bottom = c + (d - c) * t.wx;
-            *o = top + (bottom - top) * t.wy;
-        }
+        let band = w * ROWS_PER_TASK;
+        out.par_chunks_mut(band)
+            .zip(self.bilinear.par_chunks(band))
+            .for_each(|(out, taps)| {
+                for (o, t) in out.iter_mut().zip(taps) {
+                    let i = t.index as usize;
+                    // One bounds check for the four taps.
+                    let Some(p) = raw.get(i..=i + step_y + step_x) else {
+                        continue;
+                    };
+                    let (a, b) = (p[0], p[step_x]);
+                    let (c, d) = (p[step_y], p[step_y + step_x]);
+                    let top = a + (b - a) * t.wx;
+                    let bottom = c + (d - c) * t.wx;
+                    *o = top + (bottom - top) * t.wy;
+                }
+            });
     }
 
     /// Bilinear resampling of interleaved 8-bit RGB (`3` bytes per pixel), the arithmetic of
@@ -129,33 +139,45 @@ impl UndistortMap {
         }
         let step_x = 3 * usize::from(w > 1);
         let step_y = if self.height > 1 { 3 * w } else { 0 };
-        for (o, t) in out.chunks_exact_mut(3).zip(&self.bilinear) {
-            let i = 3 * t.index as usize;
-            // One bounds check for the four taps' three channels.
-            let Some(p) = raw.get(i..i + step_y + step_x + 3) else {
-                continue;
-            };
-            for (ch, o) in o.iter_mut().enumerate() {
-                let at = |k: usize| f32::from(p[k + ch]);
-                let (a, b) = (at(0), at(step_x));
-                let (c, d) = (at(step_y), at(step_y + step_x));
-                let top = a + (b - a) * t.wx;
-                let bottom = c + (d - c) * t.wx;
-                // A saturating cast: the blend of bytes stays within 0..=255 up to rounding.
-                *o = (top + (bottom - top) * t.wy + 0.5) as u8;
-            }
-        }
+        let band = w * ROWS_PER_TASK;
+        out[..3 * n]
+            .par_chunks_mut(3 * band)
+            .zip(self.bilinear.par_chunks(band))
+            .for_each(|(out, taps)| {
+                for (o, t) in out.chunks_exact_mut(3).zip(taps) {
+                    let i = 3 * t.index as usize;
+                    // One bounds check for the four taps' three channels.
+                    let Some(p) = raw.get(i..i + step_y + step_x + 3) else {
+                        continue;
+                    };
+                    for (ch, o) in o.iter_mut().enumerate() {
+                        let at = |k: usize| f32::from(p[k + ch]);
+                        let (a, b) = (at(0), at(step_x));
+                        let (c, d) = (at(step_y), at(step_y + step_x));
+                        let top = a + (b - a) * t.wx;
+                        let bottom = c + (d - c) * t.wx;
+                        // A saturating cast: the blend of bytes stays within 0..=255 up to
+                        // rounding.
+                        *o = (top + (bottom - top) * t.wy + 0.5) as u8;
+                    }
+                }
+            });
     }
 
     /// Nearest-neighbour resampling (for depth); pixels that map outside the raw image get `0`.
     pub fn remap_nearest(&self, raw: &[f32], out: &mut [f32]) {
-        for (o, &i) in out.iter_mut().zip(&self.nearest) {
-            *o = if i == OUTSIDE {
-                0.0
-            } else {
-                raw.get(i as usize).copied().unwrap_or(0.0)
-            };
-        }
+        let band = self.width.max(1) * ROWS_PER_TASK;
+        out.par_chunks_mut(band)
+            .zip(self.nearest.par_chunks(band))
+            .for_each(|(out, nearest)| {
+                for (o, &i) in out.iter_mut().zip(nearest) {
+                    *o = if i == OUTSIDE {
+                        0.0
+                    } else {
+                        raw.get(i as usize).copied().unwrap_or(0.0)
+                    };
+                }
+            });
     }
 
     /// Undistorts an intensity image (bilinear); `None` if its size is not the table's.

@@ -6,6 +6,7 @@
 
 use glam::DVec3;
 use half::f16;
+use rayon::prelude::*;
 
 use crate::camera::PinholeCamera;
 use crate::geometry::{Covariance6, Se3};
@@ -68,6 +69,14 @@ pub struct Keyframe {
     pub link: KeyframeLink,
 }
 
+/// Pixels per parallel task when packing: packing runs on the tracking thread between frames.
+const MIN_PER_TASK: usize = 1 << 14;
+
+/// `v` rounded to the nearest byte, clamped to 0..=255.
+fn byte(v: f32) -> u8 {
+    v.round().clamp(0.0, 255.0) as u8
+}
+
 impl Keyframe {
     /// Packs images of one size into a keyframe.
     #[allow(clippy::too_many_arguments)]
@@ -91,18 +100,21 @@ impl Keyframe {
             height: intensity.height,
             intensity: intensity
                 .data
-                .iter()
-                .map(|&v| v.round().clamp(0.0, 255.0) as u8)
+                .par_iter()
+                .with_min_len(MIN_PER_TASK)
+                .map(|&v| byte(v))
                 .collect(),
             inverse_depth: inverse_depth
                 .data
-                .iter()
+                .par_iter()
+                .with_min_len(MIN_PER_TASK)
                 .map(|&r| f16::from_f32(if r.is_finite() && r > 0.0 { r } else { 0.0 }))
                 .collect(),
             weight: weight
                 .data
-                .iter()
-                .map(|&w| w.round().clamp(0.0, 255.0) as u8)
+                .par_iter()
+                .with_min_len(MIN_PER_TASK)
+                .map(|&w| byte(w))
                 .collect(),
             colour: None,
             world_from_keyframe,

@@ -2,8 +2,11 @@
 //! only what the previous keyframe did not already see, voxel-grid filtered (written as PLY by [`crate::io::ply`]).
 
 use std::collections::HashMap;
+use std::hash::BuildHasherDefault;
 
 use glam::DVec3;
+use rayon::prelude::*;
+use rustc_hash::FxHasher;
 
 use super::keyframe::Keyframe;
 use crate::camera::PinholeCamera;
@@ -134,35 +137,71 @@ fn model_grid(
     params: &ModelParams,
 ) -> VoxelGrid {
     let mut grid = VoxelGrid::new(params.voxel);
-    for (k, (kf, pose)) in keyframes.iter().zip(world_from_keyframe.iter()).enumerate() {
-        let prev = if k > 0 && keyframes[k - 1].session == kf.session {
-            Some((
-                &keyframes[k - 1],
-                world_from_keyframe[k - 1].inverse() * *pose,
-            ))
-        } else {
-            None
-        };
-        for (p, i) in kf.pixel_points(camera, params.step, params.min_weight) {
-            if let Some((pk, prev_from_this)) = &prev {
-                let q = prev_from_this.transform_point(p);
-                if q.z > 0.0 {
-                    let u = (camera.fx * q.x / q.z + camera.cx).round();
-                    let v = (camera.fy * q.y / q.z + camera.cy).round();
-                    if u >= 0.0 && v >= 0.0 && (u as usize) < pk.width && (v as usize) < pk.height {
-                        let r = f64::from(
-                            pk.inverse_depth[v as usize * pk.width + u as usize].to_f32(),
-                        );
-                        if r > 0.0 && (r - 1.0 / q.z).abs() < params.seen_tolerance {
-                            continue;
-                        }
+    // Keyframes' points are found in parallel a few keyframes at a time while the grid takes
+    // the previous few, in keyframe order: every voxel's sums and the order in which voxels
+    // are first filled are those of one serial pass, and memory stays bounded by the chunk.
+    let chunk = rayon::current_num_threads().max(1) * 2;
+    let indices: Vec<usize> = (0..keyframes.len().min(world_from_keyframe.len())).collect();
+    let new_points =
+        |k: usize| keyframe_new_points(keyframes, world_from_keyframe, k, camera, params);
+    let mut pending: Vec<Vec<ModelPoint>> = Vec::new();
+    for ks in indices.chunks(chunk) {
+        let (next, ()) = rayon::join(
+            || ks.par_iter().map(|&k| new_points(k)).collect::<Vec<_>>(),
+            || {
+                for points in pending.drain(..) {
+                    grid.add_all(points);
+                }
+            },
+        );
+        pending = next;
+    }
+    for points in pending {
+        grid.add_all(points);
+    }
+    grid
+}
+
+/// A model point: world position (metres), intensity, RGB.
+type ModelPoint = (DVec3, u8, [u8; 3]);
+
+/// The world points (metres) of keyframe `k` that the previous keyframe of the same session
+/// did not already see, in pixel order.
+fn keyframe_new_points(
+    keyframes: &[Keyframe],
+    world_from_keyframe: &[Se3],
+    k: usize,
+    camera: &PinholeCamera,
+    params: &ModelParams,
+) -> Vec<ModelPoint> {
+    let (kf, pose) = (&keyframes[k], &world_from_keyframe[k]);
+    let prev = if k > 0 && keyframes[k - 1].session == kf.session {
+        Some((
+            &keyframes[k - 1],
+            world_from_keyframe[k - 1].inverse() * *pose,
+        ))
+    } else {
+        None
+    };
+    let mut out = Vec::new();
+    for (p, i) in kf.pixel_points(camera, params.step, params.min_weight) {
+        if let Some((pk, prev_from_this)) = &prev {
+            let q = prev_from_this.transform_point(p);
+            if q.z > 0.0 {
+                let u = (camera.fx * q.x / q.z + camera.cx).round();
+                let v = (camera.fy * q.y / q.z + camera.cy).round();
+                if u >= 0.0 && v >= 0.0 && (u as usize) < pk.width && (v as usize) < pk.height {
+                    let r =
+                        f64::from(pk.inverse_depth[v as usize * pk.width + u as usize].to_f32());
+                    if r > 0.0 && (r - 1.0 / q.z).abs() < params.seen_tolerance {
+                        continue;
                     }
                 }
             }
-            grid.add(pose.transform_point(p), kf.intensity[i], kf.rgb_at(i));
         }
+        out.push((pose.transform_point(p), kf.intensity[i], kf.rgb_at(i)));
     }
-    grid
+    out
 }
 
 /// One voxel of [`VoxelGrid`]: sum of positions, sums of intensity and of R, G, B, point
@@ -173,7 +212,7 @@ type Cell = (DVec3, [u32; 4], usize);
 /// is not positive).
 struct VoxelGrid {
     size: f64,
-    cells: HashMap<(i64, i64, i64), Cell>,
+    cells: HashMap<(i64, i64, i64), Cell, BuildHasherDefault<FxHasher>>,
     order: Vec<(i64, i64, i64)>,
     raw: Vec<(DVec3, u8, [u8; 3])>,
 }
@@ -182,9 +221,15 @@ impl VoxelGrid {
     fn new(size: f64) -> Self {
         VoxelGrid {
             size,
-            cells: HashMap::new(),
+            cells: HashMap::default(),
             order: Vec::new(),
             raw: Vec::new(),
+        }
+    }
+
+    fn add_all(&mut self, points: Vec<ModelPoint>) {
+        for (p, i, rgb) in points {
+            self.add(p, i, rgb);
         }
     }
 
@@ -281,6 +326,50 @@ mod tests {
             .collect();
         kf.with_colour(ColourImage::from_rgb(W, H, rgb).unwrap())
             .unwrap()
+    }
+
+    #[test]
+    fn keyframes_found_in_parallel_accumulate_as_one_serial_pass() {
+        let camera = PinholeCamera::new(10.0, 10.0, 3.5, 2.5, W as u32, H as u32);
+        // More keyframes than one parallel chunk holds, stepping sideways by less than the
+        // wall's width so that each one sees part of the last one's points, and a second
+        // session from the sixth on (nothing of the first session counts as seen there).
+        let keyframes: Vec<Keyframe> = (0..11)
+            .map(|k| Keyframe {
+                id: k,
+                session: u32::from(k >= 5),
+                intensity: (0..W * H).map(|i| (7 * k + i) as u8).collect(),
+                ..keyframe(false)
+            })
+            .collect();
+        let poses: Vec<Se3> = (0..11)
+            .map(|k| Se3::new(glam::DQuat::IDENTITY, DVec3::new(0.13 * k as f64, 0.0, 0.0)))
+            .collect();
+        for voxel in [0.0, 0.05, 0.3] {
+            let params = ModelParams {
+                step: 1,
+                voxel,
+                ..ModelParams::default()
+            };
+            let mut serial = VoxelGrid::new(voxel);
+            let mut dropped = 0;
+            for k in 0..keyframes.len() {
+                let points = keyframe_new_points(&keyframes, &poses, k, &camera, &params);
+                dropped += W * H - points.len();
+                serial.add_all(points);
+            }
+            assert!(dropped > 0, "some points count as already seen");
+            let serial = serial.coloured_points();
+            let found = build_coloured_model(&keyframes, &poses, &camera, &params);
+            assert_eq!(found.len(), serial.len());
+            for (a, b) in found.iter().zip(&serial) {
+                assert_eq!(
+                    a.0.to_array().map(f64::to_bits),
+                    b.0.to_array().map(f64::to_bits)
+                );
+                assert_eq!(a.1, b.1);
+            }
+        }
     }
 
     #[test]
