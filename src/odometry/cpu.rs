@@ -299,26 +299,31 @@ pub fn normal_equations_and_sample(
     let (n, count) = (w * h, p.samples as usize);
     let k = Warp::new(p);
     let rows_per = h.div_ceil(chunks.max(1)).max(1);
-    let bands: Vec<_> = (0..h.div_ceil(rows_per))
+    let bands = h.div_ceil(rows_per);
+    // Band `c` takes the samples whose pixels fall in its rows, `first[c]..first[c + 1]`,
+    // written in place into the one sample.
+    let first: Vec<usize> = (0..=bands)
+        .map(|c| first_sample_at((c * rows_per).min(h) * w, count, n).min(count))
+        .collect();
+    let mut sample = vec![[INVALID_RESIDUAL; 2]; count];
+    let mut slices = Vec::with_capacity(bands);
+    let mut rest: &mut [[f32; 2]] = &mut sample;
+    for c in 0..bands {
+        let (band, after) = std::mem::take(&mut rest).split_at_mut(first[c + 1] - first[c]);
+        slices.push(band);
+        rest = after;
+    }
+    let parts = slices
         .into_par_iter()
-        .map(|c| {
+        .enumerate()
+        .map(|(c, band_sample)| {
             let rows = c * rows_per..((c + 1) * rows_per).min(h);
-            // The samples whose pixels fall in these rows.
-            let k_lo = first_sample_at(rows.start * w, count, n).min(count);
-            let k_hi = first_sample_at(rows.end * w, count, n).min(count);
-            let mut sample = vec![[INVALID_RESIDUAL; 2]; k_hi - k_lo];
             let mut acc = PartialSums::default();
-            let walk = SampleWalk::new(k_lo, count, n);
-            accumulate_rows(&k, &bufs, rows, &mut acc, Some((&mut sample, walk)));
-            (acc.to_partial(), sample)
+            let walk = SampleWalk::new(first[c], count, n);
+            accumulate_rows(&k, &bufs, rows, &mut acc, Some((band_sample, walk)));
+            acc.to_partial()
         })
         .collect();
-    let mut parts = Vec::with_capacity(bands.len());
-    let mut sample = Vec::with_capacity(count);
-    for (a, s) in bands {
-        parts.push(a);
-        sample.extend(s);
-    }
     (parts, sample)
 }
 
