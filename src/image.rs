@@ -475,6 +475,12 @@ pub fn rgb_to_intensity(r: u8, g: u8, b: u8) -> f32 {
     0.299 * f32::from(r) + 0.587 * f32::from(g) + 0.114 * f32::from(b)
 }
 
+/// An intensity in `[0, 255]` as a byte: rounded to the nearest, clamped (NaN gives 0).
+#[inline]
+pub(crate) fn intensity_byte(v: f32) -> u8 {
+    v.round().clamp(0.0, 255.0) as u8
+}
+
 /// A deterministic textured frame for kernel tests: intensity from a few sinusoids plus
 /// hashed noise, inverse depth of a slanted plane with a bump, and holes (0) in a corner and
 /// on a sparse grid (so the validity logic is exercised).

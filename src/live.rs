@@ -278,7 +278,7 @@ pub(crate) fn recorded_buffers(frame: &RgbdFrame) -> (Vec<u8>, Vec<u16>) {
             .intensity()
             .data()
             .iter()
-            .flat_map(|&v| [v.round().clamp(0.0, 255.0) as u8; 3])
+            .flat_map(|&v| [crate::image::intensity_byte(v); 3])
             .collect(),
     };
     let depth = frame

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 use crate::camera::PinholeCamera;
 use crate::geometry::{Covariance6, Se3};
-use crate::image::{ColourImage, FrameColour, ImageError, ImageF32, RgbdFrame};
+use crate::image::{intensity_byte, ColourImage, FrameColour, ImageError, ImageF32, RgbdFrame};
 
 /// How a keyframe is attached to the map when it is created.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -72,11 +72,6 @@ pub struct Keyframe {
 /// Pixels per parallel task when packing: packing runs on the tracking thread between frames.
 const MIN_PER_TASK: usize = 1 << 14;
 
-/// `v` rounded to the nearest byte, clamped to 0..=255.
-fn byte(v: f32) -> u8 {
-    v.round().clamp(0.0, 255.0) as u8
-}
-
 impl Keyframe {
     /// Packs images of one size into a keyframe.
     #[allow(clippy::too_many_arguments)]
@@ -102,7 +97,7 @@ impl Keyframe {
                 .data
                 .par_iter()
                 .with_min_len(MIN_PER_TASK)
-                .map(|&v| byte(v))
+                .map(|&v| intensity_byte(v))
                 .collect(),
             inverse_depth: inverse_depth
                 .data
@@ -114,7 +109,7 @@ impl Keyframe {
                 .data
                 .par_iter()
                 .with_min_len(MIN_PER_TASK)
-                .map(|&w| byte(w))
+                .map(|&w| intensity_byte(w))
                 .collect(),
             colour: None,
             world_from_keyframe,

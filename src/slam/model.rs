@@ -141,13 +141,18 @@ fn model_grid(
     // the previous few, in keyframe order: every voxel's sums and the order in which voxels
     // are first filled are those of one serial pass, and memory stays bounded by the chunk.
     let chunk = rayon::current_num_threads().max(1) * 2;
-    let indices: Vec<usize> = (0..keyframes.len().min(world_from_keyframe.len())).collect();
+    let n = keyframes.len().min(world_from_keyframe.len());
     let new_points =
         |k: usize| keyframe_new_points(keyframes, world_from_keyframe, k, camera, params);
     let mut pending: Vec<Vec<ModelPoint>> = Vec::new();
-    for ks in indices.chunks(chunk) {
+    for start in (0..n).step_by(chunk) {
         let (next, ()) = rayon::join(
-            || ks.par_iter().map(|&k| new_points(k)).collect::<Vec<_>>(),
+            || {
+                (start..(start + chunk).min(n))
+                    .into_par_iter()
+                    .map(new_points)
+                    .collect::<Vec<_>>()
+            },
             || {
                 for points in pending.drain(..) {
                     grid.add_all(points);
@@ -214,7 +219,7 @@ struct VoxelGrid {
     size: f64,
     cells: HashMap<(i64, i64, i64), Cell, BuildHasherDefault<FxHasher>>,
     order: Vec<(i64, i64, i64)>,
-    raw: Vec<(DVec3, u8, [u8; 3])>,
+    raw: Vec<ModelPoint>,
 }
 
 impl VoxelGrid {
